@@ -1,0 +1,184 @@
+"""Event streams: storage, validation, time slicing and fixed-window iteration.
+
+An event is ``(x, y, t, p)``: integer pixel column ``x`` and row ``y``, timestamp ``t`` in
+**int64 microseconds** (never float32 seconds: at 1e9 us a float32 resolves only 64 us), and
+polarity ``p`` in ``{0, 1}`` (1 = brightness increase).
+
+Slicing and window iteration return views into the same storage, never copies.
+
+Example:
+    >>> import torch
+    >>> from torchevtrack.events import EventStream
+    >>> ev = EventStream.from_arrays(x=[1, 2, 3], y=[0, 0, 1], t=[0, 1500, 2500], p=[1, 0, 1])
+    >>> [len(w) for _, w in ev.windows(2000)]
+    [2, 1]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterator
+
+import numpy as np
+import torch
+
+__all__ = ["EventStream", "US_PER_S"]
+
+US_PER_S = 1_000_000
+
+
+def _as_tensor(a, dtype: torch.dtype, name: str) -> torch.Tensor:
+    if isinstance(a, torch.Tensor):
+        t = a
+    else:
+        arr = np.asarray(a)
+        if arr.dtype.kind not in "iub" and arr.size:
+            raise TypeError(f"event field {name!r} must be integer, got dtype {arr.dtype}")
+        t = torch.from_numpy(np.ascontiguousarray(arr))
+    if t.is_floating_point() or t.is_complex():
+        raise TypeError(f"event field {name!r} must be an integer tensor, got {t.dtype}")
+    if t.ndim != 1:
+        raise ValueError(f"event field {name!r} must be 1-D, got shape {tuple(t.shape)}")
+    return t.to(dtype)
+
+
+@dataclass(frozen=True)
+class EventStream:
+    """A time-sorted sequence of events held as four 1-D tensors of equal length ``N``.
+
+    Attributes:
+        x: ``(N,)`` int16 pixel columns.
+        y: ``(N,)`` int16 pixel rows.
+        t: ``(N,)`` int64 timestamps, microseconds.
+        p: ``(N,)`` int8 polarity in ``{0, 1}``.
+    """
+
+    x: torch.Tensor
+    y: torch.Tensor
+    t: torch.Tensor
+    p: torch.Tensor
+
+    @classmethod
+    def from_arrays(cls, x, y, t, p, *, validate: bool = True, width: int | None = None,
+                    height: int | None = None) -> "EventStream":
+        """Build from array-likes; polarity may be {0, 1}, {-1, 1} or bool (all map to {0, 1})."""
+        tt = _as_tensor(t, torch.int64, "t")
+        pp = _as_tensor(p, torch.int64, "p")
+        if pp.numel() and bool((pp < -1).any() or (pp > 1).any()):
+            raise ValueError("polarity must be in {0, 1} or {-1, 1}")
+        ev = cls(
+            _as_tensor(x, torch.int16, "x") if _fits16(x) else _bad16("x"),
+            _as_tensor(y, torch.int16, "y") if _fits16(y) else _bad16("y"),
+            tt,
+            (pp > 0).to(torch.int8),
+        )
+        if validate:
+            ev.validate(width, height)
+        return ev
+
+    @classmethod
+    def empty(cls) -> "EventStream":
+        z16 = torch.zeros(0, dtype=torch.int16)
+        return cls(z16, z16.clone(), torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.int8))
+
+    @classmethod
+    def concat(cls, streams: list["EventStream"]) -> "EventStream":
+        """Concatenate streams in order (the result must still be time-sorted to validate)."""
+        if not streams:
+            return cls.empty()
+        return cls(*(torch.cat([getattr(s, f) for s in streams]) for f in ("x", "y", "t", "p")))
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    def __getitem__(self, index: slice) -> "EventStream":
+        if not isinstance(index, slice):
+            raise TypeError("EventStream supports slicing only (views); use .select(mask) for masks")
+        return EventStream(self.x[index], self.y[index], self.t[index], self.p[index])
+
+    def select(self, mask: torch.Tensor) -> "EventStream":
+        """Events where ``mask`` is true (a copy)."""
+        return EventStream(self.x[mask], self.y[mask], self.t[mask], self.p[mask])
+
+    @property
+    def t_start(self) -> int:
+        return int(self.t[0]) if len(self) else 0
+
+    @property
+    def t_end(self) -> int:
+        return int(self.t[-1]) if len(self) else 0
+
+    @property
+    def duration_s(self) -> float:
+        return (self.t_end - self.t_start) / US_PER_S
+
+    def validate(self, width: int | None = None, height: int | None = None) -> "EventStream":
+        """Check shapes, dtypes, sorted non-negative time and sensor bounds; raise ``ValueError``."""
+        n = len(self)
+        for name in ("x", "y", "p"):
+            f = getattr(self, name)
+            if f.ndim != 1 or f.shape[0] != n:
+                raise ValueError(f"event field {name!r} has shape {tuple(f.shape)}, expected ({n},)")
+        if self.t.dtype != torch.int64:
+            raise TypeError(f"timestamps must be int64 microseconds, got {self.t.dtype}")
+        if n == 0:
+            return self
+        if int(self.t[0]) < 0:
+            raise ValueError(f"negative timestamp {int(self.t[0])} us at event 0")
+        bad = torch.nonzero(self.t[1:] < self.t[:-1])
+        if bad.numel():
+            i = int(bad[0]) + 1
+            raise ValueError(
+                f"timestamps are not sorted: event {i} at t={int(self.t[i])} us follows t={int(self.t[i - 1])} us"
+            )
+        for name, size in (("x", width), ("y", height)):
+            f = getattr(self, name)
+            lo = int(f.min())
+            hi = int(f.max())
+            if lo < 0 or (size is not None and hi >= size):
+                i = int(torch.nonzero((f < 0) | (f >= (size if size is not None else 1 << 30)))[0])
+                raise ValueError(
+                    f"pixel out of bounds: event {i} has {name}={int(f[i])}"
+                    + (f", sensor {name}-size is {size}" if size is not None else "")
+                )
+        return self
+
+    def slice_time(self, t0: int, t1: int) -> "EventStream":
+        """Events with ``t0 <= t < t1`` (microseconds), as a view."""
+        i0, i1 = torch.searchsorted(self.t, torch.tensor([t0, t1], dtype=torch.int64)).tolist()
+        return self[i0:i1]
+
+    def windows(self, dt_us: int, t_start: int | None = None,
+                t_end: int | None = None) -> Iterator[tuple[int, "EventStream"]]:
+        """Iterate consecutive windows ``[t_k - dt_us, t_k)`` and yield ``(t_k, view)``.
+
+        ``t_k = t_start + k * dt_us`` for ``k = 1, 2, ...`` until the window holding ``t_end`` (default:
+        the first and last timestamps, so every event is in exactly one window). Empty windows are
+        yielded too, so the caller keeps a fixed rate.
+        """
+        if dt_us <= 0:
+            raise ValueError(f"window length must be positive, got {dt_us} us")
+        t_start = self.t_start if t_start is None else int(t_start)
+        t_end = self.t_end if t_end is None else int(t_end)
+        n = -(-(t_end - t_start + 1) // dt_us)
+        if n <= 0:
+            return
+        bounds = t_start + dt_us * torch.arange(n + 1, dtype=torch.int64)
+        idx = torch.searchsorted(self.t, bounds).tolist()
+        for k in range(n):
+            yield int(bounds[k + 1]), self[idx[k]: idx[k + 1]]
+
+    def event_rate(self) -> float:
+        """Mean events per second."""
+        return len(self) / self.duration_s if self.duration_s > 0 else 0.0
+
+
+def _fits16(a) -> bool:
+    arr = a if isinstance(a, torch.Tensor) else np.asarray(a)
+    if len(arr) == 0:
+        return True
+    return int(arr.min()) >= -(1 << 15) and int(arr.max()) < (1 << 15)
+
+
+def _bad16(name: str):
+    raise ValueError(f"event field {name!r} has pixel coordinates beyond the int16 range")

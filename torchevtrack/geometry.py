@@ -1,0 +1,235 @@
+"""Quaternions and rigid poses.
+
+Conventions, used everywhere in torchevtrack:
+
+* A **pose** is the object in the camera frame: a camera-frame point is
+  ``X_cam = R @ X_obj + t``. Camera axes follow OpenCV (x right, y down, z forward), metres.
+* A pose tensor has shape ``(..., 7)`` laid out as ``[tx, ty, tz, qw, qx, qy, qz]``.
+* Quaternions are Hamilton, scalar first ``(w, x, y, z)``, unit norm, and are returned with
+  ``w >= 0`` where a function picks a sign.
+* A twist ``[v, w]`` (``(..., 6)``) is the object's velocity in the camera frame: ``dt/dt = v``
+  and ``dR/dt = [w]x R`` (angular velocity expressed in the camera frame), so rotations are
+  applied on the **left**: ``q(t + dt) = exp(w dt) (x) q(t)``.
+* File formats that store ``qx qy qz qw`` (TUM, CSV) are converted at the I/O boundary only.
+
+Example:
+    >>> import torch
+    >>> from torchevtrack.geometry import pose_from_rt, transform_points
+    >>> pose = pose_from_rt(torch.eye(3), torch.tensor([0.0, 0.0, 0.5]))
+    >>> transform_points(pose, torch.zeros(1, 3))
+    tensor([[0.0000, 0.0000, 0.5000]])
+"""
+
+from __future__ import annotations
+
+import torch
+from kornia.geometry.conversions import (
+    axis_angle_to_quaternion,
+    quaternion_to_axis_angle,
+    quaternion_to_rotation_matrix,
+    rotation_matrix_to_quaternion,
+)
+
+__all__ = [
+    "quat_normalize",
+    "quat_canonical",
+    "quat_mul",
+    "quat_conj",
+    "quat_to_matrix",
+    "matrix_to_quat",
+    "quat_exp",
+    "quat_log",
+    "quat_rotate",
+    "quat_slerp",
+    "pose_from_rt",
+    "pose_to_matrix",
+    "matrix_to_pose",
+    "pose_compose",
+    "pose_inverse",
+    "transform_points",
+    "pose_integrate",
+    "interpolate_poses",
+    "check_pose",
+]
+
+
+def quat_normalize(q: torch.Tensor) -> torch.Tensor:
+    """Unit quaternion. Shape: ``(..., 4) -> (..., 4)``."""
+    return q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def quat_canonical(q: torch.Tensor) -> torch.Tensor:
+    """Normalised quaternion with non-negative scalar part. Shape: ``(..., 4)``."""
+    q = quat_normalize(q)
+    return torch.where(q[..., :1] < 0, -q, q)
+
+
+def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product ``a (x) b`` of ``(w, x, y, z)`` quaternions (rotation ``b`` first).
+
+    Shape: ``(..., 4), (..., 4) -> (..., 4)`` with broadcasting.
+    """
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        (
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ),
+        dim=-1,
+    )
+
+
+def quat_conj(q: torch.Tensor) -> torch.Tensor:
+    """Conjugate (the inverse of a unit quaternion). Shape: ``(..., 4)``."""
+    return q * q.new_tensor([1.0, -1.0, -1.0, -1.0])
+
+
+def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix of a ``(w, x, y, z)`` quaternion. Shape: ``(..., 4) -> (..., 3, 3)``."""
+    return quaternion_to_rotation_matrix(quat_normalize(q))
+
+
+def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
+    """Canonical ``(w, x, y, z)`` quaternion of a rotation matrix. Shape: ``(..., 3, 3) -> (..., 4)``."""
+    return quat_canonical(rotation_matrix_to_quaternion(R.contiguous()))
+
+
+def quat_exp(phi: torch.Tensor) -> torch.Tensor:
+    """Quaternion of the rotation vector ``phi`` (axis * angle, radians).
+
+    This is ``exp(phi / 2)`` of the pure quaternion ``(0, phi)``. Shape: ``(..., 3) -> (..., 4)``.
+    """
+    return axis_angle_to_quaternion(phi)
+
+
+def quat_log(q: torch.Tensor) -> torch.Tensor:
+    """Rotation vector (radians) of a unit quaternion, angle in ``[0, pi]``. Shape: ``(..., 4) -> (..., 3)``."""
+    return quaternion_to_axis_angle(quat_canonical(q))
+
+
+def quat_rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Rotate vectors ``v`` by unit quaternions ``q``. Shape: ``(..., 4), (..., 3) -> (..., 3)``."""
+    w, u = q[..., :1], q[..., 1:]
+    uv = torch.linalg.cross(u.expand_as(v), v, dim=-1)
+    return v + 2.0 * (w * uv + torch.linalg.cross(u.expand_as(v), uv, dim=-1))
+
+
+def quat_slerp(q0: torch.Tensor, q1: torch.Tensor, tau: torch.Tensor | float) -> torch.Tensor:
+    """Spherical linear interpolation along the shorter arc.
+
+    Shape: ``(..., 4), (..., 4), (...) -> (..., 4)``; ``tau`` in ``[0, 1]``.
+    """
+    tau = torch.as_tensor(tau, dtype=q0.dtype, device=q0.device)[..., None]
+    q0, q1 = quat_normalize(q0), quat_normalize(q1)
+    dot = (q0 * q1).sum(-1, keepdim=True)
+    q1 = torch.where(dot < 0, -q1, q1)
+    dot = dot.abs().clamp(max=1.0)
+    theta = torch.acos(dot)
+    sin_theta = torch.sin(theta)
+    small = sin_theta < 1e-6
+    safe = torch.where(small, torch.ones_like(sin_theta), sin_theta)
+    w0 = torch.where(small, 1.0 - tau, torch.sin((1.0 - tau) * theta) / safe)
+    w1 = torch.where(small, tau, torch.sin(tau * theta) / safe)
+    return quat_normalize(w0 * q0 + w1 * q1)
+
+
+def pose_from_rt(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Pose ``[t, q]`` from a rotation matrix and translation. Shape: ``(..., 3, 3), (..., 3) -> (..., 7)``."""
+    return torch.cat((t, matrix_to_quat(R).to(t.dtype)), dim=-1)
+
+
+def pose_to_matrix(pose: torch.Tensor) -> torch.Tensor:
+    """Homogeneous 4x4 transform of a pose. Shape: ``(..., 7) -> (..., 4, 4)``."""
+    T = torch.zeros(*pose.shape[:-1], 4, 4, dtype=pose.dtype, device=pose.device)
+    T[..., :3, :3] = quat_to_matrix(pose[..., 3:])
+    T[..., :3, 3] = pose[..., :3]
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def matrix_to_pose(T: torch.Tensor) -> torch.Tensor:
+    """Pose of a homogeneous transform. Shape: ``(..., 4, 4) -> (..., 7)``."""
+    return pose_from_rt(T[..., :3, :3], T[..., :3, 3])
+
+
+def pose_compose(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Composition ``a * b`` (apply ``b`` first). Shape: ``(..., 7), (..., 7) -> (..., 7)``."""
+    t = quat_rotate(a[..., 3:], b[..., :3]) + a[..., :3]
+    return torch.cat((t, quat_canonical(quat_mul(a[..., 3:], b[..., 3:]))), dim=-1)
+
+
+def pose_inverse(pose: torch.Tensor) -> torch.Tensor:
+    """Inverse pose. Shape: ``(..., 7) -> (..., 7)``."""
+    qi = quat_conj(pose[..., 3:])
+    return torch.cat((-quat_rotate(qi, pose[..., :3]), quat_canonical(qi)), dim=-1)
+
+
+def transform_points(pose: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Map object points into the camera frame.
+
+    Shape: ``(..., 7), (..., N, 3) -> (..., N, 3)``.
+    """
+    R = quat_to_matrix(pose[..., 3:])
+    return points @ R.transpose(-1, -2) + pose[..., None, :3]
+
+
+def pose_integrate(pose: torch.Tensor, twist: torch.Tensor, dt: torch.Tensor | float) -> torch.Tensor:
+    """Propagate a pose with a constant camera-frame twist for ``dt`` seconds.
+
+    ``t+ = t + v dt`` and ``q+ = exp(w dt) (x) q`` (the paper's propagation, Eq. 6).
+
+    Shape: ``(..., 7), (..., 6), (...) or float -> (..., 7)``.
+    """
+    dt = torch.as_tensor(dt, dtype=pose.dtype, device=pose.device)[..., None]
+    t = pose[..., :3] + twist[..., :3] * dt
+    q = quat_mul(quat_exp(twist[..., 3:] * dt), pose[..., 3:])
+    return torch.cat((t, quat_canonical(q)), dim=-1)
+
+
+def interpolate_poses(times: torch.Tensor, poses: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
+    """Poses at ``query`` times: linear in translation, slerp in rotation.
+
+    Times are int64 microseconds (or any monotonic integer / float64 unit, the same for both).
+    Queries outside ``[times[0], times[-1]]`` raise: nothing is extrapolated.
+
+    Shape: ``(N,), (N, 7), (M,) -> (M, 7)``.
+    """
+    if times.ndim != 1 or poses.shape != (times.shape[0], 7):
+        raise ValueError(f"expected times (N,) and poses (N, 7), got {tuple(times.shape)} and {tuple(poses.shape)}")
+    if times.numel() == 0:
+        raise ValueError("cannot interpolate an empty trajectory")
+    if bool((query < times[0]).any() or (query > times[-1]).any()):
+        raise ValueError(
+            f"query times [{int(query.min())}, {int(query.max())}] leave the trajectory range "
+            f"[{int(times[0])}, {int(times[-1])}]: no extrapolation"
+        )
+    i1 = torch.searchsorted(times, query, right=False).clamp(1, max(times.numel() - 1, 1))
+    i0 = i1 - 1
+    if times.numel() == 1:
+        return poses.expand(query.shape[0], 7).clone()
+    span = (times[i1] - times[i0]).to(torch.float64)
+    tau = ((query - times[i0]).to(torch.float64) / span.clamp_min(1e-12)).clamp(0, 1).to(poses.dtype)
+    t = poses[i0, :3] + (poses[i1, :3] - poses[i0, :3]) * tau[:, None]
+    q = quat_slerp(poses[i0, 3:], poses[i1, 3:], tau)
+    return torch.cat((t, quat_canonical(q)), dim=-1)
+
+
+def check_pose(pose: torch.Tensor, name: str = "pose", atol: float = 1e-3) -> torch.Tensor:
+    """Validate poses ``(..., 7)``: finite, unit quaternion (to ``atol``), object in front of the camera.
+
+    Returns the pose with its quaternion renormalised; raises ``ValueError`` with the reason.
+    """
+    pose = torch.as_tensor(pose)
+    if pose.shape[-1:] != (7,):
+        raise ValueError(f"{name} must have shape (..., 7) [tx, ty, tz, qw, qx, qy, qz], got {tuple(pose.shape)}")
+    if not torch.isfinite(pose).all():
+        raise ValueError(f"{name} contains NaN or infinite values")
+    norm = pose[..., 3:].norm(dim=-1)
+    if ((norm - 1).abs() > atol).any():
+        raise ValueError(f"{name} quaternion is not unit norm (|q| = {norm.flatten().tolist()})")
+    if (pose[..., 2] <= 0).any():
+        raise ValueError(f"{name} places the object behind the camera (tz <= 0)")
+    return torch.cat((pose[..., :3], quat_canonical(pose[..., 3:])), dim=-1)
