@@ -1,0 +1,5 @@
+import sys
+
+from torchevtrack.cli import main
+
+sys.exit(main())
