@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError, TypeError, KeyError) as e:
+    except (ValueError, FileNotFoundError) as e:
         print(f"torchevtrack {args.command}: error: {e}", file=sys.stderr)
         return 2
 
