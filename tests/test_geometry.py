@@ -1,0 +1,117 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation, Slerp
+
+from torchevtrack import geometry as g
+
+torch.manual_seed(0)
+
+
+def _rand_quat(n):
+    return g.quat_canonical(torch.randn(n, 4, dtype=torch.float64))
+
+
+def _rand_pose(n):
+    return torch.cat((torch.randn(n, 3, dtype=torch.float64), _rand_quat(n)), dim=-1)
+
+
+def _scipy(q):
+    return Rotation.from_quat(q[..., [1, 2, 3, 0]].numpy())
+
+
+def test_quat_to_matrix_matches_scipy():
+    q = _rand_quat(50)
+    np.testing.assert_allclose(g.quat_to_matrix(q).numpy(), _scipy(q).as_matrix(), atol=1e-12)
+
+
+def test_matrix_to_quat_roundtrip_and_sign():
+    R = torch.from_numpy(Rotation.random(50, random_state=1).as_matrix())
+    q = g.matrix_to_quat(R)
+    assert (q[:, 0] >= 0).all()
+    np.testing.assert_allclose(g.quat_to_matrix(q).numpy(), R.numpy(), atol=1e-10)
+
+
+def test_quat_mul_is_rotation_composition():
+    a, b = _rand_quat(20), _rand_quat(20)
+    expected = (_scipy(a) * _scipy(b)).as_matrix()
+    np.testing.assert_allclose(g.quat_to_matrix(g.quat_mul(a, b)).numpy(), expected, atol=1e-12)
+
+
+def test_exp_log_match_scipy_rotvec():
+    phi = torch.randn(30, 3, dtype=torch.float64)
+    phi = phi / phi.norm(dim=-1, keepdim=True) * torch.rand(30, 1, dtype=torch.float64) * 3.0
+    np.testing.assert_allclose(g.quat_to_matrix(g.quat_exp(phi)).numpy(), Rotation.from_rotvec(phi.numpy()).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(g.quat_log(g.quat_exp(phi)).numpy(), phi.numpy(), atol=1e-9)
+
+
+def test_exp_tiny_angle_is_stable():
+    phi = torch.tensor([[1e-12, 0.0, 0.0]], dtype=torch.float64)
+    q = g.quat_exp(phi)
+    assert torch.isfinite(q).all() and abs(float(q[0, 0]) - 1.0) < 1e-12
+
+
+def test_quat_rotate_matches_matrix():
+    q = _rand_quat(10)
+    v = torch.randn(10, 3, dtype=torch.float64)
+    np.testing.assert_allclose(g.quat_rotate(q, v).numpy(), _scipy(q).apply(v.numpy()), atol=1e-12)
+
+
+def test_slerp_endpoints_midpoint_and_scipy():
+    q0, q1 = _rand_quat(8), _rand_quat(8)
+    np.testing.assert_allclose(g.quat_slerp(q0, q1, 0.0).numpy(), q0.numpy(), atol=1e-12)
+    end = g.quat_slerp(q0, q1, 1.0)
+    np.testing.assert_allclose(g.quat_to_matrix(end).numpy(), g.quat_to_matrix(q1).numpy(), atol=1e-12)
+    for i in range(8):
+        key = Rotation.from_quat(torch.stack((q0[i], q1[i]))[:, [1, 2, 3, 0]].numpy())
+        mid = Slerp([0.0, 1.0], key)([0.3]).as_matrix()[0]
+        np.testing.assert_allclose(g.quat_to_matrix(g.quat_slerp(q0[i], q1[i], 0.3)).numpy(), mid, atol=1e-10)
+
+
+def test_slerp_identical_quaternions():
+    q = _rand_quat(1)
+    np.testing.assert_allclose(g.quat_slerp(q, q, 0.5).numpy(), q.numpy(), atol=1e-12)
+
+
+def test_pose_matrix_compose_inverse():
+    a, b = _rand_pose(10), _rand_pose(10)
+    Ta, Tb = g.pose_to_matrix(a), g.pose_to_matrix(b)
+    np.testing.assert_allclose(g.pose_to_matrix(g.pose_compose(a, b)).numpy(), (Ta @ Tb).numpy(), atol=1e-12)
+    np.testing.assert_allclose(g.pose_to_matrix(g.pose_inverse(a)).numpy(), np.linalg.inv(Ta.numpy()), atol=1e-10)
+    np.testing.assert_allclose(g.matrix_to_pose(Ta).numpy(), a.numpy(), atol=1e-10)
+
+
+def test_transform_points_matches_scipy():
+    pose = _rand_pose(1)[0]
+    pts = torch.randn(7, 3, dtype=torch.float64)
+    expected = _scipy(pose[3:]).apply(pts.numpy()) + pose[:3].numpy()
+    np.testing.assert_allclose(g.transform_points(pose, pts).numpy(), expected, atol=1e-12)
+
+
+def test_interpolate_poses_slerp_and_no_extrapolation():
+    t = torch.tensor([0, 1000, 3000], dtype=torch.int64)
+    poses = _rand_pose(3)
+    q = torch.tensor([0, 500, 1000, 2000, 3000], dtype=torch.int64)
+    out = g.interpolate_poses(t, poses, q)
+    np.testing.assert_allclose(out[[0, 2, 4]].numpy(), poses.numpy(), atol=1e-12)  # knots come back unchanged
+    key = Rotation.from_quat(poses[:, [4, 5, 6, 3]].numpy())
+    expected = Slerp([0.0, 1000.0, 3000.0], key)([500.0, 2000.0]).as_matrix()
+    np.testing.assert_allclose(g.quat_to_matrix(out[[1, 3], 3:]).numpy(), expected, atol=1e-10)
+    np.testing.assert_allclose(out[1, :3].numpy(), ((poses[0, :3] + poses[1, :3]) / 2).numpy(), atol=1e-12)
+    with pytest.raises(ValueError, match="extrapolation"):
+        g.interpolate_poses(t, poses, torch.tensor([3001]))
+
+
+def test_check_pose_rejects_bad_poses():
+    good = torch.tensor([0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0])
+    assert torch.equal(g.check_pose(good), good)
+    with pytest.raises(ValueError, match="NaN"):
+        g.check_pose(torch.tensor([math.nan, 0, 0.5, 1, 0, 0, 0]))
+    with pytest.raises(ValueError, match="unit"):
+        g.check_pose(torch.tensor([0, 0, 0.5, 2.0, 0, 0, 0]))
+    with pytest.raises(ValueError, match="behind"):
+        g.check_pose(torch.tensor([0, 0, -0.5, 1.0, 0, 0, 0]))
+    with pytest.raises(ValueError, match="shape"):
+        g.check_pose(torch.zeros(6))
