@@ -1,0 +1,212 @@
+"""Event simulation from rendered frames (the ESIM algorithm), vectorised in torch.
+
+Each pixel keeps a reference log intensity ``ref``. Between two log frames ``(t0, L0)`` and ``(t1, L1)``
+a pixel whose level moved ``n = floor(|L1 - ref| / C)`` thresholds away emits ``n`` events of polarity
+``sign(L1 - ref)``; the ``k``-th (``k = 1..n``) sits at level ``ref + pol * k * C`` and at the time where
+the linear ramp ``L0 -> L1`` crosses it::
+
+    t_k = t0 + floor((ref + pol * k * C - L0) / (L1 - L0) * (t1 - t0))     (int64 microseconds)
+
+then ``ref += pol * n * C``. An event closer than ``refractory_us`` to the pixel's previous *emitted*
+event is dropped (``ref`` still advances). Events are sorted by time; ties keep pixel order
+(``y * W + x``) and then the order ``k`` within the pixel. Log intensity is ``L = log(I + 1e-3)``.
+
+Example:
+    >>> import torch
+    >>> sim = ESIM(1, 1, C=0.2, sigma_C=0.0)
+    >>> _ = sim(torch.full((1, 1), 0.2), 0)          # first frame: initialises ref
+    >>> ev = sim(torch.full((1, 1), 0.5), 1000)
+    >>> len(ev), ev.p.tolist()
+    (4, [1, 1, 1, 1])
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from torchevtrack.events import EventStream
+
+__all__ = ["LOG_EPS", "log_intensity", "esim_step", "noise_events", "ESIM"]
+
+LOG_EPS = 1e-3
+_NEVER = -(1 << 62)
+
+
+def log_intensity(image: torch.Tensor) -> torch.Tensor:
+    """``log(I + 1e-3)`` in float64. Shape: ``(..., H, W) -> (..., H, W)``; ``I`` in ``[0, 1]``."""
+    return torch.log(image.to(torch.float64) + LOG_EPS)
+
+
+def esim_step(
+    L0: torch.Tensor,
+    L1: torch.Tensor,
+    t0_us: int,
+    t1_us: int,
+    ref: torch.Tensor,
+    C: torch.Tensor,
+    last_t_us: torch.Tensor,
+    refractory_us: int = 0,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Events of one frame interval (pure function; inputs are not modified).
+
+    Args:
+        L0, L1: log intensity at ``t0_us`` and ``t1_us``, ``(H, W)``.
+        t0_us, t1_us: frame times, integer microseconds, ``t1_us > t0_us``.
+        ref: reference log level per pixel, ``(H, W)``.
+        C: contrast threshold per pixel (> 0), ``(H, W)``.
+        last_t_us: time of each pixel's last emitted event, int64 ``(H, W)`` (very negative = never).
+        refractory_us: minimum spacing of emitted events at one pixel, microseconds.
+
+    Returns:
+        ``x (N,) int64, y (N,) int64, t_us (N,) int64, p (N,) int8 in {0, 1}`` sorted by time, then the
+        updated ``ref`` (float64) and ``last_t_us`` (int64), ``(H, W)`` each.
+    """
+    if L0.ndim != 2 or L0.shape != L1.shape or ref.shape != L0.shape or C.shape != L0.shape:
+        raise ValueError(
+            f"L0, L1, ref and C must share one (H, W) shape, got {tuple(L0.shape)}, {tuple(L1.shape)}, "
+            f"{tuple(ref.shape)}, {tuple(C.shape)}"
+        )
+    if last_t_us.shape != L0.shape or last_t_us.dtype != torch.int64:
+        raise ValueError(f"last_t_us must be int64 of shape {tuple(L0.shape)}, got {last_t_us.dtype} "
+                         f"{tuple(last_t_us.shape)}")
+    t0_us, t1_us = int(t0_us), int(t1_us)
+    if t1_us <= t0_us:
+        raise ValueError(f"frame times must increase, got t0={t0_us} us, t1={t1_us} us")
+    if refractory_us < 0:
+        raise ValueError(f"refractory_us must be >= 0, got {refractory_us}")
+    W = L0.shape[1]
+    L0, L1, ref, C = (a.to(torch.float64) for a in (L0, L1, ref, C))
+    delta = L1 - ref
+    n = torch.floor(delta.abs() / C).to(torch.int64).flatten()
+    pol = torch.sign(delta).flatten()
+    new_ref = (ref.flatten() + pol * n.to(torch.float64) * C.flatten()).view_as(ref)
+
+    pix = torch.nonzero(n > 0).squeeze(1)
+    counts = n[pix]
+    ev_pix = torch.repeat_interleave(pix, counts)
+    # k = 1..n within each pixel, in pixel order.
+    starts = torch.cumsum(counts, 0) - counts
+    k = torch.arange(ev_pix.numel(), dtype=torch.int64) - torch.repeat_interleave(starts, counts) + 1
+    ev_pol = pol[ev_pix]
+    level = ref.flatten()[ev_pix] + ev_pol * k.to(torch.float64) * C.flatten()[ev_pix]
+    l0 = L0.flatten()[ev_pix]
+    tau = ((level - l0) / (L1.flatten()[ev_pix] - l0)).clamp(0.0, 1.0)
+    t = t0_us + torch.floor(tau * (t1_us - t0_us)).to(torch.int64)
+
+    last = last_t_us.flatten().clone()
+    if refractory_us > 0 and ev_pix.numel():
+        keep = torch.zeros(ev_pix.numel(), dtype=torch.bool)
+        for j in range(1, int(counts.max()) + 1):  # j-th event of every pixel at once
+            idx = torch.nonzero(k == j).squeeze(1)
+            ok = t[idx] - last[ev_pix[idx]] >= refractory_us
+            idx = idx[ok]
+            keep[idx] = True
+            last[ev_pix[idx]] = t[idx]
+        ev_pix, t, ev_pol = ev_pix[keep], t[keep], ev_pol[keep]
+    elif ev_pix.numel():
+        last.scatter_reduce_(0, ev_pix, t, reduce="amax")
+
+    order = torch.sort(t, stable=True).indices
+    ev_pix, t, ev_pol = ev_pix[order], t[order], ev_pol[order]
+    return ev_pix % W, ev_pix // W, t, (ev_pol > 0).to(torch.int8), new_ref, last.view_as(last_t_us)
+
+
+def noise_events(
+    height: int, width: int, t0_us: int, t1_us: int, rate_hz: float, generator: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Uniform background-activity noise: Poisson count ``rate_hz * H * W * dt``, uniform pixel, time in
+    ``[t0, t1)`` and polarity. Returns ``x, y, t_us (int64), p (int8)``, ``(N,)`` each, sorted by time."""
+    lam = torch.tensor(rate_hz * height * width * (t1_us - t0_us) / 1e6, dtype=torch.float64)
+    m = int(torch.poisson(lam, generator=generator))
+    pix = torch.randint(0, height * width, (m,), generator=generator)
+    t = t0_us + torch.randint(0, t1_us - t0_us, (m,), generator=generator)
+    p = torch.randint(0, 2, (m,), generator=generator).to(torch.int8)
+    order = torch.sort(t, stable=True).indices
+    return pix[order] % width, pix[order] // width, t[order], p[order]
+
+
+class ESIM(nn.Module):
+    """Stateful event simulator: feed frames in time order, get the events since the previous frame.
+
+    Args:
+        height, width: sensor size.
+        C: mean contrast threshold (log units).
+        sigma_C: per-pixel threshold spread; each pixel draws ``N(C, sigma_C)`` clipped to ``>= 0.01``.
+        refractory_us: per-pixel refractory period, microseconds.
+        noise_rate_hz: per-pixel rate of uniform noise events (they do not touch ``ref``).
+        seed: seeds the threshold map and the noise.
+
+    Buffers: ``ref (H, W)`` float64, ``C (H, W)`` float64, ``last_t_us (H, W)`` int64,
+    ``L_prev (H, W)`` float64, ``t_prev_us ()`` int64 (``-1`` before the first frame).
+    """
+
+    def __init__(self, height: int, width: int, C: float = 0.2, sigma_C: float = 0.03, refractory_us: int = 0,
+                 noise_rate_hz: float = 0.0, seed: int = 0) -> None:
+        super().__init__()
+        if height <= 0 or width <= 0:
+            raise ValueError(f"sensor size must be positive, got {width}x{height}")
+        if not C > 0 or sigma_C < 0:
+            raise ValueError(f"need C > 0 and sigma_C >= 0, got C={C}, sigma_C={sigma_C}")
+        if refractory_us < 0 or noise_rate_hz < 0:
+            raise ValueError(f"refractory_us and noise_rate_hz must be >= 0, got {refractory_us}, {noise_rate_hz}")
+        self.height, self.width = int(height), int(width)
+        self.refractory_us = int(refractory_us)
+        self.noise_rate_hz = float(noise_rate_hz)
+        self.generator = torch.Generator().manual_seed(int(seed))
+        c_map = C + sigma_C * torch.randn(self.height, self.width, generator=self.generator, dtype=torch.float64)
+        self.register_buffer("C", c_map.clamp_min(0.01))
+        self.register_buffer("ref", torch.zeros(self.height, self.width, dtype=torch.float64))
+        self.register_buffer("L_prev", torch.zeros(self.height, self.width, dtype=torch.float64))
+        self.register_buffer("last_t_us", torch.full((self.height, self.width), _NEVER, dtype=torch.int64))
+        self.register_buffer("t_prev_us", torch.tensor(-1, dtype=torch.int64))
+
+    def reset(self) -> None:
+        """Forget the previous frame and all event history (the threshold map is kept)."""
+        self.ref.zero_()
+        self.L_prev.zero_()
+        self.last_t_us.fill_(_NEVER)
+        self.t_prev_us.fill_(-1)
+
+    def forward(self, image: torch.Tensor, t_us: int, roi: tuple[int, int, int, int] | None = None) -> EventStream:
+        """Events between the previous frame and ``image`` (intensity in ``[0, 1]``) at ``t_us``.
+
+        ``image`` is the full ``(H, W)`` frame, or with ``roi = (u0, v0, w, h)`` only that window ``(h, w)``:
+        pixels outside it must be unchanged since the previous frame (they cannot emit events then, as
+        every pixel's ``ref`` is within one threshold of its level after each step). The first frame
+        only initialises ``ref`` and returns no events (it must be a full frame).
+        """
+        t_us = int(t_us)
+        t_prev = int(self.t_prev_us)
+        if roi is None:
+            roi = (0, 0, self.width, self.height)
+        u0, v0, w, h = (int(r) for r in roi)
+        if u0 < 0 or v0 < 0 or w <= 0 or h <= 0 or u0 + w > self.width or v0 + h > self.height:
+            raise ValueError(f"roi (u0, v0, w, h) = {roi} is not inside the {self.width}x{self.height} sensor")
+        if image.shape != (h, w):
+            raise ValueError(f"image must have shape ({h}, {w}) for roi {roi}, got {tuple(image.shape)}")
+        L = log_intensity(image)
+        win = (slice(v0, v0 + h), slice(u0, u0 + w))
+        if t_prev < 0:
+            if (w, h) != (self.width, self.height):
+                raise ValueError("the first frame must cover the whole sensor (roi=None)")
+            self.ref.copy_(L)
+            self.L_prev.copy_(L)
+            self.t_prev_us.fill_(t_us)
+            return EventStream.empty()
+        if t_us <= t_prev:
+            raise ValueError(f"frames must come in increasing time, got t={t_us} us after {t_prev} us")
+        x, y, t, p, ref, last = esim_step(self.L_prev[win], L, t_prev, t_us, self.ref[win], self.C[win],
+                                          self.last_t_us[win], self.refractory_us)
+        x, y = x + u0, y + v0
+        self.ref[win] = ref
+        self.last_t_us[win] = last
+        self.L_prev[win] = L
+        self.t_prev_us.fill_(t_us)
+        if self.noise_rate_hz > 0:
+            nx, ny, nt, npol = noise_events(self.height, self.width, t_prev, t_us, self.noise_rate_hz,
+                                            self.generator)
+            x, y, t, p = (torch.cat(a) for a in ((x, nx), (y, ny), (t, nt), (p, npol)))
+            order = torch.sort(t, stable=True).indices
+            x, y, t, p = x[order], y[order], t[order], p[order]
+        return EventStream(x.to(torch.int16), y.to(torch.int16), t, p)
