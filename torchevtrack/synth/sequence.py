@@ -1,0 +1,100 @@
+"""A benchmark sequence on disk: events, camera, ground-truth poses, mesh and metadata.
+
+Directory layout (see README "Sequence directory format")::
+
+    events.h5     x, y (int16), t (int64 us), p (int8) -- torchevtrack.io.events_h5
+    camera.json   width, height, fx, fy, cx, cy
+    gt_poses.txt  TUM "t tx ty tz qx qy qz qw" (seconds), object in camera frame
+    mesh.ply      the mesh the poses refer to (metres)
+    meta.json     object, motion group, seed, measured speeds, generator parameters, version
+
+Example:
+    >>> seq = Sequence.load("runs/mustard_regular")        # doctest: +SKIP
+    >>> len(seq.events), seq.camera.width, seq.gt_poses.shape  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+import trimesh
+
+from torchevtrack.camera import Camera
+from torchevtrack.events import EventStream
+from torchevtrack.io.events_h5 import read_events_h5, write_events_h5
+from torchevtrack.io.poses import read_tum, write_tum
+
+__all__ = ["Sequence", "SEQUENCE_FILES"]
+
+SEQUENCE_FILES = ("events.h5", "camera.json", "gt_poses.txt", "mesh.ply", "meta.json")
+
+
+@dataclass
+class Sequence:
+    """One sequence in memory.
+
+    Attributes:
+        events: time-sorted events inside the camera's sensor.
+        camera: pinhole camera.
+        gt_t_us: ``(M,)`` int64 ground-truth timestamps, microseconds.
+        gt_poses: ``(M, 7)`` float64 ground-truth poses (object in camera frame).
+        mesh: the object mesh the poses refer to (metres).
+        meta: JSON-serialisable metadata.
+    """
+
+    events: EventStream
+    camera: Camera
+    gt_t_us: torch.Tensor
+    gt_poses: torch.Tensor
+    mesh: trimesh.Trimesh
+    meta: dict = field(default_factory=dict)
+
+    def save(self, directory: str | Path) -> Path:
+        """Write the five files into ``directory`` (created if needed); returns the directory."""
+        d = Path(directory)
+        d.mkdir(parents=True, exist_ok=True)
+        write_events_h5(d / "events.h5", self.events, width=self.camera.width, height=self.camera.height)
+        self.camera.save(d / "camera.json")
+        write_tum(d / "gt_poses.txt", self.gt_t_us, self.gt_poses)
+        self.mesh.export(d / "mesh.ply", encoding="binary")
+        (d / "meta.json").write_text(json.dumps(self.meta, indent=2, sort_keys=True) + "\n")
+        return d
+
+    @classmethod
+    def load(cls, directory: str | Path) -> "Sequence":
+        """Read and validate a sequence directory.
+
+        Raises:
+            FileNotFoundError: the directory or one of its files is missing (the message names it).
+            TypeError / ValueError: wrong dtypes, unsorted times, events outside the sensor (the message
+                names the event index), malformed camera, poses or metadata.
+        """
+        d = Path(directory)
+        if not d.is_dir():
+            raise FileNotFoundError(f"sequence directory not found: {d}")
+        for name in SEQUENCE_FILES:
+            if not (d / name).is_file():
+                raise FileNotFoundError(f"sequence {d} lacks {name}")
+        camera = Camera.load(d / "camera.json")
+        events = read_events_h5(d / "events.h5", width=camera.width, height=camera.height)
+        gt_t_us, gt_poses = read_tum(d / "gt_poses.txt")
+        if gt_t_us.numel() < 2:
+            raise ValueError(f"{d / 'gt_poses.txt'}: need at least two poses")
+        if (gt_poses[:, 2] <= 0).any():
+            raise ValueError(f"{d / 'gt_poses.txt'}: a pose places the object behind the camera (tz <= 0)")
+        try:
+            mesh = trimesh.load(d / "mesh.ply", force="mesh", process=False)
+        except Exception as e:  # trimesh raises many types for corrupt files
+            raise ValueError(f"{d / 'mesh.ply'}: unreadable mesh ({e})") from None
+        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+            raise ValueError(f"{d / 'mesh.ply'}: empty mesh")
+        try:
+            meta = json.loads((d / "meta.json").read_text())
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{d / 'meta.json'}: not valid JSON ({e})") from None
+        if not isinstance(meta, dict):
+            raise ValueError(f"{d / 'meta.json'}: expected a JSON object")
+        return cls(events, camera, gt_t_us, gt_poses, mesh, meta)
