@@ -157,10 +157,10 @@ def add_error(pred: torch.Tensor, gt: torch.Tensor, points: torch.Tensor, chunk:
     points = _check_points(points)
     if pred.ndim != 2:
         raise ValueError(f"pred and gt must have shape (N, 7), got {tuple(pred.shape)}")
-    out = [
-        (transform_points(p, points) - transform_points(g, points)).norm(dim=-1).mean(dim=-1)
-        for p, g in zip(pred.split(chunk), gt.split(chunk))
-    ]
+    out = []
+    for p, g in zip(pred.split(chunk), gt.split(chunk)):
+        dR = quat_to_matrix(p[:, 3:]) - quat_to_matrix(g[:, 3:])  # (R - R_gt) x + (t - t_gt)
+        out.append((points @ dR.transpose(-1, -2) + (p[:, None, :3] - g[:, None, :3])).norm(dim=-1).mean(dim=-1))
     return torch.cat(out) if out else pred.new_zeros(0)
 
 
