@@ -1,0 +1,195 @@
+import doctest
+
+import numpy as np
+import pytest
+import torch
+from filterpy.kalman import KalmanFilter
+
+from torchevtrack import geometry as g
+from torchevtrack.camera import Camera
+from torchevtrack.stages import velocity as vel_mod
+from torchevtrack.stages.velocity import VelocityKF, kf_predict, kf_update
+
+CAM = Camera.default()
+F64 = torch.float64
+SCALE = torch.tensor([0.3, 0.3, 0.3, 2.0, 2.0, 2.0], dtype=F64)
+
+
+def _scene(gen, G, B=None):
+    """Random pixels over the sensor with depths 0.3..0.8 m."""
+    shape = (G,) if B is None else (B, G)
+    uv = torch.rand(*shape, 2, dtype=F64, generator=gen) * torch.tensor([600.0, 440.0], dtype=F64) + 20.0
+    depth = 0.3 + 0.5 * torch.rand(*shape, dtype=F64, generator=gen)
+    return uv, depth
+
+
+def _flow(uv, depth, twist):
+    return (CAM.interaction_matrix(uv, depth) @ twist[..., None, :, None])[..., 0]
+
+
+def _rel(a, b):
+    return float((a - b).norm() / b.norm())
+
+
+def test_interaction_matrix_matches_finite_differences():
+    """dP/dt = v + w x P for object points; the projected velocity is L(uv, Z) @ [v, w]."""
+    gen = torch.Generator().manual_seed(0)
+    P = torch.randn(40, 3, dtype=F64, generator=gen) * torch.tensor([0.2, 0.15, 0.1], dtype=F64)
+    P[:, 2] += 0.6
+    twist = torch.randn(6, dtype=F64, generator=gen) * SCALE
+    v, w = twist[:3], twist[3:]
+    h = 1e-6
+    vel = v + torch.linalg.cross(w.expand_as(P), P, dim=-1)
+    # central differences of the exact rigid motion (rotation about the camera origin + translation)
+    def moved(s):
+        return g.quat_rotate(g.quat_exp(w * s), P) + v * s + 0.5 * s * s * torch.linalg.cross(w.expand_as(P), v.expand_as(P), dim=-1)
+
+    fd = (CAM.project(moved(h)) - CAM.project(moved(-h))) / (2 * h)
+    uv = CAM.project(P)
+    L = CAM.interaction_matrix(uv, P[:, 2])
+    np.testing.assert_allclose((L @ twist).numpy(), fd.numpy(), rtol=1e-6, atol=1e-4)
+    # and the analytic derivative of the projection along dP/dt
+    X, Y, Z = P.unbind(-1)
+    du = CAM.fx * (vel[:, 0] / Z - X * vel[:, 2] / Z**2)
+    dv = CAM.fy * (vel[:, 1] / Z - Y * vel[:, 2] / Z**2)
+    np.testing.assert_allclose((L @ twist).numpy(), torch.stack((du, dv), -1).numpy(), rtol=1e-10, atol=1e-8)
+
+
+def test_single_update_is_least_squares():
+    """Huge P0 and no re-weighting: the update is the least-squares twist (numpy lstsq oracle)."""
+    gen = torch.Generator().manual_seed(1)
+    uv, depth = _scene(gen, 80)
+    twist = torch.randn(6, dtype=F64, generator=gen) * SCALE
+    flow = _flow(uv, depth, twist) + 30.0 * torch.randn(80, 2, dtype=F64, generator=gen)
+    dt = 0.004
+    A = (CAM.interaction_matrix(uv, depth) * dt).reshape(-1, 6).numpy()
+    expected = np.linalg.lstsq(A, (flow * dt).reshape(-1).numpy(), rcond=None)[0]
+    x0 = torch.zeros(1, 6, dtype=F64)
+    P0 = torch.eye(6, dtype=F64)[None] * 1e10
+    out = kf_update(x0, P0, uv[None], flow[None], depth[None], torch.ones(1, 80, dtype=torch.bool), CAM, dt, iters=0)
+    np.testing.assert_allclose(out.x[0].numpy(), expected, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(out.P[0].numpy(), np.linalg.inv(A.T @ A), rtol=1e-6)
+    assert bool(out.used[0]) and torch.all(out.weights == 1)
+
+
+def test_filter_converges_to_constant_twist():
+    gen = torch.Generator().manual_seed(2)
+    twist = torch.tensor([0.2, -0.1, 0.15, 1.0, -1.5, 2.0], dtype=F64)
+    kf = VelocityKF(CAM)
+    for _ in range(8):
+        uv, depth = _scene(gen, 100)
+        flow = _flow(uv, depth, twist) + 20.0 * torch.randn(100, 2, dtype=F64, generator=gen)
+        kf.predict()
+        kf.update(uv[None], flow[None], depth[None], torch.ones(1, 100, dtype=torch.bool), dt=0.002)
+    assert _rel(kf.x[0], twist) < 0.03
+
+
+def test_robust_reweighting_rejects_gross_outliers():
+    gen = torch.Generator().manual_seed(3)
+    G, dt = 120, 0.002
+    twist = torch.tensor([0.25, 0.1, -0.2, -1.0, 2.0, 1.5], dtype=F64)
+    uv, depth = _scene(gen, G)
+    flow = _flow(uv, depth, twist) + 20.0 * torch.randn(G, 2, dtype=F64, generator=gen)
+    out_idx = torch.randperm(G, generator=gen)[: int(0.3 * G)]
+    flow[out_idx] = (torch.rand(len(out_idx), 2, dtype=F64, generator=gen) - 0.5) * 4000.0
+    x0, P0 = torch.zeros(1, 6, dtype=F64), torch.diag(torch.tensor([1.0] * 3 + [25.0] * 3, dtype=F64))[None]
+    args = (uv[None], flow[None], depth[None], torch.ones(1, G, dtype=torch.bool), CAM, dt)
+    r_px = 20.0 * dt  # the inlier noise in px of displacement per update
+    robust = kf_update(x0, P0, *args, r_px=r_px, iters=3)
+    plain = kf_update(x0, P0, *args, r_px=r_px, iters=0)
+    assert _rel(robust.x[0], twist) < 0.05
+    assert _rel(plain.x[0], twist) > 0.3
+    inlier = torch.ones(G, dtype=torch.bool)
+    inlier[out_idx] = False
+    assert float(robust.weights[0, ~inlier].max()) < 0.05 < float(robust.weights[0, inlier].median())
+
+
+def test_batch_equals_separate_runs_with_padding_and_too_few_vectors():
+    gen = torch.Generator().manual_seed(4)
+    B, G = 3, 50
+    uv, depth = _scene(gen, G, B)
+    twists = torch.randn(B, 6, dtype=F64, generator=gen) * SCALE
+    flow = _flow(uv, depth, twists) + 10.0 * torch.randn(B, G, 2, dtype=F64, generator=gen)
+    valid = torch.ones(B, G, dtype=torch.bool)
+    valid[1, 30:] = False  # padding
+    valid[2, 2:] = False  # only 2 vectors: predict only
+    depth[0, :5] = 0.0  # background depth: ignored
+    dt = torch.tensor([0.002, 0.004, 0.003], dtype=F64)
+    batch = VelocityKF(CAM, batch_size=B)
+    singles = [VelocityKF(CAM) for _ in range(B)]
+    for _ in range(3):
+        batch.predict()
+        out = batch.update(uv, flow, depth, valid, dt)
+        for b, kf in enumerate(singles):
+            keep = valid[b] & (depth[b] > 0)
+            kf.predict()
+            kf.update(uv[b, keep][None], flow[b, keep][None], depth[b, keep][None], torch.ones(1, int(keep.sum()), dtype=torch.bool), float(dt[b]))
+    for b, kf in enumerate(singles):
+        np.testing.assert_allclose(batch.x[b].numpy(), kf.x[0].numpy(), rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(batch.P[b].numpy(), kf.P[0].numpy(), rtol=1e-9, atol=1e-15)
+    assert out.used.tolist() == [True, True, False]
+    assert torch.all(out.weights[0, :5] == 0) and torch.all(out.weights[1, 30:] == 0)
+    # filter 2 never updated: it only followed the motion model
+    x, P = torch.zeros(1, 6, dtype=F64), batch.P0[None]
+    for _ in range(3):
+        x, P = kf_predict(x, P, batch.rho, batch.Q)
+    np.testing.assert_allclose(batch.P[2].numpy(), P[0].numpy(), rtol=1e-12)
+
+
+def test_linear_step_matches_filterpy():
+    gen = torch.Generator().manual_seed(5)
+    G, dt, r_px, rho = 25, 0.003, 0.7, 0.5
+    uv, depth = _scene(gen, G)
+    flow = _flow(uv, depth, torch.randn(6, dtype=F64, generator=gen) * SCALE) + 40.0 * torch.randn(G, 2, dtype=F64, generator=gen)
+    x0 = torch.randn(6, dtype=F64, generator=gen) * SCALE
+    M = torch.randn(6, 6, dtype=F64, generator=gen)
+    P0 = M @ M.T * 0.1 + torch.eye(6, dtype=F64) * 0.05
+    Q = torch.diag(torch.tensor([0.1, 0.2, 0.3, 1.0, 2.0, 3.0], dtype=F64))
+
+    ref = KalmanFilter(dim_x=6, dim_z=2 * G)
+    ref.x, ref.P = x0.numpy().copy(), P0.numpy().copy()
+    ref.F, ref.Q = np.eye(6) * rho, Q.numpy()
+    ref.H = (CAM.interaction_matrix(uv, depth) * dt).reshape(-1, 6).numpy()
+    ref.R = np.eye(2 * G) * r_px**2
+    ref.predict()
+    ref.update((flow * dt).reshape(-1).numpy())
+
+    x, P = kf_predict(x0[None], P0[None], rho, Q)
+    out = kf_update(x, P, uv[None], flow[None], depth[None], torch.ones(1, G, dtype=torch.bool), CAM, dt, r_px=r_px, iters=0)
+    np.testing.assert_allclose(out.x[0].numpy(), ref.x, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(out.P[0].numpy(), ref.P, rtol=1e-7, atol=1e-12)
+
+
+def test_bad_inputs():
+    x, P = torch.zeros(1, 6, dtype=F64), torch.eye(6, dtype=F64)[None]
+    uv, flow = torch.zeros(1, 4, 2), torch.zeros(1, 4, 2)
+    depth, valid = torch.ones(1, 4), torch.ones(1, 4, dtype=torch.bool)
+    with pytest.raises(ValueError, match="uv"):
+        kf_update(x, P, torch.zeros(1, 4, 3), flow, depth, valid, CAM, 0.01)
+    with pytest.raises(ValueError, match="flow"):
+        kf_update(x, P, uv, torch.zeros(1, 5, 2), depth, valid, CAM, 0.01)
+    with pytest.raises(TypeError, match="valid"):
+        kf_update(x, P, uv, flow, depth, valid.float(), CAM, 0.01)
+    with pytest.raises(ValueError, match="dt"):
+        kf_update(x, P, uv, flow, depth, valid, CAM, 0.0)
+    with pytest.raises(TypeError, match="camera"):
+        VelocityKF("cam")
+    with pytest.raises(ValueError, match="twist"):
+        VelocityKF(CAM, batch_size=2).reset(torch.zeros(1, 6))
+
+
+def test_docstring_example():
+    assert doctest.testmod(vel_mod, raise_on_error=False).failed == 0
+
+
+def test_reweighting_leaves_clean_data_alone():
+    """Residuals within the nominal noise r_px are not re-weighted (no collapse onto a subset)."""
+    gen = torch.Generator().manual_seed(6)
+    uv, depth = _scene(gen, 60)
+    twist = torch.randn(6, dtype=F64, generator=gen) * SCALE
+    flow = _flow(uv, depth, twist) + 5.0 * torch.randn(60, 2, dtype=F64, generator=gen)
+    x0, P0 = torch.zeros(1, 6, dtype=F64), torch.eye(6, dtype=F64)[None]
+    args = (uv[None], flow[None], depth[None], torch.ones(1, 60, dtype=torch.bool), CAM, 0.002)
+    robust, plain = kf_update(x0, P0, *args, iters=3), kf_update(x0, P0, *args, iters=0)
+    assert float(robust.weights.min()) > 0.85
+    assert _rel(robust.x[0], plain.x[0]) < 1e-2
