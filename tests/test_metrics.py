@@ -271,3 +271,91 @@ def test_bad_inputs():
         m.evaluate(t + 10_000, gt, t, gt)
     with pytest.raises(ValueError, match="mesh_points"):
         m.evaluate(t, gt, t, gt, mesh_points=torch.zeros(4, 2))
+
+
+# ---- the `torchevtrack eval` command -------------------------------------------------------------
+
+
+def _sequence_dir(tmp_path):
+    import trimesh
+
+    from torchevtrack.io.poses import write_tum
+
+    d = tmp_path / "seq"
+    d.mkdir()
+    t = torch.arange(0, 200_000, 2_000)
+    gt = _traj(t)
+    write_tum(d / "gt_poses.txt", t, gt)
+    trimesh.creation.box(extents=(0.06, 0.04, 0.08)).export(d / "mesh.ply")
+    return d, t, gt
+
+
+def test_cli_eval_json_on_sequence_dir(tmp_path, capsys):
+    import json
+
+    from torchevtrack.cli import main
+    from torchevtrack.io.poses import write_poses
+
+    d, t, gt = _sequence_dir(tmp_path)
+    pred = gt.clone()
+    pred[:, 2] += 0.01  # 1 cm along the optical axis: ADD = 1 cm for every point -> AUC 0.9
+    pred_t = t + 1_000  # the last prediction leaves the GT range and is dropped
+    write_poses(tmp_path / "pred.csv", pred_t, _traj(pred_t) + (pred - gt))
+    assert main(["eval", "--gt", str(d), "--pred", str(tmp_path / "pred.csv"), "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["n_poses"] == len(t) - 1 and r["n_dropped"] == 1
+    assert r["rmse_t_cm"] == pytest.approx(1.0, abs=1e-6) and r["std_t_cm"] == pytest.approx(0.0, abs=1e-6)
+    assert r["rmse_r_deg"] < 1e-5
+    assert r["add_auc"] == pytest.approx(0.9, abs=1e-6)
+    assert 0.9 - 1e-6 <= r["adds_auc"] <= 1.0
+    assert r["n_mesh_points"] == 8 and r["failed"] is False
+
+
+def test_cli_eval_summary_and_failure(tmp_path, capsys):
+    from torchevtrack.cli import main
+    from torchevtrack.io.poses import write_poses
+
+    d, t, gt = _sequence_dir(tmp_path)
+    pred = gt.clone()
+    pred[30:, 0] += 0.2
+    write_poses(tmp_path / "pred.txt", t, pred)
+    assert main(["eval", "--gt", str(d / "gt_poses.txt"), "--pred", str(tmp_path / "pred.txt")]) == 0
+    out = capsys.readouterr().out
+    assert "n/a (no mesh)" in out  # a file --gt does not pick up the directory's mesh
+    assert "FAILED at 0.060000 s (pose 30" in out
+
+
+def test_cli_eval_bop_gt_and_mesh_subsampling(tmp_path, capsys):
+    import json
+
+    import trimesh
+
+    from torchevtrack.cli import main
+    from torchevtrack.cli.eval import load_mesh_points
+    from torchevtrack.io.poses import write_poses
+
+    t = torch.tensor([round(k * 1e6 / 50) for k in range(40)])
+    gt = _traj(t)
+    write_poses(tmp_path / "scene_gt.json", t, gt, fps=50)
+    write_poses(tmp_path / "pred.txt", t, gt)
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.05)
+    sphere.export(tmp_path / "sphere.ply")
+    pts = load_mesh_points(tmp_path / "sphere.ply")
+    assert pts.shape == (2000, 3) and len(sphere.vertices) > 2000
+    assert torch.equal(pts, load_mesh_points(tmp_path / "sphere.ply"))
+    np.testing.assert_allclose(pts.norm(dim=1).numpy(), 0.05, rtol=1e-6)  # real vertices
+    assert len(np.unique(pts.numpy(), axis=0)) == 2000
+    argv = ["eval", "--gt", str(tmp_path / "scene_gt.json"), "--pred", str(tmp_path / "pred.txt"), "--fps", "50"]
+    assert main(argv + ["--mesh", str(tmp_path / "sphere.ply"), "--symmetric", "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["n_poses"] == 40 and r["rmse_t_cm"] < 1e-6 and r["adds_auc"] == pytest.approx(1.0, abs=1e-6)
+    assert r["n_mesh_points"] == 2000
+    assert main(argv[:-2]) == 2  # BOP without a frame rate: a clear error, no traceback
+    assert "fps" in capsys.readouterr().err
+
+
+def test_cli_eval_missing_file(tmp_path, capsys):
+    from torchevtrack.cli import main
+
+    assert main(["eval", "--gt", str(tmp_path / "nope.txt"), "--pred", str(tmp_path / "nope.txt")]) == 2
+    assert "nope.txt" in capsys.readouterr().err

@@ -1,0 +1,126 @@
+"""``torchevtrack eval``: score a predicted trajectory against the ground truth.
+
+Example:
+    torchevtrack eval --gt data/seq0 --pred out/seq0_poses.txt --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchevtrack.io.poses import FORMATS, detect_format, read_poses
+from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, evaluate
+
+MAX_MESH_POINTS = 2000
+
+
+def load_mesh_points(path: str | Path, max_points: int = MAX_MESH_POINTS) -> torch.Tensor:
+    """Model points of a mesh file for ADD / ADD-S: its vertices, evenly subsampled by index
+    (deterministic) to at most ``max_points``. Units are those of the file (metres expected).
+
+    Shape: ``-> (M, 3)`` float64, ``M <= max_points``.
+    """
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    try:
+        mesh = trimesh.load(path, force="mesh")
+    except Exception as e:  # trimesh raises many types for unreadable files
+        raise ValueError(f"{path}: cannot load mesh ({e})") from None
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    if v.ndim != 2 or v.shape[0] == 0:
+        raise ValueError(f"{path}: mesh has no vertices")
+    if v.shape[0] > max_points:
+        v = v[np.linspace(0, v.shape[0] - 1, max_points).round().astype(np.int64)]
+    return torch.from_numpy(np.ascontiguousarray(v))
+
+
+def _resolve_gt(gt: Path, mesh: str | None) -> tuple[Path, Path | None]:
+    if gt.is_dir():
+        poses = gt / "gt_poses.txt"
+        if not poses.is_file():
+            raise FileNotFoundError(f"sequence directory {gt} has no gt_poses.txt")
+        if mesh is None and (gt / "mesh.ply").is_file():
+            return poses, gt / "mesh.ply"
+        return poses, Path(mesh) if mesh else None
+    return gt, Path(mesh) if mesh else None
+
+
+def _summary(r: dict, gt: Path, pred: Path, mesh: Path | None) -> str:
+    def xyz(v: list[float]) -> str:
+        return " ".join(f"{a:.3f}" for a in v)
+
+    lines = [
+        f"ground truth : {gt}",
+        f"prediction   : {pred}",
+        f"poses        : {r['n_poses']} evaluated, {r['n_dropped']} dropped (outside the ground-truth time range)",
+        f"translation  : RMSE {r['rmse_t_cm']:.3f} cm  sigma {r['std_t_cm']:.3f} cm  "
+        f"mean {r['mean_t_cm']:.3f}  median {r['median_t_cm']:.3f}  max {r['max_t_cm']:.3f} cm",
+        f"rotation     : RMSE {r['rmse_r_deg']:.3f} deg  sigma {r['std_r_deg']:.3f} deg  "
+        f"mean {r['mean_r_deg']:.3f}  median {r['median_r_deg']:.3f}  max {r['max_r_deg']:.3f} deg",
+        f"per axis RMSE: t [x y z] {xyz(r['rmse_t_xyz_cm'])} cm   r [x y z] {xyz(r['rmse_r_xyz_deg'])} deg",
+    ]
+    if r["add_auc"] is None:
+        lines.append("ADD / ADD-S  : n/a (no mesh)")
+    else:
+        lines.append(
+            f"ADD / ADD-S  : AUC(0-10 cm) {r['add_auc']:.4f} / {r['adds_auc']:.4f}   "
+            f"mean {r['mean_add_cm']:.3f} / {r['mean_adds_cm']:.3f} cm   ({r['n_mesh_points']} points of {mesh})"
+        )
+    rule = f"> {FAIL_T_M * 100:g} cm or > {FAIL_R_DEG:g} deg for {FAIL_WINDOW} samples"
+    if r["failed"]:
+        lines.append(f"failure      : FAILED at {r['first_failure_s']:.6f} s (pose {r['first_failure_index']}; {rule})")
+    else:
+        lines.append(f"failure      : no ({rule})")
+    if "rmse_v_cm_s" in r:
+        lines.append(f"velocity     : RMSE {r['rmse_v_cm_s']:.3f} cm/s, {r['rmse_w_deg_s']:.3f} deg/s")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    gt_path, mesh_path = _resolve_gt(Path(args.gt), args.mesh)
+    bop = {k: v for k, v in (("fps", args.fps), ("obj_id", args.obj_id)) if v is not None}
+
+    def load(path: Path, fmt: str | None) -> tuple[torch.Tensor, torch.Tensor]:
+        is_bop = (fmt or detect_format(path)) == "bop"
+        return read_poses(path, format=fmt, **(bop if is_bop else {}))
+
+    gt_t, gt_p = load(gt_path, args.gt_format)
+    pred_t, pred_p = load(Path(args.pred), args.pred_format)
+    points = load_mesh_points(mesh_path) if mesh_path is not None else None
+    r = evaluate(pred_t, pred_p, gt_t, gt_p, mesh_points=points, symmetric=args.symmetric)
+    r["n_mesh_points"] = None if points is None else int(points.shape[0])
+    if args.json:
+        print(json.dumps(r))
+    else:
+        print(_summary(r, gt_path, Path(args.pred), mesh_path))
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "eval",
+        help="score predicted poses against ground truth",
+        description=(
+            "Score a predicted trajectory against the ground truth: translation / rotation RMSE and sigma, "
+            "ADD and ADD-S AUC on 0..10 cm (with a mesh), EDOPT failure rule. The ground truth is "
+            "interpolated at the prediction times; predictions outside its time range are dropped."
+        ),
+    )
+    p.add_argument("--gt", required=True, help="ground-truth pose file, or a sequence directory (gt_poses.txt, mesh.ply)")
+    p.add_argument("--pred", required=True, help="predicted pose file (TUM .txt, CSV .csv, BOP .json)")
+    p.add_argument("--mesh", help=f"mesh file for ADD / ADD-S (vertices, at most {MAX_MESH_POINTS} points)")
+    p.add_argument("--symmetric", action="store_true", help="symmetric object: ADD(-S) (add_s_auc) uses ADD-S")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
+    p.add_argument("--fps", type=float, help="frame rate giving the times of BOP scene_gt.json frames")
+    p.add_argument("--obj-id", type=int, help="object id to read from BOP scene_gt.json files")
+    p.add_argument("--gt-format", choices=FORMATS, help="override the ground-truth format detection")
+    p.add_argument("--pred-format", choices=FORMATS, help="override the prediction format detection")
+    p.set_defaults(func=run)
