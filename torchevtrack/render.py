@@ -1,0 +1,323 @@
+"""Headless depth and shaded-grey rendering of a mesh at a batch of poses (pyrender, offscreen).
+
+The OpenGL platform is chosen before pyrender is imported: ``PYOPENGL_PLATFORM`` if set, else EGL
+when ``libEGL`` is present, else OSMesa. The scene (mesh, camera, a light attached to the camera and
+an ambient term) is built once; each render only moves the mesh node and, for a region of interest,
+changes the intrinsics and the viewport size. One offscreen context is kept per renderer: pyrender
+binds a mesh's GPU buffers to a single context, and resizing its framebuffer costs well under a
+millisecond, so the viewport is resized in place instead of keeping one context per size.
+
+Conventions: poses are ``[tx, ty, tz, qw, qx, qy, qz]`` (object in the OpenCV camera frame, metres);
+pixel ``(u, v)`` centres are at integer coordinates, so a point projected by
+:meth:`torchevtrack.camera.Camera.project` to ``(u, v)`` lands in pixel ``(round(u), round(v))``.
+
+Example:
+    >>> import torch
+    >>> from torchevtrack.camera import Camera
+    >>> from torchevtrack.mesh import load_mesh
+    >>> from torchevtrack.render import Renderer
+    >>> with Renderer(load_mesh("can"), Camera(64, 48, 50.0, 50.0, 32.0, 24.0)) as r:
+    ...     out = r.render(torch.tensor([0.0, 0.0, 0.3, 1.0, 0.0, 0.0, 0.0]))
+    >>> out.depth.shape, round(float(out.depth[0, 24, 32]), 3)
+    (torch.Size([1, 48, 64]), 0.25)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes.util
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import trimesh
+
+from torchevtrack.camera import Camera
+from torchevtrack.geometry import pose_to_matrix, quat_normalize
+
+
+def _select_gl_platform() -> None:
+    """Pick the PyOpenGL platform before anything imports OpenGL (an explicit setting wins)."""
+    if "PYOPENGL_PLATFORM" in os.environ:
+        return
+    if ctypes.util.find_library("EGL") is None and ctypes.util.find_library("OSMesa") is not None:
+        os.environ["PYOPENGL_PLATFORM"] = "osmesa"
+    else:
+        os.environ["PYOPENGL_PLATFORM"] = "egl"
+
+
+_select_gl_platform()
+import pyrender  # noqa: E402  (must follow the platform choice)
+import pyrender.renderer  # noqa: E402
+
+_STORAGE_MULTISAMPLE = pyrender.renderer.glRenderbufferStorageMultisample
+
+
+def _single_sample_storage(target, samples, internalformat, width, height):
+    return _STORAGE_MULTISAMPLE(target, 0, internalformat, width, height)
+
+
+@contextlib.contextmanager
+def _single_sampled():
+    """Make pyrender allocate its framebuffers without multisampling while we render.
+
+    pyrender draws into 4x multisample buffers and resolves depth by keeping one sample, which lies
+    off the pixel centre (a ~0.4 px shift of depth and silhouettes). With single-sample buffers the
+    depth and the grey image are both point samples at pixel centres, as the camera model assumes.
+    Only the allocation call is swapped, and only for the duration of our own render calls.
+    """
+    pyrender.renderer.glRenderbufferStorageMultisample = _single_sample_storage
+    try:
+        yield
+    finally:
+        pyrender.renderer.glRenderbufferStorageMultisample = _STORAGE_MULTISAMPLE
+
+__all__ = ["Render", "Renderer"]
+
+# Camera node pose: the OpenGL camera frame (x right, y up, z backwards) seen from the OpenCV frame.
+_GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32) / 255.0
+# Lighting in linear units (pyrender gamma-encodes the result): a white face lit head-on renders
+# near 0.95 grey, a face seen edge-on near the ambient floor of about 0.35.
+_AMBIENT = 0.1
+_LIGHT_INTENSITY = 2.3
+_DEFAULT_GREY = 0.75
+# Direction the camera-attached light travels, in the OpenGL camera frame: mostly along the view
+# axis, tilted so that it comes from the upper left (faces at different angles get different grey).
+_LIGHT_DIR_GL = np.array([0.3, -0.4, -1.0])
+_CREASE_ANGLE = math.radians(30.0)
+
+
+@dataclass
+class Render:
+    """Result of :meth:`Renderer.render`.
+
+    Attributes:
+        depth: ``(B, h, w)`` float32, metres along the optical axis, 0 where no surface is seen.
+        gray: ``(B, h, w)`` float32 in ``[0, 1]``, shaded luminance (``None`` if ``shaded=False``);
+            background pixels hold the renderer's ``background`` value.
+        camera: the camera of these images (the cropped intrinsics when an roi was given).
+    """
+
+    depth: torch.Tensor
+    gray: torch.Tensor | None
+    camera: Camera
+
+
+def _light_pose() -> np.ndarray:
+    d = _LIGHT_DIR_GL / np.linalg.norm(_LIGHT_DIR_GL)
+    z = -d  # a pyrender directional light shines along its node's -z axis
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack((x, np.cross(z, x), z), axis=1)
+    return T
+
+
+class Renderer:
+    """Offscreen renderer of one mesh seen by one camera.
+
+    Args:
+        mesh: the object (metres); vertex colours are used when present, otherwise light grey.
+        camera: the full-frame camera.
+        znear, zfar: clipping distances in metres (``0 < znear < zfar``).
+        background: grey value of pixels where no surface is seen.
+
+    Shading: ambient light plus a directional light fixed to the camera, so the grey of a face
+    changes as the object rotates; normals are smoothed except across creases sharper than 30 deg.
+    Use as a context manager or call :meth:`close` to free the GL context.
+    """
+
+    def __init__(
+        self,
+        mesh: trimesh.Trimesh,
+        camera: Camera,
+        *,
+        znear: float = 0.01,
+        zfar: float = 20.0,
+        background: float = 0.0,
+    ) -> None:
+        if not isinstance(mesh, trimesh.Trimesh):
+            raise TypeError(f"mesh must be a trimesh.Trimesh, got {type(mesh).__name__}")
+        if len(mesh.faces) == 0:
+            raise ValueError("mesh has no faces")
+        if not isinstance(camera, Camera):
+            raise TypeError(f"camera must be a torchevtrack Camera, got {type(camera).__name__}")
+        if not (0.0 < znear < zfar and math.isfinite(zfar)):
+            raise ValueError(f"need 0 < znear < zfar < inf, got znear={znear}, zfar={zfar}")
+        if not math.isfinite(background):
+            raise ValueError(f"background must be a finite grey value, got {background}")
+        self.camera = camera
+        self.background = float(background)
+
+        self._scene = pyrender.Scene(bg_color=(0.0, 0.0, 0.0, 0.0), ambient_light=(_AMBIENT,) * 3)
+        self._mesh_node = self._scene.add(_pyrender_mesh(mesh))
+        self._cam = pyrender.IntrinsicsCamera(
+            camera.fx, camera.fy, camera.cx + 0.5, camera.cy + 0.5, znear=float(znear), zfar=float(zfar)
+        )
+        cam_node = self._scene.add(self._cam, pose=_GL_FROM_CV)
+        light = pyrender.DirectionalLight(color=np.ones(3), intensity=_LIGHT_INTENSITY)
+        self._scene.add(light, pose=_light_pose(), parent_node=cam_node)
+        self._offscreen: pyrender.OffscreenRenderer | None = None
+
+    # -- context management ----------------------------------------------------------------------
+    def _context(self, width: int, height: int) -> pyrender.OffscreenRenderer:
+        if self._offscreen is None:
+            try:
+                self._offscreen = pyrender.OffscreenRenderer(width, height)
+            except Exception as e:
+                platform = os.environ.get("PYOPENGL_PLATFORM")
+                raise RuntimeError(
+                    f"cannot create an offscreen OpenGL context with PYOPENGL_PLATFORM={platform} "
+                    f"({type(e).__name__}: {e}). EGL needs libEGL (Mesa, e.g. Debian libegl1 + libgl1-mesa-dri); "
+                    "OSMesa needs libosmesa6 and PyOpenGL>=3.1.10. Set PYOPENGL_PLATFORM before importing "
+                    "torchevtrack.render."
+                ) from e
+        else:
+            self._offscreen.viewport_width = width
+            self._offscreen.viewport_height = height
+        return self._offscreen
+
+    def close(self) -> None:
+        """Free the OpenGL context (the renderer can no longer be used)."""
+        if self._offscreen is not None:
+            _release(self._offscreen)
+            self._offscreen = None
+        self._scene = None
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown: GL libraries may already be gone
+            pass
+
+    def __enter__(self) -> "Renderer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- rendering -------------------------------------------------------------------------------
+    def render(
+        self,
+        poses: torch.Tensor,
+        *,
+        roi: tuple[int, int, int, int] | None = None,
+        shaded: bool = True,
+    ) -> Render:
+        """Render the mesh at each pose.
+
+        Args:
+            poses: ``(B, 7)`` or ``(7,)`` object-in-camera poses ``[t (m), q (w, x, y, z)]``. Poses
+                behind the camera or out of view give all-zero depth.
+            roi: ``(u0, v0, width, height)``: render only this window of the full frame (same
+                pixels as cropping the full-frame render; the window may extend past the sensor).
+            shaded: also render the grey image; ``False`` renders depth only (faster).
+
+        Returns:
+            :class:`Render` with ``depth`` ``(B, h, w)`` and ``gray`` ``(B, h, w)`` or ``None``;
+            ``(h, w)`` is the roi size or the camera size.
+        """
+        if self._scene is None:
+            raise RuntimeError("renderer is closed")
+        T = _pose_matrices(poses)
+        cam = self.camera if roi is None else self.camera.crop(*_check_roi(roi))
+        self._cam.fx, self._cam.fy = cam.fx, cam.fy
+        self._cam.cx, self._cam.cy = cam.cx + 0.5, cam.cy + 0.5
+        ctx = self._context(cam.width, cam.height)
+        # back faces are culled (pyrender always culls in depth-only mode; culling in both keeps
+        # depth-only and shaded silhouettes identical): meshes need outward-facing winding
+        flags = pyrender.RenderFlags.NONE
+        depth = np.empty((len(T), cam.height, cam.width), dtype=np.float32)
+        gray = np.empty_like(depth) if shaded else None
+        with _single_sampled():
+            for b in range(len(T)):
+                self._scene.set_pose(self._mesh_node, T[b])
+                if shaded:
+                    color, depth[b] = ctx.render(self._scene, flags=flags)
+                    gray[b] = color @ _LUMA
+                else:
+                    depth[b] = ctx.render(self._scene, flags=flags | pyrender.RenderFlags.DEPTH_ONLY)
+        out_gray = None
+        if gray is not None:
+            gray[depth == 0] = self.background
+            out_gray = torch.from_numpy(gray)
+        return Render(depth=torch.from_numpy(depth), gray=out_gray, camera=cam)
+
+
+def _release(offscreen: pyrender.OffscreenRenderer) -> None:
+    """Free one offscreen renderer without ending the others.
+
+    pyrender's ``OffscreenRenderer.delete`` calls ``eglTerminate`` on the EGL display, which all
+    contexts of the process share, so deleting one renderer would break every other live one. Here
+    only this renderer's GL objects and its own context are destroyed.
+    """
+    platform = offscreen._platform
+    platform.make_current()
+    offscreen._renderer.delete()
+    if hasattr(platform, "_egl_context"):
+        from OpenGL.EGL import EGL_NO_CONTEXT, EGL_NO_SURFACE, eglDestroyContext, eglMakeCurrent
+
+        eglMakeCurrent(platform._egl_display, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT)
+        eglDestroyContext(platform._egl_display, platform._egl_context)
+        platform._egl_context = None
+        platform._egl_display = None
+    else:
+        platform.delete_context()
+    # leave nothing for pyrender's own __del__ -> delete() to tear down again
+    offscreen._renderer = None
+    offscreen._platform = None
+
+
+def _pyrender_mesh(mesh: trimesh.Trimesh) -> pyrender.Mesh:
+    """Matte pyrender mesh with smooth normals split at creases and the vertex colours (or light grey)."""
+    smooth = trimesh.graph.smooth_shade(mesh, angle=_CREASE_ANGLE)
+    if smooth.visual.kind == "vertex":
+        colors = np.asarray(smooth.visual.vertex_colors, dtype=np.float32) / 255.0
+    else:
+        colors = np.full((len(smooth.vertices), 4), _DEFAULT_GREY, dtype=np.float32)
+    colors[:, 3] = 1.0
+    material = pyrender.MetallicRoughnessMaterial(
+        baseColorFactor=(1.0, 1.0, 1.0, 1.0), metallicFactor=0.0, roughnessFactor=1.0
+    )
+    primitive = pyrender.Primitive(
+        positions=np.asarray(smooth.vertices, dtype=np.float32),
+        normals=np.asarray(smooth.vertex_normals, dtype=np.float32),
+        color_0=colors,
+        indices=np.asarray(smooth.faces, dtype=np.uint32),
+        material=material,
+        mode=pyrender.constants.GLTF.TRIANGLES,
+    )
+    return pyrender.Mesh(primitives=[primitive])
+
+
+def _pose_matrices(poses: torch.Tensor) -> np.ndarray:
+    """Validated ``(B, 4, 4)`` float64 object-to-camera (OpenCV) transforms."""
+    poses = torch.as_tensor(poses)
+    if poses.ndim == 1:
+        poses = poses[None]
+    if poses.ndim != 2 or poses.shape[-1] != 7:
+        raise ValueError(f"poses must have shape (B, 7) or (7,) [tx, ty, tz, qw, qx, qy, qz], got {tuple(poses.shape)}")
+    if not poses.is_floating_point():
+        raise TypeError(f"poses must be a floating-point tensor, got {poses.dtype}")
+    poses = poses.detach().to("cpu", torch.float64)
+    if not torch.isfinite(poses).all():
+        raise ValueError("poses contain NaN or infinite values")
+    norm = poses[:, 3:].norm(dim=-1)
+    if ((norm - 1).abs() > 1e-3).any():
+        raise ValueError(f"pose quaternions must be unit norm, got |q| = {norm.tolist()}")
+    poses = torch.cat((poses[:, :3], quat_normalize(poses[:, 3:])), dim=-1)
+    return pose_to_matrix(poses).numpy()
+
+
+def _check_roi(roi) -> tuple[int, int, int, int]:
+    try:
+        u0, v0, w, h = (int(x) for x in roi)
+        exact = all(float(x) == int(x) for x in roi)
+    except (TypeError, ValueError):
+        raise ValueError(f"roi must be (u0, v0, width, height) integers, got {roi!r}") from None
+    if not exact or w <= 0 or h <= 0:
+        raise ValueError(f"roi must be (u0, v0, width, height) integers with positive size, got {roi!r}")
+    return u0, v0, w, h
