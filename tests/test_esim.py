@@ -32,6 +32,12 @@ def test_down_ramp_and_lagging_reference():
     assert t.tolist() == [375, 625, 875] and p.tolist() == [1, 1, 1] and ref.item() == 0.875
 
 
+def test_constant_level_one_threshold_from_ref():
+    # ref exactly C below a constant level: one event, at t0 (no division by zero)
+    x, y, t, p, ref, _ = step1(0.25, 0.25, 0.0, 0.25, t0=100, t1=200)
+    assert t.tolist() == [100] and p.tolist() == [1] and ref.item() == 0.25
+
+
 def test_count_is_floor_delta_over_C():
     for L1 in (0.1, 0.3, 0.59, 0.61, 2.05):
         _, _, t, _, ref, _ = step1(0.0, L1, 0.0, 0.2)
@@ -63,7 +69,8 @@ def reference_esim(frames, times, C, refr):
                 pol = 1.0 if d > 0 else -1.0
                 for k in range(1, n + 1):
                     level = ref[i][j] + pol * k * C[i][j]
-                    tau = min(max((level - L0[i][j]) / (L1[i][j] - L0[i][j]), 0.0), 1.0)
+                    span = L1[i][j] - L0[i][j]
+                    tau = min(max((level - L0[i][j]) / span, 0.0), 1.0) if span != 0 else 0.0
                     te = t0 + math.floor(tau * (t1 - t0))
                     if te - last[i][j] >= refr:
                         events.append((te, i * W + j, k, j, i, int(pol > 0)))

@@ -7,7 +7,8 @@ the linear ramp ``L0 -> L1`` crosses it::
 
     t_k = t0 + floor((ref + pol * k * C - L0) / (L1 - L0) * (t1 - t0))     (int64 microseconds)
 
-then ``ref += pol * n * C``. An event closer than ``refractory_us`` to the pixel's previous *emitted*
+then ``ref += pol * n * C`` (``tau = 0`` when ``L1 == L0``, the rounding corner case where ``ref`` ends up
+exactly one threshold away from a constant level). An event closer than ``refractory_us`` to the pixel's previous *emitted*
 event is dropped (``ref`` still advances). Events are sorted by time; ties keep pixel order
 (``y * W + x``) and then the order ``k`` within the pixel. Log intensity is ``L = log(I + 1e-3)``.
 
@@ -91,7 +92,9 @@ def esim_step(
     ev_pol = pol[ev_pix]
     level = ref.flatten()[ev_pix] + ev_pol * k.to(torch.float64) * C.flatten()[ev_pix]
     l0 = L0.flatten()[ev_pix]
-    tau = ((level - l0) / (L1.flatten()[ev_pix] - l0)).clamp(0.0, 1.0)
+    span = L1.flatten()[ev_pix] - l0
+    # span == 0: ref sat a whole threshold (up to rounding) off a constant level; the event fires at t0.
+    tau = torch.where(span != 0, (level - l0) / torch.where(span != 0, span, 1.0), 0.0).clamp(0.0, 1.0)
     t = t0_us + torch.floor(tau * (t1_us - t0_us)).to(torch.int64)
 
     last = last_t_us.flatten().clone()

@@ -13,8 +13,12 @@ Construction (all draws from one ``numpy.random.Generator(PCG64(seed))``, so a s
 * **Depth.** ``z(t)`` is an independent smooth curve inside ``[0.3, 0.7]`` m (raised for objects too
   large to fit at 0.3 m).
 * **Rotation.** A smooth random angular velocity (camera frame, sum of sinusoids per axis) scaled so its
-  peak is 80-100 % of the group's limit (``regular``: 60 deg/s, ``fast``: 250 deg/s), integrated exactly
-  from a random initial orientation with ``q(t + dt) = exp(w dt) (x) q(t)`` (a parallel prefix product).
+  peak over a 20 s window is 80-100 % of the group's limit (``regular``: 60 deg/s, ``fast``:
+  250 deg/s), integrated exactly from a random initial orientation with
+  ``q(t + dt) = exp(w dt) (x) q(t)`` (a parallel prefix product).
+
+Random curves are normalised over a 20 s reference window, so a short trajectory is a piece of a long
+one (with the same slow depth drift), not a stretched copy.
 
 Every sample is then checked: the projected mesh bounding box must stay ``margin`` pixels inside the
 image; if not, the lateral amplitude is shrunk and the trajectory rebuilt (deterministically).
@@ -78,17 +82,33 @@ MOTION_GROUPS: dict[str, MotionGroup] = {
 _N_SINES = 3
 
 
-def _smooth_unit(rng: np.random.Generator, x: np.ndarray, f_lo: float, f_hi: float, dims: int) -> np.ndarray:
-    """Random sum of sinusoids, each of ``dims`` columns scaled exactly into ``[-1, 1]`` over ``x``."""
+_REFERENCE_SPAN_S = 20.0
+
+
+def _smooth_unit(rng: np.random.Generator, x: np.ndarray, f_lo: float, f_hi: float,
+                 dims: int) -> tuple[np.ndarray, np.ndarray]:
+    """Random sum of sinusoids per column, in ``[-1, 1]``, at ``x`` (seconds) and on the reference grid.
+
+    Each column is centred and scaled so that it spans exactly ``[-1, 1]`` over the reference window
+    ``[0, max(x[-1], 20 s)]``: a short trajectory is a piece of a long one, not a stretched copy.
+    Returns ``(values at x (N, dims), values on the reference grid (20001, dims))``.
+    """
+    ref = np.linspace(0.0, max(float(x[-1]), _REFERENCE_SPAN_S), 20_001)
     out = np.empty((x.shape[0], dims))
+    out_ref = np.empty((ref.shape[0], dims))
     for d in range(dims):
         f = rng.uniform(f_lo, f_hi, _N_SINES)
         phase = rng.uniform(0.0, 2.0 * math.pi, _N_SINES)
         amp = rng.uniform(0.5, 1.0, _N_SINES)
-        s = (amp * np.sin(2.0 * math.pi * f * x[:, None] + phase)).sum(1)
-        s -= 0.5 * (s.max() + s.min())
-        out[:, d] = s / max(np.abs(s).max(), 1e-12)
-    return out
+
+        def sines(s: np.ndarray) -> np.ndarray:
+            return (amp * np.sin(2.0 * math.pi * f * s[:, None] + phase)).sum(1)
+
+        r = sines(ref)
+        mid, half = 0.5 * (r.max() + r.min()), max(0.5 * (r.max() - r.min()), 1e-12)
+        out[:, d] = np.clip((sines(x) - mid) / half, -1.0, 1.0)
+        out_ref[:, d] = (r - mid) / half
+    return out, out_ref
 
 
 def _prefix_quat_product(dq: torch.Tensor) -> torch.Tensor:
@@ -176,17 +196,17 @@ def make_trajectory(
 
     rng = np.random.default_rng(int(seed))
     # Image-speed profile and the arc length it must cover.
-    prof = _smooth_unit(rng, t_s, *group.speed_freq_hz, 1)[:, 0]
+    prof = _smooth_unit(rng, t_s, *group.speed_freq_hz, 1)[0][:, 0]
     speed = group.speed_px_s[0] + 0.5 * (prof + 1.0) * (group.speed_px_s[1] - group.speed_px_s[0])
     arc = np.concatenate(([0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * np.diff(t_s))))
     # Random path shape (unit box), depth curve, angular velocity, initial orientation.
     path_f = rng.uniform(0.5, 1.5, (2, _N_SINES))
     path_phase = rng.uniform(0.0, 2.0 * math.pi, (2, _N_SINES))
     path_amp = rng.uniform(0.5, 1.0, (2, _N_SINES))
-    depth = _smooth_unit(rng, t_s, *group.depth_freq_hz, 1)[:, 0]
+    depth = _smooth_unit(rng, t_s, *group.depth_freq_hz, 1)[0][:, 0]
     t_mid = t_s[:-1] + 0.5 * np.diff(t_s)
-    omega = _smooth_unit(rng, t_mid, *group.rot_freq_hz, 3)
-    omega *= rng.uniform(0.8, 1.0) * math.radians(group.max_rot_deg_s) / np.linalg.norm(omega, axis=1).max()
+    omega, omega_ref = _smooth_unit(rng, t_mid, *group.rot_freq_hz, 3)
+    omega *= rng.uniform(0.8, 1.0) * math.radians(group.max_rot_deg_s) / np.linalg.norm(omega_ref, axis=1).max()
     q0 = quat_canonical(torch.from_numpy(rng.normal(size=4)))
 
     z = z_lo + 0.5 * (depth + 1.0) * (z_hi - z_lo)

@@ -1,0 +1,110 @@
+import json
+
+import h5py
+import numpy as np
+import pytest
+import torch
+import trimesh
+from scipy.ndimage import binary_dilation
+
+from torchevtrack.camera import Camera
+from torchevtrack.cli import main
+from torchevtrack.geometry import interpolate_poses, transform_points
+from torchevtrack.render import Renderer
+from torchevtrack.synth.generate import frame_times, generate_sequence
+from torchevtrack.synth.sequence import Sequence
+from torchevtrack.synth.trajectory import _mesh_corners, make_trajectory
+
+CAM = Camera(64, 48, 50.0, 50.0, 32.0, 24.0)
+TINY = ["--width", "64", "--height", "48", "--fx", "50", "--fy", "50", "--quiet"]
+
+
+def synth(out, seed, obj="can", motion="regular"):
+    rc = main(["synth", "--object", obj, "--motion", motion, "--duration", "0.05", "--seed", str(seed),
+               "--out", str(out), *TINY])
+    assert rc == 0
+
+
+def datasets(path):
+    with h5py.File(path) as f:
+        return {k: f[k][()].tobytes() for k in ("x", "y", "t", "p")}
+
+
+def test_same_seed_same_bytes(tmp_path):
+    synth(tmp_path / "a", 7)
+    synth(tmp_path / "b", 7)
+    synth(tmp_path / "c", 8)
+    a, b, c = (datasets(tmp_path / n / "events.h5") for n in "abc")
+    assert len(a["t"]) > 0 and a == b and a != c
+    assert (tmp_path / "a" / "events.h5").read_bytes() == (tmp_path / "b" / "events.h5").read_bytes()
+    assert (tmp_path / "a" / "gt_poses.txt").read_bytes() == (tmp_path / "b" / "gt_poses.txt").read_bytes()
+
+
+def test_sequence_contents_and_info(tmp_path, capsys):
+    synth(tmp_path / "s", 1, motion="fast")
+    seq = Sequence.load(tmp_path / "s")
+    assert seq.camera == CAM
+    assert seq.gt_t_us.tolist() == list(range(0, 50_001, 2000))  # 500 Hz
+    assert len(seq.events) > 1000 and 0 < seq.events.p.double().mean() < 1
+    assert seq.meta["object"] == "can" and seq.meta["motion"] == "fast" and seq.meta["seed"] == 1
+    assert seq.meta["n_events"] == len(seq.events)
+    med = seq.meta["speeds"]["image_speed_px_s"]["median"]
+    assert 600 * 0.97 <= med <= 1500 * 1.03
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "s")]) == 0
+    out = capsys.readouterr().out
+    assert f"events     {len(seq.events)} over" in out and "500 Hz" in out
+    assert main(["info", str(tmp_path / "s"), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["events"] == len(seq.events) and info["gt_poses"] == 26
+
+
+def test_frames_move_at_most_half_a_pixel():
+    mesh = trimesh.creation.box((0.05, 0.06, 0.07))
+    t_us, poses = make_trajectory("fast", 0.05, 0, Camera.default(), mesh)
+    idx = frame_times(t_us, poses, Camera.default(), _mesh_corners(mesh), 0.5)
+    assert idx[0] == 0 and idx[-1] == len(t_us) - 1 and (torch.diff(idx) > 0).all()
+    V = torch.from_numpy(np.asarray(mesh.vertices))
+    uv = Camera.default().project(transform_points(poses[idx], V))
+    step = torch.linalg.norm(torch.diff(uv, dim=0), dim=-1).amax(-1)
+    assert float(step.max()) <= 0.5 + 1e-9 and float(step.median()) > 0.3  # not oversampled either
+
+
+@pytest.fixture(scope="module")
+def grey_box_sequence(tmp_path_factory):
+    # a plain grey box (no texture) brighter than the background everywhere
+    path = tmp_path_factory.mktemp("mesh") / "box.ply"
+    trimesh.creation.box((0.04, 0.05, 0.06)).export(path)
+    return generate_sequence(str(path), "fast", 0.04, 5, CAM, progress=False)
+
+
+def test_events_only_where_the_object_was(grey_box_sequence):
+    seq = grey_box_sequence
+    entered_p, left_p = [], []
+    with Renderer(seq.mesh, CAM) as r:
+        for t0 in range(0, 40_000, 2000):
+            t1 = t0 + 2000
+            ev = seq.events.slice_time(t0, t1 + 1)
+            assert len(ev) > 0
+            d = r.render(interpolate_poses(seq.gt_t_us, seq.gt_poses, torch.tensor([t0, t1])), shaded=False).depth
+            m0, m1 = (d[0] > 0).numpy(), (d[1] > 0).numpy()
+            x, y = ev.x.long().numpy(), ev.y.long().numpy()
+            swept = binary_dilation(m0 | m1, iterations=2)  # object at both ends, swept in between
+            assert swept[y, x].all()
+            # the bright object newly covering dark background: ON events; uncovering: OFF events
+            entered_p.append(ev.p.numpy()[(m1 & ~binary_dilation(m0, iterations=2))[y, x]])
+            left_p.append(ev.p.numpy()[(m0 & ~binary_dilation(m1, iterations=2))[y, x]])
+    entered_p, left_p = np.concatenate(entered_p), np.concatenate(left_p)
+    assert entered_p.size > 50 and left_p.size > 50
+    assert entered_p.mean() > 0.9 and left_p.mean() < 0.1
+
+
+def test_benchmark_names_and_seeds(tmp_path):
+    assert main(["synth-benchmark", "--out", str(tmp_path), "--duration", "0.01", "--only", "potted_regular",
+                 "--quiet"]) == 0
+    assert [p.name for p in tmp_path.iterdir()] == ["potted_regular"]
+    meta = json.loads((tmp_path / "potted_regular" / "meta.json").read_text())
+    assert meta["object"] == "010_potted_meat_can" and meta["motion"] == "regular"
+    assert json.loads((tmp_path / "potted_regular" / "camera.json").read_text())["width"] == 640
+    assert main(["synth-benchmark", "--out", str(tmp_path), "--only", "banana_fast"]) == 2
+    assert main(["info", str(tmp_path / "missing")]) == 2

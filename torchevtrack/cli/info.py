@@ -1,0 +1,91 @@
+"""``torchevtrack info DIR``: what a sequence directory holds (events, rate, duration, speeds, pose range)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+
+from torchevtrack.camera import Camera
+from torchevtrack.geometry import quat_conj, quat_log, quat_mul
+from torchevtrack.io.events_h5 import events_h5_summary
+from torchevtrack.io.poses import read_tum
+from torchevtrack.synth.trajectory import motion_stats
+
+
+def sequence_info(directory: str | Path) -> dict:
+    """Summary of a sequence directory; reads only the event count and end times from ``events.h5``."""
+    d = Path(directory)
+    if not d.is_dir():
+        raise FileNotFoundError(f"sequence directory not found: {d}")
+    for name in ("events.h5", "camera.json", "gt_poses.txt"):
+        if not (d / name).is_file():
+            raise FileNotFoundError(f"sequence {d} lacks {name}")
+    camera = Camera.load(d / "camera.json")
+    ev = events_h5_summary(d / "events.h5")
+    t_us, poses = read_tum(d / "gt_poses.txt")
+    duration_us = ev["t_last_us"] - ev["t_first_us"]
+    # rotation relative to the first pose, degrees
+    rel = quat_log(quat_mul(poses[:, 3:], quat_conj(poses[:1, 3:]))).norm(dim=-1)
+    info = {
+        "directory": str(d),
+        "camera": camera.to_dict(),
+        "events": ev["n"],
+        "events_t_first_us": ev["t_first_us"],
+        "events_t_last_us": ev["t_last_us"],
+        "events_duration_s": duration_us / 1e6,
+        "events_per_s": ev["n"] / (duration_us / 1e6) if duration_us > 0 else 0.0,
+        "gt_poses": int(t_us.numel()),
+        "gt_duration_s": float(t_us[-1] - t_us[0]) / 1e6,
+        "gt_rate_hz": (t_us.numel() - 1) / (float(t_us[-1] - t_us[0]) / 1e6) if t_us.numel() > 1 else 0.0,
+        "pose_range": {
+            "t_min_m": poses[:, :3].amin(0).tolist(),
+            "t_max_m": poses[:, :3].amax(0).tolist(),
+            "rotation_from_start_max_deg": float(torch.rad2deg(rel.max())),
+        },
+    }
+    if t_us.numel() > 1:
+        info["speeds"] = motion_stats(t_us, poses, camera)
+    if (d / "meta.json").is_file():
+        meta = json.loads((d / "meta.json").read_text())
+        info["meta"] = {k: meta[k] for k in ("object", "motion", "seed") if k in meta}
+    return info
+
+
+def _fmt_stats(s: dict, unit: str) -> str:
+    return (f"median {s['median']:.0f} {unit} (p10 {s['p10']:.0f}, p90 {s['p90']:.0f}, "
+            f"max {s['max']:.0f}, mean {s['mean']:.0f})")
+
+
+def run(args: argparse.Namespace) -> int:
+    info = sequence_info(args.directory)
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return 0
+    c = info["camera"]
+    print(f"sequence   {info['directory']}")
+    if "meta" in info:
+        print("generated  " + ", ".join(f"{k} {v}" for k, v in info["meta"].items()))
+    print(f"camera     {c['width']}x{c['height']}, fx {c['fx']:g}, fy {c['fy']:g}, cx {c['cx']:g}, cy {c['cy']:g}")
+    print(f"events     {info['events']} over {info['events_duration_s']:.3f} s "
+          f"({info['events_per_s'] / 1e6:.3f} Mev/s)")
+    print(f"gt poses   {info['gt_poses']} over {info['gt_duration_s']:.3f} s ({info['gt_rate_hz']:.0f} Hz)")
+    if "speeds" in info:
+        print("img speed  " + _fmt_stats(info["speeds"]["image_speed_px_s"], "px/s"))
+        print("ang speed  " + _fmt_stats(info["speeds"]["angular_speed_deg_s"], "deg/s"))
+    r = info["pose_range"]
+    for axis, lo, hi in zip("xyz", r["t_min_m"], r["t_max_m"]):
+        print(f"t{axis}         {lo:+.3f} .. {hi:+.3f} m")
+    print(f"rotation   up to {r['rotation_from_start_max_deg']:.1f} deg from the first pose")
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("info", help="summarise a sequence directory",
+                              description="Events, event rate, duration, image and angular speeds (from the "
+                              "ground truth) and the pose range of a sequence directory.")
+    p.add_argument("directory", help="sequence directory")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=run)
