@@ -1,11 +1,25 @@
 """Headless depth and shaded-grey rendering of a mesh at a batch of poses (pyrender, offscreen).
 
 The OpenGL platform is chosen before pyrender is imported: ``PYOPENGL_PLATFORM`` if set, else EGL
-when ``libEGL`` is present, else OSMesa. The scene (mesh, camera, a light attached to the camera and
-an ambient term) is built once; each render only moves the mesh node and, for a region of interest,
-changes the intrinsics and the viewport size. One offscreen context is kept per renderer: pyrender
-binds a mesh's GPU buffers to a single context, and resizing its framebuffer costs well under a
-millisecond, so the viewport is resized in place instead of keeping one context per size.
+when ``libEGL`` is present, else OSMesa. The scene (mesh and camera) is built once; each render only
+moves the mesh node and, for a region of interest, changes the intrinsics and the viewport size.
+
+Shading is a Lambert model with a light fixed to the camera, evaluated per pixel in numpy: one
+unlit (flat) RGBA pass rasterises each surface point's albedo and its interpolated object-frame
+normal (vertex attributes packed in the colour channels), then
+
+    gray = albedo * (AMBIENT + (1 - AMBIENT) * max(0, n_cam . l)),
+
+with ``AMBIENT = 0.3`` and ``l`` the unit direction towards the light, ``(-0.3, -0.4, -1)``
+normalised in the OpenCV camera frame (the light sits up-left of the lens). ``albedo`` is the
+luminance (0.299 R + 0.587 G + 0.114 B) of the mesh's vertex colours, 0.75 for uncoloured meshes.
+This is several times cheaper than pyrender's PBR shader on a software rasteriser. Depth and grey
+are point samples at pixel centres (no anti-aliasing); render a scaled camera and pool for smoother
+edges.
+
+One offscreen context is kept per renderer: pyrender binds a mesh's GPU buffers to a single
+context, and resizing its framebuffer costs well under a millisecond, so the viewport is resized in
+place instead of keeping one context per viewport size.
 
 Conventions: poses are ``[tx, ty, tz, qw, qx, qy, qz]`` (object in the OpenCV camera frame, metres);
 pixel ``(u, v)`` centres are at integer coordinates, so a point projected by
@@ -36,6 +50,17 @@ import trimesh
 
 from torchevtrack.camera import Camera
 from torchevtrack.geometry import pose_to_matrix, quat_normalize
+
+__all__ = ["AMBIENT", "DEFAULT_ALBEDO", "LIGHT_DIRECTION", "Render", "Renderer"]
+
+# Camera node pose: the OpenGL camera frame (x right, y up, z backwards) seen from the OpenCV frame.
+_GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+_LUMA = np.array([0.299, 0.587, 0.114])
+AMBIENT = 0.3
+# unit vector towards the light in the OpenCV camera frame: up-left of the lens, mostly frontal
+LIGHT_DIRECTION = np.array([-0.3, -0.4, -1.0]) / np.linalg.norm([-0.3, -0.4, -1.0])
+DEFAULT_ALBEDO = 0.75
+_CREASE_ANGLE = math.radians(30.0)
 
 
 def _select_gl_platform() -> None:
@@ -74,20 +99,7 @@ def _single_sampled():
     finally:
         pyrender.renderer.glRenderbufferStorageMultisample = _STORAGE_MULTISAMPLE
 
-__all__ = ["Render", "Renderer"]
 
-# Camera node pose: the OpenGL camera frame (x right, y up, z backwards) seen from the OpenCV frame.
-_GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
-_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32) / 255.0
-# Lighting in linear units (pyrender gamma-encodes the result): a white face lit head-on renders
-# near 0.95 grey, a face seen edge-on near the ambient floor of about 0.35.
-_AMBIENT = 0.1
-_LIGHT_INTENSITY = 2.3
-_DEFAULT_GREY = 0.75
-# Direction the camera-attached light travels, in the OpenGL camera frame: mostly along the view
-# axis, tilted so that it comes from the upper left (faces at different angles get different grey).
-_LIGHT_DIR_GL = np.array([0.3, -0.4, -1.0])
-_CREASE_ANGLE = math.radians(30.0)
 
 
 @dataclass
@@ -106,27 +118,18 @@ class Render:
     camera: Camera
 
 
-def _light_pose() -> np.ndarray:
-    d = _LIGHT_DIR_GL / np.linalg.norm(_LIGHT_DIR_GL)
-    z = -d  # a pyrender directional light shines along its node's -z axis
-    x = np.cross([0.0, 1.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack((x, np.cross(z, x), z), axis=1)
-    return T
-
-
 class Renderer:
     """Offscreen renderer of one mesh seen by one camera.
 
     Args:
-        mesh: the object (metres); vertex colours are used when present, otherwise light grey.
+        mesh: the object (metres, outward-facing winding: back faces are culled); its vertex
+            colours give the albedo (luminance), uncoloured meshes get ``DEFAULT_ALBEDO``.
         camera: the full-frame camera.
         znear, zfar: clipping distances in metres (``0 < znear < zfar``).
         background: grey value of pixels where no surface is seen.
 
-    Shading: ambient light plus a directional light fixed to the camera, so the grey of a face
-    changes as the object rotates; normals are smoothed except across creases sharper than 30 deg.
+    Shading: the module's Lambert model (light fixed to the camera, so the grey of a face changes
+    as the object rotates); normals are smoothed except across creases sharper than 30 degrees.
     Use as a context manager or call :meth:`close` to free the GL context.
     """
 
@@ -152,14 +155,12 @@ class Renderer:
         self.camera = camera
         self.background = float(background)
 
-        self._scene = pyrender.Scene(bg_color=(0.0, 0.0, 0.0, 0.0), ambient_light=(_AMBIENT,) * 3)
+        self._scene = pyrender.Scene(bg_color=(0.0, 0.0, 0.0, 0.0))
         self._mesh_node = self._scene.add(_pyrender_mesh(mesh))
         self._cam = pyrender.IntrinsicsCamera(
             camera.fx, camera.fy, camera.cx + 0.5, camera.cy + 0.5, znear=float(znear), zfar=float(zfar)
         )
-        cam_node = self._scene.add(self._cam, pose=_GL_FROM_CV)
-        light = pyrender.DirectionalLight(color=np.ones(3), intensity=_LIGHT_INTENSITY)
-        self._scene.add(light, pose=_light_pose(), parent_node=cam_node)
+        self._scene.add(self._cam, pose=_GL_FROM_CV)
         self._offscreen: pyrender.OffscreenRenderer | None = None
 
     # -- context management ----------------------------------------------------------------------
@@ -229,22 +230,18 @@ class Renderer:
         ctx = self._context(cam.width, cam.height)
         # back faces are culled (pyrender always culls in depth-only mode; culling in both keeps
         # depth-only and shaded silhouettes identical): meshes need outward-facing winding
-        flags = pyrender.RenderFlags.NONE
+        flags = pyrender.RenderFlags.FLAT | pyrender.RenderFlags.RGBA if shaded else pyrender.RenderFlags.DEPTH_ONLY
         depth = np.empty((len(T), cam.height, cam.width), dtype=np.float32)
         gray = np.empty_like(depth) if shaded else None
         with _single_sampled():
             for b in range(len(T)):
                 self._scene.set_pose(self._mesh_node, T[b])
                 if shaded:
-                    color, depth[b] = ctx.render(self._scene, flags=flags)
-                    gray[b] = color @ _LUMA
+                    rgba, depth[b] = ctx.render(self._scene, flags=flags)
+                    gray[b] = _shade(rgba, depth[b] > 0, T[b, :3, :3], self.background)
                 else:
-                    depth[b] = ctx.render(self._scene, flags=flags | pyrender.RenderFlags.DEPTH_ONLY)
-        out_gray = None
-        if gray is not None:
-            gray[depth == 0] = self.background
-            out_gray = torch.from_numpy(gray)
-        return Render(depth=torch.from_numpy(depth), gray=out_gray, camera=cam)
+                    depth[b] = ctx.render(self._scene, flags=flags)
+        return Render(depth=torch.from_numpy(depth), gray=None if gray is None else torch.from_numpy(gray), camera=cam)
 
 
 def _release(offscreen: pyrender.OffscreenRenderer) -> None:
@@ -271,21 +268,32 @@ def _release(offscreen: pyrender.OffscreenRenderer) -> None:
     offscreen._platform = None
 
 
+def _shade(rgba: np.ndarray, mask: np.ndarray, R: np.ndarray, background: float) -> np.ndarray:
+    """Lambert grey image from the flat pass: channel 0 albedo, channels 1-3 the object-frame normal
+    mapped to [0, 1]. Shape: ``(h, w, 4) uint8, (h, w) bool, (3, 3) -> (h, w) float32``."""
+    gray = np.full(mask.shape, background, dtype=np.float32)
+    px = rgba[mask].astype(np.float32) * (1.0 / 255.0)
+    n = px[:, 1:] * 2.0 - 1.0
+    light_obj = (R.T @ LIGHT_DIRECTION).astype(np.float32)  # n_cam . l = n_obj . (R^T l)
+    cos = (n @ light_obj) / np.linalg.norm(n, axis=1).clip(1e-6)
+    gray[mask] = px[:, 0] * (AMBIENT + (1.0 - AMBIENT) * cos.clip(0.0, None))
+    return gray
+
+
 def _pyrender_mesh(mesh: trimesh.Trimesh) -> pyrender.Mesh:
-    """Matte pyrender mesh with smooth normals split at creases and the vertex colours (or light grey)."""
+    """pyrender mesh whose vertex colours carry (albedo, normal * 0.5 + 0.5) for the flat pass;
+    normals are smooth except across creases, where vertices are split."""
     smooth = trimesh.graph.smooth_shade(mesh, angle=_CREASE_ANGLE)
     if smooth.visual.kind == "vertex":
-        colors = np.asarray(smooth.visual.vertex_colors, dtype=np.float32) / 255.0
+        albedo = np.asarray(smooth.visual.vertex_colors[:, :3], dtype=np.float64) @ _LUMA / 255.0
     else:
-        colors = np.full((len(smooth.vertices), 4), _DEFAULT_GREY, dtype=np.float32)
-    colors[:, 3] = 1.0
-    material = pyrender.MetallicRoughnessMaterial(
-        baseColorFactor=(1.0, 1.0, 1.0, 1.0), metallicFactor=0.0, roughnessFactor=1.0
-    )
+        albedo = np.full(len(smooth.vertices), DEFAULT_ALBEDO)
+    attributes = np.concatenate((albedo[:, None], np.asarray(smooth.vertex_normals) * 0.5 + 0.5), axis=1)
+    material = pyrender.MetallicRoughnessMaterial(baseColorFactor=(1.0, 1.0, 1.0, 1.0), alphaMode="OPAQUE")
     primitive = pyrender.Primitive(
         positions=np.asarray(smooth.vertices, dtype=np.float32),
         normals=np.asarray(smooth.vertex_normals, dtype=np.float32),
-        color_0=colors,
+        color_0=attributes.astype(np.float32),
         indices=np.asarray(smooth.faces, dtype=np.uint32),
         material=material,
         mode=pyrender.constants.GLTF.TRIANGLES,
