@@ -28,7 +28,8 @@ Example:
     >>> cam = Camera.default()
     >>> kf = VelocityKF(cam, r_px=0.1, batch_size=1)
     >>> gen = torch.Generator().manual_seed(0)
-    >>> uv = torch.rand(1, 50, 2, dtype=torch.float64, generator=gen) * torch.tensor([640.0, 480.0], dtype=torch.float64)
+    >>> size = torch.tensor([640.0, 480.0], dtype=torch.float64)
+    >>> uv = torch.rand(1, 50, 2, dtype=torch.float64, generator=gen) * size
     >>> depth = 0.4 + 0.2 * torch.rand(1, 50, dtype=torch.float64, generator=gen)
     >>> twist = torch.tensor([0.1, 0.0, 0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
     >>> flow = (cam.interaction_matrix(uv, depth) @ twist[:, None])[..., 0]  # px/s
@@ -153,7 +154,9 @@ def kf_update(
     if flow.shape != uv.shape:
         raise ValueError(f"flow must have shape {tuple(uv.shape)} like uv, got {tuple(flow.shape)}")
     if depth.shape != (B, G) or valid.shape != (B, G):
-        raise ValueError(f"depth and valid must have shape ({B}, {G}), got {tuple(depth.shape)} and {tuple(valid.shape)}")
+        raise ValueError(
+            f"depth and valid must have shape ({B}, {G}), got {tuple(depth.shape)} and {tuple(valid.shape)}"
+        )
     if valid.dtype != torch.bool:
         raise TypeError(f"valid must be a bool tensor, got {valid.dtype}")
     if r_px <= 0 or iters < 0 or k <= 0:
@@ -230,7 +233,8 @@ class VelocityKF(nn.Module):
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.camera = camera
-        self.rho, self.r_px, self.min_vectors, self.iters, self.k = float(rho), float(r_px), int(min_vectors), int(iters), float(k)
+        self.rho, self.r_px, self.k = float(rho), float(r_px), float(k)
+        self.min_vectors, self.iters = int(min_vectors), int(iters)
         f64 = torch.float64
         self.register_buffer("Q", torch.diag(torch.tensor([q_v**2] * 3 + [q_w**2] * 3, dtype=f64)))
         self.register_buffer("P0", torch.diag(torch.tensor([p0_v**2] * 3 + [p0_w**2] * 3, dtype=f64)))
