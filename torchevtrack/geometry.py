@@ -7,9 +7,9 @@ Conventions, used everywhere in torchevtrack:
 * A pose tensor has shape ``(..., 7)`` laid out as ``[tx, ty, tz, qw, qx, qy, qz]``.
 * Quaternions are Hamilton, scalar first ``(w, x, y, z)``, unit norm, and are returned with
   ``w >= 0`` where a function picks a sign.
-* A twist ``[v, w]`` (``(..., 6)``) is the object's velocity in the camera frame: ``dt/dt = v``
-  and ``dR/dt = [w]x R`` (angular velocity expressed in the camera frame), so rotations are
-  applied on the **left**: ``q(t + dt) = exp(w dt) (x) q(t)``.
+* A twist ``[v, w]`` (``(..., 6)``) is the object's velocity in the camera frame: every object
+  point moves as ``dP/dt = v + w x P`` and ``dR/dt = [w]x R``, so rotations are applied on the
+  **left**: ``q(t + dt) = exp(w dt) (x) q(t)``. Integration: ``torchevtrack.stages.propagate``.
 * File formats that store ``qx qy qz qw`` (TUM, CSV) are converted at the I/O boundary only.
 
 Example:
@@ -47,7 +47,6 @@ __all__ = [
     "pose_compose",
     "pose_inverse",
     "transform_points",
-    "pose_integrate",
     "interpolate_poses",
     "check_pose",
 ]
@@ -174,19 +173,6 @@ def transform_points(pose: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """
     R = quat_to_matrix(pose[..., 3:])
     return points @ R.transpose(-1, -2) + pose[..., None, :3]
-
-
-def pose_integrate(pose: torch.Tensor, twist: torch.Tensor, dt: torch.Tensor | float) -> torch.Tensor:
-    """Propagate a pose with a constant camera-frame twist for ``dt`` seconds.
-
-    ``t+ = t + v dt`` and ``q+ = exp(w dt) (x) q`` (the paper's propagation, Eq. 6).
-
-    Shape: ``(..., 7), (..., 6), (...) or float -> (..., 7)``.
-    """
-    dt = torch.as_tensor(dt, dtype=pose.dtype, device=pose.device)[..., None]
-    t = pose[..., :3] + twist[..., :3] * dt
-    q = quat_mul(quat_exp(twist[..., 3:] * dt), pose[..., 3:])
-    return torch.cat((t, quat_canonical(q)), dim=-1)
 
 
 def interpolate_poses(times: torch.Tensor, poses: torch.Tensor, query: torch.Tensor) -> torch.Tensor:

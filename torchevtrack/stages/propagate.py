@@ -10,8 +10,7 @@ exponential applied on the left::
     q+ = exp(w dt) (x) q
     t+ = exp(w dt) t + V(w dt) v dt,   V(phi) = I + (1 - cos a) / a^2 [phi]x + (a - sin a) / a^3 [phi]x^2
 
-so the object origin moves with ``dt/dt = v + w x t``. The paper's Eq. 6 (``t+ = t + v dt``,
-:func:`torchevtrack.geometry.pose_integrate`) drops ``w x t``, which at a depth of 0.5 m and 1 rad/s is an
+so the object origin moves with ``dt/dt = v + w x t``. The paper's Eq. 6 (``t+ = t + v dt``) drops ``w x t``, which at a depth of 0.5 m and 1 rad/s is an
 error of 0.5 m/s; it is only right when the object origin sits at the camera centre.
 
 The stage holds no configuration or state, so it is a plain function (no Module).
