@@ -1,0 +1,113 @@
+"""EROS against a sequential per-event oracle (plain Python loops, float64)."""
+
+import numpy as np
+import pytest
+import scipy.ndimage
+import torch
+
+from torchevtrack.stages.eros import EROS, eros_update, eros_update_, observation
+
+
+def eros_oracle(surface, xs, ys, bs, k, d):
+    """The textbook definition: per event, multiply the clipped k x k window by lam, then set 1."""
+    s = surface.astype(np.float64).copy()
+    B, H, W = s.shape
+    r = k // 2
+    lam = d ** (1.0 / k)
+    for x, y, b in zip(xs, ys, bs):
+        for yy in range(max(y - r, 0), min(y + r, H - 1) + 1):
+            for xx in range(max(x - r, 0), min(x + r, W - 1) + 1):
+                s[b, yy, xx] *= lam
+        s[b, y, x] = 1.0
+    return s
+
+
+def random_stream(rng, n, B, H, W, hot=0.0):
+    x = rng.integers(0, W, n)
+    y = rng.integers(0, H, n)
+    if hot:  # force repeated pixels and border pixels
+        m = rng.random(n) < hot
+        x[m] = rng.choice([0, 1, W - 1, W // 2], m.sum())
+        y[m] = rng.choice([0, H - 1, H // 2], m.sum())
+    b = rng.integers(0, B, n)
+    return x, y, b
+
+
+@pytest.mark.parametrize("k,d", [(7, 0.3), (3, 0.5), (9, 0.75), (1, 0.4)])
+@pytest.mark.parametrize("B", [1, 3])
+def test_matches_sequential_oracle(k, d, B):
+    rng = np.random.default_rng(k * 10 + B)
+    H, W = 13, 17
+    s0 = rng.random((B, H, W)).astype(np.float32)
+    ref = s0.astype(np.float64)
+    s = torch.from_numpy(s0)
+    for n in (1, 40, 300, 0, 700):  # several packets, the state carries over
+        x, y, b = random_stream(rng, n, B, H, W, hot=0.3)
+        ref = eros_oracle(ref, x, y, b, k, d)
+        s = eros_update(s, torch.from_numpy(x).short(), torch.from_numpy(y).short(),
+                        torch.from_numpy(b), k, d)
+        np.testing.assert_allclose(s.numpy(), ref, atol=1e-6, rtol=0)
+    assert s.dtype == torch.float32 and s.shape == (B, H, W)
+
+
+def test_module_state_b_none_and_packet_split():
+    rng = np.random.default_rng(1)
+    H, W = 10, 12
+    x, y, _ = random_stream(rng, 500, 1, H, W, hot=0.2)
+    ref = eros_oracle(np.zeros((1, H, W)), x, y, np.zeros_like(x), 7, 0.3)
+    m = EROS(H, W, kernel_size=7, decay=0.3)
+    tx, ty = torch.from_numpy(x), torch.from_numpy(y)
+    for i in range(0, 500, 37):  # split into uneven packets: the closed form must compose
+        out = m(tx[i:i + 37], ty[i:i + 37])
+    assert out is m.surface
+    np.testing.assert_allclose(m.surface.numpy(), ref, atol=1e-6, rtol=0)
+    assert abs(m.lam - 0.3 ** (1 / 7)) < 1e-12
+    m.reset()
+    assert float(m.surface.abs().sum()) == 0.0
+
+
+def test_functional_does_not_modify_input_and_inplace_does():
+    s = torch.full((1, 5, 5), 0.5)
+    x, y = torch.tensor([2]), torch.tensor([2])
+    out = eros_update(s, x, y, None, 3, 0.5)
+    assert float(s[0, 2, 2]) == 0.5 and float(out[0, 2, 2]) == 1.0
+    assert float(out[0, 0, 0]) == 0.5 and abs(float(out[0, 1, 1]) - 0.5 * 0.5 ** (1 / 3)) < 1e-7
+    eros_update_(s, x, y, None, 3, 0.5)
+    assert torch.equal(s, out)
+
+
+def test_interleaved_batches_are_independent():
+    rng = np.random.default_rng(5)
+    H, W, B = 9, 11, 2
+    x, y, b = random_stream(rng, 400, B, H, W, hot=0.2)
+    s = eros_update(torch.zeros(B, H, W), torch.from_numpy(x), torch.from_numpy(y), torch.from_numpy(b), 5, 0.4)
+    for bb in range(B):
+        m = b == bb
+        ref = eros_oracle(np.zeros((1, H, W)), x[m], y[m], np.zeros(m.sum(), int), 5, 0.4)
+        np.testing.assert_allclose(s[bb].numpy(), ref[0], atol=1e-6, rtol=0)
+
+
+def test_observation_is_3x3_median():
+    rng = np.random.default_rng(2)
+    s = torch.from_numpy(rng.random((2, 8, 9)).astype(np.float32))
+    ref = np.stack([scipy.ndimage.median_filter(s[i].numpy(), size=3, mode="mirror")  # = torch "reflect"
+                    for i in range(2)])
+    np.testing.assert_allclose(observation(s).numpy(), ref, atol=1e-7)
+
+
+def test_bad_inputs():
+    with pytest.raises(ValueError, match="kernel_size"):
+        EROS(10, 10, kernel_size=4)
+    with pytest.raises(ValueError, match="kernel_size"):
+        EROS(10, 10, kernel_size=0)
+    with pytest.raises(ValueError, match="decay"):
+        EROS(10, 10, decay=1.0)
+    m = EROS(10, 10, batch_size=2)
+    with pytest.raises(ValueError, match="x must lie"):
+        m(torch.tensor([10]), torch.tensor([0]))
+    with pytest.raises(ValueError, match="b must lie"):
+        m(torch.tensor([1]), torch.tensor([0]), torch.tensor([2]))
+    with pytest.raises(TypeError, match="integer"):
+        m(torch.tensor([1.0]), torch.tensor([0]))
+    with pytest.raises(ValueError, match="shape"):
+        m(torch.tensor([1, 2]), torch.tensor([0]))

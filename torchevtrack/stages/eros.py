@@ -1,0 +1,186 @@
+"""Stage 1: EROS, the exponentially reduced ordinal surface (velocity-independent event image).
+
+Sequential definition, per event at pixel ``(x, y)`` of batch element ``b``: every pixel of the
+``k x k`` window centred on ``(x, y)`` (clipped to the image, the event pixel included) is multiplied
+by ``lam = decay ** (1 / k)``, then ``S[b, y, x] = 1``.
+
+Exact closed form used here (order preserving, no loop over events): after a packet of events,
+
+* a pixel ``q`` with events in the packet holds ``lam ** n(q)``, ``n(q)`` = number of packet events
+  within Chebyshev radius ``k // 2`` of ``q`` that come after ``q``'s own last event;
+* any other pixel holds ``old(q) * lam ** c(q)``, ``c(q)`` = number of packet events within that radius.
+
+Both counts are ``#{events e in the window of q with index(e) > L(q)}`` with ``L(q)`` the index of the
+last packet event at ``q`` (``-1`` if none), so one scatter-``amax`` for ``L``, ``k * k`` offset gathers
+and one integer ``index_add`` give every count; the surface is then rewritten only inside the bounding
+box of the packet (plus the window radius).
+
+Events are packed as 1-D tensors ``x``, ``y`` (pixel column / row) and ``b`` (batch index, or ``None``
+for all-zero); within each batch element the packed order is time order.
+
+Example:
+    >>> import torch
+    >>> from torchevtrack.stages.eros import EROS
+    >>> eros = EROS(4, 5, kernel_size=3, decay=0.5)
+    >>> s = eros(torch.tensor([1, 2]), torch.tensor([1, 1]))
+    >>> round(float(s[0, 1, 1]), 4), float(s[0, 1, 2])  # lam = 0.5 ** (1/3)
+    (0.7937, 1.0)
+"""
+
+from __future__ import annotations
+
+import kornia
+import torch
+from torch import nn
+
+__all__ = ["EROS", "eros_update", "eros_update_", "observation", "prepare_events"]
+
+
+def prepare_events(x: torch.Tensor, y: torch.Tensor, b: torch.Tensor | None, height: int, width: int,
+                   batch_size: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Check packed event coordinates and return them as int64 ``(x, y, b)``.
+
+    Shape:
+        x, y, b: ``(N,)`` integer tensors; ``b`` may be ``None`` (all events in batch element 0).
+        Returns three ``(N,)`` int64 tensors.
+
+    Raises:
+        TypeError: a field is not an integer tensor.
+        ValueError: shapes differ, or a coordinate is outside ``[0, width) x [0, height)`` or a
+            batch index outside ``[0, batch_size)``.
+    """
+    fields = {"x": x, "y": y} if b is None else {"x": x, "y": y, "b": b}
+    for name, f in fields.items():
+        if not isinstance(f, torch.Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor, got {type(f).__name__}")
+        if f.is_floating_point() or f.is_complex() or f.dtype == torch.bool:
+            raise TypeError(f"{name} must be an integer tensor, got {f.dtype}")
+        if f.ndim != 1 or f.shape != x.shape:
+            raise ValueError(f"{name} must be 1-D with the shape of x {tuple(x.shape)}, got {tuple(f.shape)}")
+    xi, yi = x.long(), y.long()
+    bi = torch.zeros_like(xi) if b is None else b.long()
+    if xi.numel():
+        for name, v, hi in (("x", xi, width), ("y", yi, height), ("b", bi, batch_size)):
+            lo_v, hi_v = torch.aminmax(v)
+            if int(lo_v) < 0 or int(hi_v) >= hi:
+                raise ValueError(f"{name} must lie in [0, {hi}), got values in [{int(lo_v)}, {int(hi_v)}]")
+    return xi, yi, bi
+
+
+def _check_params(kernel_size: int, decay: float) -> None:
+    if isinstance(kernel_size, bool) or not isinstance(kernel_size, int) or kernel_size <= 0 or kernel_size % 2 == 0:
+        raise ValueError(f"kernel_size must be a positive odd int, got {kernel_size!r}")
+    if not 0.0 < float(decay) < 1.0:
+        raise ValueError(f"decay must be in (0, 1), got {decay!r}")
+
+
+def _check_surface(surface: torch.Tensor) -> None:
+    if not isinstance(surface, torch.Tensor) or surface.ndim != 3 or not surface.is_floating_point():
+        raise ValueError("surface must be a floating (B, H, W) tensor, got "
+                         f"{getattr(surface, 'dtype', type(surface).__name__)} {tuple(getattr(surface, 'shape', ()))}")
+
+
+def eros_update_(surface: torch.Tensor, x: torch.Tensor, y: torch.Tensor, b: torch.Tensor | None,
+                 kernel_size: int = 7, decay: float = 0.3) -> torch.Tensor:
+    """In-place :func:`eros_update`: apply the events to ``surface`` and return it."""
+    _check_surface(surface)
+    _check_params(kernel_size, decay)
+    B, H, W = surface.shape
+    xi, yi, bi = prepare_events(x, y, b, H, W, B)
+    n_ev = xi.numel()
+    if n_ev == 0:
+        return surface
+    r = kernel_size // 2
+    Hp, Wp = H + 2 * r, W + 2 * r
+    pe = (bi * Hp + yi + r) * Wp + (xi + r)  # flat index into the zero-padded (B, Hp, Wp) grid
+    order = torch.arange(n_ev, dtype=torch.int32)
+    last = torch.full((B * Hp * Wp,), -1, dtype=torch.int32).scatter_reduce_(0, pe, order, "amax")
+    d = torch.arange(-r, r + 1)
+    offsets = (d[:, None] * Wp + d[None, :]).reshape(-1)
+    tgt = (pe[:, None] + offsets).reshape(-1)
+    after = last.index_select(0, tgt).view(n_ev, -1) < order[:, None]
+    count = torch.zeros(B * Hp * Wp, dtype=torch.int32).index_add_(0, tgt, after.view(-1).to(torch.int32))
+    # Rewrite only the bounding box of the packet grown by the window radius (union over the batch).
+    x0, x1 = (int(v) for v in torch.aminmax(xi))
+    y0, y1 = (int(v) for v in torch.aminmax(yi))
+    x0, x1, y0, y1 = max(x0 - r, 0), min(x1 + r, W - 1) + 1, max(y0 - r, 0), min(y1 + r, H - 1) + 1
+    box = (slice(None), slice(y0 + r, y1 + r), slice(x0 + r, x1 + r))
+    pw = torch.pow(torch.tensor(decay ** (1.0 / kernel_size), dtype=torch.float64), count.view(B, Hp, Wp)[box])
+    crop = surface[:, y0:y1, x0:x1]
+    crop.copy_(torch.where(last.view(B, Hp, Wp)[box] >= 0, pw, crop * pw))
+    return surface
+
+
+def eros_update(surface: torch.Tensor, x: torch.Tensor, y: torch.Tensor, b: torch.Tensor | None,
+                kernel_size: int = 7, decay: float = 0.3) -> torch.Tensor:
+    """Apply a packet of events, in order, to an EROS surface (exact; see the module docstring).
+
+    Args:
+        surface: ``(B, H, W)`` float surface, values in ``[0, 1]``.
+        x, y: ``(N,)`` integer pixel column / row of each event.
+        b: ``(N,)`` integer batch index, or ``None`` (all events in batch element 0).
+        kernel_size: odd window size ``k``.
+        decay: ``d`` in ``(0, 1)``; every event multiplies its window by ``d ** (1 / k)``.
+
+    Returns:
+        A new ``(B, H, W)`` surface; the input is not modified.
+    """
+    return eros_update_(surface.clone(), x, y, b, kernel_size, decay)
+
+
+def observation(surface: torch.Tensor) -> torch.Tensor:
+    """Matching observation of an EROS surface: its 3x3 median blur (mirror border, edge not repeated).
+
+    Shape:
+        surface: ``(B, H, W)`` in ``[0, 1]``; returns ``(B, H, W)`` in ``[0, 1]``.
+    """
+    _check_surface(surface)
+    return kornia.filters.median_blur(surface[:, None], (3, 3), border_type="reflect")[:, 0]
+
+
+class EROS(nn.Module):
+    """Stateful EROS surface for ``B`` independent event streams.
+
+    Args:
+        height, width: sensor size in pixels.
+        kernel_size: odd window size ``k`` (default 7).
+        decay: ``d`` in ``(0, 1)`` (default 0.3); per-event factor ``d ** (1 / k)``.
+        batch_size: number of independent streams ``B``.
+
+    Buffers:
+        surface: ``(B, H, W)`` float32 in ``[0, 1]``, initially 0.
+
+    Call ``forward(x, y, b=None)`` with a packet of events (time order within each batch element); it
+    updates ``surface`` and returns it (the buffer itself, not a copy).
+    """
+
+    surface: torch.Tensor
+
+    def __init__(self, height: int, width: int, kernel_size: int = 7, decay: float = 0.3, batch_size: int = 1):
+        super().__init__()
+        _check_params(kernel_size, decay)
+        for name, v in (("height", height), ("width", width), ("batch_size", batch_size)):
+            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+                raise ValueError(f"{name} must be a positive int, got {v!r}")
+        self.kernel_size = kernel_size
+        self.decay = float(decay)
+        self.register_buffer("surface", torch.zeros(batch_size, height, width, dtype=torch.float32))
+
+    @property
+    def lam(self) -> float:
+        """Per-event decay factor ``decay ** (1 / kernel_size)``."""
+        return self.decay ** (1.0 / self.kernel_size)
+
+    def forward(self, x: torch.Tensor, y: torch.Tensor, b: torch.Tensor | None = None) -> torch.Tensor:
+        return eros_update_(self.surface, x, y, b, self.kernel_size, self.decay)
+
+    def observation(self) -> torch.Tensor:
+        """3x3 median blur of the current surface, ``(B, H, W)``."""
+        return observation(self.surface)
+
+    def reset(self) -> None:
+        self.surface.zero_()
+
+    def extra_repr(self) -> str:
+        B, H, W = self.surface.shape
+        return f"height={H}, width={W}, kernel_size={self.kernel_size}, decay={self.decay}, batch_size={B}"
