@@ -13,7 +13,7 @@ from torchevtrack.geometry import interpolate_poses, transform_points
 from torchevtrack.render import Renderer
 from torchevtrack.synth.generate import frame_times, generate_sequence
 from torchevtrack.synth.sequence import Sequence
-from torchevtrack.synth.trajectory import _mesh_corners, make_trajectory
+from torchevtrack.synth.trajectory import bbox_corners, make_trajectory
 
 CAM = Camera(64, 48, 50.0, 50.0, 32.0, 24.0)
 TINY = ["--width", "64", "--height", "48", "--fx", "50", "--fy", "50", "--quiet"]
@@ -62,7 +62,7 @@ def test_sequence_contents_and_info(tmp_path, capsys):
 def test_frames_move_at_most_half_a_pixel():
     mesh = trimesh.creation.box((0.05, 0.06, 0.07))
     t_us, poses = make_trajectory("fast", 0.05, 0, Camera.default(), mesh)
-    idx = frame_times(t_us, poses, Camera.default(), _mesh_corners(mesh), 0.5)
+    idx = frame_times(t_us, poses, Camera.default(), bbox_corners(mesh), 0.5)
     assert idx[0] == 0 and idx[-1] == len(t_us) - 1 and (torch.diff(idx) > 0).all()
     V = torch.from_numpy(np.asarray(mesh.vertices))
     uv = Camera.default().project(transform_points(poses[idx], V))

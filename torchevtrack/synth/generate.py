@@ -33,7 +33,7 @@ from torchevtrack.mesh import load_mesh
 from torchevtrack.render import Renderer
 from torchevtrack.synth.esim import ESIM
 from torchevtrack.synth.sequence import Sequence
-from torchevtrack.synth.trajectory import _mesh_corners, make_trajectory, motion_stats, projected_bbox
+from torchevtrack.synth.trajectory import bbox_corners, make_trajectory, motion_stats, projected_bbox
 
 __all__ = ["frame_times", "roi_union", "generate_sequence"]
 
@@ -124,7 +124,7 @@ def generate_sequence(
     mesh = load_mesh(object_name)
     render_mesh = mesh if render_faces is None else load_mesh(object_name, decimate=render_faces)
     t_us, poses = make_trajectory(motion, duration_s, seed, camera, mesh, dt_us=dt_us)
-    corners = _mesh_corners(mesh)
+    corners = bbox_corners(mesh)
     frames = frame_times(t_us, poses, camera, corners, max_px_per_frame)
     boxes = projected_bbox(poses[frames], camera, corners)
 

@@ -52,6 +52,7 @@ __all__ = [
     "angular_speed",
     "motion_stats",
     "projected_bbox",
+    "bbox_corners",
 ]
 
 
@@ -124,7 +125,8 @@ def _prefix_quat_product(dq: torch.Tensor) -> torch.Tensor:
     return quat_canonical(p)
 
 
-def _mesh_corners(mesh) -> torch.Tensor:
+def bbox_corners(mesh) -> torch.Tensor:
+    """The 8 corners of a mesh's axis-aligned bounding box, object frame, metres. Shape: ``(8, 3)`` float64."""
     lo, hi = np.asarray(mesh.bounds, dtype=np.float64)
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     return torch.from_numpy(corners)
@@ -179,7 +181,7 @@ def make_trajectory(
         raise TypeError(f"seed must be an integer, got {type(seed).__name__}")
     group = MOTION_GROUPS[motion]
     margin = max(2.0, 0.02 * min(camera.width, camera.height)) if margin_px is None else float(margin_px)
-    corners = _mesh_corners(mesh)
+    corners = bbox_corners(mesh)
     radius = float(corners.norm(dim=-1).max())
     f = max(camera.fx, camera.fy)
 
