@@ -50,6 +50,20 @@ def test_matches_sequential_oracle(k, d, B):
     assert s.dtype == torch.float32 and s.shape == (B, H, W)
 
 
+@pytest.mark.parametrize("k", [7, 3])
+def test_sparse_write_path_small_packets_on_larger_sensor(k):
+    # Few events on a larger sensor: the touched pixels are rewritten sparsely instead of a dense box.
+    rng = np.random.default_rng(k)
+    B, H, W = 2, 40, 64
+    s0 = rng.random((B, H, W)).astype(np.float32)
+    ref, s = s0.astype(np.float64), torch.from_numpy(s0)
+    for n in (1, 3, 8, 20, 2):
+        x, y, b = random_stream(rng, n, B, H, W, hot=0.3)
+        ref = eros_oracle(ref, x, y, b, k, 0.3)
+        s = eros_update(s, torch.from_numpy(x), torch.from_numpy(y), torch.from_numpy(b), k, 0.3)
+        np.testing.assert_allclose(s.numpy(), ref, atol=1e-6, rtol=0)
+
+
 def test_module_state_b_none_and_packet_split():
     rng = np.random.default_rng(1)
     H, W = 10, 12
@@ -111,3 +125,5 @@ def test_bad_inputs():
         m(torch.tensor([1.0]), torch.tensor([0]))
     with pytest.raises(ValueError, match="shape"):
         m(torch.tensor([1, 2]), torch.tensor([0]))
+    with pytest.raises(ValueError, match="contiguous"):
+        eros_update_(torch.zeros(1, 6, 5).transpose(1, 2), torch.tensor([1]), torch.tensor([1]), None)

@@ -12,8 +12,9 @@ Exact closed form used here (order preserving, no loop over events): after a pac
 
 Both counts are ``#{events e in the window of q with index(e) > L(q)}`` with ``L(q)`` the index of the
 last packet event at ``q`` (``-1`` if none), so one scatter-``amax`` for ``L``, ``k * k`` offset gathers
-and one integer ``index_add`` give every count; the surface is then rewritten only inside the bounding
-box of the packet (plus the window radius).
+and one integer ``index_add`` give every count; the surface is then rewritten either at the touched
+pixels only or densely inside the bounding box of the packet (plus the window radius), whichever is
+smaller.
 
 Events are packed as 1-D tensors ``x``, ``y`` (pixel column / row) and ``b`` (batch index, or ``None``
 for all-zero); within each batch element the packed order is time order.
@@ -28,6 +29,8 @@ Example:
 """
 
 from __future__ import annotations
+
+import math
 
 import kornia
 import torch
@@ -75,8 +78,9 @@ def _check_params(kernel_size: int, decay: float) -> None:
 
 
 def _check_surface(surface: torch.Tensor) -> None:
-    if not isinstance(surface, torch.Tensor) or surface.ndim != 3 or not surface.is_floating_point():
-        raise ValueError("surface must be a floating (B, H, W) tensor, got "
+    if not isinstance(surface, torch.Tensor) or surface.ndim != 3 or not surface.is_floating_point() \
+            or not surface.is_contiguous():
+        raise ValueError("surface must be a contiguous floating (B, H, W) tensor, got "
                          f"{getattr(surface, 'dtype', type(surface).__name__)} {tuple(getattr(surface, 'shape', ()))}")
 
 
@@ -100,14 +104,28 @@ def eros_update_(surface: torch.Tensor, x: torch.Tensor, y: torch.Tensor, b: tor
     tgt = (pe[:, None] + offsets).reshape(-1)
     after = last.index_select(0, tgt).view(n_ev, -1) < order[:, None]
     count = torch.zeros(B * Hp * Wp, dtype=torch.int32).index_add_(0, tgt, after.view(-1).to(torch.int32))
-    # Rewrite only the bounding box of the packet grown by the window radius (union over the batch).
+    log_lam = math.log(decay) / kernel_size
+    # Rewrite the touched pixels: sparsely (every window pixel of every event, duplicates write equal
+    # values) or densely over the packet's bounding box grown by r, whichever is smaller.
     x0, x1 = (int(v) for v in torch.aminmax(xi))
     y0, y1 = (int(v) for v in torch.aminmax(yi))
     x0, x1, y0, y1 = max(x0 - r, 0), min(x1 + r, W - 1) + 1, max(y0 - r, 0), min(y1 + r, H - 1) + 1
-    box = (slice(None), slice(y0 + r, y1 + r), slice(x0 + r, x1 + r))
-    pw = torch.pow(torch.tensor(decay ** (1.0 / kernel_size), dtype=torch.float64), count.view(B, Hp, Wp)[box])
-    crop = surface[:, y0:y1, x0:x1]
-    crop.copy_(torch.where(last.view(B, Hp, Wp)[box] >= 0, pw, crop * pw))
+    if tgt.numel() < B * (x1 - x0) * (y1 - y0):
+        q = tgt.view(n_ev, -1)
+        qx = xi[:, None] + d.repeat(kernel_size)
+        qy = yi[:, None] + d.repeat_interleave(kernel_size)
+        inside = ((qx >= 0) & (qx < W) & (qy >= 0) & (qy < H)).view(-1).nonzero().squeeze(1)
+        q = q.view(-1).index_select(0, inside)
+        dst = ((bi[:, None] * H + qy) * W + qx).view(-1).index_select(0, inside)
+        pw = torch.exp(count.index_select(0, q).float() * log_lam)
+        flat = surface.view(-1)
+        old = flat.index_select(0, dst)
+        flat.index_put_((dst,), torch.where(last.index_select(0, q) >= 0, pw, old * pw))
+    else:
+        box = (slice(None), slice(y0 + r, y1 + r), slice(x0 + r, x1 + r))
+        pw = torch.exp(count.view(B, Hp, Wp)[box].float() * log_lam)
+        crop = surface[:, y0:y1, x0:x1]
+        crop.copy_(torch.where(last.view(B, Hp, Wp)[box] >= 0, pw, crop * pw))
     return surface
 
 
@@ -125,7 +143,7 @@ def eros_update(surface: torch.Tensor, x: torch.Tensor, y: torch.Tensor, b: torc
     Returns:
         A new ``(B, H, W)`` surface; the input is not modified.
     """
-    return eros_update_(surface.clone(), x, y, b, kernel_size, decay)
+    return eros_update_(surface.clone(memory_format=torch.contiguous_format), x, y, b, kernel_size, decay)
 
 
 def observation(surface: torch.Tensor) -> torch.Tensor:
@@ -134,7 +152,8 @@ def observation(surface: torch.Tensor) -> torch.Tensor:
     Shape:
         surface: ``(B, H, W)`` in ``[0, 1]``; returns ``(B, H, W)`` in ``[0, 1]``.
     """
-    _check_surface(surface)
+    if not isinstance(surface, torch.Tensor) or surface.ndim != 3:
+        raise ValueError(f"surface must be a (B, H, W) tensor, got {tuple(getattr(surface, 'shape', ()))}")
     return kornia.filters.median_blur(surface[:, None], (3, 3), border_type="reflect")[:, 0]
 
 

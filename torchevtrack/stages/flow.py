@@ -134,16 +134,15 @@ def sae_update(sae, x, y, t, p, b=None) -> torch.Tensor:
     return sae_update_(sae.clone(), x, y, t, p, b)
 
 
-def _seen_times(sae_pad: torch.Tensor, q: torch.Tensor, e: torch.Tensor, pe: torch.Tensor, t: torch.Tensor,
+def _seen_times(sae_pad: torch.Tensor, q: torch.Tensor, e: torch.Tensor, n: int, t: torch.Tensor,
                 first: torch.Tensor, last: torch.Tensor, keys: torch.Tensor, t_sorted: torch.Tensor) -> torch.Tensor:
     """SAE time at padded flat pixel ``q`` as seen by packet event ``e`` (see the module docstring)."""
-    n = pe.numel()
-    f, l_ = first[q], last[q]
-    out = torch.where(f >= e, sae_pad[q], t[l_.clamp(min=0).long()])
+    f, l_ = first.index_select(0, q), last.index_select(0, q)
+    out = torch.where(f >= e, sae_pad.index_select(0, q), t.index_select(0, l_.clamp(min=0)))
     partial = ((f < e) & (l_ >= e)).nonzero().squeeze(1)
     if partial.numel():
-        pos = torch.searchsorted(keys, q[partial] * n + e[partial]) - 1
-        out[partial] = t_sorted[pos]
+        pos = torch.searchsorted(keys, q.index_select(0, partial) * n + e.index_select(0, partial)) - 1
+        out[partial] = t_sorted.index_select(0, pos)
     return out
 
 
@@ -159,32 +158,32 @@ def _triplets_padded(sae_pad: torch.Tensor, pad: int, xi, yi, ch, t, D: int, dt_
     _, _, Hp, Wp = sae_pad.shape
     flat = sae_pad.view(-1)
     pe = (ch * Hp + yi + pad) * Wp + (xi + pad)
-    order = torch.arange(n, dtype=torch.int32)
-    first = torch.full((flat.numel(),), n, dtype=torch.int32).scatter_reduce_(0, pe, order, "amin")
-    last = torch.full((flat.numel(),), -1, dtype=torch.int32).scatter_reduce_(0, pe, order, "amax")
+    order = torch.arange(n)
+    first = torch.full((flat.numel(),), n, dtype=torch.long).scatter_reduce_(0, pe, order, "amin")
+    last = torch.full((flat.numel(),), -1, dtype=torch.long).scatter_reduce_(0, pe, order, "amax")
     keys, perm = torch.sort(pe * n + order)
-    t_sorted = t[perm]
+    t_sorted = t.index_select(0, perm)
     dirs = _directions(D)
+    K = dirs.shape[0]
     step = dirs[:, 1] * Wp + dirs[:, 0]  # (K,) flat offset of d
     # Stage 1: p1 for every (event, direction); keep pairs with 0 < dt01 < dt_max.
-    q1 = (pe[:, None] + step).reshape(-1)
-    e1 = order.repeat_interleave(step.numel())
-    t0 = t.repeat_interleave(step.numel())
-    t1 = _seen_times(flat, q1, e1, pe, t, first, last, keys, t_sorted)
-    dt01 = t0 - t1
+    q1 = (pe[:, None] + step).view(-1)
+    e1 = order[:, None].expand(n, K).reshape(-1)
+    t1 = _seen_times(flat, q1, e1, n, t, first, last, keys, t_sorted)
+    dt01 = (t[:, None] - t1.view(n, K)).view(-1)
     keep = ((dt01 > 0) & (dt01 < dt_max_us)).nonzero().squeeze(1)
     # Stage 2: p2 = p0 + 2d for the survivors.
-    k = keep % step.numel()
-    q2 = q1[keep] + step[k]
-    t2 = _seen_times(flat, q2, e1[keep], pe, t, first, last, keys, t_sorted)
-    dt01 = dt01[keep]
-    dt12 = t1[keep] - t2
-    ok = (dt12 > 0) & ((1.0 - dt12.double() / dt01.double()).abs() < tol)
-    sel = keep[ok]
-    ev = sel // step.numel()
-    span = (dt01[ok] + dt12[ok]).double() * 1e-6  # t0 - t2, seconds
-    flow = (-2.0 * dirs[k[ok]].double() / span[:, None]).float()
-    return ev, flow
+    k = keep % K
+    ev = torch.div(keep, K, rounding_mode="floor")
+    q2 = q1.index_select(0, keep) + step.index_select(0, k)
+    t1k = t1.index_select(0, keep)
+    t2 = _seen_times(flat, q2, ev, n, t, first, last, keys, t_sorted)
+    dt01 = dt01.index_select(0, keep)
+    dt12 = t1k - t2
+    ok = ((dt12 > 0) & ((1.0 - dt12.double() / dt01.double()).abs() < tol)).nonzero().squeeze(1)
+    span = (dt01.index_select(0, ok) + dt12.index_select(0, ok)).double() * 1e-6  # t0 - t2, seconds
+    flow = (-2.0 * dirs.index_select(0, k.index_select(0, ok)).double() / span[:, None]).float()
+    return ev.index_select(0, ok), flow
 
 
 def _check_flow_params(D, dt_max_us, tol):
