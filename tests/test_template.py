@@ -1,0 +1,324 @@
+import doctest
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from torchevtrack import geometry as g
+from torchevtrack.camera import Camera
+from torchevtrack.mesh import load_mesh
+from torchevtrack.render import Renderer
+from torchevtrack.stages import template as tm
+
+CAM = Camera.default()
+MARGIN = 24
+# A generic view, 0.5 m away: three faces of the box visible, perspective not trivial.
+POSE = torch.cat((torch.tensor([0.03, -0.02, 0.5]), g.quat_exp(torch.tensor([0.4, -0.6, 0.3]))))[None].double()
+OPP = [0] + [k + 1 if k % 2 else k - 1 for k in range(1, 13)]  # index of the opposite hypothesis
+
+
+def _radius(mesh):
+    return float(np.linalg.norm(mesh.vertices, axis=1).max())
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    """Per object: renderer, render window around POSE and the base render there."""
+    out = {}
+    for name in ("box", "006_mustard_bottle"):
+        mesh = load_mesh(name, decimate=4000)
+        r = Renderer(mesh, CAM)
+        roi = tuple(int(v) for v in tm.render_window(POSE, CAM, _radius(mesh), MARGIN)[0])
+        out[name] = (r, roi, r.render(POSE.float(), roi=roi))
+    yield out
+    for r, _, _ in out.values():
+        r.close()
+
+
+def _steps(pose, render, roi):
+    return tm.hypothesis_steps(pose, CAM, tm.radial_gain(render.depth, roi[:2], CAM))
+
+
+def _edges(render):
+    """Synthetic EROS: binary edges (grey + silhouette) of a render at full resolution."""
+    return (tm.edge_map(render.gray, (render.depth > 0).float()) > 0.5).float()
+
+
+def _ncc(a, b):
+    a, b = a - a.mean(), b - b.mean()
+    return float((a * b).sum() / (a.norm() * b.norm()))
+
+
+def test_doctests():
+    assert doctest.testmod(tm).failed == 0
+
+
+# -- (a) hypothesis poses ---------------------------------------------------------------------
+def test_translation_steps_move_the_projected_centre_by_dp(scenes):
+    _, roi, base = scenes["box"]
+    for dp in (1.0, 2.5):
+        hyp = tm.apply_steps(POSE, tm.hypothesis_steps(POSE, CAM, tm.radial_gain(base.depth, roi[:2], CAM), dp))[0]
+        uv = CAM.project(hyp[:, :3])
+        d = uv - uv[0]
+        expected = torch.tensor([[dp, 0], [-dp, 0], [0, dp], [0, -dp]], dtype=d.dtype)
+        assert torch.allclose(d[1:5], expected, atol=0.05)
+        # rotations about the object origin do not move it
+        assert torch.allclose(hyp[7:, :3], POSE[:, :3].expand(6, 3), atol=1e-12)
+
+
+def test_z_step_moves_object_pixels_by_dp_on_average(scenes):
+    _, roi, base = scenes["box"]
+    hyp = tm.apply_steps(POSE, _steps(POSE, base, roi))[0]
+    v, u = torch.nonzero(base.depth[0] > 0, as_tuple=True)
+    uv = torch.stack((u + roi[0], v + roi[1]), -1).double()
+    X = CAM.backproject(uv, base.depth[0, v, u].double())  # object points seen by the camera
+    for k, sign in ((5, 1.0), (6, -1.0)):
+        Xh = X + (hyp[k, :3] - POSE[0, :3])
+        disp = CAM.project(Xh) - uv
+        assert float(disp.norm(dim=-1).mean()) == pytest.approx(1.0, rel=0.03)
+        # +z moves the object away: pixels move toward the principal point
+        radial = ((uv - torch.tensor([CAM.cx, CAM.cy], dtype=uv.dtype)) * disp).sum(-1)
+        assert float(radial.mean()) * sign < 0
+
+
+def test_rotation_steps_are_dtheta_about_camera_axes():
+    torch.manual_seed(0)
+    pose = torch.cat((torch.randn(3, 3, dtype=torch.float64) * 0.1 + torch.tensor([0, 0, 0.6]),
+                      g.quat_canonical(torch.randn(3, 4, dtype=torch.float64))), -1)
+    for dth in (0.5, 2.0):
+        hyp = tm.apply_steps(pose, tm.hypothesis_steps(pose, CAM, torch.full((3,), 200.0), 1.0, dth))
+        for b in range(3):
+            R0 = Rotation.from_quat(pose[b, [4, 5, 6, 3]].numpy())
+            for a in range(3):
+                for s, k in ((1, 7 + 2 * a), (-1, 8 + 2 * a)):
+                    Rh = Rotation.from_quat(hyp[b, k, [4, 5, 6, 3]].numpy())
+                    rel = (Rh * R0.inv()).as_rotvec()  # camera-frame rotation (left product)
+                    assert np.linalg.norm(rel) == pytest.approx(math.radians(dth), rel=1e-9)
+                    assert np.allclose(rel, s * math.radians(dth) * np.eye(3)[a], atol=1e-12)
+                    assert torch.allclose(hyp[b, k, :3], pose[b, :3])
+        assert torch.allclose(hyp[:, 0], torch.cat((pose[:, :3], g.quat_canonical(pose[:, 3:])), -1))
+
+
+# -- (b) warp against re-rendering ------------------------------------------------------------
+@pytest.mark.parametrize("name", ["box", "006_mustard_bottle"])
+def test_warped_templates_match_rerendered_templates(scenes, name):
+    r, roi, base = scenes[name]
+    N = 128
+    hyp = tm.apply_steps(POSE, _steps(POSE, base, roi))
+    renders = r.render(hyp[0].float(), roi=roi)
+    cr0 = tm.prepare_canvas(base.depth, base.gray, roi[:2], CAM, N, 20)
+    direct_cr = tm.prepare_canvas(renders.depth, renders.gray, roi[:2], CAM, N, box=cr0.box.expand(13, 3))
+    direct = tm.dog(tm.edge_map(direct_cr.gray, direct_cr.mask), N)
+    direct = direct * 0.5 / direct[0].abs().max()
+    obs = tm.to_canvas(_edges(renders), cr0.box.expand(13, 3), N, roi[:2])  # observation at each hypothesis
+    for warp, min_diff_ncc in (("template", 0.7), ("image", 0.6)):
+        warped = tm.hypothesis_templates(cr0, POSE, hyp, warp=warp)[0]
+        for k in range(13):
+            assert _ncc(warped[k], direct[k]) > 0.95
+        # the change a step makes to the template is reproduced, not just the template itself
+        for k in range(1, 13):
+            assert _ncc(warped[k] - warped[0], direct[k] - direct[0]) > min_diff_ncc, (warp, k)
+        s_warp = tm.score(warped[None].expand(13, -1, -1, -1), obs)
+        s_direct = tm.score(direct[None].expand(13, -1, -1, -1), obs)
+        assert torch.equal(s_warp.argmax(1), s_direct.argmax(1)), warp
+        assert torch.equal(s_warp.argmax(1), torch.arange(13)), warp
+
+
+# -- (c) recovering a known offset ------------------------------------------------------------
+@pytest.mark.parametrize("rule", ["argmax", "group"])
+def test_one_step_offsets_are_recovered_in_every_direction(scenes, rule):
+    r, roi, base = scenes["box"]
+    obs = _edges(base)  # the object seen at the true pose POSE
+    truth_hyp = tm.apply_steps(POSE, _steps(POSE, base, roi))[0]
+    starts = truth_hyp[OPP[1:]]  # start k - 1 lies one step in the direction opposite to k
+    renders = r.render(starts.float(), roi=roi)
+    out = tm.correct(starts, renders.depth, renders.gray, roi[:2], obs.expand(12, -1, -1), CAM,
+                     observation_origin=roi[:2], rule=rule)
+    assert torch.equal(out.index, torch.arange(1, 13))
+    assert out.applied[torch.arange(12), torch.arange(1, 13)].all()
+    assert (out.score > out.scores[:, 0]).all()
+    if rule == "argmax":  # exactly back at the truth (the group rule may add a step of another group)
+        back = g.pose_compose(g.pose_inverse(out.pose), POSE.expand(12, 7))
+        assert float(back[:, :3].norm(dim=-1).max()) < 2e-4  # within a fifth of a step (~1 mm)
+        angle = 2 * torch.atan2(back[:, 4:].norm(dim=-1), back[:, 3].abs())
+        assert float(angle.max()) < math.radians(0.1)
+
+
+@pytest.mark.parametrize("rule", ["argmax", "group"])
+def test_iterating_converges_from_three_pixels(scenes, rule):
+    r, roi, base = scenes["box"]
+    obs = _edges(base)
+    z = float(POSE[0, 2])
+    starts = POSE.repeat(2, 1)
+    starts[0, 0] += 3 * z / CAM.fx
+    starts[1, 0] -= 2 * z / CAM.fx
+    starts[1, 1] += 2 * z / CAM.fy
+    renders = r.render(starts.float(), roi=roi)
+    uv_true = CAM.project(POSE[:, :3])
+    err0 = (CAM.project(starts[:, :3]) - uv_true).norm(dim=-1)
+    one = tm.correct(starts, renders.depth, renders.gray, roi[:2], obs.expand(2, -1, -1), CAM,
+                     observation_origin=roi[:2], rule=rule, iterations=1)
+    out = tm.correct(starts, renders.depth, renders.gray, roi[:2], obs.expand(2, -1, -1), CAM,
+                     observation_origin=roi[:2], rule=rule, iterations=8)
+    err = (CAM.project(out.pose[:, :3]) - uv_true).norm(dim=-1)
+    assert (err <= 1.0).all(), err
+    assert (err0 >= 2.8).all()
+    assert (out.iterations >= 2).all() and (one.iterations == 1).all()
+    assert torch.equal(out.scores, one.scores)  # first-iteration diagnostics do not depend on iterations
+    assert (out.score > one.score).all()
+
+
+def test_group_rule_applies_steps_of_two_groups_at_once(scenes):
+    r, roi, base = scenes["box"]
+    obs = _edges(base)
+    steps = _steps(POSE, base, roi)
+    # one step off along -x and along -rz (roll): different groups
+    start = tm.apply_steps(tm.apply_steps(POSE, -steps[:, 1:2])[:, 0], -steps[:, 11:12])[:, 0]
+    rd = r.render(start.float(), roi=roi)
+    grp = tm.correct(start, rd.depth, rd.gray, roi[:2], obs, CAM, observation_origin=roi[:2], rule="group")
+    arg = tm.correct(start, rd.depth, rd.gray, roi[:2], obs, CAM, observation_origin=roi[:2], rule="argmax")
+    assert grp.applied[0, [1, 11]].all() and int(grp.applied.sum()) == 2
+    assert int(arg.applied.sum()) == 1
+    assert float(grp.score) > float(arg.score)
+
+
+# -- (d) update rules against a sequential reference ------------------------------------------
+def _reference_select(pose, steps, scores, rule):
+    """Obvious per-element loop, rotations with scipy (camera-frame steps, left product)."""
+    out = []
+    for b in range(pose.shape[0]):
+        t = pose[b, :3].numpy().copy()
+        R = Rotation.from_quat(pose[b, [4, 5, 6, 3]].numpy())
+        s = scores[b].tolist()
+        if rule == "argmax":
+            chosen = [max(range(13), key=lambda k: (s[k], -k))]
+        else:
+            chosen = []
+            for axes in ((0, 4), (1, 3), (5,), (2,)):  # {x, yaw}, {y, pitch}, {roll}, {z}
+                cands = [1 + 2 * a + sgn for a in axes for sgn in (0, 1)]
+                best = max(cands, key=lambda k: (s[k], -k))
+                if s[best] > s[0]:
+                    chosen.append(best)
+        for k in chosen:
+            t = t + steps[b, k, :3].numpy()
+            R = Rotation.from_rotvec(steps[b, k, 3:].numpy()) * R
+        q = R.as_quat()
+        out.append(np.concatenate((t, np.sign(q[3] or 1) * q[[3, 0, 1, 2]])))
+    return torch.tensor(np.stack(out))
+
+
+@pytest.mark.parametrize("rule", ["argmax", "group"])
+def test_select_matches_sequential_reference(rule):
+    torch.manual_seed(1)
+    B = 64
+    pose = torch.cat((torch.randn(B, 3, dtype=torch.float64) * 0.1 + torch.tensor([0, 0, 0.6]),
+                      g.quat_canonical(torch.randn(B, 4, dtype=torch.float64))), -1)
+    steps = tm.hypothesis_steps(pose, CAM, torch.rand(B, dtype=torch.float64) * 300 + 50, 1.0, 3.0)
+    scores = torch.randn(B, 13, dtype=torch.float64)
+    scores[:8, 0] = 10.0  # null best: nothing applied
+    scores[8:12] = scores[8:12].round()  # ties
+    new, applied = tm.select(pose, steps, scores, rule)
+    ref = _reference_select(pose, steps, scores, rule)
+    assert torch.allclose(new, ref, atol=1e-12)
+    assert not applied[:8].any() and not applied[:, 0].any()
+    if rule == "group":
+        assert (applied.sum(1) > 1).any()
+
+
+# -- (e) batching -----------------------------------------------------------------------------
+@pytest.mark.parametrize("rule", ["argmax", "group"])
+def test_batch_equals_separate_runs(scenes, rule):
+    r, roi, base = scenes["box"]
+    obs = _edges(base)
+    steps = _steps(POSE, base, roi)
+    poses = torch.cat((tm.apply_steps(POSE, -steps[:, 3:4])[:, 0], tm.apply_steps(POSE, 0.7 * steps[:, 10:11])[:, 0]))
+    windows = [roi, (roi[0] + 5, roi[1] - 3, roi[2], roi[3])]
+    rds = [r.render(poses[b : b + 1].float(), roi=windows[b]) for b in range(2)]
+    obs2 = torch.cat((obs, torch.flip(obs, dims=(2,))))
+    corr = tm.TemplateCorrector(CAM, rule=rule, iterations=3)
+    batch = corr(poses, torch.cat([x.depth for x in rds]), torch.cat([x.gray for x in rds]),
+                 torch.tensor([w[:2] for w in windows]), obs2, roi[:2])
+    for b in range(2):
+        single = corr(poses[b : b + 1], rds[b].depth, rds[b].gray, windows[b][:2], obs2[b : b + 1], roi[:2])
+        for x, y in zip(batch, single):
+            assert torch.allclose(x[b : b + 1].double(), y.double(), atol=1e-5, rtol=1e-5)
+
+
+# -- regions, templates and inputs ------------------------------------------------------------
+def test_render_window_contains_the_object_and_correct_render_accepts_a_render(scenes):
+    r, roi, base = scenes["box"]
+    full = r.render(POSE.float())
+    v, u = torch.nonzero(full.depth[0] > 0, as_tuple=True)
+    assert roi[0] <= int(u.min()) - MARGIN and int(u.max()) + MARGIN < roi[0] + roi[2]
+    assert roi[1] <= int(v.min()) - MARGIN and int(v.max()) + MARGIN < roi[1] + roi[3]
+    crop = full.depth[0, roi[1] : roi[1] + roi[3], roi[0] : roi[0] + roi[2]]
+    assert torch.equal(base.depth[0] > 0, crop > 0) and torch.allclose(base.depth[0], crop, atol=1e-4)
+    # the box of a window render equals the box of the full frame, and so does the correction
+    box_w = tm.canvas_box(base.depth, roi[:2], 20)
+    box_f = tm.canvas_box(full.depth, (0, 0), 20)
+    assert torch.equal(box_w, box_f)
+    assert float(box_f[0, 2]) == max(int(u.max() - u.min()), int(v.max() - v.min())) + 1 + 40
+    obs = torch.zeros(1, CAM.height, CAM.width)
+    obs[0, roi[1] : roi[1] + roi[3], roi[0] : roi[0] + roi[2]] = _edges(base)[0]
+    corr = tm.TemplateCorrector(CAM)
+    a = corr.correct_render(POSE, base, roi[:2], obs)
+    b = corr.correct_render(POSE, full, (0, 0), obs)
+    # (the renderer's window and full-frame grey differ by up to ~2/255 on a few % of pixels)
+    assert torch.allclose(a.scores, b.scores, rtol=2e-3) and int(a.index) == 0
+
+
+def test_to_canvas_samples_the_box_at_its_scale():
+    img = torch.arange(40 * 60, dtype=torch.float64).reshape(1, 40, 60)  # value = 60 v + u: linear
+    box = torch.tensor([[30.0, 20.0, 16.0]], dtype=torch.float64)
+    c = tm.to_canvas(img, box, 8)
+    i = torch.arange(8, dtype=torch.float64) + 0.5 - 4
+    u, v = 30 + 2 * i, 20 + 2 * i
+    assert torch.allclose(c[0], 60 * v[:, None] + u[None, :])
+    # a window of the image placed at its origin gives the same canvas
+    assert torch.allclose(tm.to_canvas(img[:, 5:, 10:], box, 8, (10, 5)), c)
+    # canvas intrinsics: a frame point lands at the canvas pixel that sampled it
+    K = tm.canvas_intrinsics(box, Camera(60, 40, 50.0, 50.0, 25.0, 18.0), 8)[0]
+    assert float(K[0]) == 25.0 and float(K[2] + (30 - 25) / 2) == pytest.approx(3.5)
+
+
+def test_template_is_dog_of_edges_scaled_to_half():
+    yy, xx = torch.meshgrid(torch.arange(128.0), torch.arange(128.0), indexing="ij")
+    disk = (((xx - 64) ** 2 + (yy - 64) ** 2) < 30**2).float()[None]
+    depth = disk * 0.4
+    cam = Camera(128, 128, 200.0, 200.0, 63.5, 63.5)
+    cr = tm.prepare_canvas(depth, disk * 0.6, (0, 0), cam, 128, 34)
+    t = tm.hypothesis_templates(cr, POSE.float(), POSE.float()[:, None])[0, 0]
+    assert float(t.max()) == pytest.approx(0.5, abs=1e-4) and float(t.min()) < -0.05 and float(t.min()) >= -0.5
+    r = ((xx - 63.5) ** 2 + (yy - 63.5) ** 2).sqrt()
+    on_edge = t[(r - 30).abs() < 1].mean()
+    ring_out = t[(r - 36).abs() < 1].mean()
+    far = t[r > 50]
+    assert on_edge > 0.3 and ring_out < 0 and float(far.abs().max()) < 1e-6
+
+
+def test_bad_inputs(scenes):
+    _, roi, base = scenes["box"]
+    obs = torch.zeros(1, CAM.height, CAM.width)
+    args = (POSE, base.depth, base.gray, roi[:2], obs, CAM)
+    with pytest.raises(ValueError, match="rule"):
+        tm.correct(*args, rule="best")
+    with pytest.raises(ValueError, match="warp"):
+        tm.correct(*args, warp="flow")
+    with pytest.raises(ValueError, match="iterations"):
+        tm.correct(*args, iterations=0)
+    with pytest.raises(ValueError, match="pose"):
+        tm.correct(POSE[:, :6], *args[1:])
+    with pytest.raises(ValueError, match="observation"):
+        tm.correct(POSE, base.depth, base.gray, roi[:2], obs.repeat(2, 1, 1), CAM)
+    with pytest.raises(ValueError, match="gray"):
+        tm.correct(POSE, base.depth, base.gray[:, 1:], roi[:2], obs, CAM)
+    with pytest.raises(ValueError, match="origin"):
+        tm.correct(POSE, base.depth, base.gray, (1, 2, 3), obs, CAM)
+    with pytest.raises(TypeError, match="depth"):
+        tm.correct(POSE, base.depth.bool(), base.gray, roi[:2], obs, CAM)
+    with pytest.raises(TypeError, match="camera"):
+        tm.TemplateCorrector((640, 480))
+    with pytest.raises(ValueError, match="silhouette"):
+        tm.correct(*args[:2], None, *args[3:], silhouette=False)
