@@ -203,3 +203,30 @@ def test_reweighting_leaves_clean_data_alone():
     robust, plain = kf_update(x0, P0, *args, iters=3), kf_update(x0, P0, *args, iters=0)
     assert float(robust.weights.min()) > 0.85
     assert _rel(robust.x[0], plain.x[0]) < 1e-2
+
+
+def test_normal_flow_update_is_projected_least_squares():
+    """Normal flows (the true flow projected on random edge normals) recover the twist; the oracle is
+    numpy lstsq on the projected rows n^T L, while reading them as full flows is biased."""
+    gen = torch.Generator().manual_seed(7)
+    G = 120
+    uv, depth = _scene(gen, G)
+    twist = torch.randn(6, dtype=F64, generator=gen) * SCALE
+    full = _flow(uv, depth, twist)
+    angle = torch.rand(G, dtype=F64, generator=gen) * 2 * np.pi
+    n = torch.stack((angle.cos(), angle.sin()), -1)
+    proj = (full * n).sum(-1, keepdim=True)
+    n = torch.where(proj < 0, -n, n)  # the normal flow points along +n
+    normal_flow = n * proj.abs()
+    dt = 0.002
+    L = CAM.interaction_matrix(uv, depth)
+    A = ((n[:, None, :] @ L)[:, 0, :] * dt).numpy()
+    expected = np.linalg.lstsq(A, (proj.abs()[:, 0] * dt).numpy(), rcond=None)[0]
+    x0 = torch.zeros(1, 6, dtype=F64)
+    P0 = torch.eye(6, dtype=F64)[None] * 1e10
+    ok = torch.ones(1, G, dtype=torch.bool)
+    out = kf_update(x0, P0, uv[None], normal_flow[None], depth[None], ok, CAM, dt, iters=0, normal=True)
+    np.testing.assert_allclose(out.x[0].numpy(), expected, rtol=1e-6, atol=1e-8)
+    assert _rel(out.x[0], twist) < 1e-6
+    biased = kf_update(x0, P0, uv[None], normal_flow[None], depth[None], ok, CAM, dt, iters=0)
+    assert _rel(biased.x[0], twist) > 0.1

