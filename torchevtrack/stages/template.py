@@ -359,34 +359,31 @@ def _spline_prefilter(x: torch.Tensor) -> torch.Tensor:
     return y.reshape(B, C, H, W)
 
 
-def _spline_taps(x: torch.Tensor, n: int) -> tuple[torch.Tensor, ...]:
-    """The 4 cubic B-spline weights of a coordinate folded into 2 linear fetches (weights, grid coords)."""
-    i = torch.floor(x)
-    t = x - i
+def _spline_sample(coef: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Evaluate the cubic B-spline with coefficients ``coef`` at pixel coordinates ``uv``.
+
+    Per axis the 4 spline weights fold into 2 linear fetches with positive weights, so a point
+    costs 4 bilinear fetches, all in one ``grid_sample`` call.
+
+    Shape: ``(M, C, H, W), (M, 2, h, w) -> (M, C, h, w)`` with ``uv[:, 0] = u``, ``uv[:, 1] = v``.
+    """
+    M, C, H, W = coef.shape
+    h, w = uv.shape[2:]
+    i = torch.floor(uv)
+    t = uv - i
     s = 1 - t
     t2 = t * t
     w0, w1, w3 = s * s * s / 6, 2 / 3 - t2 + t2 * t / 2, t2 * t / 6  # w2 = 1 - w0 - w1 - w3
     g0 = w0 + w1
-    g1 = 1 - g0
-    h0, h1 = i - 1 + w1 / g0, i + 1 + w3 / g1
-    return g0, g1, (2 * h0 + 1) / n - 1, (2 * h1 + 1) / n - 1
-
-
-def _spline_sample(coef: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """Evaluate the cubic B-spline with coefficients ``coef`` at pixel coordinates ``(u, v)``.
-
-    Four bilinear fetches (positive weights) per point, all in one ``grid_sample`` call.
-
-    Shape: ``(M, C, H, W), (M, h, w), (M, h, w) -> (M, C, h, w)``.
-    """
-    M, C, H, W = coef.shape
-    h, w = u.shape[1:]
-    gx0, gx1, px0, px1 = _spline_taps(u, W)
-    gy0, gy1, py0, py1 = _spline_taps(v, H)
-    grid = torch.stack((torch.cat((px0, px1, px0, px1), 1), torch.cat((py0, py0, py1, py1), 1)), -1)
+    g = torch.stack((g0, 1 - g0), 1)  # (M, 2 fetches, 2 axes, h, w)
+    pos = torch.stack((i - 1 + w1 / g0, i + 1 + w3 / (1 - g0)), 1)
+    size = torch.tensor([W, H], dtype=uv.dtype).view(1, 1, 2, 1, 1)
+    pos = (2 * pos + 1) / size - 1
+    ex = (M, 2, 2, h, w)  # (y fetch, x fetch)
+    grid = torch.stack((pos[:, None, :, 0].expand(ex), pos[:, :, None, 1].expand(ex)), -1).reshape(M, 4 * h, w, 2)
     out = F.grid_sample(coef, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
-    weights = torch.stack((gx0 * gy0, gx1 * gy0, gx0 * gy1, gx1 * gy1), 1)  # (M, 4, h, w)
-    return (out.reshape(M, C, 4, h, w) * weights[:, None]).sum(2)
+    weights = (g[:, :, None, 1] * g[:, None, :, 0]).reshape(M, 1, 4, h, w)  # (y fetch, x fetch) order
+    return (out.reshape(M, C, 4, h, w) * weights).sum(2)
 
 
 def warp_canvas(
@@ -425,7 +422,7 @@ def warp_canvas(
     p = Z * (H @ q) + e  # (B, P, 3, N * N)
     uv = (p[:, :, :2] / p[:, :, 2:].clamp_min(1e-9)).reshape(B * P, 2, N, N)
     coef = _spline_prefilter(images)[:, None].expand(B, P, C, N, N).reshape(B * P, C, N, N)
-    return _spline_sample(coef, uv[:, 0], uv[:, 1]).reshape(B, P, C, N, N)
+    return _spline_sample(coef, uv).reshape(B, P, C, N, N)
 
 
 class CanvasRender(NamedTuple):
