@@ -322,3 +322,13 @@ def test_bad_inputs(scenes):
         tm.TemplateCorrector((640, 480))
     with pytest.raises(ValueError, match="silhouette"):
         tm.correct(*args[:2], None, *args[3:], silhouette=False)
+
+
+@pytest.mark.parametrize("rule", ["argmax", "group"])
+def test_object_out_of_view_leaves_the_pose_unchanged(rule):
+    depth = torch.zeros(2, 40, 50)
+    obs = torch.rand(2, CAM.height, CAM.width)
+    pose = POSE.float().repeat(2, 1)
+    out = tm.correct(pose, depth, depth.clone(), (100, 80), obs, CAM, rule=rule, iterations=3)
+    assert torch.equal(out.pose, pose) and (out.index == 0).all() and not out.applied.any()
+    assert torch.equal(out.scores, torch.zeros(2, 13)) and (out.iterations == 0).all()
