@@ -6,6 +6,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from torchevtrack import geometry as g
+from torchevtrack.stages.propagate import propagate
 from torchevtrack import metrics as m
 
 RNG = np.random.default_rng(0)
@@ -229,7 +230,10 @@ def test_time_alignment_against_scipy_slerp():
 def test_twists_from_poses_and_velocity_errors():
     t = torch.arange(0, 50_000, 1000)
     v, w = (0.1, -0.05, 0.02), (0.5, -1.0, 2.0)
-    gt = _traj(t, v, w)
+    # Constant twist in the package convention (dP/dt = v + w x P), moved exactly (propagate is
+    # checked against solve_ivp in test_propagate.py).
+    twist = torch.tensor([v + w], dtype=torch.float64).expand(len(t), 6)
+    gt = propagate(_traj(t[:1]).expand(len(t), 7), twist, t.double() * 1e-6)
     tw = m.twists_from_poses(t, gt)
     np.testing.assert_allclose(tw.numpy(), np.tile(np.array(v + w), (len(t), 1)), atol=1e-9)
     pred_tw = tw.clone()

@@ -9,7 +9,7 @@ from scipy.linalg import expm
 from torchevtrack import geometry as g
 from torchevtrack.camera import Camera
 from torchevtrack.stages import propagate as prop_mod
-from torchevtrack.stages.propagate import propagate
+from torchevtrack.stages.propagate import propagate, twist_between
 
 torch.manual_seed(3)
 
@@ -111,3 +111,15 @@ def test_bad_shapes():
 
 def test_docstring_example():
     assert doctest.testmod(prop_mod, raise_on_error=False).failed == 0
+
+
+def test_twist_between_inverts_propagate_exactly():
+    gen = torch.Generator().manual_seed(4)
+    pose = torch.cat((torch.randn(5, 3, dtype=torch.float64, generator=gen) * 0.1 + torch.tensor([0, 0, 0.5]),
+                      g.quat_canonical(torch.randn(5, 4, dtype=torch.float64, generator=gen))), -1)
+    twist = torch.randn(5, 6, dtype=torch.float64, generator=gen) * torch.tensor([0.5] * 3 + [3.0] * 3, dtype=torch.float64)
+    twist[0] = 0.0  # no motion
+    twist[1, 3:] = 1e-9  # tiny rotation branch
+    for dt in (1e-3, 0.2):
+        est = twist_between(pose, propagate(pose, twist, dt), dt)
+        np.testing.assert_allclose(est.numpy(), twist.numpy(), atol=1e-7)

@@ -3,14 +3,12 @@
 import pytest
 import torch
 
-from torchevtrack import geometry as g
 from torchevtrack.camera import Camera
 from torchevtrack.config import ABLATIONS, TrackerConfig
 from torchevtrack.events import EventStream
 from torchevtrack.metrics import evaluate
-from torchevtrack.stages.propagate import propagate
 from torchevtrack.synth.generate import generate_sequence
-from torchevtrack.tracker import EventPoseTracker, twist_from_poses
+from torchevtrack.tracker import EventPoseTracker
 
 CAM = Camera(320, 240, 251.15, 251.15, 159.5, 119.5)
 DURATION_S = 0.12
@@ -56,16 +54,6 @@ def test_batch_elements_are_independent(seq):
     assert torch.equal(t2[0], t1[0]) and torch.equal(t2[1], t1[0])
     torch.testing.assert_close(p2[0], p1[0], atol=1e-5, rtol=0)
     torch.testing.assert_close(p2[1], p1[0], atol=1e-5, rtol=0)
-
-
-def test_twist_from_poses_inverts_propagation():
-    gen = torch.Generator().manual_seed(0)
-    pose = torch.cat((torch.tensor([[0.05, -0.02, 0.5]], dtype=torch.float64),
-                      g.quat_canonical(torch.randn(1, 4, dtype=torch.float64, generator=gen))), -1)
-    twist = torch.tensor([[0.2, -0.1, 0.05, 1.0, -2.0, 0.5]], dtype=torch.float64)
-    dt = 1e-4
-    est = twist_from_poses(pose, propagate(pose, twist, dt), dt)
-    torch.testing.assert_close(est, twist, atol=2e-3, rtol=1e-3)
 
 
 def test_empty_windows_keep_a_valid_pose():

@@ -39,6 +39,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from torchevtrack.stages.propagate import twist_between
 from torchevtrack.geometry import (
     interpolate_poses,
     quat_canonical,
@@ -234,8 +235,9 @@ def failure_index(
 def twists_from_poses(t_us: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
     """Camera-frame twists ``[v, w]`` by finite differences of a sampled trajectory.
 
-    Central differences inside (``v = (t_{i+1} - t_{i-1}) / dt``, ``w = log(q_{i+1} q_{i-1}^*) / dt``,
-    the package's left-multiplied rotation), one-sided at both ends. Units m/s and rad/s.
+    The package's twist convention (every object point moves as ``dP/dt = v + w x P``), from central
+    differences inside and one-sided differences at both ends: the exact constant twist between the
+    neighbouring samples (:func:`torchevtrack.stages.propagate.twist_between`). Units m/s and rad/s.
     Shape: ``(N,), (N, 7) -> (N, 6)`` with ``N >= 2`` and strictly increasing times.
     """
     t_us = _check_times(t_us, "t_us")
@@ -247,10 +249,8 @@ def twists_from_poses(t_us: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
     n = t_us.numel()
     hi = torch.arange(n).add(1).clamp(max=n - 1)
     lo = torch.arange(n).sub(1).clamp(min=0)
-    dt = (t_us[hi] - t_us[lo]).to(torch.float64)[:, None] * 1e-6
-    v = (poses[hi, :3] - poses[lo, :3]) / dt
-    w = quat_log(quat_mul(poses[hi, 3:], quat_conj(poses[lo, 3:]))) / dt
-    return torch.cat((v, w), dim=-1)
+    dt = (t_us[hi] - t_us[lo]).to(torch.float64) * 1e-6
+    return twist_between(poses[lo], poses[hi], dt)
 
 
 def velocity_errors(pred_twist: torch.Tensor, gt_twist: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -41,17 +41,17 @@ from tqdm.auto import tqdm
 from torchevtrack.camera import Camera
 from torchevtrack.config import TrackerConfig
 from torchevtrack.events import EventStream
-from torchevtrack.geometry import check_pose, quat_conj, quat_log, quat_mul
+from torchevtrack.geometry import check_pose
 from torchevtrack.mesh import load_mesh
 from torchevtrack.render import Renderer
 from torchevtrack.stages.eros import EROS, observation
 from torchevtrack.stages.flow import TripletFlow
-from torchevtrack.stages.propagate import propagate
+from torchevtrack.stages.propagate import propagate, twist_between
 from torchevtrack.stages.template import TemplateCorrector, render_window
 from torchevtrack.stages.ukf import PoseUKF
 from torchevtrack.stages.velocity import VelocityKF
 
-__all__ = ["EventPoseTracker", "Quality", "twist_from_poses"]
+__all__ = ["EventPoseTracker", "Quality"]
 
 MeshLike = str | Path | trimesh.Trimesh
 
@@ -69,17 +69,6 @@ class Quality:
     score: torch.Tensor
     flow_vectors: torch.Tensor
     events: torch.Tensor
-
-
-def twist_from_poses(prev: torch.Tensor, curr: torch.Tensor, dt: float) -> torch.Tensor:
-    """Camera-frame twist ``[v, w]`` that moves ``prev`` to ``curr`` in ``dt`` seconds (first order).
-
-    ``w = log(q_curr q_prev^-1) / dt`` and ``v = (t_curr - t_prev) / dt - w x t_curr`` (so that
-    ``dP/dt = v + w x P``). Shape: ``(B, 7), (B, 7) -> (B, 6)``.
-    """
-    w = quat_log(quat_mul(curr[:, 3:], quat_conj(prev[:, 3:]))) / dt
-    v = (curr[:, :3] - prev[:, :3]) / dt - torch.linalg.cross(w, curr[:, :3], dim=-1)
-    return torch.cat((v, w), dim=-1)
 
 
 class EventPoseTracker(nn.Module):
@@ -193,9 +182,9 @@ class EventPoseTracker(nn.Module):
             depth = self._depth_at(flow.uv)
             upd = self.velocity.update(flow.uv, flow.flow, depth, flow.valid, self.dt)
             twist = self.velocity.x
-            n_vectors = upd.used.sum(-1) if upd.used.ndim > 1 else upd.used.long()
+            n_vectors = (upd.weights > 0).sum(-1)
         elif cfg.velocity.source == "poses":
-            twist = twist_from_poses(self.prev_pose, self.pose, self.dt)
+            twist = twist_between(self.prev_pose, self.pose, self.dt)
             n_vectors = torch.zeros(B, dtype=torch.long)
         else:
             twist = torch.zeros(B, 6, dtype=torch.float64)

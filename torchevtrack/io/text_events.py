@@ -176,10 +176,13 @@ class TextWriter:
         xyp = [events.x.numpy().astype(np.int64), events.y.numpy().astype(np.int64),
                events.p.numpy().astype(np.int64)]
         if self.time_unit == "s":
-            cols, fmt = [t // 1_000_000, t % 1_000_000, *xyp], "%d.%06d %d %d %d"
+            cols, fmt = [t // 1_000_000, t % 1_000_000, *xyp], "%d.%06d %d %d %d\n"
         else:
-            cols, fmt = [t, *xyp], "%d %d %d %d"
-        np.savetxt(self._f, np.stack(cols, axis=1), fmt=fmt)
+            cols, fmt = [t, *xyp], "%d %d %d %d\n"
+        rows = np.stack(cols, axis=1)
+        for i in range(0, len(rows), 100_000):  # one %-format per block: ~6x faster than numpy.savetxt
+            block = rows[i:i + 100_000]
+            self._f.write((fmt * len(block)) % tuple(block.ravel().tolist()))
 
     def close(self) -> None:
         self._f.close()

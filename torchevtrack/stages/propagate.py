@@ -28,9 +28,9 @@ from __future__ import annotations
 
 import torch
 
-from torchevtrack.geometry import quat_canonical, quat_exp, quat_mul, quat_rotate
+from torchevtrack.geometry import quat_canonical, quat_conj, quat_exp, quat_log, quat_mul, quat_rotate
 
-__all__ = ["se3_exp_apply", "propagate"]
+__all__ = ["se3_exp_apply", "propagate", "twist_between"]
 
 
 def se3_exp_apply(xi: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
@@ -72,3 +72,26 @@ def propagate(pose: torch.Tensor, twist: torch.Tensor, dt: torch.Tensor | float)
     t = se3_exp_apply(xi, pose[..., :3])
     q = quat_mul(quat_exp(xi[..., 3:]), pose[..., 3:])
     return torch.cat((t, quat_canonical(q)), dim=-1)
+
+
+def twist_between(start: torch.Tensor, end: torch.Tensor, dt: torch.Tensor | float) -> torch.Tensor:
+    """The constant twist that :func:`propagate` needs to move ``start`` to ``end`` in ``dt`` seconds.
+
+    The exact SE(3) logarithm of ``T_end T_start^-1``, divided by ``dt``: ``w = log(q_end q_start^-1) / dt``
+    and ``v = V(phi)^-1 (t_end - exp(phi) t_start) / dt`` with ``phi = w dt``.
+
+    Shape: ``(..., 7), (..., 7), () or (...) -> (..., 6)`` ``[v (m/s), w (rad/s)]``.
+    """
+    dt = torch.as_tensor(dt, dtype=start.dtype, device=start.device)[..., None]
+    q_rel = quat_mul(end[..., 3:], quat_conj(start[..., 3:]))
+    phi = quat_log(q_rel)
+    d = end[..., :3] - quat_rotate(q_rel, start[..., :3])
+    a2 = (phi * phi).sum(-1, keepdim=True)
+    small = a2 < 1e-8
+    a2s = torch.where(small, torch.ones_like(a2), a2)
+    a = a2s.sqrt()
+    # V^-1 = I - [phi]x / 2 + c [phi]x^2, c = (1 - a sin a / (2 (1 - cos a))) / a^2 (-> 1/12 as a -> 0)
+    c = torch.where(small, 1.0 / 12.0 + a2 / 720.0, (1.0 - a * torch.sin(a) / (2.0 * (1.0 - torch.cos(a)))) / a2s)
+    pd = torch.linalg.cross(phi, d, dim=-1)
+    rho = d - 0.5 * pd + c * torch.linalg.cross(phi, pd, dim=-1)
+    return torch.cat((rho, phi), dim=-1) / dt
