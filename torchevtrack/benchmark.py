@@ -1,0 +1,446 @@
+"""The benchmark runner: the paper's ablations on a directory of sequences, batched, with a Table-I report.
+
+:func:`run_benchmark` tracks every selected sequence of a benchmark directory (one sub-directory per
+sequence, see the README's "Sequence directory format") with each method of
+:data:`torchevtrack.config.ABLATIONS`. All sequences that share a camera run as **one batch** (one
+:class:`~torchevtrack.tracker.EventPoseTracker` with one mesh and one event stream per sequence, each
+starting at its own first ground-truth pose and time). It writes into ``out_dir``::
+
+    results.json              per method and sequence: metrics (metrics.evaluate) and timing; the config,
+                              torchevtrack / torch versions, machine and date
+    table.md                  Table I of the paper (e_p(sigma) cm / e_r(sigma) deg), ADD-S AUC, speed
+    poses/<method>/<seq>.txt  tracked poses, TUM (the file that was scored)
+    plots/<seq>.png           translation / rotation error against time, all methods on the same axes
+    overlays/<seq>_<k>.png    tracked (green) and ground-truth (magenta) contours over EROS, 3 instants
+    overlays/<seq>.gif        the same over the first second, 50 ms steps
+
+Metrics are those of :func:`torchevtrack.metrics.evaluate`: RMSE and population sigma of the
+translation (cm) and rotation (deg) errors, ADD and ADD-S AUC on 0..10 cm (model points: at most 1000
+mesh vertices, an evenly spaced subsample), and the EDOPT failure rule.
+
+Example:
+    >>> from torchevtrack.benchmark import run_benchmark, table_markdown
+    >>> res = run_benchmark("data/bench", "results", methods=("full",), only=["mustard_regular"],
+    ...                     duration_s=0.5)                              # doctest: +SKIP
+    >>> print(table_markdown(res))                                       # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import json
+import os
+import platform
+import time
+from collections.abc import Iterable, Sequence as SequenceABC
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+import torchevtrack
+from torchevtrack.camera import Camera
+from torchevtrack.config import ABLATIONS, TrackerConfig
+from torchevtrack.io.poses import read_tum, write_tum
+from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, evaluate, per_pose_errors
+from torchevtrack.synth.sequence import SEQUENCE_FILES, Sequence
+from torchevtrack.tracker import EventPoseTracker
+
+__all__ = [
+    "METHODS",
+    "METHOD_NAMES",
+    "find_sequences",
+    "mesh_points",
+    "run_benchmark",
+    "table_markdown",
+]
+
+METHODS = ("full", "no_ukf", "velocity_only", "correction_only", "edopt_vel")
+"""The default methods: every ablation of :data:`torchevtrack.config.ABLATIONS`."""
+
+METHOD_NAMES = {
+    "correction_only": "EDOPT (correction only)",
+    "edopt_vel": "EDOPT_Vel",
+    "velocity_only": "Ours (only Vel)",
+    "no_ukf": "Ours (w/o ukf)",
+    "full": "Ours (ukf)",
+}
+"""Row names of the table, in the paper's row order."""
+
+_OBJECT_ORDER = ("mustard", "potted", "cracker", "tomato")  # the paper's column order within a group
+_GROUP_ORDER = ("regular", "fast")
+_MAX_MESH_POINTS = 1000
+_GIF_SPAN_US = 1_000_000
+_GIF_STEP_US = 50_000
+_GIF_FPS = 10.0  # 50 ms steps shown at half speed
+_OVERLAY_INSTANTS = 3
+
+
+# -- inputs ---------------------------------------------------------------------------------------
+def find_sequences(bench_dir: str | Path, only: Iterable[str] | None = None) -> list[Path]:
+    """Sequence directories of ``bench_dir`` (sub-directories holding all sequence files), sorted by name.
+
+    ``only``: keep these names (each must exist). Raises ``FileNotFoundError`` / ``ValueError``.
+    """
+    root = Path(bench_dir)
+    if not root.is_dir():
+        raise FileNotFoundError(f"benchmark directory not found: {root}")
+    found = {d.name: d for d in sorted(root.iterdir())
+             if d.is_dir() and all((d / f).is_file() for f in SEQUENCE_FILES)}
+    if only is not None:
+        only = list(only)
+        missing = [n for n in only if n not in found]
+        if missing:
+            raise ValueError(f"only: no sequence named {missing} in {root}; found {sorted(found)}")
+        found = {n: found[n] for n in sorted(set(only))}
+    if not found:
+        raise ValueError(f"{root} holds no sequence directory (each needs {', '.join(SEQUENCE_FILES)})")
+    return list(found.values())
+
+
+def mesh_points(vertices, max_points: int = _MAX_MESH_POINTS) -> torch.Tensor:
+    """Model points for ADD / ADD-S: the vertices, or ``max_points`` of them at evenly spaced indices.
+
+    Shape: ``(V, 3) -> (min(V, max_points), 3)`` float64, metres. Deterministic.
+    """
+    v = torch.as_tensor(np.asarray(vertices), dtype=torch.float64)
+    if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] == 0:
+        raise ValueError(f"vertices must have shape (V, 3) with V >= 1, got {tuple(v.shape)}")
+    if max_points < 1:
+        raise ValueError(f"max_points must be >= 1, got {max_points}")
+    if v.shape[0] <= max_points:
+        return v
+    return v[torch.linspace(0, v.shape[0] - 1, max_points, dtype=torch.float64).round().long()]
+
+
+@dataclass
+class _Item:
+    """One sequence prepared for tracking."""
+
+    name: str
+    path: Path
+    seq: Sequence
+    group: str
+    t_start_us: int
+    t_end_us: int
+    n_updates: int
+    points: torch.Tensor
+
+
+def _group(name: str, meta: dict) -> str:
+    motion = meta.get("motion")
+    if isinstance(motion, str) and motion:
+        return motion
+    suffix = name.rsplit("_", 1)[-1]
+    return suffix if suffix in _GROUP_ORDER else "other"
+
+
+def _prepare(path: Path, duration_s: float | None, period_us: int) -> _Item:
+    seq = Sequence.load(path)
+    t0 = int(seq.gt_t_us[0])
+    t1 = int(seq.gt_t_us[-1])
+    if duration_s is not None:
+        t1 = min(t1, t0 + round(duration_s * 1e6))
+    n = (t1 - t0) // period_us
+    if n < 1:
+        raise ValueError(f"sequence {path.name}: {(t1 - t0) / 1e6:.4f} s to track is shorter than one update "
+                         f"period ({period_us} us)")
+    seq.events = seq.events.slice_time(seq.events.t_start, t1 + 1)
+    return _Item(path.name, path, seq, _group(path.name, seq.meta), t0, t1, n, mesh_points(seq.mesh.vertices))
+
+
+# -- running --------------------------------------------------------------------------------------
+def _check_methods(methods) -> list[str]:
+    if isinstance(methods, str):
+        methods = [methods]
+    methods = list(dict.fromkeys(methods))
+    unknown = [m for m in methods if m not in ABLATIONS]
+    if unknown or not methods:
+        raise ValueError(f"methods must be a non-empty subset of {sorted(ABLATIONS)}, got {methods}")
+    return methods
+
+
+def _track(items: list[_Item], camera: Camera, cfg: TrackerConfig, progress: bool):
+    """Track ``items`` as one batch; per item its own ``(t_us (n_i,), poses (n_i, 7))`` and the timing."""
+    setup = time.perf_counter()
+    tracker = EventPoseTracker(camera, [str(it.path / "mesh.ply") for it in items], cfg)
+    start = time.perf_counter()
+    try:
+        times, poses = tracker.track([it.seq.events for it in items],
+                                     torch.stack([it.seq.gt_poses[0] for it in items]),
+                                     t_start_us=[it.t_start_us for it in items],
+                                     t_end_us=[it.t_end_us for it in items], progress=progress)
+    finally:
+        tracker.close()
+    wall = time.perf_counter() - start
+    steps = times.shape[1]
+    run = {
+        "sequences": [it.name for it in items],
+        "batch_size": len(items),
+        "updates": steps,
+        "setup_s": start - setup,
+        "wall_s": wall,
+        "updates_per_s": steps / wall,
+        "sequence_updates_per_s": sum(it.n_updates for it in items) / wall,
+        "tracked_s": sum(it.n_updates for it in items) * cfg.period_us / 1e6,
+    }
+    run["realtime_factor"] = run["tracked_s"] / wall
+    out = [(times[i, :it.n_updates].clone(), poses[i, :it.n_updates].clone()) for i, it in enumerate(items)]
+    return out, run
+
+
+def _machine() -> dict:
+    return {
+        "cpu_count": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "torch_version": torch.__version__,
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+    }
+
+
+def run_benchmark(
+    bench_dir: str | Path,
+    out_dir: str | Path,
+    *,
+    methods: SequenceABC[str] = METHODS,
+    only: Iterable[str] | None = None,
+    duration_s: float | None = None,
+    config: TrackerConfig | str | Path | None = None,
+    batch: bool = True,
+    overlays: bool = True,
+    progress: bool = True,
+) -> dict:
+    """Run the ablation benchmark and write its report (see the module docstring for the files).
+
+    Args:
+        bench_dir: directory of sequence directories.
+        out_dir: output directory (created).
+        methods: names in :data:`torchevtrack.config.ABLATIONS`.
+        only: sequence names to run (default: all).
+        duration_s: track only the first seconds of each sequence (default: its whole ground truth).
+        config: base :class:`TrackerConfig` or a YAML path; each method applies its ablation on top.
+        batch: one batch per method and camera (default) or one run per sequence. Results agree to
+            float32 rounding; only the timing differs.
+        overlays: write the overlay PNGs and GIFs (for ``"full"``, else the first method).
+        progress: tqdm bars over methods and updates.
+
+    Returns:
+        The dict written to ``results.json``: ``results[method][sequence]`` holds ``metrics`` (the
+        :func:`~torchevtrack.metrics.evaluate` dict), ``timing`` and ``pose_file``; ``runs[method]``
+        the batched runs; ``sequences``, ``config``, ``machine``, versions, date.
+    """
+    methods = _check_methods(methods)
+    if duration_s is not None and not duration_s > 0:
+        raise ValueError(f"duration_s must be positive seconds or None, got {duration_s!r}")
+    if isinstance(config, (str, Path)):
+        config = TrackerConfig.from_yaml(config)
+    elif config is not None and not isinstance(config, TrackerConfig):
+        raise TypeError(f"config must be a TrackerConfig, a YAML path or None, got {type(config).__name__}")
+    base = config or TrackerConfig()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+
+    items = [_prepare(p, duration_s, base.period_us) for p in find_sequences(bench_dir, only)]
+    by_camera: dict[Camera, list[_Item]] = {}
+    for it in items:
+        by_camera.setdefault(it.seq.camera, []).append(it)
+    batches = list(by_camera.values()) if batch else [[it] for it in items]
+
+    res: dict = {
+        "torchevtrack_version": torchevtrack.__version__,
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "machine": _machine(),
+        "bench_dir": str(Path(bench_dir).resolve()),
+        "duration_s": duration_s,
+        "batch": batch,
+        "methods": methods,
+        "config": base.to_dict(),
+        "ablations": {m: ABLATIONS[m] for m in methods},
+        "sequences": {
+            it.name: {"group": it.group, "object": it.seq.meta.get("object"), "t_start_us": it.t_start_us,
+                      "t_end_us": it.t_end_us, "updates": it.n_updates, "events": len(it.seq.events),
+                      "mesh_points": int(it.points.shape[0]), "camera": dataclasses.asdict(it.seq.camera)}
+            for it in items
+        },
+        "runs": {},
+        "results": {},
+    }
+    curves: dict[str, dict[str, tuple]] = {it.name: {} for it in items}
+    tracked: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
+    overlay_method = "full" if "full" in methods else methods[0]
+
+    for method in tqdm(methods, desc="methods", unit="method", disable=not progress):
+        cfg = base.replace(**ABLATIONS[method])
+        res["runs"][method] = []
+        res["results"][method] = {}
+        for group in batches:
+            trajs, run = _track(group, group[0].seq.camera, cfg, progress)
+            res["runs"][method].append(run)
+            for it, (t_us, poses) in zip(group, trajs):
+                rel = Path("poses") / method / f"{it.name}.txt"
+                (out / rel).parent.mkdir(parents=True, exist_ok=True)
+                write_tum(out / rel, t_us, poses)
+                t_us, poses = read_tum(out / rel)  # score exactly what was written
+                gt_t, gt = it.seq.gt_t_us, it.seq.gt_poses
+                metrics = evaluate(t_us, poses, gt_t, gt, mesh_points=it.points)
+                timing = {key: run[key] for key in ("batch_size", "wall_s", "updates_per_s")}
+                timing["updates"] = int(t_us.numel())
+                timing["realtime_factor"] = timing["updates"] * cfg.period_us / 1e6 / run["wall_s"]
+                res["results"][method][it.name] = {"metrics": metrics, "timing": timing, "pose_file": str(rel)}
+                e = per_pose_errors(t_us, poses, gt_t, gt)
+                curves[it.name][METHOD_NAMES[method]] = (
+                    ((e["t_us"] - it.t_start_us).double() / 1e6).numpy(),
+                    (e["te"] * 100.0).numpy(),
+                    torch.rad2deg(e["re"]).numpy(),
+                )
+                if method == overlay_method:
+                    tracked[it.name] = (t_us, poses)
+
+    from torchevtrack import viz
+
+    for it in items:
+        viz.plot_errors_multi(curves[it.name], out / "plots" / f"{it.name}.png", title=it.name)
+    res["plots"] = {it.name: f"plots/{it.name}.png" for it in items}
+    res["overlay_method"] = overlay_method if overlays else None
+    res["overlays"] = {}
+    if overlays:
+        for it in tqdm(items, desc="overlays", unit="seq", disable=not progress):
+            res["overlays"][it.name] = _write_overlays(it, tracked[it.name], base, out / "overlays")
+
+    (out / "results.json").write_text(json.dumps(res, indent=2) + "\n")
+    (out / "table.md").write_text(table_markdown(res))
+    return res
+
+
+def _write_overlays(it: _Item, pred: tuple[torch.Tensor, torch.Tensor], cfg: TrackerConfig, out: Path) -> list[str]:
+    """PNGs at 3 update times (a third, two thirds and the end) and a GIF over the first second."""
+    from torchevtrack import viz
+
+    t_us = pred[0]
+    n = t_us.numel()
+    stills = [t_us[min(n - 1, max(0, (k + 1) * n // _OVERLAY_INSTANTS - 1))] for k in range(_OVERLAY_INSTANTS)]
+    span = min(_GIF_SPAN_US, int(t_us[-1]) - it.t_start_us)
+    step = max(min(_GIF_STEP_US, span // 5), cfg.period_us)
+    gif = [it.t_start_us + step * k for k in range(1, span // step + 1)]
+    times = torch.unique(torch.tensor([int(s) for s in stills] + gif, dtype=torch.int64))
+    frames = dict(zip(times.tolist(), viz.iter_overlay_frames(
+        it.seq.events, it.seq.camera, it.seq.mesh, pred, times, (it.seq.gt_t_us, it.seq.gt_poses),
+        kernel_size=cfg.eros.kernel_size, decay=cfg.eros.decay)))
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    import imageio.v3 as iio
+
+    for k, s in enumerate(stills):
+        path = out / f"{it.name}_{k}.png"
+        iio.imwrite(path, frames[int(s)])
+        written.append(f"overlays/{path.name}")
+    path = viz.save_video((frames[t] for t in gif), out / f"{it.name}.gif", fps=_GIF_FPS)
+    written.append(f"overlays/{path.name}")
+    return written
+
+
+# -- report ---------------------------------------------------------------------------------------
+def _column_order(sequences: dict) -> list[str]:
+    def key(name: str):
+        group = sequences.get(name, {}).get("group", "other")
+        g = _GROUP_ORDER.index(group) if group in _GROUP_ORDER else len(_GROUP_ORDER)
+        o = next((i for i, obj in enumerate(_OBJECT_ORDER) if name.startswith(obj)), len(_OBJECT_ORDER))
+        return g, o, name
+
+    return sorted(sequences, key=key)
+
+
+def _row_order(methods: Iterable[str]) -> list[str]:
+    order = list(METHOD_NAMES)
+    return sorted(methods, key=lambda m: (order.index(m) if m in order else len(order), m))
+
+
+def _row(cells: list[str]) -> str:
+    return "| " + " | ".join(cells) + " |"
+
+
+def table_markdown(results: dict) -> str:
+    """The report of :func:`run_benchmark` as Markdown (``results`` as returned or read from ``results.json``).
+
+    Table I of the paper: one row per method (paper row order and names), one column per sequence,
+    regular before fast (mustard, potted, cracker, tomato), each cell ``e_p(sigma) / e_r(sigma)``:
+    RMSE and population standard deviation of the translation error (cm) and the rotation error (deg),
+    two decimals, a trailing ``†`` when the sequence failed. The Mean column averages the RMSE and the
+    sigma over the sequences. Then ADD-S AUC (%) and the tracking speed.
+    """
+    try:
+        per_method = results["results"]
+        sequences = results["sequences"]
+    except (TypeError, KeyError):
+        raise ValueError("results must be the dict of run_benchmark (keys 'results' and 'sequences')") from None
+    cols = _column_order(sequences)
+    rows = _row_order(per_method)
+    groups = [sequences[c].get("group", "other") for c in cols]
+    lines = ["# Benchmark", ""]
+    dur = results.get("duration_s")
+    lines.append(f"torchevtrack {results.get('torchevtrack_version', '?')}, {results.get('date', '?')}; "
+                 f"{'first ' + format(dur, 'g') + ' s of each sequence' if dur else 'whole sequences'}; "
+                 f"columns: {', '.join(dict.fromkeys(groups))} sequences.")
+    lines += ["", "## Pose error: e_p(σ) cm / e_r(σ) deg", ""]
+    lines.append(_row(["Method"] + cols + ["Mean"]))
+    lines.append(_row(["---"] * (len(cols) + 2)))
+    any_failed = False
+    for m in rows:
+        cells, means = [METHOD_NAMES.get(m, m)], []
+        for c in cols:
+            r = per_method[m].get(c)
+            if r is None:
+                cells.append("–")
+                continue
+            x = r["metrics"]
+            vals = (x["rmse_t_cm"], x["std_t_cm"], x["rmse_r_deg"], x["std_r_deg"])
+            means.append(vals)
+            failed = bool(x["failed"])
+            any_failed |= failed
+            cells.append(_cell(vals) + ("†" if failed else ""))
+        cells.append(_cell(tuple(np.mean(means, axis=0))) if means else "–")
+        lines.append(_row(cells))
+    lines.append("")
+    lines.append("RMSE (σ: population standard deviation) of the translation error (cm) and the geodesic rotation "
+                 "error (deg) over the updates; Mean: average over the sequences, failed ones included.")
+    if any_failed:
+        lines.append(f"† failed: translation error > {FAIL_T_M * 100:g} cm or rotation error > {FAIL_R_DEG:g} deg "
+                     f"for {FAIL_WINDOW} consecutive updates (EDOPT rule).")
+
+    lines += ["", "## ADD-S AUC (%, 0–10 cm)", ""]
+    lines.append(_row(["Method"] + cols + ["Mean"]))
+    lines.append(_row(["---"] * (len(cols) + 2)))
+    for m in rows:
+        vals = [per_method[m][c]["metrics"]["adds_auc"] if c in per_method[m] else None for c in cols]
+        have = [v for v in vals if v is not None]
+        cells = [METHOD_NAMES.get(m, m)] + [f"{100 * v:.2f}" if v is not None else "–" for v in vals]
+        cells.append(f"{100 * float(np.mean(have)):.2f}" if have else "–")
+        lines.append(_row(cells))
+
+    runs = results.get("runs") or {}
+    if runs:
+        lines += ["", "## Speed", ""]
+        lines.append(_row(["Method", "runs × batch", "updates/s", "sequence-updates/s", "real-time factor"]))
+        lines.append(_row(["---"] * 5))
+        for m in _row_order(runs):
+            rs = runs[m]
+            wall = sum(r["wall_s"] for r in rs)
+            steps = sum(r["updates"] for r in rs)
+            seq_updates = sum(r["sequence_updates_per_s"] * r["wall_s"] for r in rs)
+            tracked = sum(r["tracked_s"] for r in rs)
+            lines.append(_row([METHOD_NAMES.get(m, m), " + ".join(str(r["batch_size"]) for r in rs),
+                               f"{steps / wall:.1f}", f"{seq_updates / wall:.1f}", f"{tracked / wall:.3f}"]))
+        lines.append("")
+        lines.append("updates/s: batched tracker steps per second (each step updates every sequence of the batch); "
+                     "real-time factor: tracked seconds per wall-clock second.")
+    return "\n".join(lines) + "\n"
+
+
+def _cell(vals) -> str:
+    tp, ts, rp, rs = (float(v) for v in vals)
+    return f"{tp:.2f}({ts:.2f}) / {rp:.2f}({rs:.2f})"
