@@ -399,3 +399,18 @@ def test_cli_convert(tmp_path, capsys):
     _check(read_events(tmp_path / "o.txt"), *(a[keep] for a in arrays))
     assert main(["convert", str(out), str(tmp_path / "o.npz"), "--width", "30", "--height", "48"]) == 2
     assert "sensor x-size is 30" in capsys.readouterr().err
+
+
+def test_cli_info_on_event_file(tmp_path, capsys):
+    import json
+
+    x, y, t, p = _foreign_arrays("ycbev")
+    path = _write_independent("ycbev", tmp_path, (x, y, t, p))
+    assert main(["info", str(path), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["format"] == "ycbev" and s["events"] == len(t)
+    assert (s["t_first_us"], s["t_last_us"]) == (int(t[0]), int(t[-1]))
+    assert s["x_range"] == [int(x.min()), int(x.max())] and s["y_range"] == [int(y.min()), int(y.max())]
+    assert s["on_fraction"] == pytest.approx(p.mean())
+    assert main(["info", str(path)]) == 0
+    assert f"events     {len(t)} over" in capsys.readouterr().out

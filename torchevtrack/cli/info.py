@@ -59,7 +59,25 @@ def _fmt_stats(s: dict, unit: str) -> str:
             f"max {s['max']:.0f}, mean {s['mean']:.0f})")
 
 
+def _event_file_info(args: argparse.Namespace) -> int:
+    """``info FILE``: a summary of any readable event file (one streamed pass)."""
+    from torchevtrack.io.formats import open_events
+
+    s = open_events(args.directory).summary()
+    if args.json:
+        print(json.dumps(s, indent=2))
+        return 0
+    size = f"{s['width']}x{s['height']}" if s["width"] is not None and s["height"] is not None else "not stored"
+    print(f"event file {s['path']} ({s['format']})")
+    print(f"events     {s['events']} over {s['duration_s']:.3f} s ({s['events_per_s'] / 1e6:.3f} Mev/s), "
+          f"t {s['t_first_us']} .. {s['t_last_us']} us, {100 * s['on_fraction']:.1f}% ON")
+    print(f"sensor     {size}; x in {s['x_range']}, y in {s['y_range']}")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if Path(args.directory).is_file():
+        return _event_file_info(args)
     info = sequence_info(args.directory)
     if args.json:
         print(json.dumps(info, indent=2))
@@ -83,9 +101,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("info", help="summarise a sequence directory",
+    p = subparsers.add_parser("info", help="summarise a sequence directory or an event file",
                               description="Events, event rate, duration, image and angular speeds (from the "
                               "ground truth) and the pose range of a sequence directory.")
-    p.add_argument("directory", help="sequence directory")
+    p.add_argument("directory", help="sequence directory, or an event file of any format `convert` reads")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=run)
