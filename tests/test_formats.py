@@ -9,6 +9,7 @@ import h5py
 import numpy as np
 import pytest
 import torch
+import zstandard
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -22,9 +23,6 @@ from torchevtrack.io.formats import (
     read_events,
     write_events,
 )
-
-zstandard = pytest.importorskip("zstandard")
-
 
 def _arrays(n=500, seed=0, w=64, h=48, t0=0, span=10**6):
     rng = np.random.default_rng(seed)
