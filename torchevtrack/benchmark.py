@@ -425,7 +425,7 @@ def table_markdown(results: dict) -> str:
     runs = results.get("runs") or {}
     if runs:
         lines += ["", "## Speed", ""]
-        lines.append(_row(["Method", "runs × batch", "updates/s", "sequence-updates/s", "real-time factor"]))
+        lines.append(_row(["Method", "batch sizes", "updates/s", "sequence-updates/s", "real-time factor"]))
         lines.append(_row(["---"] * 5))
         for m in _row_order(runs):
             rs = runs[m]
