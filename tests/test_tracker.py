@@ -85,3 +85,18 @@ def test_stream_count_must_match_batch():
     with pytest.raises(ValueError, match="expected 2 event streams"):
         tracker.track([ev], torch.tensor([0.0, 0.0, 0.4, 1.0, 0.0, 0.0, 0.0]))
     tracker.close()
+
+
+def test_invalid_updates_keep_the_last_pose():
+    """A velocity that throws the object behind the camera within one period is rejected."""
+    tracker = EventPoseTracker(CAM, "can", TrackerConfig().replace(**ABLATIONS["velocity_only"]))
+    pose0 = torch.tensor([0.0, 0.0, 0.3, 1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    tracker.reset(pose0, twist=torch.tensor([[0.0, 0.0, -500.0, 0.0, 0.0, 0.0]], dtype=torch.float64))
+    tracker.velocity.Q.zero_()  # keep the absurd twist
+    tracker.velocity.rho = 1.0
+    e = torch.zeros(0, dtype=torch.long)
+    pose = tracker(e, e, e, e)
+    assert bool(tracker.quality.rejected[0])
+    torch.testing.assert_close(pose[0], pose0)
+    assert set(tracker.stage_ms) == {"eros", "flow", "velocity", "render", "correction", "ukf"}
+    tracker.close()

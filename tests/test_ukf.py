@@ -240,3 +240,22 @@ def test_reset_twist_roundtrip_and_errors():
 
 def test_docstring_example():
     assert doctest.testmod(ukf_mod, raise_on_error=False).failed == 0
+
+
+def test_known_twist_input_drives_the_prediction():
+    """predict(T, twist) moves the mean exactly like the SE(3) propagation of that twist."""
+    from torchevtrack.stages.propagate import propagate
+
+    pose = torch.tensor([[0.05, -0.02, 0.5, 0.9, 0.1, -0.3, 0.2]], dtype=torch.float64)
+    pose[:, 3:] = g.quat_canonical(pose[:, 3:])
+    twist = torch.tensor([[0.3, -0.2, 0.1, 1.5, -2.0, 0.7]], dtype=torch.float64)
+    ukf = PoseUKF(batch_size=1, p0=1e-12)
+    ukf.reset(pose)
+    T = 0.002
+    ukf.predict(T, twist)
+    exact = propagate(pose, twist, T)
+    # p+ = p + p_dot T is the first-order form of the exact motion: O(|w| T |p_dot| T) apart.
+    np.testing.assert_allclose(ukf.pose[0, :3].numpy(), exact[0, :3].numpy(), atol=1e-5)
+    np.testing.assert_allclose(ukf.pose[0, 3:].numpy(), exact[0, 3:].numpy(), atol=1e-9)
+    with pytest.raises(ValueError, match="twist"):
+        ukf.predict(T, torch.zeros(2, 6, dtype=torch.float64))

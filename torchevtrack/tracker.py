@@ -28,6 +28,7 @@ Example:
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -49,7 +50,7 @@ from torchevtrack.stages.flow import TripletFlow
 from torchevtrack.stages.propagate import propagate, twist_between
 from torchevtrack.stages.template import TemplateCorrector, render_window
 from torchevtrack.stages.ukf import PoseUKF
-from torchevtrack.stages.velocity import VelocityKF
+from torchevtrack.stages.velocity import VelocityKF, centre_jacobian
 
 __all__ = ["EventPoseTracker", "Quality"]
 
@@ -64,11 +65,27 @@ class Quality:
         score: ``(B,)`` template score of the corrected pose (NaN when correction is off).
         flow_vectors: ``(B,)`` flow vectors the velocity filter used.
         events: ``(B,)`` events in the window.
+        rejected: ``(B,)`` bool, the update produced an invalid pose (non-finite, or the object at or
+            behind the camera) and the previous pose was kept.
     """
 
     score: torch.Tensor
     flow_vectors: torch.Tensor
     events: torch.Tensor
+    rejected: torch.Tensor
+
+
+class _StageClock:
+    """Wall-clock milliseconds of consecutive pipeline stages (``ms[name]``)."""
+
+    def __init__(self) -> None:
+        self.ms: dict[str, float] = {}
+        self._t = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.ms[name] = (now - self._t) * 1e3
+        self._t = now
 
 
 class EventPoseTracker(nn.Module):
@@ -84,6 +101,9 @@ class EventPoseTracker(nn.Module):
         pose: ``(B, 7)`` float64 current output pose.
         prev_pose: ``(B, 7)`` float64 output pose of the previous update.
         depth: ``(B, h, w)`` float32 depth of the last render window; ``origin``: ``(B, 2)`` its top-left pixel.
+
+    After each update, ``quality`` holds its :class:`Quality` and ``stage_ms`` the milliseconds spent in
+    each stage (eros, flow, velocity, render, correction, ukf).
     """
 
     def __init__(
@@ -140,7 +160,11 @@ class EventPoseTracker(nn.Module):
         self.register_buffer("depth", torch.zeros(B, 1, 1))
         self.register_buffer("origin", torch.zeros(B, 2, dtype=torch.long))
         self.quality = Quality(torch.full((B,), float("nan")), torch.zeros(B, dtype=torch.long),
-                               torch.zeros(B, dtype=torch.long))
+                               torch.zeros(B, dtype=torch.long), torch.zeros(B, dtype=torch.bool))
+        self.stage_ms: dict[str, float] = {}
+        # The object centre must stay farther than its bounding radius (plus the near plane).
+        self.register_buffer("_min_depth", torch.tensor([self._radius[i] + 0.01 for i in self._renderer_of],
+                                                        dtype=torch.float64), persistent=False)
 
     # -- state -------------------------------------------------------------------------------
     def reset(self, initial_pose: torch.Tensor, twist: torch.Tensor | None = None) -> None:
@@ -152,7 +176,7 @@ class EventPoseTracker(nn.Module):
         twist = torch.zeros(self.batch_size, 6, dtype=torch.float64) if twist is None else twist.double()
         self.eros.reset()
         self.flow.reset()
-        self.velocity.reset(twist)
+        self.velocity.reset(torch.einsum("bij,bj->bi", centre_jacobian(-pose[:, :3]), twist))  # about the centre
         self.ukf.reset(pose, twist)
         self.pose.copy_(pose)
         self.prev_pose.copy_(propagate(pose, twist, -self.dt))
@@ -174,14 +198,18 @@ class EventPoseTracker(nn.Module):
         """
         cfg = self.config
         B = self.batch_size
+        clock = _StageClock()
         self.eros(x, y, b)
+        clock.lap("eros")
         flow = self.flow(x, y, t, p, b)
+        clock.lap("flow")
 
         if cfg.velocity.source == "flow":
             self.velocity.predict()
             depth = self._depth_at(flow.uv)
-            upd = self.velocity.update(flow.uv, flow.flow, depth, flow.valid, self.dt)
-            twist = self.velocity.x
+            centre = self.pose[:, :3]
+            upd = self.velocity.update(flow.uv, flow.flow, depth, flow.valid, self.dt, centre=centre)
+            twist = torch.einsum("bij,bj->bi", centre_jacobian(centre), self.velocity.x)  # [c_dot, w] -> [v, w]
             n_vectors = (upd.weights > 0).sum(-1)
         elif cfg.velocity.source == "poses":
             twist = twist_between(self.prev_pose, self.pose, self.dt)
@@ -189,28 +217,43 @@ class EventPoseTracker(nn.Module):
         else:
             twist = torch.zeros(B, 6, dtype=torch.float64)
             n_vectors = torch.zeros(B, dtype=torch.long)
-
         predicted = propagate(self.pose, twist, self.dt)
+        # A pose that is not finite or puts the object (nearly) behind the camera is not a pose: such a
+        # prediction or output is replaced by the last pose (zero motion) rather than used or emitted.
+        rejected = self._invalid(predicted)
+        if bool(rejected.any()):
+            predicted = torch.where(rejected[:, None], self.pose, predicted)
+            twist = torch.where(rejected[:, None], torch.zeros_like(twist), twist)
+        clock.lap("velocity")
+
+        render, origin = self._render(predicted, shaded=cfg.template.enabled)
+        clock.lap("render")
         if cfg.template.enabled:
-            render, origin = self._render(predicted, shaded=True)
             corr = self.corrector(predicted.float(), render.depth, render.gray, origin,
                                   self._observation(origin, render.depth.shape[-2:]), origin)
             measured = corr.pose.double()
             score = corr.score
         else:
-            self._render(predicted, shaded=False)
             measured, score = predicted, torch.full((B,), float("nan"))
+        clock.lap("correction")
 
         if cfg.ukf.enabled:
-            self.ukf.predict(self.dt)
+            self.ukf.predict(self.dt, twist)
             self.ukf.update(measured)
             out = self.ukf.pose
         else:
             out = measured
+        bad = self._invalid(out)
+        if bool(bad.any()):
+            out = torch.where(bad[:, None], self.pose, out)
+            if cfg.ukf.enabled:
+                self.ukf.x[bad, 6:13] = self.pose[bad]
+        clock.lap("ukf")
         self.prev_pose.copy_(self.pose)
         self.pose.copy_(out)
         n_events = torch.bincount(b, minlength=B) if b is not None else torch.tensor([x.numel()] * B)
-        self.quality = Quality(score.detach(), n_vectors.detach(), n_events)
+        self.quality = Quality(score.detach(), n_vectors.detach(), n_events, bad | rejected)
+        self.stage_ms = clock.ms
         return self.pose.clone()
 
     # -- offline tracking --------------------------------------------------------------------
@@ -276,6 +319,10 @@ class EventPoseTracker(nn.Module):
         self.origin.copy_(origin)
         render = _Render(depth, torch.cat(gray) if shaded else None)
         return render, origin
+
+    def _invalid(self, pose: torch.Tensor) -> torch.Tensor:
+        """``(B,)`` bool: non-finite poses and poses with the object centre closer than its radius."""
+        return ~torch.isfinite(pose).all(-1) | (pose[:, 2] <= self._min_depth)
 
     def _observation(self, origin: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
         """Median-blurred EROS in the render window (same origin and size as the render), ``(B, h, w)``."""

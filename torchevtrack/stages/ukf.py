@@ -275,8 +275,20 @@ class PoseUKF(nn.Module):
         self.x.copy_(x)
         self.P.copy_(self.P0.expand_as(self.P))
 
-    def predict(self, T: torch.Tensor | float) -> None:
-        """Propagate every filter by ``T`` seconds (float or ``(B,)``) in place."""
+    def predict(self, T: torch.Tensor | float, twist: torch.Tensor | None = None) -> None:
+        """Propagate every filter by ``T`` seconds (float or ``(B,)``) in place.
+
+        ``twist`` ``(B, 6)`` ``[v, w]`` (``dP/dt = v + w x P``) is a known motion input: it replaces the
+        velocity part of the state before the prediction, so the filter smooths the pose measurements
+        around the motion the velocity stage measured instead of around its own constant-velocity guess
+        (which lags by many pixels when the object accelerates).
+        """
+        if twist is not None:
+            if tuple(twist.shape) != (self.batch_size, 6):
+                raise ValueError(f"twist must have shape ({self.batch_size}, 6), got {tuple(twist.shape)}")
+            twist = twist.to(self.x)
+            self.x[:, 3:6] = twist[:, 3:]
+            self.x[:, 0:3] = twist[:, :3] + torch.linalg.cross(twist[:, 3:], self.x[:, 6:9], dim=-1)
         x, P = ukf_predict(self.x, self.P, T, self.q_density, self.alpha, self.beta, self.kappa)
         self.x.copy_(x)
         self.P.copy_(P)

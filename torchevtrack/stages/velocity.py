@@ -49,7 +49,7 @@ from torch import nn
 
 from torchevtrack.camera import Camera, interaction_matrix
 
-__all__ = ["VelocityUpdate", "kf_predict", "kf_update", "laplacian_weights", "VelocityKF"]
+__all__ = ["VelocityUpdate", "centre_jacobian", "kf_predict", "kf_update", "laplacian_weights", "VelocityKF"]
 
 _MAD = 1.4826  # median absolute deviation -> standard deviation for Gaussian noise
 
@@ -95,6 +95,19 @@ def laplacian_weights(residual: torch.Tensor, valid: torch.Tensor, r_px: float, 
     return torch.where(valid, w, torch.zeros_like(w))
 
 
+def centre_jacobian(centre: torch.Tensor) -> torch.Tensor:
+    """``A(c)`` mapping the twist about ``c`` ``[c_dot, w]`` to the camera-origin twist ``[v, w]``.
+
+    ``v = c_dot - w x c = c_dot + [c]x w``. Shape: ``(B, 3) -> (B, 6, 6)``.
+    """
+    B = centre.shape[0]
+    A = torch.eye(6, dtype=centre.dtype, device=centre.device).repeat(B, 1, 1)
+    cx, cy, cz = centre.unbind(-1)
+    zero = torch.zeros_like(cx)
+    A[:, :3, 3:] = torch.stack((zero, -cz, cy, cz, zero, -cx, -cy, cx, zero), -1).view(B, 3, 3)
+    return A
+
+
 def _information_solve(
     Y0: torch.Tensor, x0: torch.Tensor, H: torch.Tensor, z: torch.Tensor, info: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -125,6 +138,7 @@ def kf_update(
     k: float = 1.0,
     min_vectors: int = 3,
     normal: bool = False,
+    centre: torch.Tensor | None = None,
 ) -> VelocityUpdate:
     """Robust Kalman update of the twist with padded flow vectors.
 
@@ -144,6 +158,12 @@ def kf_update(
             ``estimate="normal"`` flow stage gives): each vector then measures only ``n . (L x)`` with
             ``n = F / |F|``, one scalar of noise ``r_px`` (the aperture problem leaves the tangential
             component unobserved, so it must not be read as zero).
+        centre: ``(B, 3)`` object centre (m, camera frame). If given, the state is the twist about the
+            centre, ``[c_dot, w]`` with ``c_dot = v + w x c`` the centre's velocity, and the Jacobian
+            becomes ``L A(c)``, ``A = [[I, [c]x], [0, I]]``. For a small object far from the camera,
+            ``v`` and ``w`` of the camera-origin twist are nearly collinear in the flow (a lever arm of
+            ``|c|``), and the motion-model shrinkage ``rho x`` then pulls ``v`` toward ``-w x c``; about
+            the centre the two are nearly independent. Convert back with ``v = c_dot - w x c``.
 
     Returns:
         :class:`VelocityUpdate`.
@@ -180,6 +200,10 @@ def kf_update(
     safe_depth = torch.where(ok, depth, torch.ones_like(depth))
     safe_uv = torch.where(ok[..., None], uv, torch.zeros_like(uv))
     H = interaction_matrix(safe_uv, safe_depth, camera.fx, camera.fy, camera.cx, camera.cy) * dt[:, None, None, None]
+    if centre is not None:
+        if centre.shape != (B, 3):
+            raise ValueError(f"centre must have shape ({B}, 3), got {tuple(centre.shape)}")
+        H = H @ centre_jacobian(centre.to(dtype))[:, None]
     z = torch.where(ok[..., None], flow, torch.zeros_like(flow)) * dt[:, None, None]
 
     LP = torch.linalg.cholesky(0.5 * (P + P.transpose(-1, -2)))
@@ -282,11 +306,13 @@ class VelocityKF(nn.Module):
         depth: torch.Tensor,
         valid: torch.Tensor,
         dt: torch.Tensor | float,
+        centre: torch.Tensor | None = None,
     ) -> VelocityUpdate:
-        """Fuse padded flow vectors in place (see :func:`kf_update` for shapes and units)."""
+        """Fuse padded flow vectors in place (see :func:`kf_update` for shapes, units and ``centre``)."""
         out = kf_update(
             self.x, self.P, uv, flow, depth, valid, self.camera, dt,
             r_px=self.r_px, iters=self.iters, k=self.k, min_vectors=self.min_vectors, normal=self.normal,
+            centre=centre,
         )
         self.x.copy_(out.x)
         self.P.copy_(out.P)
