@@ -38,12 +38,13 @@ class ErosConfig:
 
 @dataclass
 class FlowConfig:
-    block: int = 30  # grid RoI size, pixels
-    min_samples: int = 20  # triplet samples a block needs to yield a flow vector
+    block: int = 20  # grid RoI size, pixels
+    min_samples: int = 10  # triplet samples a block needs to yield a flow vector
     radius: int = 2  # D: triplet offsets |dx|, |dy| <= D
     dt_max_us: int = 50_000
     tol: float = 0.125
     smooth: bool = False  # 3x3 smoothing over the block grid
+    max_speed: float = 5000.0  # px/s; faster block flows are discarded as outliers (degenerate fits)
     estimate: str = "normal"  # "normal" (time-surface gradient fit of the inliers) or "register" (the paper)
 
 
@@ -51,9 +52,9 @@ class FlowConfig:
 class VelocityConfig:
     source: str = "flow"  # "flow" (the paper), "poses" (EDOPT_Vel: from consecutive poses) or "none"
     rho: float = 0.5
-    q_v: float = 0.5  # process noise std of v per update, m/s (with rho = 0.5, of the order of v itself)
+    q_v: float = 0.5  # process noise std of the centre velocity per update, m/s (with rho = 0.5: of the order of it)
     q_w: float = 3.0  # process noise std of w per update, rad/s
-    r_px: float = 1.0  # measurement std per flow vector, pixels of displacement per update
+    r_px: float = 0.3  # measurement std per flow vector, pixels of displacement per update
     min_vectors: int = 3
 
 

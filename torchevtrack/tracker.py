@@ -208,7 +208,8 @@ class EventPoseTracker(nn.Module):
             self.velocity.predict()
             depth = self._depth_at(flow.uv)
             centre = self.pose[:, :3]
-            upd = self.velocity.update(flow.uv, flow.flow, depth, flow.valid, self.dt, centre=centre)
+            valid = flow.valid & (flow.flow.norm(dim=-1) < cfg.flow.max_speed)
+            upd = self.velocity.update(flow.uv, flow.flow, depth, valid, self.dt, centre=centre)
             twist = torch.einsum("bij,bj->bi", centre_jacobian(centre), self.velocity.x)  # [c_dot, w] -> [v, w]
             n_vectors = (upd.weights > 0).sum(-1)
         elif cfg.velocity.source == "poses":

@@ -1,0 +1,40 @@
+from pathlib import Path
+
+import pytest
+
+from torchevtrack.config import ABLATIONS, TrackerConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_default_yaml_spells_out_the_dataclass_defaults():
+    assert TrackerConfig.from_yaml(ROOT / "configs" / "default.yaml") == TrackerConfig()
+
+
+def test_partial_yaml_and_unknown_keys(tmp_path):
+    f = tmp_path / "c.yaml"
+    f.write_text("rate_hz: 250\nukf:\n  enabled: false\n")
+    cfg = TrackerConfig.from_yaml(f)
+    assert cfg.rate_hz == 250.0 and cfg.period_us == 4000 and not cfg.ukf.enabled
+    assert cfg.eros == TrackerConfig().eros
+    f.write_text("ukf:\n  enabld: false\n")
+    with pytest.raises(ValueError, match="unknown key"):
+        TrackerConfig.from_yaml(f)
+    with pytest.raises(FileNotFoundError):
+        TrackerConfig.from_yaml(tmp_path / "missing.yaml")
+
+
+def test_invalid_values_are_rejected():
+    with pytest.raises(ValueError, match="velocity.source"):
+        TrackerConfig.from_dict({"velocity": {"source": "magic"}})
+    with pytest.raises(ValueError, match="rate_hz"):
+        TrackerConfig(rate_hz=0)
+
+
+def test_ablations_change_only_their_switches():
+    base = TrackerConfig()
+    assert base.replace(**ABLATIONS["full"]) == base
+    assert not base.replace(**ABLATIONS["no_ukf"]).ukf.enabled
+    assert not base.replace(**ABLATIONS["velocity_only"]).template.enabled
+    assert base.replace(**ABLATIONS["correction_only"]).velocity.source == "none"
+    assert base.replace(**ABLATIONS["edopt_vel"]).velocity.source == "poses"
