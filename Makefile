@@ -7,7 +7,7 @@ export PYOPENGL_PLATFORM ?= egl
 $(BIN)/torchevtrack: pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e ".[dev,ycb,viz]"
+	$(BIN)/pip install -q -e ".[dev,ycb,viz,io]"
 	touch $@
 
 .PHONY: install demo test bench
