@@ -14,6 +14,7 @@ Example:
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -30,6 +31,9 @@ class Camera:
         width, height: sensor size in pixels.
         fx, fy: focal lengths in pixels.
         cx, cy: principal point in pixels.
+        distortion: OpenCV lens distortion ``(k1, k2, p1, p2, k3)`` of the sensor, or ``None``. Every
+            method here stays pinhole; events are undistorted into the pinhole image of the same ``K``
+            with :mod:`torchevtrack.distortion`.
     """
 
     width: int
@@ -38,6 +42,7 @@ class Camera:
     fy: float
     cx: float
     cy: float
+    distortion: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         if int(self.width) <= 0 or int(self.height) <= 0:
@@ -48,6 +53,11 @@ class Camera:
         object.__setattr__(self, "height", int(self.height))
         for k in ("fx", "fy", "cx", "cy"):
             object.__setattr__(self, k, float(getattr(self, k)))
+        if self.distortion is not None:
+            d = tuple(float(c) for c in self.distortion)
+            if len(d) not in (4, 5) or not all(math.isfinite(c) for c in d):
+                raise ValueError(f"distortion must be 4 or 5 finite numbers (k1, k2, p1, p2[, k3]), got {d}")
+            object.__setattr__(self, "distortion", d + (0.0,) * (5 - len(d)))
 
     @classmethod
     def default(cls) -> "Camera":
@@ -56,14 +66,19 @@ class Camera:
 
     # -- serialisation -------------------------------------------------------------------------
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        if self.distortion is None:  # pinhole cameras keep the original keys
+            del d["distortion"]
+        else:
+            d["distortion"] = list(self.distortion)
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "Camera":
         missing = {"width", "height", "fx", "fy", "cx", "cy"} - set(d)
         if missing:
             raise ValueError(f"camera description lacks {sorted(missing)}")
-        return cls(d["width"], d["height"], d["fx"], d["fy"], d["cx"], d["cy"])
+        return cls(d["width"], d["height"], d["fx"], d["fy"], d["cx"], d["cy"], d.get("distortion"))
 
     def save(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
@@ -92,7 +107,7 @@ class Camera:
         """Camera of an image resized by ``s`` (pixel centres kept consistent)."""
         return Camera(
             round(self.width * s), round(self.height * s),
-            self.fx * s, self.fy * s, (self.cx + 0.5) * s - 0.5, (self.cy + 0.5) * s - 0.5,
+            self.fx * s, self.fy * s, (self.cx + 0.5) * s - 0.5, (self.cy + 0.5) * s - 0.5, self.distortion,
         )
 
     # -- geometry ------------------------------------------------------------------------------
