@@ -97,7 +97,6 @@ from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
-from kornia.filters import spatial_gradient
 from torch import nn
 
 from torchevtrack.camera import Camera
@@ -252,7 +251,8 @@ def to_canvas(image: torch.Tensor, box: torch.Tensor, canvas: int, origin=(0, 0)
 def edge_map(gray: torch.Tensor | None, mask: torch.Tensor | None, edge_clip: float = 0.1) -> torch.Tensor:
     """Truncated edge strength in ``[0, 1]``: ``min(max(|grad gray|, |grad mask|) / edge_clip, 1)``.
 
-    Gradients are kornia's normalised Sobel (a step of height ``c`` peaks near ``c / 2``). Either
+    Gradients are the normalised Sobel (``/ 8``, replicated border; as kornia's ``spatial_gradient``;
+    a step of height ``c`` peaks near ``c / 2``). Either
     input may be ``None`` (grey only or silhouette only), not both.
 
     Shape: ``(B, H, W), (B, H, W) -> (B, H, W)``.
@@ -262,9 +262,13 @@ def edge_map(gray: torch.Tensor | None, mask: torch.Tensor | None, edge_clip: fl
     if not edge_clip > 0:
         raise ValueError(f"edge_clip must be positive, got {edge_clip}")
     imgs = torch.stack([x for x in (gray, mask) if x is not None], 1)  # (B, 1 or 2, H, W)
-    g = spatial_gradient(imgs, mode="sobel", order=1, normalized=True)  # (B, C, 2, H, W)
-    mag = g.square().sum(2).amax(1).sqrt()
-    return (mag * (1.0 / edge_clip)).clamp(max=1.0)
+    p = F.pad(imgs, (1, 1, 1, 1), mode="replicate")
+    du = p[..., 2:] - p[..., :-2]  # Sobel as [1, 2, 1] smoothing of central differences
+    dv = p[..., 2:, :] - p[..., :-2, :]
+    gu = du[..., :-2, :] + 2 * du[..., 1:-1, :] + du[..., 2:, :]
+    gv = dv[..., :-2] + 2 * dv[..., 1:-1] + dv[..., 2:]
+    mag = (gu * gu + gv * gv).amax(1).sqrt()  # 8 x the normalised Sobel magnitude
+    return (mag * (0.125 / edge_clip)).clamp(max=1.0)
 
 
 def _odd(n: float) -> int:
@@ -612,7 +616,8 @@ def canvas_jacobian(depth: torch.Tensor, K: torch.Tensor, pose: torch.Tensor) ->
         K: ``(B, 4)`` canvas intrinsics.
         pose: ``(B, 7)`` base pose (its translation is the rotation centre).
 
-    Shape: returns ``(B, 2, 6, N * N)``: rows ``(du, dv)`` in canvas pixels per metre / radian.
+    Shape: returns ``(B, 6, 2, N * N)``: ``J[:, j, r]`` is the motion of pixel coordinate ``r``
+    (``u``, ``v``) per unit of ``delta_j``, canvas pixels per metre / radian.
     """
     B, N, _ = depth.shape
     dt = depth.dtype
@@ -632,7 +637,7 @@ def canvas_jacobian(depth: torch.Tensor, K: torch.Tensor, pose: torch.Tensor) ->
     jv = (zero, iz, -yi, -(1 + y * y) + iz * tz + yi * ty, xy - yi * tx, x - iz * tx)
     ju = torch.stack([c.expand(B, N, N) for c in ju], 1) * fx[:, None]
     jv = torch.stack([c.expand(B, N, N) for c in jv], 1) * fy[:, None]
-    return torch.stack((ju, jv), 1).reshape(B, 2, 6, N * N)
+    return torch.stack((ju, jv), 2).reshape(B, 6, 2, N * N)
 
 
 class QuadraticScore(NamedTuple):
@@ -689,9 +694,9 @@ class TemplateModel(NamedTuple):
         gain: ``(B,)`` :func:`radial_gain` of the render (sets the z step).
         render_template: ``(B, N, N)`` template (scaled DoG) of the render.
         depth: ``(B, N, N)`` canvas depth of the render, background filled (:func:`_fill_depth`).
-        template: ``(B, N * N)`` template at ``pose``.
-        grad: ``(B, 6, N * N)`` per pixel ``J^T grad T`` (:func:`canvas_jacobian`, :func:`spline_derivatives`).
-        jac: ``(B, 6, 2 N * N)`` ``J^T`` (u rows of all pixels, then v rows).
+        linear: ``(B, 7, N * N)`` per pixel the template at ``pose`` and ``J^T grad T``
+            (:func:`canvas_jacobian`, :func:`spline_derivatives`).
+        jac: ``(B, 6, 2 N * N)`` ``J^T`` (per pixel its ``u`` then its ``v`` row).
         hess: ``(B, 6, 2 N * N)`` ``(Hess T J)^T`` in the same layout, so ``M = sum O jac hess^T``.
         points: ``(B, P, 3)`` object points of the render (camera frame, metres); valid: ``(B, P)`` bool.
     """
@@ -703,8 +708,7 @@ class TemplateModel(NamedTuple):
     gain: torch.Tensor
     render_template: torch.Tensor
     depth: torch.Tensor
-    template: torch.Tensor
-    grad: torch.Tensor
+    linear: torch.Tensor
     jac: torch.Tensor
     hess: torch.Tensor
     points: torch.Tensor
@@ -724,9 +728,10 @@ class TemplateModel(NamedTuple):
 
     def fit_canvas(self, obs: torch.Tensor) -> QuadraticScore:
         """:meth:`fit` for an observation already in the canvas (:meth:`observe`), ``(B, N * N)``."""
-        o = obs[..., None]
-        lin = (torch.cat((self.template[:, None], self.grad), 1) @ o)[..., 0].double()  # (B, 7)
-        M = ((self.jac * torch.cat((o, o), 1).transpose(1, 2)) @ self.hess.transpose(1, 2)).double()
+        B = obs.shape[0]
+        lin = (self.linear @ obs[..., None])[..., 0].double()  # (B, 7)
+        jo = (self.jac.view(B, 6, 2, -1) * obs[:, None, None]).view(B, 6, -1)
+        M = (jo @ self.hess.transpose(1, 2)).double()
         return QuadraticScore(self.pose, lin[:, 0], lin[:, 1:], 0.5 * (M + M.transpose(1, 2)))
 
     def at(self, pose: torch.Tensor) -> "TemplateModel":
@@ -753,15 +758,13 @@ class TemplateModel(NamedTuple):
 def _score_terms(template: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, pose: torch.Tensor) -> dict:
     """Per-pixel terms of :class:`TemplateModel` for a template ``(B, N, N)`` centred at ``pose``."""
     B, N, _ = template.shape
-    Tu, Tv, Tuu, Tuv, Tvv = spline_derivatives(template).reshape(B, 5, 1, N * N).unbind(1)
-    J = canvas_jacobian(depth, K, pose)  # (B, 2, 6, N * N)
-    Ju, Jv = J[:, 0], J[:, 1]
-    return dict(
-        template=template.reshape(B, N * N),
-        grad=Ju * Tu + Jv * Tv,
-        jac=torch.cat((Ju, Jv), 2),
-        hess=torch.cat((Ju * Tuu + Jv * Tuv, Ju * Tuv + Jv * Tvv), 2),
-    )
+    D = spline_derivatives(template).reshape(B, 1, 5, N * N)  # [Tu, Tv, Tuu, Tuv, Tvv]
+    J = canvas_jacobian(depth, K, pose)  # (B, 6, 2, N * N)
+    ju, jv = J[:, :, :1], J[:, :, 1:]
+    grad = ju[:, :, 0] * D[:, :, 0] + jv[:, :, 0] * D[:, :, 1]
+    hess = ju * D[:, :, 2:4] + jv * D[:, :, 3:5]  # per pixel (Hess T) J: [[Tuu, Tuv], [Tuv, Tvv]] rows
+    return dict(linear=torch.cat((template.reshape(B, 1, N * N), grad), 1), jac=J.reshape(B, 6, 2 * N * N),
+                hess=hess.reshape(B, 6, 2 * N * N))
 
 
 def template_model(
@@ -998,7 +1001,7 @@ def correct_model(
     the hypotheses around ``pose`` with the quadratic around ``model.pose``
     (``S(delta_ref + delta_h)``); keep ``model.shift_px(pose)`` below about a pixel, or pass
     ``model.at(pose)``. Further iterations re-centre the model on the moved pose (:meth:`TemplateModel.at`).
-    The returned pose has ``pose``'s dtype.
+    The returned pose has ``pose``'s dtype, the scores the render's.
 
     Shape: ``TemplateModel, (B, 7), (B, H, W) -> Correction``.
     """
@@ -1009,6 +1012,7 @@ def correct_model(
     obs = model.observe(observation, observation_origin)
 
     at_centre = torch.equal(model.pose, pose.double())
+    dtype = model.depth.dtype  # scores in the render's dtype, as with scoring="warp"
 
     def scorer(centre: torch.Tensor):
         if centre is pose:  # first iteration: the given model, centred at pose or not (reuse)
@@ -1019,9 +1023,9 @@ def correct_model(
 
         def score_steps(steps: torch.Tensor) -> torch.Tensor:
             d = steps if exact else pose_delta(quad.pose, apply_steps(centre, steps))
-            return quad.at_steps(d).to(pose.dtype)
+            return quad.at_steps(d).to(dtype)
 
-        return score_steps, lambda poses: quad.evaluate(poses).to(pose.dtype)
+        return score_steps, lambda poses: quad.evaluate(poses).to(dtype)
 
     return search(pose, scorer, model.gain, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule,
                   iterations=iterations)
