@@ -1,0 +1,293 @@
+"""Tracking-loss detection from the tracker's per-update :class:`~torchevtrack.tracker.Quality`.
+
+Per update and batch element (:func:`loss_step`):
+
+* score support ``c_score = clip(score / reference, 0, 1)``. The template score's scale depends on the
+  object and the scene, so it is compared with a running ``reference``: an exponential moving average
+  (rate ``ema``) of the scores of confident updates, started at the first positive score (or at a given
+  ``initial_reference``). Low scores never enter the reference, so a collapse stays visible. A NaN score
+  (template correction off) gives ``c_score = 1``: no evidence either way.
+* flow support ``c_flow = clip(flow_vectors / min_flow_vectors, 0, 1)`` (1 when ``min_flow_vectors = 0``,
+  e.g. for ``velocity.source != "flow"``). Flow vectors are only counted near the rendered object, so an
+  object that left its estimate, a window of noise or an empty window all give no flow.
+* ``confidence = min(c_score, c_flow)`` in ``[0, 1]`` (0 for an update the tracker rejected).
+* the update is **low** when it was rejected, ``c_score < score_threshold`` or ``flow_vectors <
+  min_flow_vectors``. After ``patience`` consecutive low updates the element is ``lost``; it is found
+  again after ``recovery`` consecutive confident updates (or a reset).
+
+Both signals need a few updates to build up after a (re)start (the EROS and the flow's time surface
+start empty): ``patience`` must cover that warm-up. An object that stops moving produces no events and
+no flow, and is reported lost after ``patience`` updates: an event camera has no evidence of it then.
+
+Re-initialisation: an ``on_lost(batch_indices, t_us)`` callback (e.g. a detector or a user) is called
+with the elements that became lost in this update (``(K,)`` int64) and their times ``(K,)`` int64 us;
+it returns their new poses ``(K, 7)`` or ``None``. Returned poses come back in the
+:class:`LossUpdate`; the caller re-initialises those tracker elements, and the detector restarts their
+state.
+
+Example:
+    >>> import torch
+    >>> from torchevtrack.loss import LossDetector
+    >>> from torchevtrack.tracker import Quality
+    >>> det = LossDetector(1, patience=2)
+    >>> q = lambda s, n: Quality(torch.tensor([s]), torch.tensor([n]), torch.tensor([100]), torch.tensor([False]))
+    >>> [bool(det(q(s, n), 2000 * i).lost) for i, (s, n) in enumerate([(2.0, 5), (0.1, 5), (0.1, 0)])]
+    [False, False, True]
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import torch
+from torch import nn
+
+from torchevtrack.geometry import check_pose
+from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, failure_index, per_pose_errors
+from torchevtrack.tracker import Quality
+
+__all__ = ["LossDetector", "LossState", "LossUpdate", "loss_step", "compare_with_ground_truth"]
+
+OnLost = Callable[[torch.Tensor, torch.Tensor], "torch.Tensor | None"]
+
+
+class LossState(NamedTuple):
+    """Detector state after one update, all ``(B,)``.
+
+    Attributes:
+        confidence: float64 in ``[0, 1]``.
+        low: bool, this update was low-confidence.
+        reference: float64 running reference score (NaN: none yet).
+        low_run, good_run: int64 lengths of the current runs of low / confident updates.
+        lost: bool.
+    """
+
+    confidence: torch.Tensor
+    low: torch.Tensor
+    reference: torch.Tensor
+    low_run: torch.Tensor
+    good_run: torch.Tensor
+    lost: torch.Tensor
+
+
+class LossUpdate(NamedTuple):
+    """What :meth:`LossDetector.forward` reports.
+
+    Attributes:
+        confidence: ``(B,)`` float64 in ``[0, 1]``.
+        lost: ``(B,)`` bool, after this update (before any re-initialisation).
+        newly_lost: ``(B,)`` bool, became lost in this update.
+        reinit_index: ``(K,)`` int64 elements the ``on_lost`` callback gave new poses for.
+        reinit_pose: ``(K, 7)`` float64 those poses (validated); the caller resets the tracker with them.
+    """
+
+    confidence: torch.Tensor
+    lost: torch.Tensor
+    newly_lost: torch.Tensor
+    reinit_index: torch.Tensor
+    reinit_pose: torch.Tensor
+
+
+def loss_step(
+    score: torch.Tensor,
+    flow_vectors: torch.Tensor,
+    rejected: torch.Tensor,
+    reference: torch.Tensor,
+    low_run: torch.Tensor,
+    good_run: torch.Tensor,
+    lost: torch.Tensor,
+    *,
+    score_threshold: float,
+    min_flow_vectors: int,
+    patience: int,
+    recovery: int,
+    ema: float,
+) -> LossState:
+    """One update of the loss rule (module docstring) for ``B`` elements; pure, returns the new state.
+
+    Shape: all inputs ``(B,)``: score (float, NaN allowed), flow_vectors (int), rejected (bool), reference
+    (float64, NaN = none yet), low_run / good_run (int64), lost (bool).
+    """
+    score = score.to(torch.float64)
+    has_score = torch.isfinite(score)
+    # No reference yet: the first positive score starts it (and is fully supported).
+    reference = torch.where(torch.isnan(reference) & has_score & (score > 0), score, reference)
+    ratio = (score / reference).clamp(0.0, 1.0)
+    c_score = torch.where(has_score, torch.where(torch.isnan(reference), score.new_zeros(()), ratio), 1.0)
+    if min_flow_vectors > 0:
+        c_flow = (flow_vectors.to(torch.float64) / min_flow_vectors).clamp(0.0, 1.0)
+        few_flow = flow_vectors < min_flow_vectors
+    else:
+        c_flow = torch.ones_like(score)
+        few_flow = torch.zeros_like(rejected)
+    confidence = torch.where(rejected, 0.0, torch.minimum(c_score, c_flow))
+    low = rejected | (c_score < score_threshold) | few_flow
+    reference = torch.where(~low & has_score, (1 - ema) * reference + ema * score, reference)
+    low_run = torch.where(low, low_run + 1, 0)
+    good_run = torch.where(low, 0, good_run + 1)
+    lost = (lost | (low_run >= patience)) & ~(good_run >= recovery)
+    return LossState(confidence, low, reference, low_run, good_run, lost)
+
+
+class LossDetector(nn.Module):
+    """Declare tracking loss per batch element from the tracker's per-update quality.
+
+    Args:
+        batch_size: ``B``.
+        score_threshold: an update whose score is below this fraction of the reference is low (in ``(0, 1]``).
+        min_flow_vectors: an update with fewer flow vectors is low (0 disables the flow criterion).
+        patience: consecutive low updates that make an element lost.
+        recovery: consecutive confident updates that clear ``lost``.
+        ema: rate of the reference's moving average, in ``(0, 1]``.
+        initial_reference: reference score before any update (default: the first positive score).
+        on_lost: optional re-initialisation callback, see the module docstring.
+
+    Buffers (all ``(B,)``):
+        reference, confidence: float64; low_run, good_run: int64; lost: bool;
+        lost_at_us: int64 time of the first loss declared since the last reset (-1: none).
+
+    ``forward(quality, t_us) -> LossUpdate`` with ``t_us`` an int or ``(B,)`` int64 update time (us).
+    """
+
+    reference: torch.Tensor
+    confidence: torch.Tensor
+    low_run: torch.Tensor
+    good_run: torch.Tensor
+    lost: torch.Tensor
+    lost_at_us: torch.Tensor
+
+    def __init__(self, batch_size: int, score_threshold: float = 0.3, min_flow_vectors: int = 3,
+                 patience: int = 25, recovery: int = 10, ema: float = 0.05,
+                 initial_reference: float | None = None, on_lost: OnLost | None = None) -> None:
+        super().__init__()
+        for name, v, lo in (("batch_size", batch_size, 1), ("min_flow_vectors", min_flow_vectors, 0),
+                            ("patience", patience, 1), ("recovery", recovery, 1)):
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+                raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
+        if not 0.0 < score_threshold <= 1.0:
+            raise ValueError(f"score_threshold must be in (0, 1], got {score_threshold!r}")
+        if not 0.0 < ema <= 1.0:
+            raise ValueError(f"ema must be in (0, 1], got {ema!r}")
+        if initial_reference is not None and not initial_reference > 0:
+            raise ValueError(f"initial_reference must be a positive score or None, got {initial_reference!r}")
+        if on_lost is not None and not callable(on_lost):
+            raise TypeError(f"on_lost must be callable, got {type(on_lost).__name__}")
+        self.batch_size = batch_size
+        self.score_threshold, self.min_flow_vectors = float(score_threshold), min_flow_vectors
+        self.patience, self.recovery, self.ema = patience, recovery, float(ema)
+        self.initial_reference = initial_reference
+        self.on_lost = on_lost
+        B = batch_size
+        self.register_buffer("reference", torch.zeros(B, dtype=torch.float64))
+        self.register_buffer("confidence", torch.ones(B, dtype=torch.float64))
+        self.register_buffer("low_run", torch.zeros(B, dtype=torch.int64))
+        self.register_buffer("good_run", torch.zeros(B, dtype=torch.int64))
+        self.register_buffer("lost", torch.zeros(B, dtype=torch.bool))
+        self.register_buffer("lost_at_us", torch.zeros(B, dtype=torch.int64))
+        self.reset()
+
+    def reset(self, mask: torch.Tensor | None = None) -> None:
+        """Restart all elements, or those selected by ``mask`` (``(B,)`` bool or ``(K,)`` indices)."""
+        if mask is None:
+            mask = torch.ones(self.batch_size, dtype=torch.bool)
+        mask = torch.as_tensor(mask)
+        if mask.dtype == torch.bool:
+            if mask.shape != (self.batch_size,):
+                raise ValueError(f"mask must have shape ({self.batch_size},), got {tuple(mask.shape)}")
+        elif mask.is_floating_point() or mask.ndim != 1:
+            raise TypeError("mask must be a (B,) bool tensor or a 1-D tensor of batch indices")
+        elif mask.numel() and (int(mask.min()) < 0 or int(mask.max()) >= self.batch_size):
+            raise ValueError(f"mask indices must be in [0, {self.batch_size}), got {mask.tolist()}")
+        ref = float("nan") if self.initial_reference is None else float(self.initial_reference)
+        self.reference[mask] = ref
+        self.confidence[mask] = 1.0
+        self.low_run[mask] = 0
+        self.good_run[mask] = 0
+        self.lost[mask] = False
+        self.lost_at_us[mask] = -1
+
+    def forward(self, quality: Quality, t_us: int | torch.Tensor) -> LossUpdate:
+        B = self.batch_size
+        fields = (quality.score, quality.flow_vectors, quality.rejected)
+        if any(torch.as_tensor(f).shape != (B,) for f in fields):
+            raise ValueError(f"quality fields must have shape ({B},), got {[tuple(f.shape) for f in fields]}")
+        t = torch.as_tensor(t_us)
+        if t.is_floating_point() or t.dtype == torch.bool:
+            raise TypeError(f"t_us must be integer microseconds, got {t.dtype}")
+        t = t.to(torch.int64).expand(B)
+        before = self.lost.clone()
+        s = loss_step(quality.score, quality.flow_vectors, quality.rejected.bool(), self.reference, self.low_run,
+                      self.good_run, self.lost, score_threshold=self.score_threshold,
+                      min_flow_vectors=self.min_flow_vectors, patience=self.patience, recovery=self.recovery,
+                      ema=self.ema)
+        self.confidence.copy_(s.confidence)
+        self.reference.copy_(s.reference)
+        self.low_run.copy_(s.low_run)
+        self.good_run.copy_(s.good_run)
+        self.lost.copy_(s.lost)
+        newly = s.lost & ~before
+        self.lost_at_us.copy_(torch.where(newly & (self.lost_at_us < 0), t, self.lost_at_us))
+        index = torch.zeros(0, dtype=torch.int64)
+        poses = torch.zeros(0, 7, dtype=torch.float64)
+        if self.on_lost is not None and bool(newly.any()):
+            idx = newly.nonzero()[:, 0]
+            out = self.on_lost(idx, t[idx])
+            if out is not None:
+                out = torch.as_tensor(out, dtype=torch.float64)
+                if out.shape != (idx.numel(), 7):
+                    raise ValueError(f"on_lost must return poses of shape ({idx.numel()}, 7) or None, "
+                                     f"got {tuple(out.shape)}")
+                index, poses = idx, check_pose(out, "on_lost poses")
+                lost_at = self.lost_at_us.clone()
+                self.reset(idx)
+                self.lost_at_us.copy_(lost_at)  # the first loss stays on record
+        return LossUpdate(s.confidence, s.lost, newly, index, poses)
+
+    def extra_repr(self) -> str:
+        return (f"batch_size={self.batch_size}, score_threshold={self.score_threshold}, "
+                f"min_flow_vectors={self.min_flow_vectors}, patience={self.patience}, recovery={self.recovery}, "
+                f"ema={self.ema}")
+
+
+def compare_with_ground_truth(
+    t_us: torch.Tensor,
+    lost: torch.Tensor,
+    poses: torch.Tensor,
+    gt_t_us: torch.Tensor,
+    gt_poses: torch.Tensor,
+    *,
+    max_t: float = FAIL_T_M,
+    max_r_deg: float = FAIL_R_DEG,
+    window: int = FAIL_WINDOW,
+) -> dict:
+    """Declared loss against the ground-truth failure rule (:func:`torchevtrack.metrics.failure_index`).
+
+    Args:
+        t_us: ``(N,)`` update times, us; lost: ``(N,)`` bool detector state per update;
+        poses: ``(N, 7)`` tracker poses; gt_t_us, gt_poses: ``(G,)``, ``(G, 7)`` ground truth.
+        max_t, max_r_deg, window: the failure rule (defaults: 7 cm, 40 deg, 50 samples).
+
+    Returns:
+        ``first_loss_us`` (first update declared lost, or None), ``first_failure_us`` (first sample of the
+        first failure run, or None), ``delay_us`` (loss - failure; negative: declared before the failure
+        run started; None unless both exist), ``missed`` (failed, never declared) and ``false_alarm``
+        (declared, never failed). Updates outside the ground-truth time range are ignored.
+    """
+    lost = torch.as_tensor(lost)
+    if lost.dtype != torch.bool or lost.ndim != 1:
+        raise ValueError(f"lost must be a (N,) bool tensor, got {lost.dtype} {tuple(lost.shape)}")
+    if lost.shape[0] != torch.as_tensor(t_us).shape[0]:
+        raise ValueError(f"lost has {lost.shape[0]} updates but t_us has {torch.as_tensor(t_us).shape[0]}")
+    e = per_pose_errors(t_us, poses, gt_t_us, gt_poses)
+    lost = lost[e["keep"]]
+    k = failure_index(e["te"], e["re"], max_t=max_t, max_r_deg=max_r_deg, window=window)
+    hits = lost.nonzero()
+    first_loss = int(e["t_us"][hits[0, 0]]) if hits.numel() else None
+    first_failure = int(e["t_us"][k]) if k is not None else None
+    return {
+        "first_loss_us": first_loss,
+        "first_failure_us": first_failure,
+        "delay_us": first_loss - first_failure if first_loss is not None and first_failure is not None else None,
+        "missed": first_failure is not None and first_loss is None,
+        "false_alarm": first_loss is not None and first_failure is None,
+    }
