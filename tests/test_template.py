@@ -306,6 +306,13 @@ def test_bad_inputs(scenes):
         tm.correct(*args, rule="best")
     with pytest.raises(ValueError, match="warp"):
         tm.correct(*args, warp="flow")
+    with pytest.raises(ValueError, match="scoring"):
+        tm.correct(*args, scoring="fast")
+    model = tm.template_model(POSE, base.depth, base.gray, roi[:2], CAM)
+    with pytest.raises(ValueError, match="pose"):
+        tm.correct_model(model, POSE.repeat(2, 1), obs, CAM)
+    with pytest.raises(ValueError, match="observation"):
+        model.fit(obs.repeat(2, 1, 1))
     with pytest.raises(ValueError, match="iterations"):
         tm.correct(*args, iterations=0)
     with pytest.raises(ValueError, match="pose"):
