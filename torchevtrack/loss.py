@@ -37,14 +37,16 @@ Example:
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import TYPE_CHECKING, Callable, NamedTuple
 
 import torch
 from torch import nn
 
 from torchevtrack.geometry import check_pose
 from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, failure_index, per_pose_errors
-from torchevtrack.tracker import Quality
+
+if TYPE_CHECKING:  # the tracker may import this module: no import cycle at run time
+    from torchevtrack.tracker import Quality
 
 __all__ = ["LossDetector", "LossState", "LossUpdate", "loss_step", "compare_with_ground_truth"]
 
