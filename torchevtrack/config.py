@@ -67,6 +67,7 @@ class TemplateConfig:
     dtheta_deg: float = 0.5
     rule: str = "argmax"  # "argmax" (the paper) or "group" (EDOPT)
     iterations: int = 1
+    warmup_events: int = 2000  # events an element must have seen since reset before its pose is corrected
 
 
 @dataclass

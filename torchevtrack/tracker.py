@@ -42,7 +42,7 @@ from tqdm.auto import tqdm
 from torchevtrack.camera import Camera
 from torchevtrack.config import TrackerConfig
 from torchevtrack.events import EventStream
-from torchevtrack.geometry import check_pose
+from torchevtrack.geometry import check_pose, quat_canonical
 from torchevtrack.mesh import load_mesh
 from torchevtrack.render import Renderer
 from torchevtrack.stages.eros import EROS, observation
@@ -117,6 +117,9 @@ class EventPoseTracker(nn.Module):
         cfg = config or TrackerConfig()
         if isinstance(meshes, (str, Path, trimesh.Trimesh)):
             meshes = [meshes] * (batch_size or 1)
+        elif not isinstance(meshes, (list, tuple)) or not all(isinstance(m, (str, Path, trimesh.Trimesh)) for m in meshes):
+            raise TypeError("meshes must be a mesh (path, object name or trimesh.Trimesh) or a list of them, "
+                            f"got {type(meshes).__name__}")
         elif batch_size is not None and batch_size != len(meshes):
             raise ValueError(f"batch_size={batch_size} but {len(meshes)} meshes were given")
         if not meshes:
@@ -159,6 +162,7 @@ class EventPoseTracker(nn.Module):
         self.register_buffer("prev_pose", torch.zeros(B, 7, dtype=f64))
         self.register_buffer("depth", torch.zeros(B, 1, 1))
         self.register_buffer("origin", torch.zeros(B, 2, dtype=torch.long))
+        self.register_buffer("events_seen", torch.zeros(B, dtype=torch.long))
         self.quality = Quality(torch.full((B,), float("nan")), torch.zeros(B, dtype=torch.long),
                                torch.zeros(B, dtype=torch.long), torch.zeros(B, dtype=torch.bool))
         self.stage_ms: dict[str, float] = {}
@@ -173,13 +177,23 @@ class EventPoseTracker(nn.Module):
         pose = pose.expand(self.batch_size, 7).clone() if pose.ndim == 1 else pose
         if pose.shape != (self.batch_size, 7):
             raise ValueError(f"initial_pose must have shape ({self.batch_size}, 7) or (7,), got {tuple(pose.shape)}")
-        twist = torch.zeros(self.batch_size, 6, dtype=torch.float64) if twist is None else twist.double()
+        if twist is None:
+            twist = torch.zeros(self.batch_size, 6, dtype=torch.float64)
+        elif not isinstance(twist, torch.Tensor) or twist.shape != (self.batch_size, 6):
+            raise TypeError(f"twist must be a ({self.batch_size}, 6) tensor [v, w], got "
+                            f"{tuple(twist.shape) if isinstance(twist, torch.Tensor) else type(twist).__name__}")
+        elif not bool(torch.isfinite(twist).all()):
+            raise ValueError("twist contains NaN or infinite values")
+        twist = twist.double()
+        if bool(self._invalid(pose).any()):
+            raise ValueError("initial_pose puts the object centre closer to the camera than the object's radius")
         self.eros.reset()
         self.flow.reset()
         self.velocity.reset(torch.einsum("bij,bj->bi", centre_jacobian(-pose[:, :3]), twist))  # about the centre
         self.ukf.reset(pose, twist)
         self.pose.copy_(pose)
         self.prev_pose.copy_(propagate(pose, twist, -self.dt))
+        self.events_seen.zero_()
         self._render(pose, shaded=False)
 
     def close(self) -> None:
@@ -229,10 +243,14 @@ class EventPoseTracker(nn.Module):
 
         render, origin = self._render(predicted, shaded=cfg.template.enabled)
         clock.lap("render")
+        n_events = torch.bincount(b, minlength=B) if b is not None else torch.tensor([x.numel()] * B)
+        self.events_seen += n_events
         if cfg.template.enabled:
             corr = self.corrector(predicted.float(), render.depth, render.gray, origin,
                                   self._observation(origin, render.depth.shape[-2:]), origin)
-            measured = corr.pose.double()
+            # Until the EROS holds enough events, its edges are too sparse to correct against.
+            warm = (self.events_seen >= cfg.template.warmup_events)[:, None]
+            measured = torch.where(warm, corr.pose.double(), predicted)
             score = corr.score
         else:
             measured, score = predicted, torch.full((B,), float("nan"))
@@ -251,8 +269,7 @@ class EventPoseTracker(nn.Module):
                 self.ukf.x[bad, 6:13] = self.pose[bad]
         clock.lap("ukf")
         self.prev_pose.copy_(self.pose)
-        self.pose.copy_(out)
-        n_events = torch.bincount(b, minlength=B) if b is not None else torch.tensor([x.numel()] * B)
+        self.pose.copy_(torch.cat((out[:, :3], quat_canonical(out[:, 3:])), dim=-1))
         self.quality = Quality(score.detach(), n_vectors.detach(), n_events, bad | rejected)
         self.stage_ms = clock.ms
         return self.pose.clone()

@@ -147,14 +147,16 @@ def eros_update(surface: torch.Tensor, x: torch.Tensor, y: torch.Tensor, b: torc
 
 
 def observation(surface: torch.Tensor) -> torch.Tensor:
-    """Matching observation of an EROS surface: its 3x3 median blur (mirror border, edge not repeated).
+    """Matching observation of an EROS surface: its 3x3 median blur (mirror border, edge not repeated;
+    a one-pixel-wide side, which has nothing to mirror, repeats its edge).
 
     Shape:
         surface: ``(B, H, W)`` in ``[0, 1]``; returns ``(B, H, W)`` in ``[0, 1]``.
     """
     if not isinstance(surface, torch.Tensor) or surface.ndim != 3:
         raise ValueError(f"surface must be a (B, H, W) tensor, got {tuple(getattr(surface, 'shape', ()))}")
-    return kornia.filters.median_blur(surface[:, None], (3, 3), border_type="reflect")[:, 0]
+    border = "reflect" if min(surface.shape[-2:]) > 1 else "replicate"
+    return kornia.filters.median_blur(surface[:, None], (3, 3), border_type=border)[:, 0]
 
 
 class EROS(nn.Module):
