@@ -1,0 +1,75 @@
+"""``torchevtrack bench`` on a tiny generated sequence directory."""
+
+import json
+
+import pytest
+import torch
+
+from torchevtrack.camera import Camera
+from torchevtrack.cli import main
+from torchevtrack.synth.generate import generate_sequence
+
+CAM = Camera(160, 120, 125.6, 125.6, 79.5, 59.5)
+
+
+@pytest.fixture(scope="module")
+def seqdir(tmp_path_factory):
+    seq = generate_sequence("box", "regular", 0.03, seed=2, camera=CAM, progress=False)
+    return seq, seq.save(tmp_path_factory.mktemp("bench") / "box_regular")
+
+
+@pytest.fixture(autouse=True)
+def _restore_threads():
+    n = torch.get_num_threads()
+    yield
+    torch.set_num_threads(n)
+
+
+def test_bench_json(seqdir, capsys):
+    seq, d = seqdir
+    assert main(["bench", str(d), "--duration", "0.02", "--batch", "2", "--warmup", "2", "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    t0 = int(seq.gt_t_us[0])
+    assert r["n_updates"] == 10 and r["period_us"] == 2000 and r["duration_s"] == pytest.approx(0.02)
+    assert r["n_events"] == int(((seq.events.t >= t0) & (seq.events.t < t0 + 20_000)).sum())
+    assert r["updates_per_s"] == pytest.approx(r["n_updates"] / r["wall_s"])
+    assert r["events_per_s"] == pytest.approx(r["n_events"] / r["wall_s"])
+    assert r["realtime_factor"] == pytest.approx(0.02 / r["wall_s"])
+    assert 0 < r["p50_ms"] <= r["p99_ms"] <= r["latency_max_ms"]
+    assert set(r["stage_ms"]) == {"eros", "flow", "velocity", "render", "correction", "ukf"}
+    assert all(v >= 0 for v in r["stage_ms"].values())
+    # Each latency contains the stages of its update: their mean sum cannot exceed the largest latency.
+    assert r["update_ms"] <= r["latency_max_ms"]
+    b = r["batched"]
+    assert r["batch"] == b["sequences"] == 2
+    assert b["sequential_wall_s"] == pytest.approx(2 * r["offline"]["wall_s"])
+    assert r["batched_speedup"] == pytest.approx(b["sequential_wall_s"] / b["wall_s"])
+    assert b["updates_per_s"] == pytest.approx(2 * 10 / b["wall_s"])
+    m = r["machine"]
+    assert m["torch_threads"] == 1 and m["torch"] == torch.__version__ and m["cpu_count"] >= 1
+
+
+def test_bench_summary_and_ablation(seqdir, capsys):
+    _, d = seqdir
+    assert main(["bench", str(d), "--duration", "0.01", "--batch", "1", "--warmup", "0",
+                 "--ablation", "no_ukf", "--threads", "2"]) == 0
+    text = capsys.readouterr().out
+    assert "(no_ukf): 5 updates" in text and "updates/s" in text and "p99" in text
+    assert "batch of" not in text  # --batch 1 skips the batched measurement
+    assert torch.get_num_threads() == 2
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--batch", "0"], "--batch must be >= 1"),
+    (["--duration", "-1"], "--duration must be positive"),
+    (["--duration", "0.001"], "shorter than one update period"),
+])
+def test_bench_bad_arguments(seqdir, capsys, argv, message):
+    _, d = seqdir
+    assert main(["bench", str(d), *argv]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_bench_missing_directory(tmp_path, capsys):
+    assert main(["bench", str(tmp_path / "nope"), "--json"]) == 2
+    assert "not found" in capsys.readouterr().err
