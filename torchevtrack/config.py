@@ -34,6 +34,7 @@ __all__ = [
 class ErosConfig:
     kernel_size: int = 7  # odd window size k
     decay: float = 0.3  # d; the per-event factor is d ** (1 / k)
+    max_age_us: int = 30_000  # > 0: the observation drops pixels with no event for this long (0 = the paper)
 
 
 @dataclass

@@ -163,6 +163,7 @@ class EventPoseTracker(nn.Module):
         self.register_buffer("depth", torch.zeros(B, 1, 1))
         self.register_buffer("origin", torch.zeros(B, 2, dtype=torch.long))
         self.register_buffer("events_seen", torch.zeros(B, dtype=torch.long))
+        self.register_buffer("t_last", torch.zeros(B, dtype=torch.long))
         self.quality = Quality(torch.full((B,), float("nan")), torch.zeros(B, dtype=torch.long),
                                torch.zeros(B, dtype=torch.long), torch.zeros(B, dtype=torch.bool))
         self.stage_ms: dict[str, float] = {}
@@ -194,6 +195,7 @@ class EventPoseTracker(nn.Module):
         self.pose.copy_(pose)
         self.prev_pose.copy_(propagate(pose, twist, -self.dt))
         self.events_seen.zero_()
+        self.t_last.zero_()
         self._render(pose, shaded=False)
 
     def close(self) -> None:
@@ -247,7 +249,7 @@ class EventPoseTracker(nn.Module):
         self.events_seen += n_events
         if cfg.template.enabled:
             corr = self.corrector(predicted.float(), render.depth, render.gray, origin,
-                                  self._observation(origin, render.depth.shape[-2:]), origin)
+                                  self._observation(origin, render.depth.shape[-2:], self._t_now(t, b)), origin)
             # Until the EROS holds enough events, its edges are too sparse to correct against.
             warm = (self.events_seen >= cfg.template.warmup_events)[:, None]
             measured = torch.where(warm, corr.pose.double(), predicted)
@@ -338,14 +340,34 @@ class EventPoseTracker(nn.Module):
         render = _Render(depth, torch.cat(gray) if shaded else None)
         return render, origin
 
+    def _t_now(self, t: torch.Tensor, b: torch.Tensor | None) -> torch.Tensor:
+        """Latest event time per element in this window (int64 us; the previous one if the window is empty)."""
+        if t.numel():
+            latest = torch.full((self.batch_size,), torch.iinfo(torch.int64).min, dtype=torch.int64)
+            latest.scatter_reduce_(0, b if b is not None else torch.zeros_like(t), t, "amax")
+            self.t_last.copy_(torch.maximum(self.t_last, latest))
+        return self.t_last
+
     def _invalid(self, pose: torch.Tensor) -> torch.Tensor:
         """``(B,)`` bool: non-finite poses and poses with the object centre closer than its radius."""
         return ~torch.isfinite(pose).all(-1) | (pose[:, 2] <= self._min_depth)
 
-    def _observation(self, origin: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-        """Median-blurred EROS in the render window (same origin and size as the render), ``(B, h, w)``."""
+    def _observation(self, origin: torch.Tensor, size: tuple[int, int], t_now: torch.Tensor) -> torch.Tensor:
+        """Median-blurred EROS in the render window (same origin and size as the render), ``(B, h, w)``.
+
+        EROS only decays where new events arrive, so edges the object left stay at full strength until
+        something else fires there. With ``eros.max_age_us > 0`` pixels whose last event (timestamp
+        surface of the flow stage) is older than that are cleared from the observation.
+        """
         h, w = size
-        crops = [self.eros.surface[i, v0:v0 + h, u0:u0 + w] for i, (u0, v0) in enumerate(origin.tolist())]
+        max_age = self.config.eros.max_age_us
+        sae = self.flow.sae.amax(1)
+        crops = []
+        for i, (u0, v0) in enumerate(origin.tolist()):
+            crop = self.eros.surface[i, v0:v0 + h, u0:u0 + w]
+            if max_age > 0:
+                crop = crop * (sae[i, v0:v0 + h, u0:u0 + w] > t_now[i] - max_age)
+            crops.append(crop)
         return observation(torch.stack(crops))
 
     def _depth_at(self, uv: torch.Tensor) -> torch.Tensor:
