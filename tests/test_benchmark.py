@@ -27,14 +27,6 @@ SEQS = {"cracker_regular": ("box", "regular", 1), "tomato_fast": ("can", "fast",
 N_UPDATES = int(DURATION_S * 500)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _single_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.fixture(scope="module")
 def bench(tmp_path_factory):
     root = tmp_path_factory.mktemp("bench")

@@ -269,8 +269,6 @@ def test_end_to_end_loss_is_flagged_only_for_broken_streams(seq):
     head = ev.slice_time(0, CUT_US)
     rate = len(head) / CUT_US
     streams = [ev, EventStream.concat([head, _noise(CUT_US, t_end, int(rate * (t_end - CUT_US)), 0)]), head]
-    n_threads = torch.get_num_threads()
-    torch.set_num_threads(1)
     tracker = EventPoseTracker(CAM, seq.mesh, batch_size=3)
     det = LossDetector(3)  # defaults: patience 25 updates (50 ms at 500 Hz)
     try:
@@ -287,7 +285,6 @@ def test_end_to_end_loss_is_flagged_only_for_broken_streams(seq):
             lost.append(out.lost)
     finally:
         tracker.close()
-        torch.set_num_threads(n_threads)
     times, lost, poses = torch.tensor(times), torch.stack(lost, 1), torch.stack(poses, 1)
     assert not lost[0].any()  # the intact stream is never flagged
     for b in (1, 2):

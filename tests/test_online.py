@@ -17,14 +17,6 @@ CAM = Camera(160, 120, 125.6, 125.6, 79.5, 59.5)
 GAP_US = (10_000, 30_000)  # relative to the start
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _single_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.fixture(scope="module")
 def seq():
     return generate_sequence("box", "regular", 0.05, seed=1, camera=CAM, progress=False)

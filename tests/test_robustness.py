@@ -28,14 +28,6 @@ POSE0 = torch.tensor([0.0, 0.0, 0.4, 1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
 EMPTY = torch.zeros(0, dtype=torch.long)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _single_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.fixture(scope="module")
 def seq():
     return generate_sequence("box", "regular", 0.06, seed=3, camera=CAM, progress=False)

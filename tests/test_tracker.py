@@ -14,14 +14,6 @@ CAM = Camera(320, 240, 251.15, 251.15, 159.5, 119.5)
 DURATION_S = 0.12
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _single_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.fixture(scope="module")
 def seq():
     return generate_sequence("box", "regular", DURATION_S, seed=3, camera=CAM, progress=False)

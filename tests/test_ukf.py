@@ -23,16 +23,6 @@ F64 = torch.float64
 EUCL = [0, 1, 2, 6, 7, 8]  # p_dot and p in the tangent
 
 
-@pytest.fixture(autouse=True)
-def _single_thread():
-    """These filters do many tiny BLAS/LAPACK calls; on a loaded 2-core machine multi-threaded MKL
-    turns each into a barrier wait (10x slower), so the tests run them single-threaded."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _rand_state(gen, B):
     x = torch.zeros(B, 13, dtype=F64)
     x[:, :6] = torch.randn(B, 6, dtype=F64, generator=gen) * 0.3

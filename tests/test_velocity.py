@@ -15,16 +15,6 @@ F64 = torch.float64
 SCALE = torch.tensor([0.3, 0.3, 0.3, 2.0, 2.0, 2.0], dtype=F64)
 
 
-@pytest.fixture(autouse=True)
-def _single_thread():
-    """These filters do many tiny BLAS/LAPACK calls; on a loaded 2-core machine multi-threaded MKL
-    turns each into a barrier wait (10x slower), so the tests run them single-threaded."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _scene(gen, G, B=None):
     """Random pixels over the sensor with depths 0.3..0.8 m."""
     shape = (G,) if B is None else (B, G)

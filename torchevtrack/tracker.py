@@ -34,7 +34,6 @@ from pathlib import Path
 from typing import Sequence
 
 import torch
-import torch.nn.functional as F
 import trimesh
 from torch import nn
 from tqdm.auto import tqdm
