@@ -5,7 +5,11 @@ Pose convention (everywhere): object in camera frame, OpenCV axes, metres, tenso
 """
 
 from torchevtrack.camera import Camera
+from torchevtrack.config import TrackerConfig
 from torchevtrack.events import EventStream
+from torchevtrack.online import OnlineTracker
+from torchevtrack.stages.eros import EROS
+from torchevtrack.tracker import EventPoseTracker
 
-__all__ = ["Camera", "EventStream"]
+__all__ = ["Camera", "EROS", "EventPoseTracker", "EventStream", "OnlineTracker", "TrackerConfig"]
 __version__ = "0.1.0"
