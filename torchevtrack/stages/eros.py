@@ -36,6 +36,8 @@ import kornia
 import torch
 from torch import nn
 
+from torchevtrack.stages import batch_mask
+
 __all__ = ["EROS", "eros_update", "eros_update_", "observation", "prepare_events"]
 
 
@@ -199,8 +201,13 @@ class EROS(nn.Module):
         """3x3 median blur of the current surface, ``(B, H, W)``."""
         return observation(self.surface)
 
-    def reset(self) -> None:
-        self.surface.zero_()
+    def reset(self, mask: torch.Tensor | None = None) -> None:
+        """Clear the surface of every element, or of those selected by ``mask`` (``(B,)`` bool or
+        ``(K,)`` indices, see :func:`~torchevtrack.stages.batch_mask`); the others are untouched."""
+        if mask is None:
+            self.surface.zero_()
+        else:
+            self.surface.masked_fill_(batch_mask(mask, self.surface.shape[0])[:, None, None], 0.0)
 
     def extra_repr(self) -> str:
         B, H, W = self.surface.shape

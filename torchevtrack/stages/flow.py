@@ -52,6 +52,7 @@ import torch
 import torch.nn.functional as Fnn
 from torch import nn
 
+from torchevtrack.stages import batch_mask
 from torchevtrack.stages.eros import prepare_events
 
 __all__ = [
@@ -389,8 +390,13 @@ class TripletFlow(nn.Module):
     def n_blocks(self) -> int:
         return self.gy * self.gx
 
-    def reset(self) -> None:
-        self.sae_padded.fill_(NEVER)
+    def reset(self, mask: torch.Tensor | None = None) -> None:
+        """Forget every element's events, or those of the elements selected by ``mask`` (``(B,)`` bool or
+        ``(K,)`` indices, see :func:`~torchevtrack.stages.batch_mask`); the others are untouched."""
+        if mask is None:
+            self.sae_padded.fill_(NEVER)
+        else:
+            self.sae_padded.masked_fill_(batch_mask(mask, self.sae_padded.shape[0])[:, None, None, None], NEVER)
 
     def forward(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor | None = None,
                 b: torch.Tensor | None = None) -> FlowField:

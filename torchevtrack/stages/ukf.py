@@ -40,6 +40,7 @@ import torch
 from torch import nn
 
 from torchevtrack.geometry import quat_canonical, quat_conj, quat_exp, quat_log, quat_mul
+from torchevtrack.stages import batch_mask
 
 __all__ = [
     "boxplus",
@@ -257,8 +258,12 @@ class PoseUKF(nn.Module):
         w = self.x[:, 3:6]
         return torch.cat((self.x[:, 0:3] - torch.linalg.cross(w, self.x[:, 6:9], dim=-1), w), dim=-1)
 
-    def reset(self, pose: torch.Tensor, twist: torch.Tensor | None = None) -> None:
-        """Restart at ``pose`` ``(B, 7)`` with an optional twist ``(B, 6)`` ``[v, w]`` (``dP/dt = v + w x P``)."""
+    def reset(self, pose: torch.Tensor, twist: torch.Tensor | None = None, mask: torch.Tensor | None = None) -> None:
+        """Restart at ``pose`` ``(B, 7)`` with an optional twist ``(B, 6)`` ``[v, w]`` (``dP/dt = v + w x P``).
+
+        ``mask`` (``(B,)`` bool or ``(K,)`` indices) restarts only the selected filters; the rows of
+        ``pose`` and ``twist`` of the other elements are ignored.
+        """
         B = self.batch_size
         if tuple(pose.shape) != (B, 7):
             raise ValueError(f"pose must have shape ({B}, 7), got {tuple(pose.shape)}")
@@ -272,8 +277,9 @@ class PoseUKF(nn.Module):
             twist = twist.to(self.x)
             x[:, 3:6] = twist[:, 3:]
             x[:, 0:3] = twist[:, :3] + torch.linalg.cross(twist[:, 3:], pose[:, :3], dim=-1)
-        self.x.copy_(x)
-        self.P.copy_(self.P0.expand_as(self.P))
+        m = batch_mask(mask, B)
+        self.x.copy_(torch.where(m[:, None], x, self.x))
+        self.P.copy_(torch.where(m[:, None, None], self.P0, self.P))
 
     def predict(self, T: torch.Tensor | float, twist: torch.Tensor | None = None) -> None:
         """Propagate every filter by ``T`` seconds (float or ``(B,)``) in place.

@@ -48,6 +48,7 @@ import torch
 from torch import nn
 
 from torchevtrack.camera import Camera, interaction_matrix
+from torchevtrack.stages import batch_mask
 
 __all__ = ["VelocityUpdate", "centre_jacobian", "kf_predict", "kf_update", "laplacian_weights", "VelocityKF"]
 
@@ -285,12 +286,14 @@ class VelocityKF(nn.Module):
     def batch_size(self) -> int:
         return self.x.shape[0]
 
-    def reset(self, twist: torch.Tensor | None = None) -> None:
-        """Restart every filter at ``twist`` ``(B, 6)`` (default zero) with covariance ``P0``."""
+    def reset(self, twist: torch.Tensor | None = None, mask: torch.Tensor | None = None) -> None:
+        """Restart every filter, or those selected by ``mask`` (``(B,)`` bool or ``(K,)`` indices), at
+        ``twist`` ``(B, 6)`` (default zero; rows of unselected elements are ignored) with covariance ``P0``."""
         if twist is not None and tuple(twist.shape) != (self.batch_size, 6):
             raise ValueError(f"twist must have shape ({self.batch_size}, 6), got {tuple(twist.shape)}")
-        self.x.copy_(torch.zeros_like(self.x) if twist is None else twist.to(self.x))
-        self.P.copy_(self.P0.expand_as(self.P))
+        m = batch_mask(mask, self.batch_size)
+        self.x.copy_(torch.where(m[:, None], 0.0 if twist is None else twist.to(self.x), self.x))
+        self.P.copy_(torch.where(m[:, None, None], self.P0, self.P))
 
     def predict(self) -> torch.Tensor:
         """Apply the motion model in place; returns the predicted twist ``(B, 6)``."""
