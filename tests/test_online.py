@@ -123,12 +123,13 @@ class Recorder(EventPoseTracker):
         self.camera, self.batch_size, self.period_us = CAM, batch_size, period_us
         self.windows: list[list[tuple]] = []
         self.stage_ms = {}
+        self.loss_update = None  # no loss detector
 
-    def reset(self, initial_pose, twist=None) -> None:
+    def reset(self, initial_pose, twist=None, mask=None) -> None:
         self.windows = []
         self.count = torch.zeros(self.batch_size, dtype=torch.float64)
 
-    def forward(self, x, y, t, p, b=None):
+    def forward(self, x, y, t, p, b=None, t_us=None):
         assert b is not None and x.dtype == y.dtype == t.dtype == p.dtype == torch.long
         self.windows.append([list(zip(*(v[b == i].tolist() for v in (x, y, t, p)))) for i in range(self.batch_size)])
         self.count += torch.bincount(b, minlength=self.batch_size)

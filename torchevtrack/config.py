@@ -25,6 +25,7 @@ __all__ = [
     "TemplateConfig",
     "UKFConfig",
     "RenderConfig",
+    "LossConfig",
     "TrackerConfig",
     "ABLATIONS",
 ]
@@ -90,6 +91,18 @@ class RenderConfig:
 
 
 @dataclass
+class LossConfig:
+    # Tracking-loss detection (torchevtrack.loss.LossDetector); it only reports, unless an on_lost callback
+    # (or the user's masked reset) re-initialises the lost elements.
+    enabled: bool = False
+    score_threshold: float = 0.3  # low update: template score below this fraction of the running reference
+    min_flow_vectors: int = 3  # low update: fewer flow vectors (not applied unless velocity.source = "flow")
+    patience: int = 25  # consecutive low updates that declare an element lost
+    recovery: int = 10  # consecutive confident updates that clear it
+    ema: float = 0.05  # rate of the reference score's moving average
+
+
+@dataclass
 class TrackerConfig:
     rate_hz: float = 500.0
     eros: ErosConfig = field(default_factory=ErosConfig)
@@ -98,6 +111,7 @@ class TrackerConfig:
     template: TemplateConfig = field(default_factory=TemplateConfig)
     ukf: UKFConfig = field(default_factory=UKFConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
 
     def __post_init__(self) -> None:
         self.rate_hz = float(self.rate_hz)

@@ -18,6 +18,11 @@ way of cutting the events into chunks (one event, part of a window, many windows
 Only the events of the current, incomplete window are buffered (with ``B > 1``, also those of a stream
 that is ahead of the slowest one), never the recording.
 
+Tracking loss: with ``config.loss.enabled`` each update is stamped with its window end for the tracker's
+loss detector (and its ``on_lost`` callback, :meth:`OnlineTracker.build`), :attr:`OnlineTracker.lost`
+collects the per-update flags, and :meth:`OnlineTracker.reset` re-initialises chosen elements at any time
+without breaking the window sequence.
+
 Example:
     >>> import torch
     >>> from torchevtrack.camera import Camera
@@ -45,6 +50,7 @@ import torch
 from torchevtrack.camera import Camera
 from torchevtrack.config import TrackerConfig
 from torchevtrack.events import EventStream
+from torchevtrack.loss import OnLost
 from torchevtrack.tracker import EventPoseTracker, MeshLike, _pack
 
 __all__ = ["OnlineTracker"]
@@ -61,6 +67,7 @@ class OnlineTracker:
             completed its window to that call returning the pose. When one call completes several
             windows, all their poses are returned together and share that call's latency.
         stage_ms: per update, the tracker's ``stage_ms`` (milliseconds per pipeline stage).
+        lost: per update, the tracker's ``lost`` flags ``(B,)`` bool (only with a loss detector, else empty).
     """
 
     def __init__(self, tracker: EventPoseTracker) -> None:
@@ -71,6 +78,7 @@ class OnlineTracker:
         self.period_us: int = int(tracker.period_us)
         self.latencies_ms: list[float] = []
         self.stage_ms: list[dict[str, float]] = []
+        self.lost: list[torch.Tensor] = []
         self._t0: int | None = None
         self._done = 0  # windows emitted since start()
         self._received: list[int] = []  # per stream: every event before this time has been received
@@ -78,9 +86,9 @@ class OnlineTracker:
 
     @classmethod
     def build(cls, camera: Camera, meshes: MeshLike | Sequence[MeshLike], config: TrackerConfig | None = None,
-              batch_size: int | None = None) -> "OnlineTracker":
+              batch_size: int | None = None, on_lost: OnLost | None = None) -> "OnlineTracker":
         """Create the :class:`EventPoseTracker` (same arguments) and wrap it."""
-        return cls(EventPoseTracker(camera, meshes, config, batch_size))
+        return cls(EventPoseTracker(camera, meshes, config, batch_size, on_lost))
 
     # -- state -------------------------------------------------------------------------------
     def start(self, initial_pose: torch.Tensor, t0_us: int, twist: torch.Tensor | None = None) -> None:
@@ -94,6 +102,14 @@ class OnlineTracker:
         self._pending = [[] for _ in range(self.batch_size)]
         self.latencies_ms = []
         self.stage_ms = []
+        self.lost = []
+
+    def reset(self, pose: torch.Tensor, twist: torch.Tensor | None = None, mask: torch.Tensor | None = None) -> None:
+        """Re-initialise tracker elements at ``pose`` ``(B, 7)`` or ``(7,)`` (optional twist ``(B, 6)``) now:
+        the next window continues the sequence. ``mask`` (``(B,)`` bool or ``(K,)`` indices) restarts only
+        those elements (:meth:`EventPoseTracker.reset`), e.g. the ones the tracker reported lost."""
+        self._check_started()
+        self.tracker.reset(pose, twist, mask)
 
     @property
     def t_next_us(self) -> int:
@@ -172,8 +188,10 @@ class OnlineTracker:
         out = []
         for k in range(n):
             x, y, t, p, bi = _pack([s[c[k]:c[k + 1]] for s, c in zip(buffers, cuts)])
-            out.append((int(ends[k]), self.tracker(x, y, t, p, bi)))
+            out.append((int(ends[k]), self.tracker(x, y, t, p, bi, t_us=int(ends[k]))))
             self.stage_ms.append(dict(self.tracker.stage_ms))
+            if self.tracker.lost is not None:
+                self.lost.append(self.tracker.lost.clone())
         # Copy the remainders: a view would keep the whole pushed chunk alive.
         self._pending = [[_copy(s[c[-1]:])] if c[-1] < len(s) else [] for s, c in zip(buffers, cuts)]
         self._done += n

@@ -10,7 +10,10 @@ sequences and runs, in the paper's order:
 4. the mesh is rendered once, in a window around the propagated pose;
 5. :class:`~torchevtrack.stages.template.TemplateCorrector` scores 13 hypotheses warped from that render
    against the EROS observation and keeps the best;
-6. :class:`~torchevtrack.stages.ukf.PoseUKF` smooths the corrected pose into the output.
+6. :class:`~torchevtrack.stages.ukf.PoseUKF` smooths the corrected pose into the output;
+7. optionally (``config.loss.enabled``) a :class:`~torchevtrack.loss.LossDetector` judges the update's
+   :class:`Quality` and declares elements lost; an ``on_lost`` callback may give them new poses, and
+   those elements (only) restart there.
 
 The render of step 4 also provides the depth for step 2 of the next update, so an update costs one
 render. Ablations of the paper are configuration switches (:data:`torchevtrack.config.ABLATIONS`).
@@ -42,8 +45,10 @@ from torchevtrack.camera import Camera
 from torchevtrack.config import TrackerConfig
 from torchevtrack.events import EventStream
 from torchevtrack.geometry import check_pose, quat_canonical
+from torchevtrack.loss import LossDetector, LossUpdate, OnLost
 from torchevtrack.mesh import load_mesh
 from torchevtrack.render import Renderer
+from torchevtrack.stages import batch_mask
 from torchevtrack.stages.eros import EROS, observation
 from torchevtrack.stages.flow import TripletFlow
 from torchevtrack.stages.propagate import propagate, twist_between
@@ -95,6 +100,10 @@ class EventPoseTracker(nn.Module):
         meshes: one mesh for all, or a list of ``B`` meshes: paths, built-in / YCB names or trimesh objects.
         config: :class:`~torchevtrack.config.TrackerConfig` (default: the paper's settings).
         batch_size: ``B`` when one mesh is given for several sequences (default 1).
+        on_lost: re-initialisation callback of the loss detector (needs ``config.loss.enabled``):
+            ``on_lost(batch_indices (K,) int64, t_us (K,) int64) -> poses (K, 7) or None``, called with
+            the elements declared lost in an update; the elements it returns poses for restart there
+            (:meth:`reset` with a mask) before the update returns, so its output holds those poses.
 
     Buffers:
         pose: ``(B, 7)`` float64 current output pose.
@@ -102,7 +111,14 @@ class EventPoseTracker(nn.Module):
         depth: ``(B, h, w)`` float32 depth of the last render window; ``origin``: ``(B, 2)`` its top-left pixel.
 
     After each update, ``quality`` holds its :class:`Quality` and ``stage_ms`` the milliseconds spent in
-    each stage (eros, flow, velocity, render, correction, ukf).
+    each stage (eros, flow, velocity, render, correction, ukf; and loss with a detector). With
+    ``config.loss.enabled``, ``loss`` is the :class:`~torchevtrack.loss.LossDetector` (its buffers:
+    confidence, lost, lost_at_us, ...), ``loss_update`` the :class:`~torchevtrack.loss.LossUpdate` of
+    the last update and ``lost`` its ``(B,)`` flags; without it all three are ``None``.
+
+    Batch elements do not share state, and each is rendered in a window that depends on its own pose
+    only: :meth:`reset` with a mask restarts some elements, and the others' poses continue bit for bit
+    as if nothing had happened.
     """
 
     def __init__(
@@ -111,6 +127,7 @@ class EventPoseTracker(nn.Module):
         meshes: MeshLike | Sequence[MeshLike],
         config: TrackerConfig | None = None,
         batch_size: int | None = None,
+        on_lost: OnLost | None = None,
     ) -> None:
         super().__init__()
         cfg = config or TrackerConfig()
@@ -155,6 +172,17 @@ class EventPoseTracker(nn.Module):
                                            dtheta_deg=t.dtheta_deg, rule=t.rule, iterations=t.iterations)
         u = cfg.ukf
         self.ukf = PoseUKF(B, q_pdot=u.q_pdot, q_w=u.q_w, q_p=u.q_p, q_q=u.q_q, r_p=u.r_p, r_q=u.r_q, p0=u.p0)
+        lc = cfg.loss
+        if lc.enabled:
+            # Without flow velocity no flow vectors are counted: the flow criterion would flag every update.
+            self.loss = LossDetector(B, score_threshold=lc.score_threshold,
+                                     min_flow_vectors=lc.min_flow_vectors if v.source == "flow" else 0,
+                                     patience=lc.patience, recovery=lc.recovery, ema=lc.ema, on_lost=on_lost)
+        elif on_lost is not None:
+            raise ValueError("on_lost needs the loss detector: set loss.enabled in the config")
+        else:
+            self.loss = None
+        self.loss_update: LossUpdate | None = None
 
         f64 = torch.float64
         self.register_buffer("pose", torch.zeros(B, 7, dtype=f64))
@@ -171,31 +199,54 @@ class EventPoseTracker(nn.Module):
                                                         dtype=torch.float64), persistent=False)
 
     # -- state -------------------------------------------------------------------------------
-    def reset(self, initial_pose: torch.Tensor, twist: torch.Tensor | None = None) -> None:
-        """Restart every stage at ``initial_pose`` ``(B, 7)`` or ``(7,)`` (validated), optional twist ``(B, 6)``."""
-        pose = check_pose(torch.as_tensor(initial_pose, dtype=torch.float64), "initial_pose")
-        pose = pose.expand(self.batch_size, 7).clone() if pose.ndim == 1 else pose
-        if pose.shape != (self.batch_size, 7):
-            raise ValueError(f"initial_pose must have shape ({self.batch_size}, 7) or (7,), got {tuple(pose.shape)}")
+    def reset(self, initial_pose: torch.Tensor, twist: torch.Tensor | None = None,
+              mask: torch.Tensor | None = None) -> None:
+        """Restart every element at ``initial_pose`` ``(B, 7)`` or ``(7,)`` (validated), optional twist ``(B, 6)``.
+
+        ``mask`` (``(B,)`` bool or ``(K,)`` indices) restarts only the selected elements, e.g. to
+        re-initialise lost ones mid-stream: their EROS and time surface are cleared, their velocity
+        filter, UKF, pose, events seen and loss-detector state start over as in a full reset, and their
+        depth is rendered at the new pose. The other elements keep their state bit for bit (the depth
+        buffer may grow to a larger common window, which zero-pads theirs: exact, their objects lie
+        inside their old windows), and their rows of ``initial_pose`` and ``twist`` are ignored.
+        """
+        B = self.batch_size
+        m = batch_mask(mask, B)
+        pose = torch.as_tensor(initial_pose, dtype=torch.float64)
+        if pose.shape[-1:] != (7,):
+            raise ValueError(f"initial_pose must have shape (..., 7) [tx, ty, tz, qw, qx, qy, qz], "
+                             f"got {tuple(pose.shape)}")
+        pose = pose.expand(B, 7).clone() if pose.ndim == 1 else pose.clone()
+        if pose.shape != (B, 7):
+            raise ValueError(f"initial_pose must have shape ({B}, 7) or (7,), got {tuple(pose.shape)}")
         if twist is None:
-            twist = torch.zeros(self.batch_size, 6, dtype=torch.float64)
-        elif not isinstance(twist, torch.Tensor) or twist.shape != (self.batch_size, 6):
-            raise TypeError(f"twist must be a ({self.batch_size}, 6) tensor [v, w], got "
+            twist = torch.zeros(B, 6, dtype=torch.float64)
+        elif not isinstance(twist, torch.Tensor) or twist.shape != (B, 6):
+            raise TypeError(f"twist must be a ({B}, 6) tensor [v, w], got "
                             f"{tuple(twist.shape) if isinstance(twist, torch.Tensor) else type(twist).__name__}")
-        elif not bool(torch.isfinite(twist).all()):
+        elif not bool(torch.isfinite(twist[m]).all()):
             raise ValueError("twist contains NaN or infinite values")
-        twist = twist.double()
-        if bool(self._invalid(pose).any()):
+        # Unselected rows are ignored: they take the current pose and zero motion (valid values throughout).
+        pose = torch.where(m[:, None], pose, self.pose)
+        pose[m] = check_pose(pose[m], "initial_pose")
+        twist = torch.where(m[:, None], twist.double(), 0.0)
+        if bool((self._invalid(pose) & m).any()):
             raise ValueError("initial_pose puts the object centre closer to the camera than the object's radius")
-        self.eros.reset()
-        self.flow.reset()
-        self.velocity.reset(torch.einsum("bij,bj->bi", centre_jacobian(-pose[:, :3]), twist))  # about the centre
-        self.ukf.reset(pose, twist)
+        self.eros.reset(m)
+        self.flow.reset(m)
+        self.velocity.reset(torch.einsum("bij,bj->bi", centre_jacobian(-pose[:, :3]), twist), m)  # about the centre
+        self.ukf.reset(pose, twist, m)
         self.pose.copy_(pose)
-        self.prev_pose.copy_(propagate(pose, twist, -self.dt))
-        self.events_seen.zero_()
-        self.t_last.zero_()
-        self._render(pose, shaded=False)
+        self.prev_pose.copy_(torch.where(m[:, None], propagate(pose, twist, -self.dt), self.prev_pose))
+        self.events_seen.masked_fill_(m, 0)
+        self.t_last.masked_fill_(m, 0)
+        if self.loss is not None:
+            self.loss.reset(m)
+        if mask is None:
+            self.loss_update = None
+            self._render(pose, shaded=False)
+        else:
+            self._render_depth(pose, m)
 
     def close(self) -> None:
         """Release the renderers' GL contexts."""
@@ -204,12 +255,14 @@ class EventPoseTracker(nn.Module):
 
     # -- one update --------------------------------------------------------------------------
     def forward(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor,
-                b: torch.Tensor | None = None) -> torch.Tensor:
+                b: torch.Tensor | None = None, t_us: int | torch.Tensor | None = None) -> torch.Tensor:
         """Consume one window of packed events and return the new poses ``(B, 7)`` float64.
 
         Args:
             x, y: ``(N,)`` integer pixels; t: ``(N,)`` int64 microseconds; p: ``(N,)`` polarity {0, 1};
             b: ``(N,)`` batch index (None: all batch element 0). Time order within each batch element.
+            t_us: time stamp of this update (int or ``(B,)`` int64 us, the window end), given to the loss
+                detector and ``on_lost``; default: the latest event time seen per element.
         """
         cfg = self.config
         B = self.batch_size
@@ -272,8 +325,24 @@ class EventPoseTracker(nn.Module):
         self.prev_pose.copy_(self.pose)
         self.pose.copy_(torch.cat((out[:, :3], quat_canonical(out[:, 3:])), dim=-1))
         self.quality = Quality(score.detach(), n_vectors.detach(), n_events, bad | rejected)
+        if self.loss is not None:
+            upd = self.loss(self.quality, self._t_now(t, b) if t_us is None else t_us)
+            self.loss_update = upd
+            if upd.reinit_index.numel():  # on_lost gave poses: those elements restart there (the detector did)
+                pose = self.pose.clone()
+                pose[upd.reinit_index] = upd.reinit_pose
+                lost_at = self.loss.lost_at_us.clone()
+                self.reset(pose, mask=upd.reinit_index)
+                self.loss.lost_at_us.copy_(lost_at)  # the first loss stays on record
+            clock.lap("loss")
         self.stage_ms = clock.ms
         return self.pose.clone()
+
+    @property
+    def lost(self) -> torch.Tensor | None:
+        """``(B,)`` bool: the loss detector held the element lost after the last update (before any
+        re-initialisation in that update); ``None`` without a detector or before the first update."""
+        return None if self.loss_update is None else self.loss_update.lost
 
     # -- offline tracking --------------------------------------------------------------------
     def track(
@@ -283,7 +352,8 @@ class EventPoseTracker(nn.Module):
         t_start_us: int | Sequence[int] | None = None,
         t_end_us: int | Sequence[int] | None = None,
         progress: bool = True,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+        return_lost: bool = False,
+    ) -> tuple[torch.Tensor, ...]:
         """Track whole recordings; one stream per batch element, all advanced in lockstep.
 
         Args:
@@ -291,10 +361,15 @@ class EventPoseTracker(nn.Module):
             initial_pose: ``(B, 7)`` or ``(7,)`` pose at ``t_start_us``.
             t_start_us, t_end_us: per-stream start / end times (default: first / last event).
             progress: show a tqdm bar.
+            return_lost: also return the loss detector's flags (needs ``config.loss.enabled``).
 
         Returns:
-            ``t_us (B, N)`` int64 update times (end of each window) and ``poses (B, N, 7)`` float64.
+            ``t_us (B, N)`` int64 update times (end of each window) and ``poses (B, N, 7)`` float64; with
+            ``return_lost`` also ``lost (B, N)`` bool, :attr:`lost` after each update (an element the
+            ``on_lost`` callback re-initialised is lost at that update and starts over from the next).
         """
+        if return_lost and self.loss is None:
+            raise ValueError("return_lost needs the loss detector: set loss.enabled in the config")
         if isinstance(streams, EventStream):
             streams = [streams]
         B = self.batch_size
@@ -310,34 +385,82 @@ class EventPoseTracker(nn.Module):
         self.reset(initial_pose)
         times = torch.stack([st + k[1:] for st in starts])
         poses = torch.empty(B, n, 7, dtype=torch.float64)
+        lost = torch.zeros(B, n, dtype=torch.bool)
         for i in tqdm(range(n), desc="tracking", unit="update", disable=not progress, leave=False):
             parts = [s[int(bd[i]): int(bd[i + 1])] for s, bd in zip(streams, bounds)]
             x, y, t, p, b = _pack(parts)
-            poses[:, i] = self(x, y, t, p, b)
-        return times, poses
+            poses[:, i] = self(x, y, t, p, b, t_us=times[:, i])
+            if return_lost:
+                lost[:, i] = self.lost
+        return (times, poses, lost) if return_lost else (times, poses)
 
     # -- internals ---------------------------------------------------------------------------
-    def _render(self, poses: torch.Tensor, shaded: bool):
-        """Render each element in a window of one common size around its pose; keep the depth."""
+    def _windows(self, poses: torch.Tensor, index: list[int]) -> torch.Tensor:
+        """Render windows ``(K, 4)`` ``(u0, v0, w, h)`` of the elements ``index``, clipped to the frame."""
         H, W = self.camera.height, self.camera.width
-        radius = torch.tensor([self._radius[i] for i in self._renderer_of])
-        win = torch.stack([render_window(poses[i:i + 1], self.camera, float(radius[i]),
-                                         self.config.render.margin_px)[0] for i in range(self.batch_size)])
-        w = int(min(win[:, 2].max(), W))
-        h = int(min(win[:, 3].max(), H))
-        u0 = win[:, 0].clamp(0, W - w)
-        v0 = win[:, 1].clamp(0, H - h)
-        depth, gray = [], []
-        for i, r in enumerate(self._renderer_of):
-            out = self._renderers[r].render(poses[i:i + 1], roi=(int(u0[i]), int(v0[i]), w, h), shaded=shaded)
-            depth.append(out.depth)
-            gray.append(out.gray)
-        origin = torch.stack((u0, v0), dim=-1)
-        depth = torch.cat(depth)
+        radius = torch.tensor([self._radius[self._renderer_of[i]] for i in index])
+        win = torch.stack([render_window(poses[i:i + 1], self.camera, float(r), self.config.render.margin_px)[0]
+                           for i, r in zip(index, radius)])
+        w, h = win[:, 2].clamp(max=W), win[:, 3].clamp(max=H)
+        return torch.stack((win[:, 0].clamp(min=0).minimum(W - w), win[:, 1].clamp(min=0).minimum(H - h), w, h), -1)
+
+    def _render_into(self, i: int, pose: torch.Tensor, win: torch.Tensor, origin: torch.Tensor, depth: torch.Tensor,
+                     gray: torch.Tensor | None) -> None:
+        """Render element ``i`` at ``pose`` ``(1, 7)`` in its own window ``win`` and write it into row ``i`` of
+        the common-size buffers whose top-left pixel is ``origin`` ``(2,)`` (the own window lies inside)."""
+        u, v, w, h = win.tolist()
+        du, dv = u - int(origin[0]), v - int(origin[1])
+        out = self._renderers[self._renderer_of[i]].render(pose, roi=(u, v, w, h), shaded=gray is not None)
+        depth[i, dv:dv + h, du:du + w] = out.depth[0]
+        if gray is not None:
+            gray[i, dv:dv + h, du:du + w] = out.gray[0]
+
+    def _render(self, poses: torch.Tensor, shaded: bool):
+        """Render each element in its own window around its pose, placed in buffers of one common size
+        (the largest window; outside its own window an element's buffers hold background, as its window
+        contains its object). A render's pixels depend slightly on its window, so own windows keep the
+        elements from changing each other's renders. Keeps the depth."""
+        B = self.batch_size
+        H, W = self.camera.height, self.camera.width
+        win = self._windows(poses, list(range(B)))
+        w, h = int(win[:, 2].max()), int(win[:, 3].max())
+        origin = torch.stack((win[:, 0].clamp(max=W - w), win[:, 1].clamp(max=H - h)), -1)
+        depth = torch.zeros(B, h, w)
+        gray = torch.stack([torch.full((h, w), self._renderers[r].background) for r in self._renderer_of]) \
+            if shaded else None
+        for i in range(B):
+            self._render_into(i, poses[i:i + 1], win[i], origin[i], depth, gray)
         self.depth = depth
         self.origin.copy_(origin)
-        render = _Render(depth, torch.cat(gray) if shaded else None)
-        return render, origin
+        return _Render(depth, gray), origin
+
+    def _render_depth(self, poses: torch.Tensor, mask: torch.Tensor) -> None:
+        """Render the depth of the ``mask`` elements at ``poses`` ``(B, 7)`` into the depth buffer.
+
+        The others keep their depth values and origins: if a selected element needs a larger window, the
+        common size grows and their windows are zero-padded into it (exact: their objects lie inside).
+        """
+        index = mask.nonzero()[:, 0].tolist()
+        if not index:
+            return
+        H, W = self.camera.height, self.camera.width
+        win = self._windows(poses, index)
+        h0, w0 = self.depth.shape[-2:]
+        w, h = max(w0, int(win[:, 2].max())), max(h0, int(win[:, 3].max()))
+        origin = self.origin.clone()
+        depth = self.depth
+        if (h, w) != (h0, w0):
+            origin[:, 0].clamp_(max=W - w)
+            origin[:, 1].clamp_(max=H - h)
+            depth = self.depth.new_zeros(self.batch_size, h, w)
+            for i, ((u0, v0), (u1, v1)) in enumerate(zip(self.origin.tolist(), origin.tolist())):
+                depth[i, v0 - v1:v0 - v1 + h0, u0 - u1:u0 - u1 + w0] = self.depth[i]
+        for i, wi in zip(index, win):
+            origin[i] = torch.stack((wi[0].clamp(max=W - w), wi[1].clamp(max=H - h)))
+            depth[i] = 0.0
+            self._render_into(i, poses[i:i + 1], wi, origin[i], depth, None)
+        self.depth = depth
+        self.origin.copy_(origin)
 
     def _t_now(self, t: torch.Tensor, b: torch.Tensor | None) -> torch.Tensor:
         """Latest event time per element in this window (int64 us; the previous one if the window is empty)."""
