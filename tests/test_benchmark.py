@@ -235,3 +235,28 @@ def test_mesh_points_subsample_evenly():
     assert torch.equal(mesh_points(v[:10]), torch.from_numpy(v[:10]))
     with pytest.raises(ValueError, match="vertices"):
         mesh_points(np.zeros((4, 2)))
+
+
+def test_loss_detection_is_reported_against_the_failure_rule(run, bench, tmp_path):
+    res, out = run
+    md = (out / "table.md").read_text()
+    rows = _table(md, "## Tracking loss")
+    assert rows[0] == ["Method", "cracker_regular", "tomato_fast", "detected", "missed", "false alarms"]
+    for m in METHODS:
+        for name in SEQS:
+            loss, x = res["results"][m][name]["loss"], res["results"][m][name]["metrics"]
+            assert set(loss) == {"first_loss_us", "first_failure_us", "delay_us", "missed", "false_alarm"}
+            assert (loss["first_failure_us"] is not None) == x["failed"]
+    # A detector that finds every update short of flow declares loss at the first update: with 10 updates
+    # nothing can fail (50 needed), so every sequence is a false alarm at t_start + 2 ms.
+    cfg = TrackerConfig().replace(loss={"min_flow_vectors": 1000, "patience": 1})
+    strict = run_benchmark(bench, tmp_path, methods=["velocity_only"], duration_s=0.02, config=cfg, overlays=False,
+                           progress=False)
+    for name in SEQS:
+        t0 = strict["sequences"][name]["t_start_us"]
+        assert strict["results"]["velocity_only"][name]["loss"] == {
+            "first_loss_us": t0 + 2000, "first_failure_us": None, "delay_us": None, "missed": False,
+            "false_alarm": True}
+    rows = _table(table_markdown(strict), "## Tracking loss")
+    assert rows[2] == [METHOD_NAMES["velocity_only"], "0.002 / –", "0.002 / –", "0", "0", "2"]
+    assert not strict["config"]["loss"]["enabled"]  # the benchmark runs the detector anyway (it only reports)

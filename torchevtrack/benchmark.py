@@ -6,9 +6,10 @@ sequence, see the README's "Sequence directory format") with each method of
 :class:`~torchevtrack.tracker.EventPoseTracker` with one mesh and one event stream per sequence, each
 starting at its own first ground-truth pose and time). It writes into ``out_dir``::
 
-    results.json              per method and sequence: metrics (metrics.evaluate) and timing; the config,
-                              torchevtrack / torch versions, machine and date
-    table.md                  Table I of the paper (e_p(sigma) cm / e_r(sigma) deg), ADD-S AUC, speed
+    results.json              per method and sequence: metrics (metrics.evaluate), loss detection and
+                              timing; the config, torchevtrack / torch versions, machine and date
+    table.md                  Table I of the paper (e_p(sigma) cm / e_r(sigma) deg), ADD-S AUC, tracking
+                              loss, speed
     poses/<method>/<seq>.txt  tracked poses, TUM (the file that was scored)
     plots/<seq>.png           translation / rotation error against time, all methods on the same axes
     overlays/<seq>_<k>.png    tracked (green) and ground-truth (magenta) contours over EROS, 3 instants
@@ -17,6 +18,11 @@ starting at its own first ground-truth pose and time). It writes into ``out_dir`
 Metrics are those of :func:`torchevtrack.metrics.evaluate`: RMSE and population sigma of the
 translation (cm) and rotation (deg) errors, ADD and ADD-S AUC on 0..10 cm (model points: at most 1000
 mesh vertices, an evenly spaced subsample), and the EDOPT failure rule.
+
+Tracking loss: every run carries the tracker's :class:`~torchevtrack.loss.LossDetector` (the config's
+``loss`` parameters, switched on whatever ``loss.enabled`` says; it only reports, no pose changes). Per
+sequence, :func:`torchevtrack.loss.compare_with_ground_truth` sets when loss was first declared against
+the start of the first ground-truth failure run: ``results[method][sequence]["loss"]``.
 
 Example:
     >>> from torchevtrack.benchmark import run_benchmark, table_markdown
@@ -45,6 +51,7 @@ import torchevtrack
 from torchevtrack.camera import Camera
 from torchevtrack.config import ABLATIONS, TrackerConfig
 from torchevtrack.io.poses import read_tum, write_tum
+from torchevtrack.loss import compare_with_ground_truth
 from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, evaluate, per_pose_errors
 from torchevtrack.synth.sequence import SEQUENCE_FILES, Sequence
 from torchevtrack.tracker import EventPoseTracker
@@ -164,15 +171,17 @@ def _check_methods(methods) -> list[str]:
 
 
 def _track(items: list[_Item], camera: Camera, cfg: TrackerConfig, progress: bool):
-    """Track ``items`` as one batch; per item its own ``(t_us (n_i,), poses (n_i, 7))`` and the timing."""
+    """Track ``items`` as one batch; per item its own ``(t_us (n_i,), poses (n_i, 7), lost (n_i,))`` and the
+    timing (the loss detector runs, passively, whatever the config says)."""
     setup = time.perf_counter()
-    tracker = EventPoseTracker(camera, [str(it.path / "mesh.ply") for it in items], cfg)
+    tracker = EventPoseTracker(camera, [str(it.path / "mesh.ply") for it in items], cfg.replace(loss={"enabled": True}))
     start = time.perf_counter()
     try:
-        times, poses = tracker.track([it.seq.events for it in items],
-                                     torch.stack([it.seq.gt_poses[0] for it in items]),
-                                     t_start_us=[it.t_start_us for it in items],
-                                     t_end_us=[it.t_end_us for it in items], progress=progress)
+        times, poses, lost = tracker.track([it.seq.events for it in items],
+                                           torch.stack([it.seq.gt_poses[0] for it in items]),
+                                           t_start_us=[it.t_start_us for it in items],
+                                           t_end_us=[it.t_end_us for it in items], progress=progress,
+                                           return_lost=True)
     finally:
         tracker.close()
     wall = time.perf_counter() - start
@@ -188,7 +197,8 @@ def _track(items: list[_Item], camera: Camera, cfg: TrackerConfig, progress: boo
         "tracked_s": sum(it.n_updates for it in items) * cfg.period_us / 1e6,
     }
     run["realtime_factor"] = run["tracked_s"] / wall
-    out = [(times[i, :it.n_updates].clone(), poses[i, :it.n_updates].clone()) for i, it in enumerate(items)]
+    out = [(times[i, :it.n_updates].clone(), poses[i, :it.n_updates].clone(), lost[i, :it.n_updates].clone())
+           for i, it in enumerate(items)]
     return out, run
 
 
@@ -231,7 +241,8 @@ def run_benchmark(
 
     Returns:
         The dict written to ``results.json``: ``results[method][sequence]`` holds ``metrics`` (the
-        :func:`~torchevtrack.metrics.evaluate` dict), ``timing`` and ``pose_file``; ``runs[method]``
+        :func:`~torchevtrack.metrics.evaluate` dict), ``loss`` (the
+        :func:`~torchevtrack.loss.compare_with_ground_truth` dict), ``timing`` and ``pose_file``; ``runs[method]``
         the batched runs; ``sequences``, ``config``, ``machine``, versions, date.
     """
     methods = _check_methods(methods)
@@ -281,17 +292,19 @@ def run_benchmark(
         for group in batches:
             trajs, run = _track(group, group[0].seq.camera, cfg, progress)
             res["runs"][method].append(run)
-            for it, (t_us, poses) in zip(group, trajs):
+            for it, (t_us, poses, lost) in zip(group, trajs):
                 rel = Path("poses") / method / f"{it.name}.txt"
                 (out / rel).parent.mkdir(parents=True, exist_ok=True)
                 write_tum(out / rel, t_us, poses)
                 t_us, poses = read_tum(out / rel)  # score exactly what was written
                 gt_t, gt = it.seq.gt_t_us, it.seq.gt_poses
                 metrics = evaluate(t_us, poses, gt_t, gt, mesh_points=it.points)
+                loss = compare_with_ground_truth(t_us, lost, poses, gt_t, gt)
                 timing = {key: run[key] for key in ("batch_size", "wall_s", "updates_per_s")}
                 timing["updates"] = int(t_us.numel())
                 timing["realtime_factor"] = timing["updates"] * cfg.period_us / 1e6 / run["wall_s"]
-                res["results"][method][it.name] = {"metrics": metrics, "timing": timing, "pose_file": str(rel)}
+                res["results"][method][it.name] = {"metrics": metrics, "loss": loss, "timing": timing,
+                                                   "pose_file": str(rel)}
                 e = per_pose_errors(t_us, poses, gt_t, gt)
                 curves[it.name][METHOD_NAMES[method]] = (
                     ((e["t_us"] - it.t_start_us).double() / 1e6).numpy(),
@@ -371,7 +384,9 @@ def table_markdown(results: dict) -> str:
     regular before fast (mustard, potted, cracker, tomato), each cell ``e_p(sigma) / e_r(sigma)``:
     RMSE and population standard deviation of the translation error (cm) and the rotation error (deg),
     two decimals, a trailing ``†`` when the sequence failed. The Mean column averages the RMSE and the
-    sigma over the sequences. Then ADD-S AUC (%) and the tracking speed.
+    sigma over the sequences. Then ADD-S AUC (%), tracking loss (when the loss detector first declared
+    the sequence lost against the start of its first failure run, in seconds from the sequence start;
+    results without loss entries skip it) and the tracking speed.
     """
     try:
         per_method = results["results"]
@@ -421,6 +436,28 @@ def table_markdown(results: dict) -> str:
         cells = [METHOD_NAMES.get(m, m)] + [f"{100 * v:.2f}" if v is not None else "–" for v in vals]
         cells.append(f"{100 * float(np.mean(have)):.2f}" if have else "–")
         lines.append(_row(cells))
+
+    if all("loss" in r for m in rows for r in per_method[m].values()):
+        lines += ["", "## Tracking loss: declared / failed (s)", ""]
+        lines.append(_row(["Method"] + cols + ["detected", "missed", "false alarms"]))
+        lines.append(_row(["---"] * (len(cols) + 4)))
+        for m in rows:
+            cells = [METHOD_NAMES.get(m, m)]
+            for c in cols:
+                r = per_method[m].get(c)
+                t0 = sequences[c]["t_start_us"]
+                cells.append("–" if r is None else " / ".join(
+                    "–" if v is None else f"{(v - t0) / 1e6:.3f}"
+                    for v in (r["loss"]["first_loss_us"], r["loss"]["first_failure_us"])))
+            losses = [r["loss"] for r in per_method[m].values()]
+            cells += [str(sum(x["first_loss_us"] is not None and x["first_failure_us"] is not None for x in losses)),
+                      str(sum(x["missed"] for x in losses)), str(sum(x["false_alarm"] for x in losses))]
+            lines.append(_row(cells))
+        lines.append("")
+        lines.append("declared: first update the loss detector held the sequence lost; failed: first of "
+                     f"{FAIL_WINDOW} consecutive updates with translation error > {FAIL_T_M * 100:g} cm or rotation "
+                     f"error > {FAIL_R_DEG:g} deg; –: never. detected: both happened (in either order); missed: "
+                     "failed, never declared; false alarms: declared, never failed.")
 
     runs = results.get("runs") or {}
     if runs:
