@@ -19,6 +19,11 @@ smaller.
 Events are packed as 1-D tensors ``x``, ``y`` (pixel column / row) and ``b`` (batch index, or ``None``
 for all-zero); within each batch element the packed order is time order.
 
+Memory: one pass holds about ``k * k * 12`` bytes per event (0.6 kB for ``k = 7``). The :class:`EROS`
+module takes a packet longer than ``chunk`` events (a burst) in chunks: ``L`` and the counts are
+accumulated chunk by chunk and the surface is rewritten once, densely, so the result is the one-pass
+result bit for bit in ``O(chunk + B H W)`` memory.
+
 Example:
     >>> import torch
     >>> from torchevtrack.stages.eros import EROS
@@ -131,6 +136,38 @@ def eros_update_(surface: torch.Tensor, x: torch.Tensor, y: torch.Tensor, b: tor
     return surface
 
 
+def _eros_update_chunked_(surface: torch.Tensor, xi: torch.Tensor, yi: torch.Tensor, bi: torch.Tensor,
+                          kernel_size: int, decay: float, chunk: int) -> torch.Tensor:
+    """:func:`eros_update_` for prepared events ``(N,)`` int64, ``chunk`` events at a time (same closed form)."""
+    B, H, W = surface.shape
+    n_ev = xi.numel()
+    r = kernel_size // 2
+    Hp, Wp = H + 2 * r, W + 2 * r
+    spans = [(s, min(s + chunk, n_ev)) for s in range(0, n_ev, chunk)]
+
+    def padded(s: int, e: int) -> torch.Tensor:
+        return (bi[s:e] * Hp + yi[s:e] + r) * Wp + (xi[s:e] + r)
+
+    last = torch.full((B * Hp * Wp,), -1, dtype=torch.int32)
+    for s, e in spans:
+        last.scatter_reduce_(0, padded(s, e), torch.arange(s, e, dtype=torch.int32), "amax")
+    d = torch.arange(-r, r + 1)
+    offsets = (d[:, None] * Wp + d[None, :]).reshape(-1)
+    count = torch.zeros(B * Hp * Wp, dtype=torch.int32)
+    for s, e in spans:
+        tgt = (padded(s, e)[:, None] + offsets).reshape(-1)
+        after = last.index_select(0, tgt).view(e - s, -1) < torch.arange(s, e, dtype=torch.int32)[:, None]
+        count.index_add_(0, tgt, after.view(-1).to(torch.int32))
+    x0, x1 = (int(v) for v in torch.aminmax(xi))
+    y0, y1 = (int(v) for v in torch.aminmax(yi))
+    x0, x1, y0, y1 = max(x0 - r, 0), min(x1 + r, W - 1) + 1, max(y0 - r, 0), min(y1 + r, H - 1) + 1
+    box = (slice(None), slice(y0 + r, y1 + r), slice(x0 + r, x1 + r))
+    pw = torch.exp(count.view(B, Hp, Wp)[box].float() * (math.log(decay) / kernel_size))
+    crop = surface[:, y0:y1, x0:x1]
+    crop.copy_(torch.where(last.view(B, Hp, Wp)[box] >= 0, pw, crop * pw))
+    return surface
+
+
 def eros_update(surface: torch.Tensor, x: torch.Tensor, y: torch.Tensor, b: torch.Tensor | None,
                 kernel_size: int = 7, decay: float = 0.3) -> torch.Tensor:
     """Apply a packet of events, in order, to an EROS surface (exact; see the module docstring).
@@ -169,6 +206,8 @@ class EROS(nn.Module):
         kernel_size: odd window size ``k`` (default 7).
         decay: ``d`` in ``(0, 1)`` (default 0.3); per-event factor ``d ** (1 / k)``.
         batch_size: number of independent streams ``B``.
+        chunk: a packet of more events is processed this many at a time, in bounded memory and with
+            the same result bit for bit (module docstring).
 
     Buffers:
         surface: ``(B, H, W)`` float32 in ``[0, 1]``, initially 0.
@@ -179,14 +218,16 @@ class EROS(nn.Module):
 
     surface: torch.Tensor
 
-    def __init__(self, height: int, width: int, kernel_size: int = 7, decay: float = 0.3, batch_size: int = 1):
+    def __init__(self, height: int, width: int, kernel_size: int = 7, decay: float = 0.3, batch_size: int = 1,
+                 chunk: int = 2 ** 16):
         super().__init__()
         _check_params(kernel_size, decay)
-        for name, v in (("height", height), ("width", width), ("batch_size", batch_size)):
+        for name, v in (("height", height), ("width", width), ("batch_size", batch_size), ("chunk", chunk)):
             if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
                 raise ValueError(f"{name} must be a positive int, got {v!r}")
         self.kernel_size = kernel_size
         self.decay = float(decay)
+        self.chunk = chunk
         self.register_buffer("surface", torch.zeros(batch_size, height, width, dtype=torch.float32))
 
     @property
@@ -195,7 +236,11 @@ class EROS(nn.Module):
         return self.decay ** (1.0 / self.kernel_size)
 
     def forward(self, x: torch.Tensor, y: torch.Tensor, b: torch.Tensor | None = None) -> torch.Tensor:
-        return eros_update_(self.surface, x, y, b, self.kernel_size, self.decay)
+        if not isinstance(x, torch.Tensor) or x.numel() <= self.chunk:
+            return eros_update_(self.surface, x, y, b, self.kernel_size, self.decay)
+        B, H, W = self.surface.shape
+        return _eros_update_chunked_(self.surface, *prepare_events(x, y, b, H, W, B), self.kernel_size, self.decay,
+                                     self.chunk)
 
     def observation(self) -> torch.Tensor:
         """3x3 median blur of the current surface, ``(B, H, W)``."""

@@ -41,6 +41,13 @@ the events determine, with continuous direction; for 2-D texture it is an averag
 Events are packed as 1-D tensors ``x``, ``y`` (pixel column / row), ``t`` (int64 us), ``p`` (``{0, 1}``)
 and ``b`` (batch index, or ``None`` for all-zero); within each batch element the packed order is time
 order.
+
+Memory: the triplet search holds about 3 kB per event. :class:`TripletFlow` matches a packet longer
+than ``chunk`` events (a burst) chunk by chunk, each chunk against the SAE updated with the earlier
+chunks, then registers all samples together. Since every event sees exactly the strictly earlier
+events, the samples, the SAE and the flow field are those of one pass, bit for bit (for time-ordered
+elements, where the last event at a pixel is also its latest); the samples themselves are few (about
+0.5 per event on noise bursts).
 """
 
 from __future__ import annotations
@@ -343,6 +350,8 @@ class TripletFlow(nn.Module):
         smooth: replace each valid block's flow and ``uv`` by their means over the valid blocks of its 3x3
             block neighbourhood.
         max_candidates, tie_tol, estimate, inlier: see :func:`register_blocks`.
+        chunk: a packet of more events is matched this many at a time, in bounded memory and with the
+            same result bit for bit (module docstring).
 
     Buffers:
         sae: ``(B, C, H, W)`` int64 last event time in us (:data:`NEVER` if none), ``C = 2`` if
@@ -357,10 +366,10 @@ class TripletFlow(nn.Module):
     def __init__(self, height: int, width: int, batch_size: int = 1, block: int = 30, min_samples: int = 20,
                  D: int = 2, dt_max_us: int = 50_000, tol: float = 0.125, per_polarity: bool = False,
                  smooth: bool = False, max_candidates: int = 128, tie_tol: float = 0.02,
-                 estimate: str = "normal", inlier: float = 0.25):
+                 estimate: str = "normal", inlier: float = 0.25, chunk: int = 2 ** 16):
         super().__init__()
         for name, v in (("height", height), ("width", width), ("batch_size", batch_size), ("block", block),
-                        ("min_samples", min_samples), ("max_candidates", max_candidates)):
+                        ("min_samples", min_samples), ("max_candidates", max_candidates), ("chunk", chunk)):
             if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
                 raise ValueError(f"{name} must be a positive int, got {v!r}")
         _check_flow_params(D, dt_max_us, tol)
@@ -372,6 +381,7 @@ class TripletFlow(nn.Module):
         self.per_polarity, self.smooth = bool(per_polarity), bool(smooth)
         self.max_candidates, self.tie_tol = max_candidates, float(tie_tol)
         self.estimate, self.inlier = estimate, float(inlier)
+        self.chunk = chunk
         self.pad = 2 * D
         C = 2 if per_polarity else 1
         self.gy, self.gx, centres = block_grid(height, width, block)
@@ -404,7 +414,9 @@ class TripletFlow(nn.Module):
         G = self.n_blocks
         xi, yi, ch = _prepare(self.sae, x, y, t, p, b)
         C = self.sae_padded.shape[1]
-        if xi.numel():
+        if xi.numel() > self.chunk:
+            ev, flow = self._match_chunks(xi, yi, ch, t)
+        elif xi.numel():
             ev, flow = _triplets_padded(self.sae_padded, self.pad, xi, yi, ch, t, self.D, self.dt_max_us, self.tol)
             _, _, Hp, Wp = self.sae_padded.shape
             self.sae_padded.view(-1).scatter_reduce_(0, (ch * Hp + yi + self.pad) * Wp + xi + self.pad, t, "amax")
@@ -422,6 +434,23 @@ class TripletFlow(nn.Module):
         if self.smooth:
             out, uv = _smooth(out, uv, valid, self.gy, self.gx)
         return FlowField(uv, out, valid, count)
+
+    def _match_chunks(self, xi: torch.Tensor, yi: torch.Tensor, ch: torch.Tensor, t: torch.Tensor):
+        """Triplet samples of a long packet, ``chunk`` events at a time, updating the SAE after each chunk.
+
+        Shape: prepared events ``(N,)``; returns ``event (S,)`` (index into the packet) and ``flow (S, 2)``.
+        """
+        _, _, Hp, Wp = self.sae_padded.shape
+        events, flows = [], []
+        for s in range(0, xi.numel(), self.chunk):
+            c = slice(s, s + self.chunk)
+            ev, flow = _triplets_padded(self.sae_padded, self.pad, xi[c], yi[c], ch[c], t[c], self.D, self.dt_max_us,
+                                        self.tol)
+            self.sae_padded.view(-1).scatter_reduce_(0, (ch[c] * Hp + yi[c] + self.pad) * Wp + xi[c] + self.pad, t[c],
+                                                     "amax")
+            events.append(ev + s)
+            flows.append(flow)
+        return torch.cat(events), torch.cat(flows)
 
     def extra_repr(self) -> str:
         return (f"height={self.height}, width={self.width}, block={self.block}, min_samples={self.min_samples}, "
