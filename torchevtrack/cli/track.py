@@ -1,4 +1,11 @@
-"""``torchevtrack track SEQDIR --out poses.txt``: track a sequence directory, write TUM poses."""
+"""``torchevtrack track SEQDIR --out poses.txt``: track a sequence directory, write TUM poses.
+
+A camera with lens distortion (``distortion`` in ``camera.json``) has its events undistorted while they
+are read, chunk by chunk (:class:`torchevtrack.distortion.Undistorter`): the tracker renders its
+templates with the pinhole ``K`` of the camera, so the events must live in that undistorted image too.
+Events that land outside the sensor are dropped (the count is printed). ``--no-undistort`` tracks the
+raw sensor pixels.
+"""
 
 from __future__ import annotations
 
@@ -10,7 +17,9 @@ import torch
 
 from torchevtrack.camera import Camera
 from torchevtrack.config import ABLATIONS, TrackerConfig
-from torchevtrack.io.events_h5 import read_events_h5
+from torchevtrack.distortion import Undistorter
+from torchevtrack.events import EventStream
+from torchevtrack.io.events_h5 import iter_events_h5, read_events_h5
 from torchevtrack.io.poses import read_tum, write_tum
 from torchevtrack.tracker import EventPoseTracker
 
@@ -29,6 +38,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--init", help='initial pose "tx ty tz qx qy qz qw" (default: first pose of gt_poses.txt)')
     p.add_argument("--mesh", help="mesh file or object name (default: SEQDIR/mesh.ply)")
     p.add_argument("--duration", type=float, help="track only the first SECONDS")
+    p.add_argument("--no-undistort", action="store_true",
+                   help="do not undistort the events of a camera with distortion coefficients")
     p.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest for one sequence)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -45,14 +56,29 @@ def parse_init(text: str) -> torch.Tensor:
     return torch.tensor(v[:3] + [v[6]] + v[3:6], dtype=torch.float64)
 
 
+def undistorted_events(path: Path, camera: Camera, chunk: int = 1_000_000) -> EventStream:
+    """Read an events.h5 file ``chunk`` events at a time, moving each chunk into the pinhole image of
+    ``camera`` (its distortion coefficients, :class:`~torchevtrack.distortion.Undistorter`); prints the
+    number of dropped events."""
+    undistort = Undistorter(camera)
+    events = EventStream.concat([undistort(c) for c in iter_events_h5(path, chunk, width=camera.width,
+                                                                      height=camera.height)])
+    print(f"undistorted {len(events) + int(undistort.dropped)} events, dropped {int(undistort.dropped)} "
+          "(outside the pinhole image)")
+    return events
+
+
 def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     d = args.seqdir
     if not d.is_dir():
         raise FileNotFoundError(f"sequence directory not found: {d}")
     camera = Camera.load(d / "camera.json")
-    events = read_events_h5(d / "events.h5")
-    events.validate(camera.width, camera.height)
+    if camera.distortion is not None and not args.no_undistort:
+        events = undistorted_events(d / "events.h5", camera)
+    else:
+        events = read_events_h5(d / "events.h5")
+        events.validate(camera.width, camera.height)
     mesh = args.mesh if args.mesh is not None else d / "mesh.ply"
     if args.mesh is None and not mesh.is_file():
         raise FileNotFoundError(f"{d} has no mesh.ply: give the object with --mesh")
