@@ -40,10 +40,6 @@ def _events(gen, n, H, W, t0):
     return x, y, t, p, b
 
 
-def _buffers(m):
-    return {k: v.clone() for k, v in m.named_buffers()}
-
-
 def _check_rows(module, fresh, kept, names):
     """Rows of ``MASK`` equal ``fresh``'s, the other rows equal ``kept``'s, bit for bit."""
     for name in names:
@@ -344,7 +340,8 @@ def test_track_and_online_report_loss_flags(seq):
     streams = [seq.events.slice_time(0, t_end),
                EventStream.concat([seq.events.slice_time(0, CUT_US), _noise(CUT_US, t_end, rate, 1)])]
     calls = []
-    tracker = EventPoseTracker(CAM, [seq.mesh, seq.mesh], cfg, on_lost=lambda i, t: calls.append((i.tolist(), t.tolist())))
+    tracker = EventPoseTracker(CAM, [seq.mesh, seq.mesh], cfg,
+                               on_lost=lambda i, t: calls.append((i.tolist(), t.tolist())))
     times, poses, lost = tracker.track(streams, seq.gt_poses[0], t_start_us=0, t_end_us=t_end, progress=False,
                                        return_lost=True)
     assert len(calls) == 1 and calls[0][0] == [1]

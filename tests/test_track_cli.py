@@ -69,8 +69,9 @@ def test_chunked_undistortion_equals_the_whole_stream(tmp_path, capsys):
     """Barrel distortion (drops events) with tangential terms; chunks of any size give the same events."""
     g = torch.Generator().manual_seed(0)
     n = 5000
-    ev = EventStream(torch.randint(0, CAM.width, (n,), generator=g), torch.randint(0, CAM.height, (n,), generator=g),
-                     torch.sort(torch.randint(0, 10**6, (n,), generator=g)).values, torch.randint(0, 2, (n,), generator=g))
+    x, y = torch.randint(0, CAM.width, (n,), generator=g), torch.randint(0, CAM.height, (n,), generator=g)
+    t = torch.sort(torch.randint(0, 10**6, (n,), generator=g)).values
+    ev = EventStream(x, y, t, torch.randint(0, 2, (n,), generator=g))
     write_events_h5(tmp_path / "events.h5", ev, width=CAM.width, height=CAM.height)
     cam = dataclasses.replace(CAM, distortion=(-0.3, 0.1, 1e-3, -5e-4, 0.0))
     whole = undistort_events(read_events_h5(tmp_path / "events.h5"), cam)
