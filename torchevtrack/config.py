@@ -56,7 +56,7 @@ class VelocityConfig:
     rho: float = 0.5
     q_v: float = 0.5  # process noise std of the centre velocity per update, m/s (with rho = 0.5: of the order of it)
     q_w: float = 3.0  # process noise std of w per update, rad/s
-    r_px: float = 0.3  # measurement std per flow vector, pixels of displacement per update
+    r_px: float = 1.0  # measurement std per flow vector, pixels of displacement per update
     min_vectors: int = 3
 
 
@@ -68,7 +68,7 @@ class TemplateConfig:
     dp_px: float = 1.0
     dtheta_deg: float = 0.5
     rule: str = "argmax"  # "argmax" (the paper) or "group" (EDOPT)
-    iterations: int = 1
+    iterations: int = 3  # correction rounds per update while the score improves (1 = the paper)
     warmup_events: int = 2000  # events an element must have seen since reset before its pose is corrected
 
 
