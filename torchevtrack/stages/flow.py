@@ -290,24 +290,26 @@ def register_blocks(block_id: torch.Tensor, event: torch.Tensor, flow: torch.Ten
     cand[row, slot] = flow[perm].double()
     pix = torch.zeros(V, K, 2, dtype=torch.float64)
     pix[row, slot] = pixel[perm].double()
-    evs = torch.zeros(V, K, dtype=torch.long)
+    # Empty slots get the event id K - 1, which no event of a block with an empty slot has (it has fewer than
+    # K events), so that column of per_ev only collects their zero distances.
+    evs = torch.full((V, K), K - 1, dtype=torch.long)
     evs[row, slot] = ev_rank
     mask = torch.zeros(V, K, dtype=torch.bool)
     mask[row, slot] = True
     n_ev = torch.zeros(V, dtype=torch.long).scatter_reduce_(0, row, ev_rank + 1, "amax")
-    # cost[v, c] = sum_i min_{j in event i} |cand_c - cand_j|
-    dist = torch.cdist(cand, cand)  # (V, K, K)
+    # cost[v, c] = sum_i min_{j in event i} |cand_c - cand_j|; per_ev[v, c, i] = that minimum, 0 for no event i.
+    dist = torch.cdist(cand, cand).masked_fill_(~mask[:, None, :], 0.0)  # (V, K, K), 0 for empty slots j
     per_ev = torch.full((V, K, K), math.inf, dtype=torch.float64)
-    per_ev.scatter_reduce_(2, evs[:, None, :].expand(V, K, K), dist.masked_fill(~mask[:, None, :], math.inf), "amin")
-    cost = torch.where(torch.isinf(per_ev), 0.0, per_ev).sum(2).masked_fill(~mask, math.inf)
+    per_ev.scatter_reduce_(2, evs[:, None, :].expand(V, K, K), dist, "amin").nan_to_num_(posinf=0.0)
+    cost = per_ev.sum(2).masked_fill_(~mask, math.inf)
     norm = cand.norm(dim=2)
     near = cost <= cost.min(1, keepdim=True).values + tie_tol * n_ev[:, None] * norm
-    spread = dist.masked_fill(~mask[:, None, :], 0.0).sum(2)  # sum_j |F_c - F_j| over the block's samples
+    spread = dist.sum(2)  # sum_j |F_c - F_j| over the block's samples
     rows = torch.arange(V)
     best = spread.masked_fill(~near, math.inf).argmin(1)
     chosen = cand[rows, best]
     # Inlier events: their nearest candidate lies within inlier * |F| of the registered F.
-    ok_ev = per_ev[rows, best] <= inlier * chosen.norm(dim=1, keepdim=True)  # (V, K) by event id
+    ok_ev = per_ev[rows, best] <= inlier * chosen.norm(dim=1, keepdim=True)  # (V, K) by event id (real ones only used)
     w = (mask & torch.gather(ok_ev, 1, evs)).double()
     if estimate == "normal":
         # Each sample F_j = -2 d / dt is a line F_j . g = 1 on the time-surface gradient g (s/px); weighted
