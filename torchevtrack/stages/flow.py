@@ -285,31 +285,53 @@ def register_blocks(block_id: torch.Tensor, event: torch.Tensor, flow: torch.Ten
     fit = (slot < max_candidates).nonzero().squeeze(1)
     perm, g, ev_rank, slot = perm[fit], g[fit], ev_rank[fit], slot[fit]
     blocks, row = torch.unique_consecutive(g, return_inverse=True)
-    V, K = blocks.numel(), int(slot.max()) + 1
+    # Blocks are evaluated in groups of similar size (up to 16, 32, 64, ... samples), each padded only to its
+    # largest block. Every sum below runs over the padded dimension 1, and such sums do not depend on the
+    # amount of zero padding, so a block's result does not depend on the other blocks.
+    size = torch.bincount(row)
+    group = [max((n - 1) >> 4, 0).bit_length() for n in size.tolist()]
+    group_of = torch.tensor(group)
+    for k in sorted(set(group)):
+        members = (group_of == k).nonzero().squeeze(1)
+        local = torch.full((blocks.numel(),), -1, dtype=torch.long)
+        local[members] = torch.arange(members.numel())
+        at = (group_of[row] == k).nonzero().squeeze(1)
+        chosen, uv = _register_group(local[row[at]], slot[at], ev_rank[at], flow[perm[at]], pixel[perm[at]],
+                                     members.numel(), tie_tol, estimate, inlier)
+        out[blocks[members]] = chosen.float()
+        uv_out[blocks[members]] = uv.float()
+    return out, uv_out, valid, count
+
+
+def _register_group(row: torch.Tensor, slot: torch.Tensor, ev_rank: torch.Tensor, flow: torch.Tensor,
+                    pixel: torch.Tensor, V: int, tie_tol: float, estimate: str, inlier: float):
+    """Registration of ``V`` blocks whose samples sit at ``(row, slot)``; returns flow and uv ``(V, 2)`` float64."""
+    K = int(slot.max()) + 1
     cand = torch.zeros(V, K, 2, dtype=torch.float64)
-    cand[row, slot] = flow[perm].double()
+    cand[row, slot] = flow.double()
     pix = torch.zeros(V, K, 2, dtype=torch.float64)
-    pix[row, slot] = pixel[perm].double()
-    # Empty slots get the event id K - 1, which no event of a block with an empty slot has (it has fewer than
-    # K events), so that column of per_ev only collects their zero distances.
-    evs = torch.full((V, K), K - 1, dtype=torch.long)
+    pix[row, slot] = pixel.double()
+    n_ev = torch.zeros(V, dtype=torch.long).scatter_reduce_(0, row, ev_rank + 1, "amax")
+    # Event ids per slot; empty slots get E - 1, an id no block uses, so that row only collects zeros.
+    E = int(n_ev.max()) + 1
+    evs = torch.full((V, K), E - 1, dtype=torch.long)
     evs[row, slot] = ev_rank
     mask = torch.zeros(V, K, dtype=torch.bool)
     mask[row, slot] = True
-    n_ev = torch.zeros(V, dtype=torch.long).scatter_reduce_(0, row, ev_rank + 1, "amax")
-    # cost[v, c] = sum_i min_{j in event i} |cand_c - cand_j|; per_ev[v, c, i] = that minimum, 0 for no event i.
-    dist = torch.cdist(cand, cand).masked_fill_(~mask[:, None, :], 0.0)  # (V, K, K), 0 for empty slots j
-    per_ev = torch.full((V, K, K), math.inf, dtype=torch.float64)
-    per_ev.scatter_reduce_(2, evs[:, None, :].expand(V, K, K), dist, "amin").nan_to_num_(posinf=0.0)
-    cost = per_ev.sum(2).masked_fill_(~mask, math.inf)
+    # dist[v, j, c] = |cand_c - cand_j| (0 for empty sample slots j); per_ev[v, i, c] = min_{j in event i} of it
+    # (0 for no event i); cost[v, c] = sum_i per_ev[v, i, c].
+    dist = torch.cdist(cand, cand, compute_mode="use_mm_for_euclid_dist").masked_fill_(~mask[:, :, None], 0.0)
+    per_ev = torch.full((V, E, K), math.inf, dtype=torch.float64)
+    per_ev.scatter_reduce_(1, evs[:, :, None].expand(V, K, K), dist, "amin").nan_to_num_(posinf=0.0)
+    cost = per_ev.sum(1).masked_fill_(~mask, math.inf)
     norm = cand.norm(dim=2)
     near = cost <= cost.min(1, keepdim=True).values + tie_tol * n_ev[:, None] * norm
-    spread = dist.sum(2)  # sum_j |F_c - F_j| over the block's samples
+    spread = dist.sum(1)  # sum_j |F_c - F_j| over the block's samples
     rows = torch.arange(V)
-    best = spread.masked_fill(~near, math.inf).argmin(1)
+    best = spread.masked_fill_(~near, math.inf).argmin(1)
     chosen = cand[rows, best]
     # Inlier events: their nearest candidate lies within inlier * |F| of the registered F.
-    ok_ev = per_ev[rows, best] <= inlier * chosen.norm(dim=1, keepdim=True)  # (V, K) by event id (real ones only used)
+    ok_ev = per_ev[rows, :, best] <= inlier * chosen.norm(dim=1, keepdim=True)  # (V, E) by event id
     w = (mask & torch.gather(ok_ev, 1, evs)).double()
     if estimate == "normal":
         # Each sample F_j = -2 d / dt is a line F_j . g = 1 on the time-surface gradient g (s/px); weighted
@@ -320,9 +342,7 @@ def register_blocks(block_id: torch.Tensor, event: torch.Tensor, flow: torch.Ten
         rhs = torch.einsum("vk,vki->vi", wn, cand)
         gr = (torch.linalg.pinv(A, hermitian=True) @ rhs[..., None])[..., 0]
         chosen = gr / (gr * gr).sum(1, keepdim=True).clamp(min=1e-30)
-    out[blocks] = chosen.float()
-    uv_out[blocks] = ((w[..., None] * pix).sum(1) / w.sum(1, keepdim=True)).float()
-    return out, uv_out, valid, count
+    return chosen, (w[..., None] * pix).sum(1) / w.sum(1, keepdim=True)
 
 
 def _smooth(flow: torch.Tensor, uv: torch.Tensor, valid: torch.Tensor, gy: int, gx: int):
