@@ -39,6 +39,7 @@ import math
 
 import kornia
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from torchevtrack.stages import batch_mask
@@ -195,7 +196,28 @@ def observation(surface: torch.Tensor) -> torch.Tensor:
     if not isinstance(surface, torch.Tensor) or surface.ndim != 3:
         raise ValueError(f"surface must be a (B, H, W) tensor, got {tuple(getattr(surface, 'shape', ()))}")
     border = "reflect" if min(surface.shape[-2:]) > 1 else "replicate"
-    return kornia.filters.median_blur(surface[:, None], (3, 3), border_type=border)[:, 0]
+    if not surface.is_floating_point() or not bool(torch.isfinite(surface).all()):
+        return kornia.filters.median_blur(surface[:, None], (3, 3), border_type=border)[:, 0]
+    return _median3x3(surface, border)
+
+
+def _median3x3(surface: torch.Tensor, border: str) -> torch.Tensor:
+    """3x3 median of finite images: sort the three rows of every column of the padded image, then the median is
+    the median of (largest low, median of the middles, smallest high) over three adjacent columns. It selects
+    one of the nine values, so it equals any other exact median (kornia's sorting network) bit for bit."""
+    p = F.pad(surface[:, None], (1, 1, 1, 1), mode=border)[:, 0]
+    a, b, c = p[:, :-2], p[:, 1:-1], p[:, 2:]
+    lo, hi = torch.minimum(a, b), torch.maximum(a, b)
+    lo, c = torch.minimum(lo, c), torch.maximum(lo, c)
+    mid, hi = torch.minimum(hi, c), torch.maximum(hi, c)
+    lo = torch.maximum(torch.maximum(lo[..., :-2], lo[..., 1:-1]), lo[..., 2:])
+    hi = torch.minimum(torch.minimum(hi[..., :-2], hi[..., 1:-1]), hi[..., 2:])
+    mid = _median3(mid[..., :-2], mid[..., 1:-1], mid[..., 2:])
+    return _median3(lo, mid, hi)
+
+
+def _median3(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    return torch.maximum(torch.minimum(a, b), torch.minimum(torch.maximum(a, b), c))
 
 
 class EROS(nn.Module):
