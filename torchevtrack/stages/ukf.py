@@ -36,6 +36,8 @@ Example:
 
 from __future__ import annotations
 
+import functools
+
 import torch
 from torch import nn
 
@@ -89,6 +91,10 @@ def merwe_weights(
     return Wm, Wc, c
 
 
+# Internal constant weights (never modified in place); merwe_weights itself returns fresh tensors.
+_merwe_weights_cached = functools.lru_cache(maxsize=16)(merwe_weights)
+
+
 def sigma_points(x: torch.Tensor, P: torch.Tensor, spread: float) -> torch.Tensor:
     """Sigma points ``[x, x [+] cols(L), x [+] -cols(L)]`` with ``L L^T = spread * P``.
 
@@ -105,14 +111,14 @@ def quat_mean(q: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
     Shape: ``(B, S, 4), (S,) -> (B, 4)`` canonical (``qw >= 0``).
     """
-    M = torch.einsum("s,bsi,bsj->bij", w.to(q), q, q)
+    M = (q.transpose(-1, -2) * w.to(q)) @ q  # sum_i w_i q_i q_i^T
     _, vecs = torch.linalg.eigh(M)
     return quat_canonical(vecs[..., -1])
 
 
 def _mean(X: torch.Tensor, Wm: torch.Tensor) -> torch.Tensor:
     """Weighted mean of sigma states ``(B, S, 13) -> (B, 13)``."""
-    return torch.cat((torch.einsum("s,bsi->bi", Wm, X[..., :9]), quat_mean(X[..., 9:13], Wm)), dim=-1)
+    return torch.cat((Wm @ X[..., :9], quat_mean(X[..., 9:13], Wm)), dim=-1)
 
 
 def _noise_cov(d: torch.Tensor, B: int) -> torch.Tensor:
@@ -142,7 +148,7 @@ def ukf_predict(
     _check_state(x, P)
     B = x.shape[0]
     T = torch.as_tensor(T, dtype=x.dtype, device=x.device).expand(B)
-    Wm, Wc, spread = merwe_weights(N_TANGENT, alpha, beta, kappa, x.dtype)
+    Wm, Wc, spread = _merwe_weights_cached(N_TANGENT, alpha, beta, kappa, x.dtype)
     X = sigma_points(x, P, spread)
     Tb = T[:, None, None]
     p = X[..., 6:9] + X[..., 0:3] * Tb
@@ -151,7 +157,7 @@ def ukf_predict(
     xm = _mean(X, Wm)
     D = boxminus(X, xm[:, None])
     Q = _noise_cov(q_density.to(x), B) * T[:, None, None]
-    Pm = torch.einsum("s,bsi,bsj->bij", Wc, D, D) + Q
+    Pm = (D.transpose(1, 2) * Wc) @ D + Q
     return xm, 0.5 * (Pm + Pm.transpose(-1, -2))
 
 
@@ -178,15 +184,15 @@ def ukf_update(
     if z.shape != (B, 7):
         raise ValueError(f"pose measurement must have shape ({B}, 7), got {tuple(z.shape)}")
     z = z.to(x)
-    Wm, Wc, spread = merwe_weights(N_TANGENT, alpha, beta, kappa, x.dtype)
+    Wm, Wc, spread = _merwe_weights_cached(N_TANGENT, alpha, beta, kappa, x.dtype)
     X = sigma_points(x, P, spread)
     Zp, Zq = X[..., 6:9], X[..., 9:13]
-    zp = torch.einsum("s,bsi->bi", Wm, Zp)
+    zp = Wm @ Zp
     zq = quat_mean(Zq, Wm)
     DZ = torch.cat((Zp - zp[:, None], quat_log(quat_mul(Zq, quat_conj(zq)[:, None]))), dim=-1)
     DX = boxminus(X, x[:, None])
-    S = torch.einsum("s,bsi,bsj->bij", Wc, DZ, DZ) + _noise_cov(R.to(x), B)
-    Pxz = torch.einsum("s,bsi,bsj->bij", Wc, DX, DZ)
+    S = (DZ.transpose(1, 2) * Wc) @ DZ + _noise_cov(R.to(x), B)
+    Pxz = (DX.transpose(1, 2) * Wc) @ DZ
     K = torch.linalg.solve(S, Pxz.transpose(-1, -2)).transpose(-1, -2)  # S symmetric
     nu = torch.cat((z[:, :3] - zp, quat_log(quat_mul(z[:, 3:], quat_conj(zq)))), dim=-1)
     x_new = boxplus(x, (K @ nu[..., None])[..., 0])
