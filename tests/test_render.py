@@ -259,3 +259,47 @@ def test_closing_or_dropping_one_renderer_keeps_the_others_working(box_renderer)
     dropped.render(p, shaded=False)
     del dropped  # garbage collection must not end the shared EGL display either
     assert torch.equal(box_renderer.render(p, shaded=False).depth, before)
+
+
+def test_direct_drawing_equals_pyrender_forward_pass():
+    # The renderer draws with pyrender's programs into its own growing framebuffer; pyrender's own render of
+    # an identical scene (single-sampled, viewport = roi) is the reference, pixel for pixel.
+    import pyrender
+
+    from torchevtrack.render import _GL_FROM_CV, _pose_matrices, _pyrender_mesh, _release, _shade, _single_sampled
+
+    mesh = load_mesh("box")
+    scene = pyrender.Scene(bg_color=(0.0, 0.0, 0.0, 0.0))
+    node = scene.add(_pyrender_mesh(mesh))
+    cam_ref = pyrender.IntrinsicsCamera(1.0, 1.0, 0.0, 0.0, znear=0.01, zfar=20.0)
+    scene.add(cam_ref, pose=_GL_FROM_CV)
+    ref = pyrender.OffscreenRenderer(1, 1)
+    cases = [  # small, larger, smaller and past-the-border windows, full frame; shaded and depth only
+        (pose([0.0, 0.0, 0.5], (0.3, -0.2, 0.1)), (50, 30, 60, 50), True),
+        (pose([0.02, -0.01, 0.45], (1.0, 0.2, 0.0)), (20, 10, 130, 100), False),
+        (pose([0.0, 0.02, 0.6], (0.0, 0.7, 0.4)), (60, 40, 41, 37), True),
+        (pose([0.1, 0.05, 0.5], (-0.4, 0.0, 0.9)), (100, 60, 70, 70), True),
+        (pose([-0.01, 0.0, 0.4], (0.2, 0.2, 0.2)), None, True),
+        (pose([0.0, 0.0, 0.55], (0.0, 0.0, 0.0)), None, False),
+    ]
+    try:
+        with Renderer(mesh, CAM, background=0.2) as r:
+            for p, roi, shaded in cases:
+                out = r.render(p, roi=roi, shaded=shaded)
+                cam = CAM if roi is None else CAM.crop(*roi)
+                cam_ref.fx, cam_ref.fy, cam_ref.cx, cam_ref.cy = cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5
+                T = _pose_matrices(p)[0]
+                scene.set_pose(node, T)
+                ref.viewport_width, ref.viewport_height = cam.width, cam.height
+                flags = pyrender.RenderFlags.FLAT | pyrender.RenderFlags.RGBA if shaded else pyrender.RenderFlags.DEPTH_ONLY
+                with _single_sampled():
+                    result = ref.render(scene, flags=flags)
+                depth = result[1] if shaded else result
+                assert (depth > 0).any()
+                np.testing.assert_array_equal(out.depth[0].numpy(), depth)
+                if shaded:
+                    np.testing.assert_array_equal(out.gray[0].numpy(), _shade(result[0], depth > 0, T[:3, :3], 0.2))
+                else:
+                    assert out.gray is None
+    finally:
+        _release(ref)

@@ -18,8 +18,10 @@ are point samples at pixel centres (no anti-aliasing); render a scaled camera an
 edges.
 
 One offscreen context is kept per renderer: pyrender binds a mesh's GPU buffers to a single
-context, and resizing its framebuffer costs well under a millisecond, so the viewport is resized in
-place instead of keeping one context per viewport size.
+context. pyrender compiles the shader programs and uploads the mesh; each render then draws with those
+programs directly into one framebuffer that only grows (pyrender's own forward pass traverses the scene,
+looks up every uniform and recreates its framebuffers whenever the viewport size changes; the pixels are
+the same).
 
 Conventions: poses are ``[tx, ty, tz, qw, qx, qy, qz]`` (object in the OpenCV camera frame, metres);
 pixel ``(u, v)`` centres are at integer coordinates, so a point projected by
@@ -39,6 +41,7 @@ Example:
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import ctypes.util
 import math
 import os
@@ -76,6 +79,7 @@ def _select_gl_platform() -> None:
 _select_gl_platform()
 import pyrender  # noqa: E402  (must follow the platform choice)
 import pyrender.renderer  # noqa: E402
+from OpenGL import GL  # noqa: E402
 
 _STORAGE_MULTISAMPLE = pyrender.renderer.glRenderbufferStorageMultisample
 
@@ -162,12 +166,14 @@ class Renderer:
         )
         self._scene.add(self._cam, pose=_GL_FROM_CV)
         self._offscreen: pyrender.OffscreenRenderer | None = None
+        self._target: _GLTarget | None = None
 
     # -- context management ----------------------------------------------------------------------
-    def _context(self, width: int, height: int) -> pyrender.OffscreenRenderer:
+    def _gl(self, width: int, height: int) -> "_GLTarget":
+        """The current GL context with this renderer's programs and a framebuffer of at least ``width x height``."""
         if self._offscreen is None:
             try:
-                self._offscreen = pyrender.OffscreenRenderer(width, height)
+                self._offscreen = pyrender.OffscreenRenderer(1, 1)
             except Exception as e:
                 platform = os.environ.get("PYOPENGL_PLATFORM")
                 raise RuntimeError(
@@ -176,16 +182,19 @@ class Renderer:
                     "OSMesa needs libosmesa6 and PyOpenGL>=3.1.10. Set PYOPENGL_PLATFORM before importing "
                     "torchevtrack.render."
                 ) from e
-        else:
-            self._offscreen.viewport_width = width
-            self._offscreen.viewport_height = height
-        return self._offscreen
+            self._target = _GLTarget(self._offscreen, self._scene, self._mesh_node)
+        self._offscreen._platform.make_current()
+        self._target.reserve(width, height)
+        return self._target
 
     def close(self) -> None:
         """Free the OpenGL context (the renderer can no longer be used)."""
         if self._offscreen is not None:
+            self._offscreen._platform.make_current()
+            self._target.delete()
             _release(self._offscreen)
             self._offscreen = None
+            self._target = None
         self._scene = None
 
     def __del__(self) -> None:
@@ -227,21 +236,113 @@ class Renderer:
         cam = self.camera if roi is None else self.camera.crop(*_check_roi(roi))
         self._cam.fx, self._cam.fy = cam.fx, cam.fy
         self._cam.cx, self._cam.cy = cam.cx + 0.5, cam.cy + 0.5
-        ctx = self._context(cam.width, cam.height)
-        # back faces are culled (pyrender always culls in depth-only mode; culling in both keeps
-        # depth-only and shaded silhouettes identical): meshes need outward-facing winding
-        flags = pyrender.RenderFlags.FLAT | pyrender.RenderFlags.RGBA if shaded else pyrender.RenderFlags.DEPTH_ONLY
+        P = self._cam.get_projection_matrix(cam.width, cam.height)
+        target = self._gl(cam.width, cam.height)
         depth = np.empty((len(T), cam.height, cam.width), dtype=np.float32)
         gray = np.empty_like(depth) if shaded else None
-        with _single_sampled():
-            for b in range(len(T)):
-                self._scene.set_pose(self._mesh_node, T[b])
-                if shaded:
-                    rgba, depth[b] = ctx.render(self._scene, flags=flags)
-                    gray[b] = _shade(rgba, depth[b] > 0, T[b, :3, :3], self.background)
-                else:
-                    depth[b] = ctx.render(self._scene, flags=flags)
+        for b in range(len(T)):
+            rgba = target.draw(T[b], P, cam.width, cam.height, shaded, depth[b])
+            if shaded:
+                gray[b] = _shade(rgba, depth[b] > 0, T[b, :3, :3], self.background)
         return Render(depth=torch.from_numpy(depth), gray=None if gray is None else torch.from_numpy(gray), camera=cam)
+
+
+class _GLTarget:
+    """Direct GL drawing of one pyrender mesh with pyrender's own shader programs and vertex buffers.
+
+    pyrender compiles the programs and uploads the mesh in a first (tiny) render of each kind; after that a
+    render only sets the model and projection matrices, draws and reads back, as pyrender's forward pass
+    does (same programs, uniforms, GL state and depth conversion, so the same pixels), but without its
+    per-call scene traversal and uniform look-ups, and into one framebuffer that only grows: pyrender
+    recreates its framebuffers whenever the viewport size changes, which the tracker's windows do at almost
+    every update. Back faces are culled (pyrender always culls in depth-only mode; culling in both keeps
+    depth-only and shaded silhouettes identical): meshes need outward-facing winding.
+    """
+
+    _FLAGS = {True: pyrender.RenderFlags.FLAT | pyrender.RenderFlags.RGBA, False: pyrender.RenderFlags.DEPTH_ONLY}
+
+    def __init__(self, offscreen: pyrender.OffscreenRenderer, scene: pyrender.Scene, node: pyrender.Node) -> None:
+        renderer = offscreen._renderer
+        self._primitive = node.mesh.primitives[0]
+        camera_node = scene.main_camera_node
+        self._znear, self._zfar = camera_node.camera.znear, camera_node.camera.zfar
+        view = np.linalg.inv(scene.get_pose(camera_node))
+        self._programs = {}
+        for shaded, flags in self._FLAGS.items():
+            with _single_sampled():
+                offscreen.render(scene, flags=flags)  # uploads the mesh, compiles the program
+            offscreen._platform.make_current()
+            program = renderer._get_primitive_program(self._primitive, flags, pyrender.constants.ProgramFlags.USE_MATERIAL)
+            program._bind()
+            program.set_uniform("V", view)
+            if shaded:
+                material = self._primitive.material
+                program.set_uniform("material.emissive_factor", material.emissiveFactor)
+                program.set_uniform("material.base_color_factor", material.baseColorFactor)
+                program.set_uniform("material.metallic_factor", material.metallicFactor)
+                program.set_uniform("material.roughness_factor", material.roughnessFactor)
+            self._programs[shaded] = (program._program_id, GL.glGetUniformLocation(program._program_id, "M"),
+                                      GL.glGetUniformLocation(program._program_id, "P"))
+        GL.glUseProgram(0)
+        self._framebuffer = GL.glGenFramebuffers(1)
+        self._buffers = GL.glGenRenderbuffers(2)
+        self._size = (0, 0)
+
+    def reserve(self, width: int, height: int) -> None:
+        """Grow the framebuffer to hold ``width x height`` (never shrinks)."""
+        if width <= self._size[0] and height <= self._size[1]:
+            return
+        self._size = (max(width, self._size[0]), max(height, self._size[1]))
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._framebuffer)
+        for buffer, storage, attachment in zip(self._buffers, (GL.GL_RGBA, GL.GL_DEPTH_COMPONENT24),
+                                               (GL.GL_COLOR_ATTACHMENT0, GL.GL_DEPTH_ATTACHMENT)):
+            GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, buffer)
+            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, storage, *self._size)
+            GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, attachment, GL.GL_RENDERBUFFER, buffer)
+
+    def draw(self, model: np.ndarray, projection: np.ndarray, width: int, height: int, shaded: bool,
+             depth: np.ndarray) -> np.ndarray | None:
+        """Render at ``model`` (4x4 object-to-camera), write the metric depth into ``depth`` ``(height, width)``
+        float32 and return the RGBA image ``(height, width, 4)`` uint8 when ``shaded``."""
+        program, loc_m, loc_p = self._programs[shaded]
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._framebuffer)
+        GL.glViewport(0, 0, width, height)
+        GL.glEnable(GL.GL_SCISSOR_TEST)  # clear only the viewport
+        GL.glScissor(0, 0, width, height)
+        GL.glEnable(GL.GL_DEPTH_TEST)
+        GL.glDepthMask(GL.GL_TRUE)
+        GL.glDepthFunc(GL.GL_LESS)
+        GL.glDepthRange(0.0, 1.0)
+        GL.glClearColor(0.0, 0.0, 0.0, 0.0)
+        GL.glClear(GL.GL_COLOR_BUFFER_BIT | GL.GL_DEPTH_BUFFER_BIT)
+        GL.glUseProgram(program)
+        GL.glUniformMatrix4fv(loc_m, 1, GL.GL_TRUE, np.ascontiguousarray(model, dtype=np.float32))
+        GL.glUniformMatrix4fv(loc_p, 1, GL.GL_TRUE, np.ascontiguousarray(projection, dtype=np.float32))
+        GL.glEnable(GL.GL_CULL_FACE)
+        GL.glCullFace(GL.GL_BACK)
+        GL.glEnable(GL.GL_BLEND)
+        GL.glBlendFunc(GL.GL_ONE, GL.GL_ZERO)
+        GL.glPolygonMode(GL.GL_FRONT_AND_BACK, GL.GL_FILL)
+        primitive = self._primitive
+        primitive._bind()
+        GL.glDrawElementsInstanced(primitive.mode, primitive.indices.size, GL.GL_UNSIGNED_INT, ctypes.c_void_p(0), 1)
+        primitive._unbind()
+        GL.glUseProgram(0)
+        GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._framebuffer)
+        buffer = GL.glReadPixels(0, 0, width, height, GL.GL_DEPTH_COMPONENT, GL.GL_FLOAT)
+        # pyrender's conversion of window depth to metres (same float32 arithmetic), rows flipped to top-down
+        window = np.frombuffer(buffer, dtype=np.float32).reshape(height, width)[::-1]
+        n, f = self._znear, self._zfar
+        np.divide(2.0 * n * f, f + n - (2.0 * window - 1.0) * (f - n), out=depth)
+        depth[window == 1.0] = 0.0
+        if not shaded:
+            return None
+        buffer = GL.glReadPixels(0, 0, width, height, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE)
+        return np.frombuffer(buffer, dtype=np.uint8).reshape(height, width, 4)[::-1]
+
+    def delete(self) -> None:
+        GL.glDeleteFramebuffers(1, [self._framebuffer])
+        GL.glDeleteRenderbuffers(2, list(self._buffers))
 
 
 def _release(offscreen: pyrender.OffscreenRenderer) -> None:
