@@ -161,11 +161,34 @@ def _pad_sae(sae: torch.Tensor, pad: int) -> torch.Tensor:
     return out
 
 
+def _event_boxes(sae_pad: torch.Tensor, pad: int, xi, yi, ch) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """The padded SAE cropped around the events of each (batch, channel) plane, one common box size
+    ``(B * C, hb, wb)``, and the events' flat index into it. Every lookup ``p0 + k d`` (``|k d| <= pad``) of
+    an event stays inside its plane's box, so the lookups touch a few cache-sized arrays instead of
+    full-sensor ones."""
+    B, C, Hp, Wp = sae_pad.shape
+    planes = B * C
+    lo_y = torch.full((planes,), Hp, dtype=torch.long).scatter_reduce_(0, ch, yi, "amin")
+    hi_y = torch.full((planes,), -1, dtype=torch.long).scatter_reduce_(0, ch, yi, "amax")
+    lo_x = torch.full((planes,), Wp, dtype=torch.long).scatter_reduce_(0, ch, xi, "amin")
+    hi_x = torch.full((planes,), -1, dtype=torch.long).scatter_reduce_(0, ch, xi, "amax")
+    used = hi_y >= 0
+    hb = int(torch.where(used, hi_y - lo_y, 0).max()) + 1 + 2 * pad
+    wb = int(torch.where(used, hi_x - lo_x, 0).max()) + 1 + 2 * pad
+    y0 = torch.where(used, lo_y, 0).clamp_(max=Hp - hb)  # padded coordinates: event rows lo_y + pad +- pad
+    x0 = torch.where(used, lo_x, 0).clamp_(max=Wp - wb)
+    start = (torch.arange(planes) * Hp + y0) * Wp + x0
+    box = sae_pad.view(-1)[start[:, None, None] + torch.arange(hb)[:, None] * Wp + torch.arange(wb)]
+    pe = (ch * hb + yi + pad - y0.index_select(0, ch)) * wb + (xi + pad - x0.index_select(0, ch))
+    return box, pe, wb
+
+
 def _triplets_padded(sae_pad: torch.Tensor, pad: int, xi, yi, ch, t, D: int, dt_max_us: int, tol: float):
     n = xi.numel()
-    _, _, Hp, Wp = sae_pad.shape
-    flat = sae_pad.view(-1)
-    pe = (ch * Hp + yi + pad) * Wp + (xi + pad)
+    if n == 0:
+        return torch.zeros(0, dtype=torch.long), torch.zeros(0, 2)
+    box, pe, Wp = _event_boxes(sae_pad, pad, xi, yi, ch)
+    flat = box.view(-1)
     order = torch.arange(n)
     first = torch.full((flat.numel(),), n, dtype=torch.long).scatter_reduce_(0, pe, order, "amin")
     last = torch.full((flat.numel(),), -1, dtype=torch.long).scatter_reduce_(0, pe, order, "amax")
