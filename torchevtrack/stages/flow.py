@@ -311,10 +311,18 @@ def register_blocks(block_id: torch.Tensor, event: torch.Tensor, flow: torch.Ten
     # Blocks are evaluated in groups of similar size (up to 16, 32, 64, ... samples), each padded only to its
     # largest block. Every sum below runs over the padded dimension 1, and such sums do not depend on the
     # amount of zero padding, so a block's result does not depend on the other blocks.
-    size = torch.bincount(row)
-    group = [max((n - 1) >> 4, 0).bit_length() for n in size.tolist()]
-    group_of = torch.tensor(group)
-    for k in sorted(set(group)):
+    # Groups are further cut into chunks whose (V, K, K) distance tables stay around 2 MB (cache-sized).
+    group, filled = [], {}  # per size class: (chunk index, blocks in that chunk)
+    for n in torch.bincount(row).tolist():
+        k = max((n - 1) >> 4, 0).bit_length()
+        chunk, used = filled.get(k, (0, 0))
+        if used * (16 << k) ** 2 * 8 >= 1 << 21:
+            chunk, used = chunk + 1, 0
+        filled[k] = (chunk, used + 1)
+        group.append((k, chunk))
+    index = {key: j for j, key in enumerate(sorted(set(group)))}
+    group_of = torch.tensor([index[key] for key in group])
+    for k in range(len(index)):
         members = (group_of == k).nonzero().squeeze(1)
         local = torch.full((blocks.numel(),), -1, dtype=torch.long)
         local[members] = torch.arange(members.numel())
