@@ -92,3 +92,26 @@ def test_invalid_updates_keep_the_last_pose():
     torch.testing.assert_close(pose[0], pose0)
     assert set(tracker.stage_ms) == {"eros", "flow", "velocity", "render", "correction", "ukf"}
     tracker.close()
+
+
+def test_render_reuse_skips_renders_only_within_the_threshold(seq):
+    def tracked(reuse_px):
+        tracker = EventPoseTracker(CAM, seq.mesh, TrackerConfig().replace(render={"reuse_px": reuse_px}))
+        renderer = tracker._renderers[0]
+        calls = []
+        render = renderer.render
+        renderer.render = lambda *a, **k: calls.append(k["shaded"]) or render(*a, **k)
+        times, poses = tracker.track(seq.events, seq.gt_poses[0], t_start_us=int(seq.gt_t_us[0]),
+                                     t_end_us=int(seq.gt_t_us[-1]), progress=False)
+        tracker.close()
+        return evaluate(times[0], poses[0], seq.gt_t_us, seq.gt_poses), calls[1:]  # calls[0]: depth at reset
+
+    fresh, fresh_calls = tracked(0.0)
+    assert len(fresh_calls) == int(DURATION_S * 500) and all(fresh_calls)
+    # 0.6 px: the box moves about that much per update here, so some updates reuse the last render, not all.
+    reused, reused_calls = tracked(0.6)
+    assert 0 < len(reused_calls) < len(fresh_calls), len(reused_calls)
+    assert reused["rmse_t_cm"] < 1.5 and reused["rmse_r_deg"] < 5.0 and not reused["failed"], reused
+    # an unbounded threshold keeps the first render for the whole clip
+    frozen, frozen_calls = tracked(1e9)
+    assert len(frozen_calls) == 1

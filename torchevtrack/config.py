@@ -88,6 +88,7 @@ class UKFConfig:
 class RenderConfig:
     decimate: int | None = None  # faces of the hot-path mesh (None = full mesh)
     margin_px: int = 24  # region rendered around the projected object
+    reuse_px: float = 0.0  # > 0: keep the last render (and its template) while no object point moved this many pixels
 
 
 @dataclass

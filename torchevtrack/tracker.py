@@ -52,7 +52,7 @@ from torchevtrack.stages import batch_mask
 from torchevtrack.stages.eros import EROS, observation
 from torchevtrack.stages.flow import TripletFlow
 from torchevtrack.stages.propagate import propagate, twist_between
-from torchevtrack.stages.template import TemplateCorrector, render_window
+from torchevtrack.stages.template import TemplateCorrector, TemplateModel, render_window
 from torchevtrack.stages.ukf import PoseUKF
 from torchevtrack.stages.velocity import VelocityKF, centre_jacobian
 
@@ -194,6 +194,7 @@ class EventPoseTracker(nn.Module):
         self.quality = Quality(torch.full((B,), float("nan")), torch.zeros(B, dtype=torch.long),
                                torch.zeros(B, dtype=torch.long), torch.zeros(B, dtype=torch.bool))
         self.stage_ms: dict[str, float] = {}
+        self._model: TemplateModel | None = None  # template of the last render (reused while render.reuse_px allows)
         # The object centre must stay farther than its bounding radius (plus the near plane).
         self.register_buffer("_min_depth", torch.tensor([self._radius[i] + 0.01 for i in self._renderer_of],
                                                         dtype=torch.float64), persistent=False)
@@ -247,6 +248,7 @@ class EventPoseTracker(nn.Module):
             self._render(pose, shaded=False)
         else:
             self._render_depth(pose, m)
+        self._model = None  # the template of the last render (see render.reuse_px)
 
     def close(self) -> None:
         """Release the renderers' GL contexts."""
@@ -295,13 +297,18 @@ class EventPoseTracker(nn.Module):
             twist = torch.where(rejected[:, None], torch.zeros_like(twist), twist)
         clock.lap("velocity")
 
-        render, origin = self._render(predicted, shaded=cfg.template.enabled)
+        pose32 = predicted.float()
+        if not cfg.template.enabled:
+            self._render(predicted, shaded=False)
+        elif not self._reusable(pose32):
+            render, origin = self._render(predicted, shaded=True)
+            self._model = self.corrector.template_model(pose32, render.depth, render.gray, origin)
         clock.lap("render")
         n_events = torch.bincount(b, minlength=B) if b is not None else torch.tensor([x.numel()] * B)
         self.events_seen += n_events
         if cfg.template.enabled:
-            corr = self.corrector(predicted.float(), render.depth, render.gray, origin,
-                                  self._observation(origin, render.depth.shape[-2:], self._t_now(t, b)), origin)
+            obs = self._observation(self.origin, self.depth.shape[-2:], self._t_now(t, b))
+            corr = self.corrector.correct_model(self._model, pose32, obs, self.origin)
             # Until the EROS holds enough events, its edges are too sparse to correct against.
             warm = (self.events_seen >= cfg.template.warmup_events)[:, None]
             measured = torch.where(warm, corr.pose.double(), predicted)
@@ -461,6 +468,12 @@ class EventPoseTracker(nn.Module):
             self._render_into(i, poses[i:i + 1], wi, origin[i], depth, None)
         self.depth = depth
         self.origin.copy_(origin)
+
+    def _reusable(self, pose: torch.Tensor) -> bool:
+        """The last render's template serves ``pose``: ``render.reuse_px > 0`` and no object point of that render
+        moves that many pixels, for every batch element (the batch renders together)."""
+        reuse = self.config.render.reuse_px
+        return self._model is not None and reuse > 0 and bool((self._model.shift_px(pose) < reuse).all())
 
     def _t_now(self, t: torch.Tensor, b: torch.Tensor | None) -> torch.Tensor:
         """Latest event time per element in this window (int64 us; the previous one if the window is empty)."""
