@@ -269,6 +269,19 @@ def test_render_window_contains_the_object_and_correct_render_accepts_a_render(s
     assert torch.allclose(a.scores, b.scores, rtol=2e-3) and int(a.index) == 0
 
 
+
+def test_render_window_takes_one_radius_per_pose():
+    poses = torch.tensor([[0.01, -0.02, 0.5, 1.0, 0.0, 0.0, 0.0], [0.1, 0.05, 0.3, 0.0, 1.0, 0.0, 0.0],
+                          [-0.2, 0.0, 0.04, 1.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    radius = torch.tensor([0.05, 0.12, 0.03])  # the last pose is inside its sphere: z clamped to 1.05 r
+    per_pose = tm.render_window(poses, CAM, radius, 24)
+    for i in range(3):
+        assert torch.equal(per_pose[i], tm.render_window(poses[i : i + 1], CAM, float(radius[i]), 24)[0])
+    with pytest.raises(ValueError, match="radius"):
+        tm.render_window(poses, CAM, radius[:2])
+    with pytest.raises(ValueError, match="radius"):
+        tm.render_window(poses, CAM, torch.tensor([0.05, 0.0, 0.03]))
+
 def test_to_canvas_samples_the_box_at_its_scale():
     img = torch.arange(40 * 60, dtype=torch.float64).reshape(1, 40, 60)  # value = 60 v + u: linear
     box = torch.tensor([[30.0, 20.0, 16.0]], dtype=torch.float64)

@@ -406,8 +406,7 @@ class EventPoseTracker(nn.Module):
         """Render windows ``(K, 4)`` ``(u0, v0, w, h)`` of the elements ``index``, clipped to the frame."""
         H, W = self.camera.height, self.camera.width
         radius = torch.tensor([self._radius[self._renderer_of[i]] for i in index])
-        win = torch.stack([render_window(poses[i:i + 1], self.camera, float(r), self.config.render.margin_px)[0]
-                           for i, r in zip(index, radius)])
+        win = render_window(poses[index], self.camera, radius, self.config.render.margin_px)
         w, h = win[:, 2].clamp(max=W), win[:, 3].clamp(max=H)
         return torch.stack((win[:, 0].clamp(min=0).minimum(W - w), win[:, 1].clamp(min=0).minimum(H - h), w, h), -1)
 

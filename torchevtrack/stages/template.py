@@ -167,19 +167,24 @@ class Correction(NamedTuple):
 
 
 # -- regions ----------------------------------------------------------------------------------
-def render_window(pose: torch.Tensor, camera: Camera, radius: float, margin_px: int = 24) -> torch.Tensor:
+def render_window(pose: torch.Tensor, camera: Camera, radius: float | torch.Tensor, margin_px: int = 24) -> torch.Tensor:
     """Window ``(u0, v0, w, h)`` of the frame that contains the object, to render only that region.
 
-    The object is bounded by a sphere of ``radius`` metres around the pose origin; the window is the
-    square around its projection (conservative: half-size ``f r / (z - r)``) plus ``margin_px``.
+    The object is bounded by a sphere of ``radius`` metres around the pose origin (one radius, or ``(B,)``
+    per pose); the window is the square around its projection (conservative: half-size ``f r / (z - r)``)
+    plus ``margin_px``.
 
     Shape: ``(B, 7) -> (B, 4)`` int64.
     """
     pose = _check_poses(pose, "pose")
-    if not radius > 0:
+    if isinstance(radius, torch.Tensor):
+        if radius.shape != pose.shape[:1] or not bool((radius > 0).all()):
+            raise ValueError(f"radius must be positive (metres), one per pose, got {radius}")
+        radius = radius.double()
+    elif not radius > 0:
         raise ValueError(f"radius must be positive (metres), got {radius}")
     t = pose[:, :3].double()
-    z = t[:, 2].clamp_min(radius * 1.05)
+    z = torch.maximum(t[:, 2], torch.as_tensor(radius * 1.05, dtype=torch.float64))
     centre = torch.stack((camera.fx * t[:, 0] / t[:, 2] + camera.cx, camera.fy * t[:, 1] / t[:, 2] + camera.cy), -1)
     half = torch.stack((camera.fx * radius / (z - radius), camera.fy * radius / (z - radius)), -1) + margin_px
     lo = torch.floor(centre - half)
