@@ -298,15 +298,15 @@ class EventPoseTracker(nn.Module):
         clock.lap("velocity")
 
         pose32 = predicted.float()
-        if not cfg.template.enabled:
-            self._render(predicted, shaded=False)
-        elif not self._reusable(pose32):
-            render, origin = self._render(predicted, shaded=True)
-            self._model = self.corrector.template_model(pose32, render.depth, render.gray, origin)
+        reuse = cfg.template.enabled and self._reusable(pose32)
+        if not reuse:
+            render, origin = self._render(predicted, shaded=cfg.template.enabled)
         clock.lap("render")
         n_events = torch.bincount(b, minlength=B) if b is not None else torch.tensor([x.numel()] * B)
         self.events_seen += n_events
         if cfg.template.enabled:
+            if not reuse:
+                self._model = self.corrector.template_model(pose32, render.depth, render.gray, origin)
             obs = self._observation(self.origin, self.depth.shape[-2:], self._t_now(t, b))
             corr = self.corrector.correct_model(self._model, pose32, obs, self.origin)
             # Until the EROS holds enough events, its edges are too sparse to correct against.
