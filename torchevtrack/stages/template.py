@@ -413,13 +413,19 @@ _POLE = math.sqrt(3.0) - 2.0
 _PREFILTER_RADIUS = 8  # |pole| ** 9 < 1e-5: truncation error of the FIR inverse of [1, 4, 1] / 6
 
 
+@functools.lru_cache(maxsize=8)
+def _prefilter_kernel(dtype: torch.dtype) -> torch.Tensor:
+    """FIR taps of the B-spline prefilter (cached constant, never modified in place)."""
+    k = torch.arange(-_PREFILTER_RADIUS, _PREFILTER_RADIUS + 1, dtype=torch.float64)
+    return ((-6 * _POLE / (1 - _POLE**2)) * _POLE ** k.abs()).to(dtype)
+
+
 def _spline_prefilter(x: torch.Tensor) -> torch.Tensor:
     """B-spline coefficients of images (separable FIR inverse of ``[1, 4, 1] / 6``, zero outside).
 
     Shape: ``(B, C, H, W) -> (B, C, H, W)``.
     """
-    k = torch.arange(-_PREFILTER_RADIUS, _PREFILTER_RADIUS + 1, dtype=torch.float64)
-    kern = ((-6 * _POLE / (1 - _POLE**2)) * _POLE ** k.abs()).to(x.dtype)
+    kern = _prefilter_kernel(x.dtype)
     B, C, H, W = x.shape
     y = F.conv2d(x.reshape(B * C, 1, H, W), kern.view(1, 1, 1, -1), padding=(0, _PREFILTER_RADIUS))
     y = F.conv2d(y, kern.view(1, 1, -1, 1), padding=(_PREFILTER_RADIUS, 0))
@@ -615,12 +621,16 @@ def spline_derivatives(template: torch.Tensor) -> torch.Tensor:
 
     Shape: ``(B, N, N) -> (B, 5, N, N)``.
     """
-    c = _spline_prefilter(template[:, None])
-    dt = template.dtype
-    val, d1, d2 = (torch.tensor(k, dtype=dt) for k in (_SPLINE_VALUE, _SPLINE_D1, _SPLINE_D2))
+    return F.conv2d(_spline_prefilter(template[:, None]), _derivative_kernels(template.dtype), padding=1)
+
+
+@functools.lru_cache(maxsize=8)
+def _derivative_kernels(dtype: torch.dtype) -> torch.Tensor:
+    """``(5, 1, 3, 3)`` kernels of :func:`spline_derivatives` (cached constant, never modified in place)."""
+    val, d1, d2 = (torch.tensor(k, dtype=dtype) for k in (_SPLINE_VALUE, _SPLINE_D1, _SPLINE_D2))
     kern = torch.stack((torch.outer(val, d1), torch.outer(d1, val), torch.outer(val, d2), torch.outer(d1, d1),
                         torch.outer(d2, val)))  # [row kernel (v) x column kernel (u)]
-    return F.conv2d(c, kern[:, None], padding=1)
+    return kern[:, None]
 
 
 def canvas_jacobian(depth: torch.Tensor, K: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
