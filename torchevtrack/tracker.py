@@ -276,11 +276,11 @@ class EventPoseTracker(nn.Module):
 
         if cfg.velocity.source == "flow":
             self.velocity.predict()
-            depth = self._depth_at(flow.uv)
-            centre = self.pose[:, :3]
             valid = flow.valid & (flow.flow.norm(dim=-1) < cfg.flow.max_speed)
+            depth = self._depth_at(flow.uv, valid)
+            centre = self.pose[:, :3]
             upd = self.velocity.update(flow.uv, flow.flow, depth, valid, self.dt, centre=centre)
-            twist = torch.einsum("bij,bj->bi", centre_jacobian(centre), self.velocity.x)  # [c_dot, w] -> [v, w]
+            twist = (centre_jacobian(centre) @ self.velocity.x[:, :, None])[..., 0]  # [c_dot, w] -> [v, w]
             n_vectors = (upd.weights > 0).sum(-1)
         elif cfg.velocity.source == "poses":
             twist = twist_between(self.prev_pose, self.pose, self.dt)
@@ -504,8 +504,9 @@ class EventPoseTracker(nn.Module):
             crops.append(crop)
         return observation(torch.stack(crops))
 
-    def _depth_at(self, uv: torch.Tensor) -> torch.Tensor:
-        """Depth ``(B, G)`` at flow pixels ``uv`` ``(B, G, 2)`` from the last render.
+    def _depth_at(self, uv: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        """Depth ``(B, G)`` at the ``valid`` ``(B, G)`` flow pixels ``uv`` ``(B, G, 2)`` from the last render
+        (0 for the others).
 
         Flow lives on edges, where the pixel may fall just off the silhouette, so the depth is the mean
         object depth over a sparse ``(2 r + 1)^2`` neighbourhood (radius ``r = block / 4``, step 2 px).
@@ -515,13 +516,17 @@ class EventPoseTracker(nn.Module):
         r = max(self.config.flow.block // 4, 2)
         off = torch.arange(-r, r + 1, 2)
         dv, du = torch.meshgrid(off, off, indexing="ij")
-        u = uv[..., 0].round().long()[..., None] - self.origin[:, None, None, 0] + du.reshape(-1)
-        v = uv[..., 1].round().long()[..., None] - self.origin[:, None, None, 1] + dv.reshape(-1)
+        bi, gi = valid.nonzero().unbind(1)
+        at, origin = uv[bi, gi], self.origin[bi]
+        u = at[:, 0].round().long()[:, None] - origin[:, :1] + du.reshape(-1)
+        v = at[:, 1].round().long()[:, None] - origin[:, 1:] + dv.reshape(-1)
         inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        idx = (v.clamp(0, h - 1) * w + u.clamp(0, w - 1)).view(B, -1)
-        z = self.depth.view(B, -1).gather(1, idx).view(inside.shape) * inside
+        idx = (bi[:, None] * h + v.clamp(0, h - 1)) * w + u.clamp(0, w - 1)
+        z = self.depth.view(-1)[idx] * inside
         n = (z > 0).sum(-1)
-        return (z.sum(-1) / n.clamp_min(1)).double()
+        out = torch.zeros(valid.shape, dtype=torch.float64)
+        out[bi, gi] = (z.sum(-1) / n.clamp_min(1)).double()
+        return out
 
 
 @dataclass
