@@ -401,6 +401,8 @@ def _box_sum(x: torch.Tensor, radius: int, dim: int) -> torch.Tensor:
 def _fill_depth(depth: torch.Tensor, fallback: torch.Tensor, radius: int) -> torch.Tensor:
     """Background pixels (depth 0) get the mean object depth within ``radius`` or ``fallback`` (B,)."""
     mask = depth > 0
+    if bool(mask.all()):  # nothing to fill (e.g. an already filled depth)
+        return depth
     both = torch.stack((torch.where(mask, depth, 0.0), mask.to(depth.dtype)), 1).double()
     num, den = _box_sum(_box_sum(both, radius, -1), radius, -2).unbind(1)  # float64: exact counts
     local = torch.where(den > 0.5, num / den.clamp_min(1.0), fallback.double()[:, None, None]).to(depth.dtype)
@@ -479,7 +481,17 @@ def warp_canvas(
     """
     B, C, N, _ = images.shape
     P = poses.shape[1]
-    dt = images.dtype
+    uv = _warp_sources(depth, K, base_pose, poses, images.dtype)
+    coef = _spline_prefilter(images)[:, None].expand(B, P, C, N, N).reshape(B * P, C, N, N)
+    return _spline_sample(coef, uv).reshape(B, P, C, N, N)
+
+
+def _warp_sources(depth: torch.Tensor, K: torch.Tensor, base_pose: torch.Tensor, poses: torch.Tensor,
+                  dt: torch.dtype) -> torch.Tensor:
+    """Where each canvas pixel of the images at ``poses`` ``(B, P, 7)`` samples the base canvas (:func:`warp_canvas`):
+    ``(B * P, 2, N, N)`` canvas coordinates ``(u, v)`` in ``dt``."""
+    B, N, _ = depth.shape
+    P = poses.shape[1]
     R0 = quat_to_matrix(base_pose[:, 3:])  # (B, 3, 3)
     R = quat_to_matrix(poses[..., 3:])  # (B, P, 3, 3)
     A = R0[:, None] @ R.transpose(-1, -2)  # X = A X' + b
@@ -490,12 +502,16 @@ def warp_canvas(
     H = (Kc[:, None] @ A @ torch.linalg.inv(Kc)[:, None]).to(dt)  # (B, P, 3, 3)
     e = (Kc[:, None] @ b[..., None]).to(dt)  # (B, P, 3, 1)
     Z = _fill_depth(depth.to(dt), base_pose[:, 2], max(1, N // 16)).reshape(B, 1, 1, N * N)
-    v, u = torch.meshgrid(torch.arange(N, dtype=dt), torch.arange(N, dtype=dt), indexing="ij")
-    q = torch.stack((u.flatten(), v.flatten(), torch.ones(N * N, dtype=dt)))  # (3, N * N)
-    p = Z * (H @ q) + e  # (B, P, 3, N * N)
-    uv = (p[:, :, :2] / p[:, :, 2:].clamp_min(1e-9)).reshape(B * P, 2, N, N)
-    coef = _spline_prefilter(images)[:, None].expand(B, P, C, N, N).reshape(B * P, C, N, N)
-    return _spline_sample(coef, uv).reshape(B, P, C, N, N)
+    p = Z * (H @ _homogeneous_grid(N, dt)) + e  # (B, P, 3, N * N)
+    return (p[:, :, :2] / p[:, :, 2:].clamp_min(1e-9)).reshape(B * P, 2, N, N)
+
+
+@functools.lru_cache(maxsize=8)
+def _homogeneous_grid(N: int, dtype: torch.dtype) -> torch.Tensor:
+    """``(3, N * N)`` homogeneous pixel coordinates ``(u, v, 1)`` of an ``N x N`` canvas, row-major (cached
+    constant, never modified in place)."""
+    v, u = torch.meshgrid(torch.arange(N, dtype=dtype), torch.arange(N, dtype=dtype), indexing="ij")
+    return torch.stack((u.flatten(), v.flatten(), torch.ones(N * N, dtype=dtype)))
 
 
 class CanvasRender(NamedTuple):
@@ -766,9 +782,7 @@ class TemplateModel(NamedTuple):
 
     def at(self, pose: torch.Tensor) -> "TemplateModel":
         """The model centred at ``pose`` ``(B, 7)``: the render's template warped there (:func:`warp_canvas`)."""
-        pose = pose.double()
-        t = warp_canvas(self.render_template[:, None], self.depth, self.K, self.render_pose, pose[:, None])[:, 0, 0]
-        return self._replace(pose=pose, **_score_terms(t, self.depth, self.K, pose))
+        return _model_at(self, pose, _spline_prefilter(self.render_template[:, None]))
 
     def shift_px(self, pose: torch.Tensor) -> torch.Tensor:
         """Largest image motion (frame pixels) of the render's object points from the render's pose to ``pose``.
@@ -783,6 +797,15 @@ class TemplateModel(NamedTuple):
         shift = (f * (moved[..., :2] / moved[..., 2:] - X[..., :2] / X[..., 2:])).norm(dim=-1)
         shift = shift * (self.box[:, 2:].double() / self.depth.shape[-1])  # canvas -> frame pixels
         return torch.where(self.valid, shift, torch.zeros_like(shift)).amax(1)
+
+
+def _model_at(model: TemplateModel, pose: torch.Tensor, coef: torch.Tensor) -> TemplateModel:
+    """:meth:`TemplateModel.at` with the B-spline coefficients ``coef`` ``(B, 1, N, N)`` of its render template
+    (computed once for several moves of one model)."""
+    pose = pose.double()
+    uv = _warp_sources(model.depth, model.K, model.render_pose, pose[:, None], model.render_template.dtype)
+    t = _spline_sample(coef, uv)[:, 0]
+    return model._replace(pose=pose, **_score_terms(t, model.depth, model.K, pose))
 
 
 def _score_terms(template: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, pose: torch.Tensor) -> dict:
@@ -1043,13 +1066,16 @@ def correct_model(
 
     at_centre = torch.equal(model.pose, pose.double())
     dtype = model.depth.dtype  # scores in the render's dtype, as with scoring="warp"
+    coef = []  # B-spline coefficients of the render template, once for all re-centrings
 
     def scorer(centre: torch.Tensor):
         if centre is pose:  # first iteration: the given model, centred at pose or not (reuse)
             quad = model.fit_canvas(obs)
             exact = at_centre
         else:
-            quad, exact = model.at(centre).fit_canvas(obs), True
+            if not coef:
+                coef.append(_spline_prefilter(model.render_template[:, None]))
+            quad, exact = _model_at(model, centre, coef[0]).fit_canvas(obs), True
 
         def score_steps(steps: torch.Tensor) -> torch.Tensor:
             d = steps if exact else pose_delta(quad.pose, apply_steps(centre, steps))
