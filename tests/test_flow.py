@@ -169,6 +169,30 @@ def test_registration_subsamples_whole_events_when_capped():
     assert out[0].tolist() == flows[kept][k].tolist()
 
 
+
+@pytest.mark.parametrize("estimate", ["register", "normal"])
+def test_each_block_registers_as_if_alone(estimate):
+    # 60 blocks of 5..300 samples (size groups of up to 16/32/64/128 samples after the 128 cap, the
+    # largest split into several chunks): every block's result equals registering that block alone.
+    rng = np.random.default_rng(5)
+    block, events, flows = [], [], []
+    for g in range(60):
+        n_ev = int(rng.integers(3, 150))
+        per = rng.integers(1, 4, n_ev)
+        block += [g] * int(per.sum())
+        events += [g * 1000 + e for e, k in enumerate(per) for _ in range(k)]
+        base = rng.normal(0, 300, 2)
+        flows.append(base + rng.normal(0, 30, (int(per.sum()), 2)))
+    block, events, flows = np.array(block), np.array(events), np.concatenate(flows)
+    pixels = rng.random((len(block), 2)) * 20
+    kw = dict(min_samples=5, max_candidates=128, tie_tol=0.02, estimate=estimate, inlier=0.25)
+    out, uv, valid, count = _register(block, events, flows, pixels, 60, **kw)
+    assert valid.all() and int(count.max()) > 128 and int(count.min()) < 16
+    for g in range(60):
+        m = block == g
+        o, u, _, _ = _register(np.zeros(m.sum(), dtype=np.int64), events[m], flows[m], pixels[m], 1, **kw)
+        assert torch.equal(out[g], o[0]) and torch.equal(uv[g], u[0]), g
+
 def test_normal_estimate_recovers_normal_flow_of_an_edge():
     # Candidates of an edge with normal n and speed v: F = v d / (n . d) for offsets with n . d < 0,
     # plus 20 % outlier events; the registration alone is quantised to the offsets' directions.

@@ -53,6 +53,37 @@ def test_exp_tiny_angle_is_stable():
     assert torch.isfinite(q).all() and abs(float(q[0, 0]) - 1.0) < 1e-12
 
 
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_exp_log_mul_equal_their_reference_formulas_bit_for_bit(dtype):
+    """quat_exp / quat_log give kornia's axis-angle conversions' values and quat_mul the textbook
+    expansion's, bit for bit (signed zeros and NaN included), for contiguous and strided inputs."""
+    from kornia.geometry.conversions import axis_angle_to_quaternion, quaternion_to_axis_angle
+
+    def same(a, b):
+        return torch.equal(torch.nan_to_num(a, nan=7.0), torch.nan_to_num(b, nan=7.0)) and bool(
+            (torch.signbit(a) == torch.signbit(b)).all())
+
+    def mul(a, b):
+        aw, ax, ay, az = a.unbind(-1)
+        bw, bx, by, bz = b.unbind(-1)
+        return torch.stack((aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw), -1)
+
+    gen = torch.Generator().manual_seed(1)
+    big = torch.randn(6, 25, 13, generator=gen, dtype=dtype)
+    big[0] = 0.0  # zero rotations, identity quaternions
+    big[1, :, 9] = 0.0  # half turns
+    big[2, :, 3] = float("nan")
+    big[3] *= 1e-4  # tiny angles
+    big[4, :, 10:] = -0.0
+    for phi in (big[..., 3:6], big[..., 3:6].contiguous()):
+        assert same(g.quat_exp(phi), axis_angle_to_quaternion(phi))
+    for q in (big[..., 9:13], big[..., 9:13].contiguous(), g.quat_normalize(big[..., 9:13])):
+        assert same(g.quat_log(q), quaternion_to_axis_angle(g.quat_canonical(q)))
+        assert same(g.quat_mul(q, big[..., 5:9]), mul(q, big[..., 5:9]))
+        assert same(g.quat_mul(q[:1], big[..., 5:9]), mul(q[:1], big[..., 5:9]))  # broadcasting
+
 def test_quat_rotate_matches_matrix():
     q = _rand_quat(10)
     v = torch.randn(10, 3, dtype=torch.float64)
