@@ -194,7 +194,7 @@ def test_triplet_flow_in_chunks_equals_one_pass(per_polarity, estimate, chunk):
         sae = one.sae.clone()
         ev, flow = triplet_samples(sae, x, y, t, p, b)  # one pass, functional
         xi, yi, ch = _prepare(sae, x, y, t, p, b)
-        ev_c, flow_c = chunked._match_chunks(xi, yi, ch, t)
+        ev_c, flow_c = chunked._match(xi, yi, ch, t)
         assert ev.numel() > 100 and torch.equal(ev_c, ev) and torch.equal(flow_c, flow)
         assert torch.equal(chunked.sae, sae_update(sae, x, y, t, p, b))
         chunked.sae_padded.copy_(one.sae_padded)  # undo, then the whole forward in chunks

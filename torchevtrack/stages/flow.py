@@ -469,14 +469,7 @@ class TripletFlow(nn.Module):
         G = self.n_blocks
         xi, yi, ch = _prepare(self.sae, x, y, t, p, b)
         C = self.sae_padded.shape[1]
-        if xi.numel() > self.chunk:
-            ev, flow = self._match_chunks(xi, yi, ch, t)
-        elif xi.numel():
-            ev, flow = _triplets_padded(self.sae_padded, self.pad, xi, yi, ch, t, self.D, self.dt_max_us, self.tol)
-            _, _, Hp, Wp = self.sae_padded.shape
-            self.sae_padded.view(-1).scatter_reduce_(0, (ch * Hp + yi + self.pad) * Wp + xi + self.pad, t, "amax")
-        else:
-            ev, flow = torch.zeros(0, dtype=torch.long), torch.zeros(0, 2)
+        ev, flow = self._match(xi, yi, ch, t)
         bi = torch.div(ch, C, rounding_mode="floor")
         ex, ey, eb = xi[ev], yi[ev], bi[ev]
         gid = eb * G + torch.div(ey, self.block, rounding_mode="floor") * self.gx + torch.div(
@@ -490,14 +483,15 @@ class TripletFlow(nn.Module):
             out, uv = _smooth(out, uv, valid, self.gy, self.gx)
         return FlowField(uv, out, valid, count)
 
-    def _match_chunks(self, xi: torch.Tensor, yi: torch.Tensor, ch: torch.Tensor, t: torch.Tensor):
-        """Triplet samples of a long packet, ``chunk`` events at a time, updating the SAE after each chunk.
+    def _match(self, xi: torch.Tensor, yi: torch.Tensor, ch: torch.Tensor, t: torch.Tensor):
+        """Triplet samples of a packet, at most ``chunk`` events at a time, updating the SAE after each chunk
+        (a usual window is one chunk; an empty one, one empty chunk).
 
         Shape: prepared events ``(N,)``; returns ``event (S,)`` (index into the packet) and ``flow (S, 2)``.
         """
         _, _, Hp, Wp = self.sae_padded.shape
         events, flows = [], []
-        for s in range(0, xi.numel(), self.chunk):
+        for s in range(0, max(xi.numel(), 1), self.chunk):
             c = slice(s, s + self.chunk)
             ev, flow = _triplets_padded(self.sae_padded, self.pad, xi[c], yi[c], ch[c], t[c], self.D, self.dt_max_us,
                                         self.tol)
