@@ -144,15 +144,18 @@ def test_table_marks_failures_with_a_footnote(run):
     assert "† failed: translation error > 7 cm or rotation error > 40 deg for 50 consecutive" in md
 
 
-def test_batched_run_equals_per_sequence_runs(run, bench, tmp_path):
-    res, out = run
+def test_batched_run_equals_per_sequence_runs(bench, tmp_path):
+    # The batching machinery is checked with the argmax rule: its whole steps absorb the float32 rounding
+    # differences (~1e-8 m) between batch compositions, which the Newton rule's sub-step moves carry on.
+    cfg = TrackerConfig().replace(template={"rule": "argmax"})
+    opts = dict(methods=["correction_only"], config=cfg, overlays=False, progress=False)
+    run_benchmark(bench, tmp_path / "batched", duration_s=DURATION_S, **opts)
     # Alone and for the first half only: the same poses as the first half of the batched run.
-    single = run_benchmark(bench, tmp_path, methods=["correction_only"], duration_s=DURATION_S / 2, batch=False,
-                           overlays=False, progress=False)
+    single = run_benchmark(bench, tmp_path / "single", duration_s=DURATION_S / 2, batch=False, **opts)
     assert [r["batch_size"] for r in single["runs"]["correction_only"]] == [1, 1]
     for name in SEQS:
-        t1, p1 = read_tum(tmp_path / "poses" / "correction_only" / f"{name}.txt")
-        t2, p2 = read_tum(out / "poses" / "correction_only" / f"{name}.txt")
+        t1, p1 = read_tum(tmp_path / "single" / "poses" / "correction_only" / f"{name}.txt")
+        t2, p2 = read_tum(tmp_path / "batched" / "poses" / "correction_only" / f"{name}.txt")
         assert t1.numel() == N_UPDATES // 2
         t2, p2 = t2[: t1.numel()], p2[: t1.numel()]
         assert torch.equal(t1, t2)

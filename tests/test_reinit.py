@@ -214,7 +214,8 @@ def test_tracker_reset_of_one_element_restarts_it_and_leaves_the_other_bit_ident
     runs = []
     # One correction round: further rounds re-centre the template model with batched float32 ops whose
     # rounding depends on the other element's data (measured: 1e-8 m apart), which is not what this tests.
-    cfg = TrackerConfig().replace(template={"iterations": 1})
+    # The argmax rule, as the Newton rule carries those rounding differences on into the poses.
+    cfg = TrackerConfig().replace(template={"iterations": 1, "rule": "argmax"})
     for reinit in (True, False):
         tracker = EventPoseTracker(CAM, [seq.mesh, seq.mesh], cfg)
         tracker.reset(torch.stack([seq.gt_poses[0], seq.gt_poses[0]]))
@@ -291,8 +292,12 @@ def test_loss_config_defaults_are_the_detector_defaults():
 
 def test_on_lost_pose_restarts_the_lost_element_only(seq):
     """Element 1 sees its object until 40 ms, then noise until it is declared lost; the on_lost callback
-    (a re-detection) gives its ground-truth pose and from then on it sees the object again."""
-    cfg = TrackerConfig().replace(loss={"enabled": True})
+    (a re-detection) gives its ground-truth pose and from then on it sees the object again.
+
+    Argmax rule: see tests/test_tracker.py::test_batch_elements_are_independent. The paper's observation
+    (no recency weighting): with ``eros.recency_us`` the template score of this slow, sparse sequence
+    dips enough that the detector's default thresholds also flag the tracked element at 148 ms."""
+    cfg = TrackerConfig().replace(loss={"enabled": True}, template={"rule": "argmax"}, eros={"recency_us": 0.0})
     rate = len(seq.events.slice_time(0, CUT_US)) / CUT_US
     noise = _noise(CUT_US, int(seq.gt_t_us[-1]), rate, 0)
     calls = []
@@ -321,13 +326,13 @@ def test_on_lost_pose_restarts_the_lost_element_only(seq):
     assert torch.equal(poses[k1, 1], g.check_pose(interpolate_poses(seq.gt_t_us, seq.gt_poses, torch.tensor([t1]))[0]))
     assert int(tracker.loss.lost_at_us[1]) == t1 and int(tracker.loss.lost_at_us[0]) == -1
     # Element 0: bit for bit what a tracker without a detector gives on the same events.
-    plain = EventPoseTracker(CAM, [seq.mesh, seq.mesh])
+    plain = EventPoseTracker(CAM, [seq.mesh, seq.mesh], cfg.replace(loss={"enabled": False}))
     plain.reset(seq.gt_poses[0])
     for k in range(N):
         assert torch.equal(plain(*_pack([_window(seq.events, k), fed[k]]))[0], poses[k, 0]), k
     plain.close()
     # Element 1 after the restart: a fresh tracker started at the callback's pose.
-    fresh = EventPoseTracker(CAM, seq.mesh)
+    fresh = EventPoseTracker(CAM, seq.mesh, cfg.replace(loss={"enabled": False}))
     fresh.reset(poses[k1, 1])
     for k in range(k1 + 1, N):
         w = fed[k]

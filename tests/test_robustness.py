@@ -232,8 +232,9 @@ def test_object_moving_out_of_view():
 
 
 def test_an_element_out_of_view_does_not_disturb_the_others(seq):
-    """Batch windows share one render size: an off-screen element must not change its neighbour's poses."""
-    cfg = TrackerConfig().replace(**ABLATIONS["no_ukf"])
+    """Batch windows share one render size: an off-screen element must not change its neighbour's poses
+    (argmax rule: see tests/test_tracker.py::test_batch_elements_are_independent)."""
+    cfg = TrackerConfig().replace(**ABLATIONS["no_ukf"]).replace(template={"rule": "argmax"})
     off = torch.tensor([1.0, 0.0, 0.4, 1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
     single = EventPoseTracker(CAM, seq.mesh, cfg)
     single.reset(seq.gt_poses[0])

@@ -36,6 +36,7 @@ class ErosConfig:
     kernel_size: int = 7  # odd window size k
     decay: float = 0.3  # d; the per-event factor is d ** (1 / k)
     max_age_us: int = 30_000  # > 0: the observation drops pixels with no event for this long (0 = the paper)
+    recency_us: float = 2500.0  # > 0: the observation weighs pixels by exp(-age / recency_us) (0 = the paper)
 
 
 @dataclass
@@ -67,7 +68,7 @@ class TemplateConfig:
     margin_px: int = 20
     dp_px: float = 1.0
     dtheta_deg: float = 0.5
-    rule: str = "argmax"  # "argmax" (the paper) or "group" (EDOPT)
+    rule: str = "newton"  # "newton" (all axes, sub-step), "argmax" (the paper) or "group" (EDOPT)
     iterations: int = 3  # correction rounds per update while the score improves (1 = the paper)
     warmup_events: int = 2000  # events an element must have seen since reset before its pose is corrected
 
@@ -118,10 +119,12 @@ class TrackerConfig:
         self.rate_hz = float(self.rate_hz)
         if self.rate_hz <= 0:
             raise ValueError(f"rate_hz must be positive, got {self.rate_hz}")
+        if self.eros.recency_us < 0 or self.eros.max_age_us < 0:
+            raise ValueError("eros.max_age_us and eros.recency_us must be >= 0 (0 = off)")
         if self.velocity.source not in ("flow", "poses", "none"):
             raise ValueError(f"velocity.source must be 'flow', 'poses' or 'none', got {self.velocity.source!r}")
-        if self.template.rule not in ("argmax", "group"):
-            raise ValueError(f"template.rule must be 'argmax' or 'group', got {self.template.rule!r}")
+        if self.template.rule not in ("argmax", "group", "newton"):
+            raise ValueError(f"template.rule must be 'argmax', 'group' or 'newton', got {self.template.rule!r}")
 
     @property
     def period_us(self) -> int:

@@ -8,8 +8,10 @@ sequences and runs, in the paper's order:
    last render (the mesh at the previous pose: no depth sensor);
 3. :func:`~torchevtrack.stages.propagate.propagate` moves the pose with the twist for one period;
 4. the mesh is rendered once, in a window around the propagated pose;
-5. :class:`~torchevtrack.stages.template.TemplateCorrector` scores 13 hypotheses warped from that render
-   against the EROS observation and keeps the best;
+5. :class:`~torchevtrack.stages.template.TemplateCorrector` scores hypotheses warped from that render
+   against the EROS observation (optionally weighted toward its newest events, ``eros.recency_us``)
+   and moves the pose to the best (the paper's argmax of 13, or a Newton step over all six axes:
+   ``template.rule``);
 6. :class:`~torchevtrack.stages.ukf.PoseUKF` smooths the corrected pose into the output;
 7. optionally (``config.loss.enabled``) a :class:`~torchevtrack.loss.LossDetector` judges the update's
    :class:`Quality` and declares elements lost; an ``on_lost`` callback may give them new poses, and
@@ -492,16 +494,23 @@ class EventPoseTracker(nn.Module):
 
         EROS only decays where new events arrive, so edges the object left stay at full strength until
         something else fires there. With ``eros.max_age_us > 0`` pixels whose last event (timestamp
-        surface of the flow stage) is older than that are cleared from the observation.
+        surface of the flow stage) is that old or older are cleared from the observation; with
+        ``eros.recency_us > 0`` every pixel is weighed by ``exp(-age / recency_us)``, which moves the
+        observation's edges toward where the object is now (the correction lags less behind the motion).
         """
         h, w = size
         max_age = self.config.eros.max_age_us
+        tau = self.config.eros.recency_us
         sae = self.flow.sae
         crops = []
         for i, (u0, v0) in enumerate(origin.tolist()):  # slices are views: faster than one batched gather
             crop = self.eros.surface[i, v0:v0 + h, u0:u0 + w]
-            if max_age > 0:
-                crop = crop * (sae[i, :, v0:v0 + h, u0:u0 + w].amax(0) > t_now[i] - max_age)
+            if max_age > 0 or tau > 0:
+                age = t_now[i] - sae[i, :, v0:v0 + h, u0:u0 + w].amax(0)
+                if max_age > 0:
+                    crop = crop * (age < max_age)
+                if tau > 0:
+                    crop = crop * torch.exp(-age.clamp_min(0).float() / tau)
             crops.append(crop)
         return observation(torch.stack(crops))
 

@@ -51,7 +51,12 @@ Pipeline of one correction (all batched, no loop over pixels or hypotheses):
 5. **Update** (:func:`select`): ``"argmax"`` (the paper) applies the best of the 13 (the null wins
    ties). ``"group"`` (EDOPT) takes, in each group ``{tx, ry}, {ty, rx}, {rz}, {tz}``, the best of its
    hypotheses and applies it if it beats the null score; the applied steps are composed in that group
-   order (translations add, rotations ``exp(phi_4) ... exp(phi_1) (x) q``). With ``iterations > 1``
+   order (translations add, rotations ``exp(phi_4) ... exp(phi_1) (x) q``). ``"newton"`` moves all six
+   axes at once by sub-step amounts: the score is fitted by a quadratic in step units from 28 scores
+   around the pose, and the damped Newton step, clipped to one step per axis, is applied if its score
+   beats the null (:func:`newton_step`). The argmax moves one axis by one whole step per round, so an
+   object that turns and shifts at once needs several rounds; Newton follows both, and by fractions of
+   a step. With ``iterations > 1``
    the correction repeats around the new pose while the score of the corrected pose keeps improving,
    re-warping the same render (a first-order warp, accurate for a few pixels of cumulative motion).
 6. **Scores without warping** (``scoring="taylor"``, the default; ``scoring="warp"`` is item 4,
@@ -143,6 +148,7 @@ AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
 NUM_HYPOTHESES = 1 + 2 * len(AXES)
 # EDOPT's groups of axes whose image motions look alike, as axis indices into AXES.
 GROUPS = ((0, 4), (1, 3), (5,), (2,))
+RULES = ("argmax", "group", "newton")
 
 
 class Correction(NamedTuple):
@@ -891,10 +897,43 @@ def select(
     return torch.cat((t, quat_canonical(q)), -1), applied
 
 
+def newton_step(score_steps, unit: torch.Tensor, max_step: float = 1.0, damping: float = 0.5) -> torch.Tensor:
+    """Damped Newton step of a score over the six axes, in units of the hypothesis steps.
+
+    The score is fitted by a quadratic ``s0 + g . u + u^T H u / 2`` in step units ``u`` (``u_a = 1`` is
+    one hypothesis step along ``AXES[a]``) from 28 evaluations (the centre, ``+/- e_a`` and
+    ``e_a + e_b``; exact for the Taylor score model), and the maximiser of the damped model
+    ``u = -(H - lambda I)^-1 g`` is clipped to ``[-max_step, max_step]`` per axis. ``lambda`` exceeds the
+    largest eigenvalue of ``H`` by ``damping`` times the mean curvature magnitude, so flat or convex
+    directions take short steps. All axes move together: coupled axes (``tx`` and ``ry``) share the
+    evidence through ``H`` instead of both taking it.
+
+    Args:
+        score_steps: steps ``(B, K, 6)`` ``[dt (m), phi (rad)]`` -> scores ``(B, K)``.
+        unit: ``(B, 6)`` step magnitudes (m, rad), as the diagonal of :func:`hypothesis_steps`.
+
+    Shape: ``(B, 6) -> (B, 6)`` step ``[dt, phi]`` in metres and radians.
+    """
+    B, n = unit.shape
+    eye = torch.eye(n, dtype=unit.dtype, device=unit.device)
+    iu, ju = torch.triu_indices(n, n, 1)
+    pts = torch.cat((torch.zeros(1, n, dtype=unit.dtype), eye, -eye, eye[iu] + eye[ju]))  # (28, 6)
+    s = score_steps(pts[None] * unit[:, None]).double()
+    s0, sp, sm, sij = s[:, 0], s[:, 1:1 + n], s[:, 1 + n:1 + 2 * n], s[:, 1 + 2 * n:]
+    g = 0.5 * (sp - sm)
+    H = torch.diag_embed(sp + sm - 2 * s0[:, None])
+    off = sij - sp[:, iu] - sp[:, ju] + s0[:, None]
+    H[:, iu, ju] = off
+    H[:, ju, iu] = off
+    lam = torch.linalg.eigvalsh(H)[:, -1].clamp_min(0) + damping * H.diagonal(dim1=1, dim2=2).abs().mean(1) + 1e-12
+    u = torch.linalg.solve(lam[:, None, None] * torch.eye(n, dtype=H.dtype) - H, g[..., None])[..., 0]
+    return u.clamp(-max_step, max_step).to(unit.dtype) * unit
+
+
 # -- the stage --------------------------------------------------------------------------------
 def _check_options(rule, iterations, scoring, warp) -> None:
-    if rule not in ("argmax", "group"):
-        raise ValueError(f"rule must be 'argmax' or 'group', got {rule!r}")
+    if rule not in RULES:
+        raise ValueError(f"rule must be one of {RULES}, got {rule!r}")
     if scoring not in ("taylor", "warp"):
         raise ValueError(f"scoring must be 'taylor' or 'warp', got {scoring!r}")
     if warp not in ("template", "image"):
@@ -936,15 +975,24 @@ def search(
         score_steps, score_poses = scorer(current)
         steps = hypothesis_steps(current, camera, gain, dp_px, dtheta_deg)
         s = score_steps(steps)
-        new_pose, applied = select(current, steps, s, rule)
-        if rule == "argmax":
-            new_score = s.gather(1, s.argmax(1, keepdim=True))[:, 0]
+        if rule == "newton":
+            # The pose moves only if the step's score beats the null; "applied" then flags no hypothesis.
+            delta = newton_step(score_steps, steps[:, 1::2].diagonal(dim1=1, dim2=2))
+            new_score = score_steps(delta[:, None])[:, 0]
+            moves = new_score > s[:, 0]
+            new_pose = apply_steps(current, delta[:, None])[:, 0]
+            applied = torch.zeros_like(s, dtype=torch.bool)
         else:
-            new_score = score_poses(new_pose[:, None])[:, 0]
+            new_pose, applied = select(current, steps, s, rule)
+            moves = applied.any(1)
+            if rule == "argmax":
+                new_score = s.gather(1, s.argmax(1, keepdim=True))[:, 0]
+            else:
+                new_score = score_poses(new_pose[:, None])[:, 0]
         if first is None:
             first = (s, s.argmax(1), applied)
             current_score = s[:, 0]
-        step = active & applied.any(1)
+        step = active & moves
         current = torch.where(step[:, None], new_pose, current)
         current_score = torch.where(step, new_score, current_score)
         moved += step.long()
@@ -988,7 +1036,7 @@ def correct(
         canvas: canvas size in pixels (100..150 in the paper).
         margin_px: margin around the object's bounding box, frame pixels.
         dp_px, dtheta_deg: translation step (image pixels) and rotation step (degrees).
-        rule: ``"argmax"`` (the paper) or ``"group"`` (EDOPT).
+        rule: ``"argmax"`` (the paper), ``"group"`` (EDOPT) or ``"newton"`` (all axes, sub-step; item 5).
         iterations: maximum corrections per call; repeats while the score keeps improving.
         edge_clip: Sobel magnitude at which edges saturate (:func:`edge_map`).
         silhouette: add the mask's edges to the grey edges.
