@@ -116,6 +116,7 @@ __all__ = [
     "AXES",
     "GROUPS",
     "NUM_HYPOTHESES",
+    "RULES",
     "Correction",
     "render_window",
     "canvas_box",
@@ -138,6 +139,7 @@ __all__ = [
     "TemplateModel",
     "template_model",
     "select",
+    "newton_step",
     "search",
     "correct",
     "correct_model",
@@ -160,7 +162,8 @@ class Correction(NamedTuple):
         scores: ``(B, 13)`` scores of the hypotheses around the input pose (first iteration).
         index: ``(B,)`` int64, best of those 13 (0 = null).
         applied: ``(B, 13)`` bool, hypotheses applied in the first iteration (one-hot or none for
-            ``"argmax"``; up to one per group for ``"group"``).
+            ``"argmax"``; up to one per group for ``"group"``; none for ``"newton"``, whose step is
+            not one of them: ``iterations`` tells whether it moved).
         iterations: ``(B,)`` int64, number of iterations that moved the pose.
     """
 
@@ -915,9 +918,9 @@ def newton_step(score_steps, unit: torch.Tensor, max_step: float = 1.0, damping:
     Shape: ``(B, 6) -> (B, 6)`` step ``[dt, phi]`` in metres and radians.
     """
     B, n = unit.shape
-    eye = torch.eye(n, dtype=unit.dtype, device=unit.device)
+    eye = torch.eye(n, dtype=torch.float64, device=unit.device)
     iu, ju = torch.triu_indices(n, n, 1)
-    pts = torch.cat((torch.zeros(1, n, dtype=unit.dtype), eye, -eye, eye[iu] + eye[ju]))  # (28, 6)
+    pts = torch.cat((torch.zeros_like(eye[:1]), eye, -eye, eye[iu] + eye[ju])).to(unit.dtype)  # (28, 6)
     s = score_steps(pts[None] * unit[:, None]).double()
     s0, sp, sm, sij = s[:, 0], s[:, 1:1 + n], s[:, 1 + n:1 + 2 * n], s[:, 1 + 2 * n:]
     g = 0.5 * (sp - sm)
@@ -926,7 +929,7 @@ def newton_step(score_steps, unit: torch.Tensor, max_step: float = 1.0, damping:
     H[:, iu, ju] = off
     H[:, ju, iu] = off
     lam = torch.linalg.eigvalsh(H)[:, -1].clamp_min(0) + damping * H.diagonal(dim1=1, dim2=2).abs().mean(1) + 1e-12
-    u = torch.linalg.solve(lam[:, None, None] * torch.eye(n, dtype=H.dtype) - H, g[..., None])[..., 0]
+    u = torch.linalg.solve(lam[:, None, None] * eye - H, g[..., None])[..., 0]
     return u.clamp(-max_step, max_step).to(unit.dtype) * unit
 
 
