@@ -69,7 +69,7 @@ class TemplateConfig:
     dp_px: float = 1.0
     dtheta_deg: float = 0.5
     rule: str = "newton"  # "newton" (all axes, sub-step), "argmax" (the paper) or "group" (EDOPT)
-    iterations: int = 3  # correction rounds per update while the score improves (1 = the paper)
+    iterations: int = 5  # correction rounds per update while the score improves (1 = the paper)
     warmup_events: int = 2000  # events an element must have seen since reset before its pose is corrected
 
 
