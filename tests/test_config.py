@@ -38,3 +38,9 @@ def test_ablations_change_only_their_switches():
     assert not base.replace(**ABLATIONS["velocity_only"]).template.enabled
     assert base.replace(**ABLATIONS["correction_only"]).velocity.source == "none"
     assert base.replace(**ABLATIONS["edopt_vel"]).velocity.source == "poses"
+
+
+def test_unknown_correction_rule_is_an_error():
+    with pytest.raises(ValueError, match="template.rule must be one of"):
+        TrackerConfig.from_dict({"template": {"rule": "best"}})
+    assert TrackerConfig.from_dict({"template": {"rule": "argmax"}}).template.rule == "argmax"

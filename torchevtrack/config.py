@@ -18,6 +18,8 @@ from pathlib import Path
 
 import yaml
 
+from torchevtrack.stages.template import RULES
+
 __all__ = [
     "ErosConfig",
     "FlowConfig",
@@ -123,8 +125,8 @@ class TrackerConfig:
             raise ValueError("eros.max_age_us and eros.recency_us must be >= 0 (0 = off)")
         if self.velocity.source not in ("flow", "poses", "none"):
             raise ValueError(f"velocity.source must be 'flow', 'poses' or 'none', got {self.velocity.source!r}")
-        if self.template.rule not in ("argmax", "group", "newton"):
-            raise ValueError(f"template.rule must be 'argmax', 'group' or 'newton', got {self.template.rule!r}")
+        if self.template.rule not in RULES:
+            raise ValueError(f"template.rule must be one of {RULES}, got {self.template.rule!r}")
 
     @property
     def period_us(self) -> int:
