@@ -71,7 +71,7 @@ def test_module_state_b_none_and_packet_split():
     ref = eros_oracle(np.zeros((1, H, W)), x, y, np.zeros_like(x), 7, 0.3)
     m = EROS(H, W, kernel_size=7, decay=0.3)
     tx, ty = torch.from_numpy(x), torch.from_numpy(y)
-    for i in range(0, 500, 37):  # split into uneven packets: the closed form must compose
+    for i in range(0, 500, 37):  # split into uneven packets: the state must carry over
         out = m(tx[i:i + 37], ty[i:i + 37])
     assert out is m.surface
     np.testing.assert_allclose(m.surface.numpy(), ref, atol=1e-6, rtol=0)

@@ -10,12 +10,10 @@ Triplets. For an event ``e0 = (p0, t0)`` and an offset ``d = (dx, dy)``, ``|dx|,
 -2 d / (dt01 + dt12)`` pixel/s (an edge moving along +x at ``v`` px/s gives ``(+v, 0)``).
 
 Which SAE an event sees (exact, causal): the SAE as it was before the packet, updated with every
-*strictly earlier* event of the packet (packed order, same batch element, same polarity channel) -
-what a per-event loop that looks up, then writes ``SAE[p0] = t0``, sees. It is computed without a loop:
-for a looked-up pixel ``q`` with first / last packet events ``F(q)`` / ``L(q)``, the seen time is the
-old SAE if ``F(q) >= e``, the SAE after the packet if ``L(q) < e``, and otherwise (rare) the time of
-the last packet event at ``q`` before ``e``, found by ``searchsorted`` on the packet sorted by
-``(pixel, index)``. Pixels outside the image never fired.
+*strictly earlier* event of the packet (packed order, same batch element, same polarity channel). The
+matching is that per-event loop itself, compiled (numba): each event looks up its ``2 K`` pixels,
+keeps its triplets, then writes ``SAE[p0] = max(SAE[p0], t0)``. Pixels outside the image never fired
+(the SAE is stored padded with :data:`NEVER`).
 
 Registration. The image is cut into ``block x block`` pixel RoIs (the last row / column may be
 partial). Each sample belongs to the block of its event pixel ``p0``. A block with at least
@@ -42,12 +40,11 @@ Events are packed as 1-D tensors ``x``, ``y`` (pixel column / row), ``t`` (int64
 and ``b`` (batch index, or ``None`` for all-zero); within each batch element the packed order is time
 order.
 
-Memory: the triplet search holds about 3 kB per event. :class:`TripletFlow` matches a packet longer
-than ``chunk`` events (a burst) chunk by chunk, each chunk against the SAE updated with the earlier
-chunks, then registers all samples together. Since every event sees exactly the strictly earlier
-events, the samples, the SAE and the flow field are those of one pass, bit for bit (for time-ordered
-elements, where the last event at a pixel is also its latest); the samples themselves are few (about
-0.5 per event on noise bursts).
+Memory: the matching needs no temporaries beyond its output (12 bytes per possible sample, ``K`` per
+event). :class:`TripletFlow` matches a packet longer than ``chunk`` events (a burst) chunk by chunk, so
+that buffer stays bounded, then registers all samples together; the samples, the SAE and the flow
+field are those of one pass, bit for bit (the samples themselves are few: about 0.5 per event on noise
+bursts).
 """
 
 from __future__ import annotations
@@ -55,6 +52,8 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import numba
+import numpy as np
 import torch
 import torch.nn.functional as Fnn
 from torch import nn
@@ -142,18 +141,6 @@ def sae_update(sae, x, y, t, p, b=None) -> torch.Tensor:
     return sae_update_(sae.clone(), x, y, t, p, b)
 
 
-def _seen_times(sae_pad: torch.Tensor, q: torch.Tensor, e: torch.Tensor, n: int, t: torch.Tensor,
-                first: torch.Tensor, last: torch.Tensor, keys: torch.Tensor, t_sorted: torch.Tensor) -> torch.Tensor:
-    """SAE time at padded flat pixel ``q`` as seen by packet event ``e`` (see the module docstring)."""
-    f, l_ = first.index_select(0, q), last.index_select(0, q)
-    out = torch.where(f >= e, sae_pad.index_select(0, q), t.index_select(0, l_.clamp(min=0)))
-    partial = ((f < e) & (l_ >= e)).nonzero().squeeze(1)
-    if partial.numel():
-        pos = torch.searchsorted(keys, q.index_select(0, partial).long() * n + e.index_select(0, partial)) - 1
-        out[partial] = t_sorted.index_select(0, pos)
-    return out
-
-
 def _pad_sae(sae: torch.Tensor, pad: int) -> torch.Tensor:
     B, C, H, W = sae.shape
     out = torch.full((B, C, H + 2 * pad, W + 2 * pad), NEVER, dtype=torch.int64)
@@ -161,62 +148,42 @@ def _pad_sae(sae: torch.Tensor, pad: int) -> torch.Tensor:
     return out
 
 
-def _event_boxes(sae_pad: torch.Tensor, pad: int, xi, yi, ch) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """The padded SAE cropped around the events of each (batch, channel) plane, one common box size
-    ``(B * C, hb, wb)``, and the events' flat index into it. Every lookup ``p0 + k d`` (``|k d| <= pad``) of
-    an event stays inside its plane's box, so the lookups touch a few cache-sized arrays instead of
-    full-sensor ones."""
-    B, C, Hp, Wp = sae_pad.shape
-    planes = B * C
-    lo_y = torch.full((planes,), Hp, dtype=torch.long).scatter_reduce_(0, ch, yi, "amin")
-    hi_y = torch.full((planes,), -1, dtype=torch.long).scatter_reduce_(0, ch, yi, "amax")
-    lo_x = torch.full((planes,), Wp, dtype=torch.long).scatter_reduce_(0, ch, xi, "amin")
-    hi_x = torch.full((planes,), -1, dtype=torch.long).scatter_reduce_(0, ch, xi, "amax")
-    used = hi_y >= 0
-    hb = int(torch.where(used, hi_y - lo_y, 0).max()) + 1 + 2 * pad
-    wb = int(torch.where(used, hi_x - lo_x, 0).max()) + 1 + 2 * pad
-    y0 = torch.where(used, lo_y, 0).clamp_(max=Hp - hb)  # padded coordinates: event rows lo_y + pad +- pad
-    x0 = torch.where(used, lo_x, 0).clamp_(max=Wp - wb)
-    start = (torch.arange(planes) * Hp + y0) * Wp + x0
-    box = sae_pad.view(-1)[start[:, None, None] + torch.arange(hb)[:, None] * Wp + torch.arange(wb)]
-    pe = (ch * hb + yi + pad - y0.index_select(0, ch)) * wb + (xi + pad - x0.index_select(0, ch))
-    return box, pe, wb
-
-
 def _triplets_padded(sae_pad: torch.Tensor, pad: int, xi, yi, ch, t, D: int, dt_max_us: int, tol: float):
+    """Triplet samples of prepared events against the padded SAE ``(B, C, Hp, Wp)``, which the events update
+    in place as they go (each event looks up, then writes: the module docstring's "strictly earlier")."""
     n = xi.numel()
-    if n == 0:
-        return torch.zeros(0, dtype=torch.long), torch.zeros(0, 2)
-    box, pe, Wp = _event_boxes(sae_pad, pad, xi, yi, ch)
-    flat = box.view(-1)
-    # Pixel and event indices of the lookups in int32 (box and packet sizes are far below 2^31): half the
-    # memory traffic of int64 for the ~25 n lookups.
-    order = torch.arange(n, dtype=torch.int32)
-    first = torch.full((flat.numel(),), n, dtype=torch.int32).scatter_reduce_(0, pe, order, "amin")
-    last = torch.full((flat.numel(),), -1, dtype=torch.int32).scatter_reduce_(0, pe, order, "amax")
-    keys, perm = torch.sort(pe * n + order)
-    t_sorted = t.index_select(0, perm)
     dirs = _directions(D)
-    K = dirs.shape[0]
-    step = (dirs[:, 1] * Wp + dirs[:, 0]).int()  # (K,) flat offset of d
-    # Stage 1: p1 for every (event, direction); keep pairs with 0 < dt01 < dt_max.
-    q1 = (pe.int()[:, None] + step).view(-1)
-    e1 = order[:, None].expand(n, K).reshape(-1)
-    t1 = _seen_times(flat, q1, e1, n, t, first, last, keys, t_sorted)
-    dt01 = (t[:, None] - t1.view(n, K)).view(-1)
-    keep = ((dt01 > 0) & (dt01 < dt_max_us)).nonzero().squeeze(1)
-    # Stage 2: p2 = p0 + 2d for the survivors.
-    k = keep % K
-    ev = torch.div(keep, K, rounding_mode="floor")
-    q2 = q1.index_select(0, keep) + step.index_select(0, k)
-    t1k = t1.index_select(0, keep)
-    t2 = _seen_times(flat, q2, ev.int(), n, t, first, last, keys, t_sorted)
-    dt01 = dt01.index_select(0, keep)
-    dt12 = t1k - t2
-    ok = ((dt12 > 0) & ((1.0 - dt12.double() / dt01.double()).abs() < tol)).nonzero().squeeze(1)
-    span = (dt01.index_select(0, ok) + dt12.index_select(0, ok)).double() * 1e-6  # t0 - t2, seconds
-    flow = (-2.0 * dirs.index_select(0, k.index_select(0, ok)).double() / span[:, None]).float()
-    return ev.index_select(0, ok), flow
+    B, C, Hp, Wp = sae_pad.shape
+    event = np.empty(n * dirs.shape[0], dtype=np.int64)
+    flow = np.empty((n * dirs.shape[0], 2), dtype=np.float32)
+    s = _triplet_kernel(sae_pad.view(B * C, Hp, Wp).numpy(), xi.numpy(), yi.numpy(), ch.numpy(), t.numpy(),
+                        dirs.numpy(), pad, dt_max_us, tol, event, flow)
+    return torch.from_numpy(event[:s]), torch.from_numpy(flow[:s])
+
+
+@numba.njit(cache=True, nogil=True)
+def _triplet_kernel(sae, x, y, ch, t, dirs, pad, dt_max_us, tol, event, flow):
+    """Per event: look up ``p0 + d`` and ``p0 + 2 d`` for every direction ``d``, keep the triplets that pass, then
+    write the event into the SAE. Returns the number of samples written to ``event``, ``flow``."""
+    s = 0
+    for i in range(x.shape[0]):
+        c, u, v, t0 = ch[i], x[i] + pad, y[i] + pad, t[i]
+        for k in range(dirs.shape[0]):
+            dx, dy = dirs[k, 0], dirs[k, 1]
+            t1 = sae[c, v + dy, u + dx]
+            dt01 = t0 - t1
+            if dt01 <= 0 or dt01 >= dt_max_us:
+                continue
+            dt12 = t1 - sae[c, v + 2 * dy, u + 2 * dx]
+            if dt12 <= 0 or abs(1.0 - dt12 / dt01) >= tol:
+                continue
+            span = (dt01 + dt12) * 1e-6  # t0 - t2, seconds
+            event[s] = i
+            flow[s, 0] = -2.0 * dx / span
+            flow[s, 1] = -2.0 * dy / span
+            s += 1
+        sae[c, v, u] = max(sae[c, v, u], t0)
+    return s
 
 
 def _check_flow_params(D, dt_max_us, tol):
@@ -308,74 +275,118 @@ def register_blocks(block_id: torch.Tensor, event: torch.Tensor, flow: torch.Ten
     start[1:] = g[1:] != g[:-1]
     slot = idx - torch.cummax(torch.where(start, idx, 0), 0).values
     fit = (slot < max_candidates).nonzero().squeeze(1)
-    perm, g, ev_rank, slot = perm[fit], g[fit], ev_rank[fit], slot[fit]
-    blocks, row = torch.unique_consecutive(g, return_inverse=True)
-    # Blocks are evaluated in groups of similar size (up to 16, 32, 64, ... samples), each padded only to its
-    # largest block. Every sum below runs over the padded dimension 1, and such sums do not depend on the
-    # amount of zero padding, so a block's result does not depend on the other blocks.
-    # Groups are further cut into chunks whose (V, K, K) distance tables stay around 2 MB (cache-sized).
-    group, filled = [], {}  # per size class: (chunk index, blocks in that chunk)
-    for n in torch.bincount(row).tolist():
-        k = max((n - 1) >> 4, 0).bit_length()
-        chunk, used = filled.get(k, (0, 0))
-        if used * (16 << k) ** 2 * 8 >= 1 << 21:
-            chunk, used = chunk + 1, 0
-        filled[k] = (chunk, used + 1)
-        group.append((k, chunk))
-    index = {key: j for j, key in enumerate(sorted(set(group)))}
-    group_of = torch.tensor([index[key] for key in group])
-    for k in range(len(index)):
-        members = (group_of == k).nonzero().squeeze(1)
-        local = torch.full((blocks.numel(),), -1, dtype=torch.long)
-        local[members] = torch.arange(members.numel())
-        at = (group_of[row] == k).nonzero().squeeze(1)
-        chosen, uv = _register_group(local[row[at]], slot[at], ev_rank[at], flow[perm[at]], pixel[perm[at]],
-                                     members.numel(), tie_tol, estimate, inlier)
-        out[blocks[members]] = chosen.float()
-        uv_out[blocks[members]] = uv.float()
+    perm, g, ev_rank = perm[fit], g[fit], ev_rank[fit]
+    blocks = torch.unique_consecutive(g)
+    chosen, uv = _register_kernel(g.numpy(), ev_rank.numpy(), flow[perm].double().numpy(),
+                                  pixel[perm].double().numpy(), blocks.numel(), float(tie_tol),
+                                  estimate == "normal", float(inlier))
+    out[blocks] = torch.from_numpy(chosen).float()
+    uv_out[blocks] = torch.from_numpy(uv).float()
     return out, uv_out, valid, count
 
 
-def _register_group(row: torch.Tensor, slot: torch.Tensor, ev_rank: torch.Tensor, flow: torch.Tensor,
-                    pixel: torch.Tensor, V: int, tie_tol: float, estimate: str, inlier: float):
-    """Registration of ``V`` blocks whose samples sit at ``(row, slot)``; returns flow and uv ``(V, 2)`` float64."""
-    K = int(slot.max()) + 1
-    cand = torch.zeros(V, K, 2, dtype=torch.float64)
-    cand[row, slot] = flow.double()
-    pix = torch.zeros(V, K, 2, dtype=torch.float64)
-    pix[row, slot] = pixel.double()
-    n_ev = torch.zeros(V, dtype=torch.long).scatter_reduce_(0, row, ev_rank + 1, "amax")
-    # Event ids per slot; empty slots get E - 1, an id no block uses, so that row only collects zeros.
-    E = int(n_ev.max()) + 1
-    evs = torch.full((V, K), E - 1, dtype=torch.long)
-    evs[row, slot] = ev_rank
-    mask = torch.zeros(V, K, dtype=torch.bool)
-    mask[row, slot] = True
-    # dist[v, j, c] = |cand_c - cand_j| (0 for empty sample slots j); per_ev[v, i, c] = min_{j in event i} of it
-    # (0 for no event i); cost[v, c] = sum_i per_ev[v, i, c].
-    dist = torch.cdist(cand, cand, compute_mode="use_mm_for_euclid_dist").masked_fill_(~mask[:, :, None], 0.0)
-    per_ev = torch.full((V, E, K), math.inf, dtype=torch.float64)
-    per_ev.scatter_reduce_(1, evs[:, :, None].expand(V, K, K), dist, "amin").nan_to_num_(posinf=0.0)
-    cost = per_ev.sum(1).masked_fill_(~mask, math.inf)
-    norm = cand.norm(dim=2)
-    near = cost <= cost.min(1, keepdim=True).values + tie_tol * n_ev[:, None] * norm
-    spread = dist.sum(1)  # sum_j |F_c - F_j| over the block's samples
-    rows = torch.arange(V)
-    best = spread.masked_fill_(~near, math.inf).argmin(1)
-    chosen = cand[rows, best]
-    # Inlier events: their nearest candidate lies within inlier * |F| of the registered F.
-    ok_ev = per_ev[rows, :, best] <= inlier * chosen.norm(dim=1, keepdim=True)  # (V, E) by event id
-    w = (mask & torch.gather(ok_ev, 1, evs)).double()
-    if estimate == "normal":
-        # Each sample F_j = -2 d / dt is a line F_j . g = 1 on the time-surface gradient g (s/px); weighted
-        # least squares sum_j (F_j . g - 1)^2 / |F_j| (the mean of parallel samples for a single direction).
-        # The min-norm solution handles a single sample direction; the normal flow is g / |g|^2.
-        wn = w / norm.clamp(min=1e-12)
-        A = torch.einsum("vk,vki,vkj->vij", wn, cand, cand)
-        rhs = torch.einsum("vk,vki->vi", wn, cand)
-        gr = (torch.linalg.pinv(A, hermitian=True) @ rhs[..., None])[..., 0]
-        chosen = gr / (gr * gr).sum(1, keepdim=True).clamp(min=1e-30)
-    return chosen, (w[..., None] * pix).sum(1) / w.sum(1, keepdim=True)
+@numba.njit(cache=True, nogil=True)
+def _register_kernel(g, ev_rank, flow, pixel, n_out, tie_tol, normal, inlier):
+    """Registration of the blocks in ``g`` (sorted; a block's samples consecutive, their event ranks
+    ``0 .. E - 1``), one block at a time. Returns flow and uv ``(n_out, 2)`` float64 in block order."""
+    chosen = np.zeros((n_out, 2))
+    uv = np.zeros((n_out, 2))
+    K_max = 0
+    start = 0
+    for i in range(1, g.shape[0] + 1):
+        if i == g.shape[0] or g[i] != g[start]:
+            K_max = max(K_max, i - start)
+            start = i
+    dist = np.empty((K_max, K_max))
+    per_ev = np.empty((K_max, K_max))
+    cost = np.empty(K_max)
+    ok = np.empty(K_max, dtype=np.bool_)
+    start, out = 0, 0
+    for end in range(1, g.shape[0] + 1):
+        if end < g.shape[0] and g[end] == g[start]:
+            continue
+        K = end - start
+        F = flow[start:end]
+        ev = ev_rank[start:end]
+        E = ev.max() + 1
+        # dist[j, c] = |F_c - F_j|; per_ev[i, c] = min over the samples j of event i; cost[c] = sum_i of it
+        per_ev[:E, :K] = np.inf
+        for j in range(K):
+            for c in range(K):
+                d = np.sqrt((F[c, 0] - F[j, 0]) ** 2 + (F[c, 1] - F[j, 1]) ** 2)
+                dist[j, c] = d
+                per_ev[ev[j], c] = min(per_ev[ev[j], c], d)
+        c_min = np.inf
+        for c in range(K):
+            cost[c] = 0.0
+            for e in range(E):
+                cost[c] += per_ev[e, c]
+            c_min = min(c_min, cost[c])
+        # Among the near-optimal candidates, the one closest to all samples (first on ties).
+        best, best_spread = 0, np.inf
+        for c in range(K):
+            norm = np.sqrt(F[c, 0] ** 2 + F[c, 1] ** 2)
+            if cost[c] <= c_min + tie_tol * E * norm:
+                spread = 0.0
+                for j in range(K):
+                    spread += dist[j, c]
+                if spread < best_spread:
+                    best, best_spread = c, spread
+        fx, fy = F[best, 0], F[best, 1]
+        radius = inlier * np.sqrt(fx * fx + fy * fy)
+        for e in range(E):
+            ok[e] = per_ev[e, best] <= radius
+        # Inlier samples: those of events whose nearest candidate lies within inlier * |F| of F.
+        a00 = a01 = a11 = r0 = r1 = su = sv = sw = 0.0
+        for j in range(K):
+            if ok[ev[j]]:
+                px, py = pixel[start + j, 0], pixel[start + j, 1]
+                su += px
+                sv += py
+                sw += 1.0
+                if normal:
+                    wn = 1.0 / max(np.sqrt(F[j, 0] ** 2 + F[j, 1] ** 2), 1e-12)
+                    a00 += wn * F[j, 0] * F[j, 0]
+                    a01 += wn * F[j, 0] * F[j, 1]
+                    a11 += wn * F[j, 1] * F[j, 1]
+                    r0 += wn * F[j, 0]
+                    r1 += wn * F[j, 1]
+        if normal:
+            fx, fy = _normal_flow(a00, a01, a11, r0, r1)
+        chosen[out, 0], chosen[out, 1] = fx, fy
+        uv[out, 0], uv[out, 1] = su / sw, sv / sw
+        out += 1
+        start = end
+    return chosen, uv
+
+
+@numba.njit(cache=True, nogil=True)
+def _normal_flow(a00, a01, a11, r0, r1):
+    """Normal flow ``g / |g|^2`` of the min-norm least-squares gradient ``g = pinv(A) r``, ``A`` symmetric 2 x 2
+    (each inlier sample ``F_j`` is the line ``F_j . g = 1``, weighted ``1 / |F_j|``). Eigenvalues below
+    ``2 eps`` of the largest are treated as zero (a single sample direction)."""
+    half_tr, det = 0.5 * (a00 + a11), a00 * a11 - a01 * a01
+    disc = np.sqrt(max(half_tr * half_tr - det, 0.0))
+    l1, l2 = half_tr + disc, half_tr - disc  # l1 >= l2 >= 0
+    # unit eigenvector of l1
+    if abs(a01) > 0.0:
+        e0, e1 = l1 - a11, a01
+    elif a00 >= a11:
+        e0, e1 = 1.0, 0.0
+    else:
+        e0, e1 = 0.0, 1.0
+    n = np.sqrt(e0 * e0 + e1 * e1)
+    e0, e1 = e0 / n, e1 / n
+    cut = 2.0 * np.finfo(np.float64).eps * l1
+    gx = gy = 0.0
+    if l1 > cut:
+        p = (e0 * r0 + e1 * r1) / l1
+        gx, gy = gx + p * e0, gy + p * e1
+    if l2 > cut:
+        p = (-e1 * r0 + e0 * r1) / l2
+        gx, gy = gx - p * e1, gy + p * e0
+    n2 = max(gx * gx + gy * gy, 1e-30)
+    return gx / n2, gy / n2
 
 
 def _smooth(flow: torch.Tensor, uv: torch.Tensor, valid: torch.Tensor, gy: int, gx: int):
@@ -489,14 +500,11 @@ class TripletFlow(nn.Module):
 
         Shape: prepared events ``(N,)``; returns ``event (S,)`` (index into the packet) and ``flow (S, 2)``.
         """
-        _, _, Hp, Wp = self.sae_padded.shape
         events, flows = [], []
         for s in range(0, max(xi.numel(), 1), self.chunk):
             c = slice(s, s + self.chunk)
             ev, flow = _triplets_padded(self.sae_padded, self.pad, xi[c], yi[c], ch[c], t[c], self.D, self.dt_max_us,
                                         self.tol)
-            self.sae_padded.view(-1).scatter_reduce_(0, (ch[c] * Hp + yi[c] + self.pad) * Wp + xi[c] + self.pad, t[c],
-                                                     "amax")
             events.append(ev + s)
             flows.append(flow)
         return torch.cat(events), torch.cat(flows)
