@@ -263,3 +263,16 @@ def test_loss_detection_is_reported_against_the_failure_rule(run, bench, tmp_pat
     rows = _table(table_markdown(strict), "## Tracking loss")
     assert rows[2] == [METHOD_NAMES["velocity_only"], "0.002 / –", "0.002 / –", "0", "0", "2"]
     assert not strict["config"]["loss"]["enabled"]  # the benchmark runs the detector anyway (it only reports)
+
+
+def test_table_lists_the_rotation_error_modulo_symmetry_for_symmetric_objects(run):
+    res = copy.deepcopy(run[0])
+    assert "modulo the symmetry axis" not in table_markdown(res)  # the built-in can is textured: no axis
+    res["sequences"]["tomato_fast"]["symmetry_axis"] = [0.0, 0.0, 1.0]
+    for i, meth in enumerate(METHODS):
+        res["results"][meth]["tomato_fast"]["metrics"].update(rmse_r_sym_deg=1.5 + i, std_r_sym_deg=0.25,
+                                                              failed_sym=meth == "full")
+    rows = _table(table_markdown(res), "## Rotation error modulo the symmetry axis")
+    assert rows[0] == ["Method", "tomato_fast"]
+    got = {r[0]: r[1] for r in rows[2:]}
+    assert got == {METHOD_NAMES["correction_only"]: "2.50(0.25)", METHOD_NAMES["full"]: "1.50(0.25)†"}

@@ -363,3 +363,57 @@ def test_cli_eval_missing_file(tmp_path, capsys):
 
     assert main(["eval", "--gt", str(tmp_path / "nope.txt"), "--pred", str(tmp_path / "nope.txt")]) == 2
     assert "nope.txt" in capsys.readouterr().err
+
+
+# -- continuous symmetry -------------------------------------------------------------------------------
+def test_rotation_error_modulo_an_axis_against_scipy():
+    """Spins about the axis (object frame) cost nothing; a tilt of phi perpendicular to it costs phi;
+    in general the error is the angle between the rotated axes (scipy oracle)."""
+    rng = np.random.default_rng(5)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    perp = np.cross(axis, [1.0, 0.0, 0.0])
+    perp /= np.linalg.norm(perp)
+    r_gt = Rotation.random(50, random_state=3)
+    t = np.zeros((50, 3)) + [0, 0, 0.5]
+    gt = _poses_from_scipy(r_gt, t)
+    spin = _poses_from_scipy(r_gt * Rotation.from_rotvec(np.outer(rng.uniform(-3, 3, 50), axis)), t)
+    phi = rng.uniform(0, 2.5, 50)
+    tilt = _poses_from_scipy(r_gt * Rotation.from_rotvec(phi[:, None] * perp), t)
+    a = torch.from_numpy(axis)
+    assert m.rotation_error(spin, gt, a).abs().max() < 1e-7 and m.rotation_error(spin, gt).min() > 1e-3
+    np.testing.assert_allclose(m.rotation_error(tilt, gt, a).numpy(), phi, atol=1e-9)
+    r_pr, _, r_gt2, _, pred, gt2 = _random_pair(100, seed=7)
+    want = np.arccos(np.clip((r_pr.apply(axis) * r_gt2.apply(axis)).sum(1), -1, 1))
+    np.testing.assert_allclose(m.rotation_error(pred, gt2, a).numpy(), want, atol=1e-7)
+    with pytest.raises(ValueError, match="axis"):
+        m.rotation_error(pred, gt2, torch.zeros(3))
+
+
+def test_evaluate_reports_the_error_modulo_symmetry_and_its_failures():
+    """A tracker that spins the object about its symmetry axis by 60 deg fails the plain rule only."""
+    t_us = torch.arange(200) * 2000
+    gt = torch.tensor([0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0], dtype=torch.float64).expand(200, 7)
+    pred = gt.clone()
+    pred[:, 3:] = torch.tensor([math.cos(math.radians(30)), 0.0, 0.0, math.sin(math.radians(30))])  # 60 deg about z
+    out = m.evaluate(t_us, pred, t_us, gt, symmetry_axis=torch.tensor([0.0, 0.0, 1.0]))
+    assert out["failed"] and not out["failed_sym"] and out["first_failure_sym_s"] is None
+    assert out["rmse_r_deg"] == pytest.approx(60.0) and out["rmse_r_sym_deg"] < 1e-6
+    assert "rmse_r_sym_deg" not in m.evaluate(t_us, pred, t_us, gt)
+
+
+def test_symmetry_axis_of_meshes():
+    import trimesh
+
+    from torchevtrack.mesh import load_mesh, symmetry_axis
+
+    assert np.allclose(symmetry_axis(load_mesh("can")), [0, 0, 1], atol=1e-6)
+    assert symmetry_axis(load_mesh("box")) is None
+    rot = Rotation.from_rotvec([0.3, -0.5, 0.2])
+    cyl = trimesh.creation.cylinder(radius=0.03, height=0.1, sections=48)
+    cyl.apply_transform(np.block([[rot.as_matrix(), np.array([[0.01], [0.02], [0.0]])], [np.zeros((1, 3)), 1.0]]))
+    got = symmetry_axis(cyl)
+    assert abs(abs(got @ rot.apply([0.0, 0.0, 1.0])) - 1) < 1e-6
+    squashed = trimesh.creation.cylinder(radius=0.03, height=0.1, sections=48)
+    squashed.apply_scale([1.0, 1.3, 1.0])  # an elliptic cylinder has no continuous symmetry
+    assert symmetry_axis(squashed) is None

@@ -52,6 +52,7 @@ from torchevtrack.camera import Camera
 from torchevtrack.config import ABLATIONS, TrackerConfig
 from torchevtrack.io.poses import read_tum, write_tum
 from torchevtrack.loss import compare_with_ground_truth
+from torchevtrack.mesh import symmetry_axis
 from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, evaluate, per_pose_errors
 from torchevtrack.synth.sequence import SEQUENCE_FILES, Sequence
 from torchevtrack.tracker import EventPoseTracker
@@ -135,6 +136,7 @@ class _Item:
     t_end_us: int
     n_updates: int
     points: torch.Tensor
+    symmetry_axis: torch.Tensor | None  # continuous symmetry of an untextured mesh (its rotation is unobservable)
 
 
 def _group(name: str, meta: dict) -> str:
@@ -156,7 +158,9 @@ def _prepare(path: Path, duration_s: float | None, period_us: int) -> _Item:
         raise ValueError(f"sequence {path.name}: {(t1 - t0) / 1e6:.4f} s to track is shorter than one update "
                          f"period ({period_us} us)")
     seq.events = seq.events.slice_time(seq.events.t_start, t1 + 1)
-    return _Item(path.name, path, seq, _group(path.name, seq.meta), t0, t1, n, mesh_points(seq.mesh.vertices))
+    axis = symmetry_axis(seq.mesh) if seq.mesh.visual.kind is None else None
+    return _Item(path.name, path, seq, _group(path.name, seq.meta), t0, t1, n, mesh_points(seq.mesh.vertices),
+                 None if axis is None else torch.as_tensor(axis))
 
 
 # -- running --------------------------------------------------------------------------------------
@@ -275,7 +279,8 @@ def run_benchmark(
         "sequences": {
             it.name: {"group": it.group, "object": it.seq.meta.get("object"), "t_start_us": it.t_start_us,
                       "t_end_us": it.t_end_us, "updates": it.n_updates, "events": len(it.seq.events),
-                      "mesh_points": int(it.points.shape[0]), "camera": dataclasses.asdict(it.seq.camera)}
+                      "mesh_points": int(it.points.shape[0]), "camera": dataclasses.asdict(it.seq.camera),
+                      "symmetry_axis": None if it.symmetry_axis is None else it.symmetry_axis.tolist()}
             for it in items
         },
         "runs": {},
@@ -298,7 +303,7 @@ def run_benchmark(
                 write_tum(out / rel, t_us, poses)
                 t_us, poses = read_tum(out / rel)  # score exactly what was written
                 gt_t, gt = it.seq.gt_t_us, it.seq.gt_poses
-                metrics = evaluate(t_us, poses, gt_t, gt, mesh_points=it.points)
+                metrics = evaluate(t_us, poses, gt_t, gt, mesh_points=it.points, symmetry_axis=it.symmetry_axis)
                 loss = compare_with_ground_truth(t_us, lost, poses, gt_t, gt)
                 timing = {key: run[key] for key in ("batch_size", "wall_s", "updates_per_s")}
                 timing["updates"] = int(t_us.numel())
@@ -426,6 +431,23 @@ def table_markdown(results: dict) -> str:
     if any_failed:
         lines.append(f"† failed: translation error > {FAIL_T_M * 100:g} cm or rotation error > {FAIL_R_DEG:g} deg "
                      f"for {FAIL_WINDOW} consecutive updates (EDOPT rule).")
+
+    sym = [c for c in cols if sequences[c].get("symmetry_axis") is not None]
+    if sym and all("rmse_r_sym_deg" in per_method[m][c]["metrics"] for m in rows for c in sym if c in per_method[m]):
+        lines += ["", "## Rotation error modulo the symmetry axis: e_r(σ) deg", ""]
+        lines.append(_row(["Method"] + sym))
+        lines.append(_row(["---"] * (len(sym) + 1)))
+        for m in rows:
+            cells = [METHOD_NAMES.get(m, m)]
+            for c in sym:
+                x = per_method[m].get(c, {}).get("metrics")
+                cells.append("–" if x is None else f"{x['rmse_r_sym_deg']:.2f}({x['std_r_sym_deg']:.2f})"
+                             + ("†" if x["failed_sym"] else ""))
+            lines.append(_row(cells))
+        lines.append("")
+        lines.append("Objects whose untextured shape is symmetric about an axis (torchevtrack.mesh.symmetry_axis): "
+                     "rotations about it change no edge, so no tracker observes them. Here the rotation error is "
+                     "the angle between the estimated and the true axis, and † applies the EDOPT rule to it.")
 
     lines += ["", "## ADD-S AUC (%, 0–10 cm)", ""]
     lines.append(_row(["Method"] + cols + ["Mean"]))

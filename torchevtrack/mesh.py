@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-__all__ = ["BUILTIN_OBJECTS", "load_mesh", "list_objects"]
+__all__ = ["BUILTIN_OBJECTS", "load_mesh", "list_objects", "symmetry_axis"]
 
 BUILTIN_OBJECTS = ("box", "can", "bottle")
 _INSTALL_HINT = "pip install torchevtrack[ycb]"
@@ -70,6 +70,40 @@ def load_mesh(source: str | Path | trimesh.Trimesh, *, decimate: int | None = No
         stat = path.stat()
         return _load_file_cached(str(path.resolve()), stat.st_mtime_ns, stat.st_size, decimate).copy()
     return _load_named_cached(str(source), decimate).copy()
+
+
+def symmetry_axis(mesh: trimesh.Trimesh, tol: float = 0.01, samples: int = 20_000) -> np.ndarray | None:
+    """The axis of a continuous rotational symmetry of the mesh's shape, or ``None`` (e.g. a can: its axis).
+
+    Each principal axis (of the surface area) through its centroid is tried: the surface, sampled (deterministically)
+    and turned about it by 20, 45, 90 and 135 degrees, must lie on itself, its points within a mean
+    distance of ``tol`` times the bounding-box diagonal of the unturned samples. Rotations about such
+    an axis do not change the silhouette or a shading without texture, so no tracker can observe them:
+    :func:`torchevtrack.metrics.rotation_error` takes the axis to leave them out.
+
+    Returns a unit vector ``(3,)`` in the mesh frame (sign: largest component positive), or ``None``.
+
+    Example:
+        >>> from torchevtrack.mesh import load_mesh, symmetry_axis
+        >>> symmetry_axis(load_mesh("can")).round(3).tolist(), symmetry_axis(load_mesh("box"))
+        ([0.0, 0.0, 1.0], None)
+    """
+    from scipy.spatial import cKDTree
+    from scipy.spatial.transform import Rotation
+
+    w = np.asarray(mesh.area_faces, dtype=np.float64)
+    c = np.asarray(mesh.triangles_center, dtype=np.float64)
+    centre = (w[:, None] * c).sum(0) / w.sum()
+    _, vecs = np.linalg.eigh(((c - centre).T * w) @ (c - centre))  # area-weighted second moments
+    pts, _ = trimesh.sample.sample_surface_even(mesh, samples, seed=0)
+    x = np.asarray(pts, dtype=np.float64) - centre
+    tree = cKDTree(x)
+    scale = float(np.linalg.norm(x.max(0) - x.min(0)))
+    for axis in vecs.T:
+        turned = [Rotation.from_rotvec(np.radians(a) * axis).apply(x) for a in (20.0, 45.0, 90.0, 135.0)]
+        if all(tree.query(p)[0].mean() < tol * scale for p in turned):
+            return axis * np.sign(axis[np.argmax(np.abs(axis))])
+    return None
 
 
 def list_objects() -> list[str]:

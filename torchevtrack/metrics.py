@@ -45,6 +45,7 @@ from torchevtrack.geometry import (
     quat_conj,
     quat_log,
     quat_mul,
+    quat_rotate,
     quat_to_matrix,
     transform_points,
 )
@@ -111,14 +112,31 @@ def translation_error(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     return (pred[..., :3] - gt[..., :3]).norm(dim=-1)
 
 
-def rotation_error(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+def rotation_error(pred: torch.Tensor, gt: torch.Tensor, axis: torch.Tensor | None = None) -> torch.Tensor:
     """Geodesic rotation error ``arccos((tr(R R_gt^T) - 1) / 2)`` in radians, in ``[0, pi]``.
 
     Evaluated as ``2 atan2(|vec(q_rel)|, |w(q_rel)|)``, ``q_rel = q (x) q_gt^*``, which stays accurate
-    near 0 and pi where the arccos form loses precision. Shape: ``(..., 7), (..., 7) -> (...)``.
+    near 0 and pi where the arccos form loses precision.
+
+    With ``axis`` ``(3,)`` (object frame, e.g. :func:`torchevtrack.mesh.symmetry_axis`), the error
+    modulo rotations about that axis: the smallest geodesic error over ``R Rot(axis, theta)``, which is
+    the angle between ``R axis`` and ``R_gt axis``.
+
+    Shape: ``(..., 7), (..., 7) -> (...)``.
     """
     pred, gt = _check_pair(pred, gt)
+    if axis is not None:
+        return _axis_angle(pred, gt, axis)
     return _angle(quat_mul(pred[..., 3:], quat_conj(gt[..., 3:])))
+
+
+def _axis_angle(pred: torch.Tensor, gt: torch.Tensor, axis) -> torch.Tensor:
+    a = torch.as_tensor(axis, dtype=torch.float64)
+    if a.shape != (3,) or not bool(torch.isfinite(a).all()) or float(a.norm()) == 0.0:
+        raise ValueError(f"axis must be a finite non-zero (3,) vector, got {a.tolist()}")
+    a = (a / a.norm()).expand(*pred.shape[:-1], 3)
+    u, v = quat_rotate(pred[..., 3:].double(), a), quat_rotate(gt[..., 3:].double(), a)
+    return torch.atan2(torch.linalg.cross(u, v, dim=-1).norm(dim=-1), (u * v).sum(-1))
 
 
 def _angle(q: torch.Tensor) -> torch.Tensor:
@@ -294,19 +312,23 @@ def per_pose_errors(
     gt_poses: torch.Tensor,
     *,
     mesh_points: torch.Tensor | None = None,
+    symmetry_axis: torch.Tensor | None = None,
     pred_twists: torch.Tensor | None = None,
     gt_twists: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """Per-pose errors after time alignment (see :func:`align_to_gt`).
 
     Returns ``t_us (K,)``, ``keep (N,)`` (which predictions were evaluated), ``te, re, te_xyz,
-    re_xyz`` (see :func:`pose_errors`), with ``mesh_points (M, 3)`` also ``add, adds (K,)`` (m), and
+    re_xyz`` (see :func:`pose_errors`), with ``mesh_points (M, 3)`` also ``add, adds (K,)`` (m), with
+    ``symmetry_axis (3,)`` also ``re_sym (K,)``, the rotation error modulo that axis (:func:`rotation_error`), and
     with ``pred_twists (N, 6)`` also ``ev`` (m/s) and ``ew`` (rad/s) against ``gt_twists (G, 6)``
     given at the ground-truth times, or by default :func:`twists_from_poses` of the ground truth;
     ground-truth twists are linearly interpolated at the prediction times.
     """
     keep, t, pred, gt = align_to_gt(pred_t_us, pred_poses, gt_t_us, gt_poses)
     out = {"t_us": t, "keep": keep, **pose_errors(pred, gt)}
+    if symmetry_axis is not None:
+        out["re_sym"] = _axis_angle(pred, gt, symmetry_axis)
     if mesh_points is not None:
         out["add"] = add_error(pred, gt, mesh_points)
         out["adds"] = adds_error(pred, gt, mesh_points)
@@ -353,6 +375,7 @@ def evaluate(
     *,
     mesh_points: torch.Tensor | None = None,
     symmetric: bool = False,
+    symmetry_axis: torch.Tensor | None = None,
     pred_twists: torch.Tensor | None = None,
     gt_twists: torch.Tensor | None = None,
 ) -> dict:
@@ -363,6 +386,10 @@ def evaluate(
         gt_t_us, gt_poses: ground truth ``(G,)``, ``(G, 7)``, interpolated at the prediction times.
         mesh_points: model points ``(M, 3)`` (m) for ADD / ADD-S; without them those keys are ``None``.
         symmetric: the object is symmetric: ``add_s_auc`` (the ADD(-S) metric) then uses ADD-S.
+        symmetry_axis: ``(3,)`` axis of a continuous rotational symmetry (object frame,
+            :func:`torchevtrack.mesh.symmetry_axis`): adds the statistics of the rotation error modulo
+            that axis (``rmse_r_sym_deg``, ...) and the EDOPT rule applied with it (``failed_sym``,
+            ``first_failure_sym_s``).
         pred_twists, gt_twists: optional ``(N, 6)`` / ``(G, 6)`` twists for velocity errors
             (see :func:`per_pose_errors`).
 
@@ -375,7 +402,8 @@ def evaluate(
     ``rmse_v_cm_s`` and ``rmse_w_deg_s``.
     """
     e = per_pose_errors(
-        pred_t_us, pred_poses, gt_t_us, gt_poses, mesh_points=mesh_points, pred_twists=pred_twists, gt_twists=gt_twists
+        pred_t_us, pred_poses, gt_t_us, gt_poses, mesh_points=mesh_points, symmetry_axis=symmetry_axis,
+        pred_twists=pred_twists, gt_twists=gt_twists
     )
     n = int(e["t_us"].numel())
     n_dropped = int(e["keep"].numel()) - n
@@ -399,6 +427,11 @@ def evaluate(
     out["failed"] = k is not None
     out["first_failure_index"] = k
     out["first_failure_s"] = None if k is None else int(e["t_us"][k]) / 1e6
+    if "re_sym" in e:
+        out.update(_stats(e["re_sym"], deg, "deg", "r_sym"))
+        k = failure_index(e["te"], e["re_sym"])
+        out["failed_sym"] = k is not None
+        out["first_failure_sym_s"] = None if k is None else int(e["t_us"][k]) / 1e6
     if "ev" in e:
         out["rmse_v_cm_s"] = rmse(e["ev"]) * 100.0
         out["rmse_w_deg_s"] = rmse(e["ew"]) * deg
