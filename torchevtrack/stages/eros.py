@@ -48,14 +48,7 @@ def prepare_events(x: torch.Tensor, y: torch.Tensor, b: torch.Tensor | None, hei
         ValueError: shapes differ, or a coordinate is outside ``[0, width) x [0, height)`` or a
             batch index outside ``[0, batch_size)``.
     """
-    fields = {"x": x, "y": y} if b is None else {"x": x, "y": y, "b": b}
-    for name, f in fields.items():
-        if not isinstance(f, torch.Tensor):
-            raise TypeError(f"{name} must be a torch.Tensor, got {type(f).__name__}")
-        if f.is_floating_point() or f.is_complex() or f.dtype == torch.bool:
-            raise TypeError(f"{name} must be an integer tensor, got {f.dtype}")
-        if f.ndim != 1 or f.shape != x.shape:
-            raise ValueError(f"{name} must be 1-D with the shape of x {tuple(x.shape)}, got {tuple(f.shape)}")
+    _check_fields(x, y, b)
     xi, yi = x.long(), y.long()
     bi = torch.zeros_like(xi) if b is None else b.long()
     if xi.numel():
@@ -64,6 +57,20 @@ def prepare_events(x: torch.Tensor, y: torch.Tensor, b: torch.Tensor | None, hei
             if int(lo_v) < 0 or int(hi_v) >= hi:
                 raise ValueError(f"{name} must lie in [0, {hi}), got values in [{int(lo_v)}, {int(hi_v)}]")
     return xi, yi, bi
+
+
+def _check_fields(x, y, b) -> None:
+    """Types and shapes of packed event coordinates (see :func:`prepare_events`)."""
+    fields = {"x": x, "y": y} if b is None else {"x": x, "y": y, "b": b}
+    for name, f in fields.items():
+        if not isinstance(f, torch.Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor, got {type(f).__name__}")
+        if f.is_floating_point() or f.is_complex() or f.dtype == torch.bool:
+            raise TypeError(f"{name} must be an integer tensor, got {f.dtype}")
+        if f.ndim != 1 or f.shape != x.shape:
+            raise ValueError(f"{name} must be 1-D with the shape of x {tuple(x.shape)}, got {tuple(f.shape)}")
+        if f.device.type != "cpu":
+            raise ValueError(f"{name} must be a CPU tensor, got one on {f.device}")
 
 
 def _check_params(kernel_size: int, decay: float) -> None:
@@ -86,22 +93,30 @@ def eros_update_(surface: torch.Tensor, x: torch.Tensor, y: torch.Tensor, b: tor
     _check_surface(surface)
     _check_params(kernel_size, decay)
     B, H, W = surface.shape
-    xi, yi, bi = prepare_events(x, y, b, H, W, B)
-    if xi.numel():
+    _check_fields(x, y, b)
+    if x.numel():
         lam = surface.numpy().dtype.type(decay ** (1.0 / kernel_size))
-        _eros_kernel(surface.numpy(), xi.numpy(), yi.numpy(), bi.numpy(), kernel_size // 2, lam)
+        bn = np.zeros(1, dtype=np.int64) if b is None else b.numpy()
+        if not _eros_kernel(surface.numpy(), x.numpy(), y.numpy(), bn, b is not None, kernel_size // 2, lam):
+            prepare_events(x, y, b, H, W, B)  # raises the range error (the kernel checks before it writes)
     return surface
 
 
 @numba.njit(cache=True, nogil=True)
-def _eros_kernel(surface, x, y, b, r, lam):
-    _, H, W = surface.shape
+def _eros_kernel(surface, x, y, b, batched, r, lam):
+    """Apply the events in order; returns False, untouched, if one lies outside the surface."""
+    B, H, W = surface.shape
     for i in range(x.shape[0]):
-        u, v, k = x[i], y[i], b[i]
+        k = b[i] if batched else 0
+        if x[i] < 0 or x[i] >= W or y[i] < 0 or y[i] >= H or k < 0 or k >= B:
+            return False
+    for i in range(x.shape[0]):
+        u, v, k = x[i], y[i], b[i] if batched else 0
         for yy in range(max(v - r, 0), min(v + r + 1, H)):
             for xx in range(max(u - r, 0), min(u + r + 1, W)):
                 surface[k, yy, xx] *= lam
         surface[k, v, u] = 1.0
+    return True
 
 
 def eros_update(surface: torch.Tensor, x: torch.Tensor, y: torch.Tensor, b: torch.Tensor | None,

@@ -59,7 +59,7 @@ import torch.nn.functional as Fnn
 from torch import nn
 
 from torchevtrack.stages import batch_mask
-from torchevtrack.stages.eros import prepare_events
+from torchevtrack.stages.eros import _check_fields, prepare_events
 
 __all__ = [
     "NEVER",
@@ -130,10 +130,32 @@ def sae_update_(sae: torch.Tensor, x: torch.Tensor, y: torch.Tensor, t: torch.Te
     Shape:
         sae: ``(B, C, H, W)`` int64 us, ``C`` in ``{1, 2}``; x, y, t, p, b: ``(N,)``.
     """
-    xi, yi, ch = _prepare(sae, x, y, t, p, b)
-    _, _, H, W = sae.shape
-    sae.view(-1).scatter_reduce_(0, (ch * H + yi) * W + xi, t, "amax")
+    _check_sae(sae)
+    _check_fields(x, y, b)
+    B, C, H, W = sae.shape
+    if not isinstance(t, torch.Tensor) or t.dtype != torch.int64 or t.shape != x.shape:
+        raise TypeError(f"t must be an int64 tensor of microseconds with the shape of x {tuple(x.shape)}")
+    if C == 2 and (not isinstance(p, torch.Tensor) or p.shape != x.shape or p.is_floating_point()):
+        raise TypeError(f"p must be an integer tensor with the shape of x {tuple(x.shape)}")
+    none = np.zeros(1, dtype=np.int64)
+    if x.numel() and not _sae_kernel(sae.view(B * C, H, W).numpy(), x.numpy(), y.numpy(), t.numpy(),
+                                     none if C == 1 else p.numpy(), none if b is None else b.numpy(), C, b is not None):
+        _prepare(sae, x, y, t, p, b)  # raises the range error (the kernel checks before it writes)
     return sae
+
+
+@numba.njit(cache=True, nogil=True)
+def _sae_kernel(sae, x, y, t, p, b, C, batched):
+    """``sae[b C + p, y, x] = max(., t)`` per event; returns False, untouched, if one lies outside."""
+    planes, H, W = sae.shape
+    for i in range(x.shape[0]):
+        c = (b[i] if batched else 0) * C + (p[i] if C == 2 else 0)
+        if x[i] < 0 or x[i] >= W or y[i] < 0 or y[i] >= H or c < 0 or c >= planes or (C == 2 and p[i] > 1):
+            return False
+    for i in range(x.shape[0]):
+        c = (b[i] if batched else 0) * C + (p[i] if C == 2 else 0)
+        sae[c, y[i], x[i]] = max(sae[c, y[i], x[i]], t[i])
+    return True
 
 
 def sae_update(sae, x, y, t, p, b=None) -> torch.Tensor:
