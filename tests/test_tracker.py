@@ -149,3 +149,39 @@ def test_observation_drops_old_pixels_and_weighs_recent_ones(seq):
     assert float(ref.gt(0).float().mean()) > 0.005  # the window holds recent edges
     with pytest.raises(ValueError, match="recency_us"):
         TrackerConfig().replace(eros={"recency_us": -1.0})
+
+
+def test_correction_feedback_runs_only_with_flow_and_correction(seq):
+    """The feedback needs both the flow twist it adds to and the corrections it integrates; the paper's
+    ablations without either (and gain 0) run without it, the full method with it."""
+    on = TrackerConfig().replace(velocity={"feedback_gain": 0.1})
+    for name, want in (("full", True), ("no_ukf", True), ("velocity_only", False), ("correction_only", False),
+                       ("edopt_vel", False)):
+        tracker = EventPoseTracker(CAM, seq.mesh, on.replace(**ABLATIONS[name]))  # merged into `on`
+        assert (tracker.feedback is not None) == want, name
+        tracker.close()
+    off = EventPoseTracker(CAM, seq.mesh)  # the default: off
+    assert off.feedback is None
+    off.close()
+    with pytest.raises(ValueError, match="feedback_axes"):
+        TrackerConfig().replace(velocity={"feedback_axes": ["vz", "spin"]})
+
+
+def test_feedback_ignores_turns_about_a_symmetry_axis():
+    """An untextured cylinder hides turns about its axis: the tracker finds that axis, and a correction
+    rate about it (camera frame) leaves the feedback at zero, while the textured built-in can has none."""
+    import trimesh
+
+    cyl = trimesh.creation.cylinder(radius=0.03, height=0.1, sections=48)
+    tracker = EventPoseTracker(CAM, [cyl, "can"], TrackerConfig().replace(velocity={"feedback_gain": 0.1}))
+    axes = tracker._symmetry_axis
+    assert torch.allclose(axes[0].abs(), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), atol=1e-6)
+    assert not axes[1].any()
+    spin = torch.tensor([[0.0, 0.0, 0.0, 0.0, 0.0, 2.0], [0.0, 0.0, 0.0, 0.0, 0.0, 2.0]], dtype=torch.float64)
+    b = tracker.feedback(spin, axes)  # both objects at the identity: object axis = camera axis
+    assert b[0].abs().max() < 1e-12 and b[1, 5] == 0.0  # (wz is not a feedback axis by default)
+    tilt = torch.tensor([[0.0, 0.0, 0.0, 2.0, 0.0, 0.0]] * 2, dtype=torch.float64)
+    tracker.feedback.reset()
+    b = tracker.feedback(tilt, axes)
+    assert torch.allclose(b[:, 3], torch.full((2,), 0.2, dtype=torch.float64))
+    tracker.close()

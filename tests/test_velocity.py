@@ -8,7 +8,7 @@ from filterpy.kalman import KalmanFilter
 from torchevtrack import geometry as g
 from torchevtrack.camera import Camera
 from torchevtrack.stages import velocity as vel_mod
-from torchevtrack.stages.velocity import VelocityKF, kf_predict, kf_update
+from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, kf_predict, kf_update
 
 CAM = Camera.default()
 F64 = torch.float64
@@ -241,3 +241,59 @@ def test_centre_parametrisation_recovers_the_centre_velocity():
     np.testing.assert_allclose(out.x[0, 3:].numpy(), twist[3:].numpy(), atol=1e-7)
     back = (centre_jacobian(c) @ out.x[..., None])[0, :, 0]
     np.testing.assert_allclose(back.numpy(), twist.numpy(), atol=1e-7)
+
+
+# -- correction feedback -----------------------------------------------------------------------------
+def test_feedback_follows_its_recursion_on_its_axes_only():
+    """Against a plain-Python loop of b+ = leak b + gain r; the other axes stay exactly zero."""
+    gen = torch.Generator().manual_seed(3)
+    fb = CorrectionFeedback(gain=0.2, leak=0.7, axes=["vz", "wy"], batch_size=2)
+    rates = torch.randn(30, 2, 6, dtype=torch.float64, generator=gen)
+    ref = [[0.0] * 6 for _ in range(2)]
+    for r in rates:
+        b = fb(r)
+        for i in range(2):
+            for a in range(6):
+                ref[i][a] = 0.7 * ref[i][a] + 0.2 * float(r[i, a]) if a in (2, 4) else 0.0
+        assert torch.allclose(b, torch.tensor(ref, dtype=torch.float64), rtol=1e-12, atol=1e-15)
+    assert not b[:, [0, 1, 3, 5]].any() and b[:, [2, 4]].abs().min() > 0
+
+
+def test_feedback_halves_the_lag_of_a_partial_correction():
+    """Closed loop on one axis: the truth moves at v, the flow twist misses it, each correction removes a
+    fraction alpha of the remaining error. Without feedback the corrected pose lags by (1 - a) v dt / a;
+    with feedback of gain / (1 - leak) = k the lag is divided by 1 + k (steady state of the loop)."""
+    v, dt, alpha = 0.3, 0.002, 0.4
+
+    def lag(fb):
+        truth = corrected = 0.0
+        for _ in range(400):
+            b = 0.0 if fb is None else float(fb.b[0, 2])
+            predicted = corrected + b * dt
+            truth += v * dt
+            corrected = predicted + alpha * (truth - predicted)
+            if fb is not None:
+                fb(torch.tensor([[0.0, 0.0, (corrected - predicted) / dt, 0.0, 0.0, 0.0]], dtype=torch.float64))
+        return truth - corrected
+
+    no_fb = lag(None)
+    assert no_fb == pytest.approx((1 - alpha) * v * dt / alpha, rel=1e-9)
+    assert lag(CorrectionFeedback(gain=0.1, leak=0.9, axes=["vz"])) == pytest.approx(no_fb / 2, rel=1e-6)
+    assert lag(CorrectionFeedback(gain=0.3, leak=0.9, axes=["vz"])) == pytest.approx(no_fb / 4, rel=1e-6)
+
+
+def test_feedback_reset_and_bad_arguments():
+    fb = CorrectionFeedback(batch_size=3)
+    fb(torch.ones(3, 6, dtype=torch.float64))
+    fb.reset(torch.tensor([1]))
+    assert fb.b[1].abs().sum() == 0 and fb.b[0].abs().sum() > 0 and fb.b[2].abs().sum() > 0
+    fb.reset()
+    assert fb.b.abs().sum() == 0
+    with pytest.raises(ValueError, match="leak"):
+        CorrectionFeedback(leak=1.0)
+    with pytest.raises(ValueError, match="axes"):
+        CorrectionFeedback(axes=["vq"])
+    with pytest.raises(ValueError, match="axes"):
+        CorrectionFeedback(axes="vz")
+    with pytest.raises(ValueError, match="shape"):
+        fb(torch.ones(2, 6, dtype=torch.float64))

@@ -19,6 +19,7 @@ from pathlib import Path
 import yaml
 
 from torchevtrack.stages.template import RULES
+from torchevtrack.stages.velocity import TWIST_AXES
 
 __all__ = [
     "ErosConfig",
@@ -61,6 +62,12 @@ class VelocityConfig:
     q_w: float = 3.0  # process noise std of w per update, rad/s
     r_px: float = 1.0  # measurement std per flow vector, pixels of displacement per update
     min_vectors: int = 3
+    # Correction feedback (stages.velocity.CorrectionFeedback): a leaky integral of the template corrections'
+    # rate is added to the flow twist on the axes the flow hardly observes; gain 0 = off (the paper). Off by
+    # default: 0.1 tracks 6 of the 8 benchmark sequences far better but loses the can (README, changelog).
+    feedback_gain: float = 0.0
+    feedback_leak: float = 0.9
+    feedback_axes: list[str] = field(default_factory=lambda: ["vz", "wx", "wy"])
 
 
 @dataclass
@@ -125,6 +132,11 @@ class TrackerConfig:
             raise ValueError("eros.max_age_us and eros.recency_us must be >= 0 (0 = off)")
         if self.velocity.source not in ("flow", "poses", "none"):
             raise ValueError(f"velocity.source must be 'flow', 'poses' or 'none', got {self.velocity.source!r}")
+        v = self.velocity
+        if not v.feedback_gain >= 0 or not 0 <= v.feedback_leak < 1 or not isinstance(v.feedback_axes, list) \
+                or any(a not in TWIST_AXES for a in v.feedback_axes):
+            raise ValueError(f"velocity.feedback_gain must be >= 0, feedback_leak in [0, 1) and feedback_axes a list of "
+                             f"{TWIST_AXES}, got {v.feedback_gain!r}, {v.feedback_leak!r}, {v.feedback_axes!r}")
         if self.template.rule not in RULES:
             raise ValueError(f"template.rule must be one of {RULES}, got {self.template.rule!r}")
 

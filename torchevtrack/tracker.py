@@ -6,12 +6,15 @@ sequences and runs, in the paper's order:
 1. :class:`~torchevtrack.stages.eros.EROS` and :class:`~torchevtrack.stages.flow.TripletFlow` take the events;
 2. :class:`~torchevtrack.stages.velocity.VelocityKF` fuses the block flows, with depth sampled from the
    last render (the mesh at the previous pose: no depth sensor);
-3. :func:`~torchevtrack.stages.propagate.propagate` moves the pose with the twist for one period;
+3. :func:`~torchevtrack.stages.propagate.propagate` moves the pose with the twist for one period (the
+   filter's twist, plus with ``velocity.feedback_gain > 0`` the
+   :class:`~torchevtrack.stages.velocity.CorrectionFeedback` on the axes the flow hardly observes: depth
+   rate, pitch and yaw);
 4. the mesh is rendered once, in a window around the propagated pose;
 5. :class:`~torchevtrack.stages.template.TemplateCorrector` scores hypotheses warped from that render
    against the EROS observation (optionally weighted toward its newest events, ``eros.recency_us``)
    and moves the pose to the best (the paper's argmax of 13, or a Newton step over all six axes:
-   ``template.rule``);
+   ``template.rule``); the correction's rate feeds the feedback of step 3, if on;
 6. :class:`~torchevtrack.stages.ukf.PoseUKF` smooths the corrected pose into the output;
 7. optionally (``config.loss.enabled``) a :class:`~torchevtrack.loss.LossDetector` judges the update's
    :class:`Quality` and declares elements lost; an ``on_lost`` callback may give them new poses, and
@@ -46,9 +49,9 @@ from tqdm.auto import tqdm
 from torchevtrack.camera import Camera
 from torchevtrack.config import TrackerConfig
 from torchevtrack.events import EventStream
-from torchevtrack.geometry import check_pose, quat_canonical
+from torchevtrack.geometry import check_pose, quat_canonical, quat_rotate
 from torchevtrack.loss import LossDetector, LossUpdate, OnLost
-from torchevtrack.mesh import load_mesh
+from torchevtrack.mesh import load_mesh, symmetry_axis
 from torchevtrack.render import Renderer
 from torchevtrack.stages import batch_mask
 from torchevtrack.stages.eros import EROS, observation
@@ -56,7 +59,7 @@ from torchevtrack.stages.flow import TripletFlow
 from torchevtrack.stages.propagate import propagate, twist_between
 from torchevtrack.stages.template import TemplateCorrector, TemplateModel, render_window
 from torchevtrack.stages.ukf import PoseUKF
-from torchevtrack.stages.velocity import VelocityKF, centre_jacobian
+from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, centre_jacobian
 
 __all__ = ["EventPoseTracker", "Quality"]
 
@@ -120,8 +123,9 @@ class EventPoseTracker(nn.Module):
 
     Batch elements do not share state, and each is rendered in a window that depends on its own pose
     only: :meth:`reset` with a mask restarts some elements, and the others' poses continue as if nothing
-    had happened: bit for bit with one correction round per update; with more rounds, re-centring the
-    template model in batched float32 rounds differently with the other elements' data (about 1e-8 m).
+    had happened: bit for bit with one argmax correction round per update and no correction feedback;
+    otherwise the float32 rounding of the correction differs with the other elements' data (about 1e-8 m)
+    and carries on into the poses.
     """
 
     def __init__(
@@ -152,6 +156,7 @@ class EventPoseTracker(nn.Module):
         self._renderers: list[Renderer] = []
         self._renderer_of: list[int] = []
         self._radius: list[float] = []
+        self._sym_axes: list[torch.Tensor] = []
         seen: dict[int, int] = {}
         for m in meshes:
             key = id(m) if isinstance(m, trimesh.Trimesh) else hash(str(m))
@@ -160,6 +165,9 @@ class EventPoseTracker(nn.Module):
                 seen[key] = len(self._renderers)
                 self._renderers.append(Renderer(mesh, camera))
                 self._radius.append(float(torch.as_tensor(mesh.vertices).norm(dim=1).max()))
+                # An untextured shape symmetric about an axis hides turns about it (vertex colours would show them).
+                axis = symmetry_axis(mesh) if mesh.visual.kind is None and self._wants_symmetry(cfg) else None
+                self._sym_axes.append(torch.zeros(3, dtype=torch.float64) if axis is None else torch.as_tensor(axis))
             self._renderer_of.append(seen[key])
 
         H, W = camera.height, camera.width
@@ -170,6 +178,9 @@ class EventPoseTracker(nn.Module):
         v = cfg.velocity
         self.velocity = VelocityKF(camera, rho=v.rho, q_v=v.q_v, q_w=v.q_w, r_px=v.r_px,
                                    min_vectors=v.min_vectors, normal=f.estimate == "normal", batch_size=B)
+        # Feedback of the corrections into the flow twist (needs both; off in the paper's ablations without them).
+        self.feedback = CorrectionFeedback(v.feedback_gain, v.feedback_leak, v.feedback_axes, batch_size=B) \
+            if self._wants_symmetry(cfg) else None
         t = cfg.template
         self.corrector = TemplateCorrector(camera, canvas=t.canvas, margin_px=t.margin_px, dp_px=t.dp_px,
                                            dtheta_deg=t.dtheta_deg, rule=t.rule, iterations=t.iterations)
@@ -199,6 +210,8 @@ class EventPoseTracker(nn.Module):
         self.stage_ms: dict[str, float] = {}
         self._model: TemplateModel | None = None  # template of the last render (reused while render.reuse_px allows)
         # The object centre must stay farther than its bounding radius (plus the near plane).
+        self.register_buffer("_symmetry_axis", torch.stack([self._sym_axes[i] for i in self._renderer_of]),
+                             persistent=False)  # (B, 3) object frame, zero: none
         self.register_buffer("_min_depth", torch.tensor([self._radius[i] + 0.01 for i in self._renderer_of],
                                                         dtype=torch.float64), persistent=False)
 
@@ -243,6 +256,8 @@ class EventPoseTracker(nn.Module):
         self.pose.copy_(pose)
         self.prev_pose.copy_(torch.where(m[:, None], propagate(pose, twist, -self.dt), self.prev_pose))
         self.events_seen.masked_fill_(m, 0)
+        if self.feedback is not None:
+            self.feedback.reset(m)
         self.t_last.masked_fill_(m, 0)
         if self.loss is not None:
             self.loss.reset(m)
@@ -283,7 +298,8 @@ class EventPoseTracker(nn.Module):
             depth = self._depth_at(flow.uv, valid)
             centre = self.pose[:, :3]
             upd = self.velocity.update(flow.uv, flow.flow, depth, valid, self.dt, centre=centre)
-            twist = (centre_jacobian(centre) @ self.velocity.x[:, :, None])[..., 0]  # [c_dot, w] -> [v, w]
+            twist_c = self.velocity.x + self.feedback.b if self.feedback is not None else self.velocity.x
+            twist = (centre_jacobian(centre) @ twist_c[:, :, None])[..., 0]  # [c_dot, w] -> [v, w]
             n_vectors = (upd.weights > 0).sum(-1)
         elif cfg.velocity.source == "poses":
             twist = twist_between(self.prev_pose, self.pose, self.dt)
@@ -316,6 +332,10 @@ class EventPoseTracker(nn.Module):
             warm = (self.events_seen >= cfg.template.warmup_events)[:, None]
             measured = torch.where(warm, corr.pose.double(), predicted)
             score = corr.score
+            if self.feedback is not None:  # the correction's rate, as a twist about the predicted centre
+                rate = twist_between(predicted, measured, self.dt)
+                axis = quat_rotate(measured[:, 3:], self._symmetry_axis)  # camera frame (zero stays zero)
+                self.feedback((centre_jacobian(-predicted[:, :3]) @ rate[:, :, None])[..., 0], axis)
         else:
             measured, score = predicted, torch.full((B,), float("nan"))
         clock.lap("correction")
@@ -484,6 +504,12 @@ class EventPoseTracker(nn.Module):
             latest.scatter_reduce_(0, b if b is not None else torch.zeros_like(t), t, "amax")
             self.t_last.copy_(torch.maximum(self.t_last, latest))
         return self.t_last
+
+    @staticmethod
+    def _wants_symmetry(cfg: TrackerConfig) -> bool:
+        """The symmetry axis is only used by the correction feedback."""
+        v = cfg.velocity
+        return v.source == "flow" and cfg.template.enabled and v.feedback_gain > 0
 
     def _invalid(self, pose: torch.Tensor) -> torch.Tensor:
         """``(B,)`` bool: non-finite poses and poses with the object centre closer than its radius."""

@@ -50,7 +50,20 @@ from torch import nn
 from torchevtrack.camera import Camera, interaction_matrix
 from torchevtrack.stages import batch_mask
 
-__all__ = ["VelocityUpdate", "centre_jacobian", "kf_predict", "kf_update", "laplacian_weights", "VelocityKF"]
+__all__ = [
+    "TWIST_AXES",
+    "CorrectionFeedback",
+    "VelocityUpdate",
+    "VelocityKF",
+    "centre_jacobian",
+    "feedback_update",
+    "kf_predict",
+    "kf_update",
+    "laplacian_weights",
+]
+
+TWIST_AXES = ("vx", "vy", "vz", "wx", "wy", "wz")
+"""Names of the twist components ``[c_dot, w]`` about the object centre (camera frame), in state order."""
 
 _MAD = 1.4826  # median absolute deviation -> standard deviation for Gaussian noise
 
@@ -320,3 +333,81 @@ class VelocityKF(nn.Module):
         self.x.copy_(out.x)
         self.P.copy_(out.P)
         return out
+
+
+def feedback_update(b: torch.Tensor, rate: torch.Tensor, gain: float, leak: float, mask: torch.Tensor) -> torch.Tensor:
+    """One step of the correction feedback: ``b+ = leak b + gain rate`` on the ``mask`` axes (0 elsewhere).
+
+    ``rate`` is the correction of this update as a twist (the correction divided by the period), so for a
+    constant rate ``r`` the feedback settles at ``gain r / (1 - leak)`` with time constant
+    ``1 / (1 - leak)`` updates.
+
+    Shape: ``(B, 6), (B, 6), float, float, (6,) bool -> (B, 6)`` (m/s, rad/s).
+    """
+    return torch.where(mask, leak * b + gain * rate, torch.zeros_like(b))
+
+
+class CorrectionFeedback(nn.Module):
+    """Velocity from the template corrections, for the twist components the flow hardly observes.
+
+    The flow of an object seen from a distance barely tells depth rate from nothing, nor pitch and
+    yaw about the object centre from a sideways shift; on those axes the predicted pose falls behind
+    the object and each template correction pulls it back by a little. A leaky integral of those
+    corrections (:func:`feedback_update`), added to the filtered twist, moves the prediction along
+    by the motion the corrections keep finding. The leak keeps it from integrating a steady bias
+    of the corrections themselves (a pure integrator, ``leak = 1``, drifts away on such a bias).
+
+    Args:
+        gain: fraction of each correction's rate taken into the feedback.
+        leak: per-update retention of the feedback in ``[0, 1)``.
+        axes: names from :data:`TWIST_AXES` the feedback acts on.
+        batch_size: number ``B`` of independent elements.
+
+    Buffers:
+        b: ``(B, 6)`` float64 feedback twist ``[c_dot, w]`` about the object centre (m/s, rad/s).
+
+    Example:
+        >>> import torch
+        >>> fb = CorrectionFeedback(gain=0.05, leak=0.9, axes=("vz",))
+        >>> for _ in range(200):
+        ...     _ = fb(torch.tensor([[0.1, 0.0, 0.2, 0.0, 0.0, 0.0]], dtype=torch.float64))
+        >>> [round(v, 3) for v in fb.b[0].tolist()]  # gain / (1 - leak) = 0.5 of the rate on vz only
+        [0.0, 0.0, 0.1, 0.0, 0.0, 0.0]
+    """
+
+    def __init__(self, gain: float = 0.05, leak: float = 0.9, axes=("vz", "wx", "wy"), batch_size: int = 1) -> None:
+        super().__init__()
+        if not gain >= 0.0 or not 0.0 <= leak < 1.0:
+            raise ValueError(f"need gain >= 0 and 0 <= leak < 1, got gain={gain}, leak={leak}")
+        unknown = [a for a in axes if a not in TWIST_AXES]
+        if unknown or isinstance(axes, str):
+            raise ValueError(f"axes must be a list of names from {TWIST_AXES}, got {axes!r}")
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        self.gain, self.leak, self.axes = float(gain), float(leak), tuple(axes)
+        self.register_buffer("mask", torch.tensor([a in axes for a in TWIST_AXES]), persistent=False)
+        self.register_buffer("b", torch.zeros(batch_size, 6, dtype=torch.float64))
+
+    def forward(self, rate: torch.Tensor, symmetry_axis: torch.Tensor | None = None) -> torch.Tensor:
+        """Take the corrections' rate ``(B, 6)`` (twist about the centre) and return the new feedback ``b``.
+
+        ``symmetry_axis`` ``(B, 3)``: unit camera-frame axes through the object centres about which the
+        objects look the same (zero rows: none). The corrections cannot observe a turn about such an axis,
+        so that component of their rate is noise and is removed before it enters the feedback.
+        """
+        if rate.shape != self.b.shape:
+            raise ValueError(f"rate must have shape {tuple(self.b.shape)}, got {tuple(rate.shape)}")
+        rate = rate.to(self.b)
+        if symmetry_axis is not None:
+            a = symmetry_axis.to(rate)
+            w = rate[:, 3:]
+            rate = torch.cat((rate[:, :3], w - (w * a).sum(-1, keepdim=True) * a), -1)
+        self.b.copy_(feedback_update(self.b, rate, self.gain, self.leak, self.mask))
+        return self.b
+
+    def reset(self, mask: torch.Tensor | None = None) -> None:
+        """Zero the feedback of every element, or of those selected by ``mask`` (``(B,)`` bool or ``(K,)`` indices)."""
+        self.b.masked_fill_(batch_mask(mask, self.b.shape[0])[:, None], 0.0)
+
+    def extra_repr(self) -> str:
+        return f"gain={self.gain}, leak={self.leak}, axes={self.axes}"
