@@ -166,7 +166,7 @@ class EventPoseTracker(nn.Module):
                 self._renderers.append(Renderer(mesh, camera))
                 self._radius.append(float(torch.as_tensor(mesh.vertices).norm(dim=1).max()))
                 # An untextured shape symmetric about an axis hides turns about it (vertex colours would show them).
-                axis = symmetry_axis(mesh) if mesh.visual.kind is None and self._wants_symmetry(cfg) else None
+                axis = symmetry_axis(mesh) if mesh.visual.kind is None and self._feedback_on(cfg) else None
                 self._sym_axes.append(torch.zeros(3, dtype=torch.float64) if axis is None else torch.as_tensor(axis))
             self._renderer_of.append(seen[key])
 
@@ -180,7 +180,7 @@ class EventPoseTracker(nn.Module):
                                    min_vectors=v.min_vectors, normal=f.estimate == "normal", batch_size=B)
         # Feedback of the corrections into the flow twist (needs both; off in the paper's ablations without them).
         self.feedback = CorrectionFeedback(v.feedback_gain, v.feedback_leak, v.feedback_axes, batch_size=B) \
-            if self._wants_symmetry(cfg) else None
+            if self._feedback_on(cfg) else None
         t = cfg.template
         self.corrector = TemplateCorrector(camera, canvas=t.canvas, margin_px=t.margin_px, dp_px=t.dp_px,
                                            dtheta_deg=t.dtheta_deg, rule=t.rule, iterations=t.iterations)
@@ -506,8 +506,8 @@ class EventPoseTracker(nn.Module):
         return self.t_last
 
     @staticmethod
-    def _wants_symmetry(cfg: TrackerConfig) -> bool:
-        """The symmetry axis is only used by the correction feedback."""
+    def _feedback_on(cfg: TrackerConfig) -> bool:
+        """The correction feedback runs (it needs the flow twist and the corrections; only it uses symmetry axes)."""
         v = cfg.velocity
         return v.source == "flow" and cfg.template.enabled and v.feedback_gain > 0
 
