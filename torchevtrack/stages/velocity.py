@@ -21,6 +21,10 @@ filters run side by side; the state is float64.
   ``min(1, c / r_i)`` needs about 10 rounds to shed 30 % gross outliers; this kernel needs 3.)
 * The update is solved in information form, ``6 x 6`` per filter, whatever the number of vectors.
 
+:class:`CorrectionFeedback` (optional, used by the tracker with ``velocity.feedback_gain > 0``) adds a
+leaky integral of the template corrections' rate to the filtered twist on the axes the flow hardly
+observes (depth rate, pitch, yaw).
+
 Example:
     >>> import torch
     >>> from torchevtrack.camera import Camera
