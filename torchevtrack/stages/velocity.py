@@ -379,7 +379,7 @@ class CorrectionFeedback(nn.Module):
         [0.0, 0.0, 0.1, 0.0, 0.0, 0.0]
     """
 
-    def __init__(self, gain: float = 0.05, leak: float = 0.9, axes=("vz", "wx", "wy"), batch_size: int = 1) -> None:
+    def __init__(self, gain: float = 0.1, leak: float = 0.9, axes=("vz", "wx", "wy"), batch_size: int = 1) -> None:
         super().__init__()
         if not gain >= 0.0 or not 0.0 <= leak < 1.0:
             raise ValueError(f"need gain >= 0 and 0 <= leak < 1, got gain={gain}, leak={leak}")
