@@ -1,4 +1,5 @@
 import doctest
+import math
 
 import numpy as np
 import pytest
@@ -247,7 +248,7 @@ def test_centre_parametrisation_recovers_the_centre_velocity():
 def test_feedback_follows_its_recursion_on_its_axes_only():
     """Against a plain-Python loop of b+ = leak b + gain r; the other axes stay exactly zero."""
     gen = torch.Generator().manual_seed(3)
-    fb = CorrectionFeedback(gain=0.2, leak=0.7, axes=["vz", "wy"], batch_size=2)
+    fb = CorrectionFeedback(gain=0.2, leak=0.7, axes=["vz", "wy"], max_v=math.inf, max_w=math.inf, batch_size=2)
     rates = torch.randn(30, 2, 6, dtype=torch.float64, generator=gen)
     ref = [[0.0] * 6 for _ in range(2)]
     for r in rates:
@@ -278,8 +279,18 @@ def test_feedback_halves_the_lag_of_a_partial_correction():
 
     no_fb = lag(None)
     assert no_fb == pytest.approx((1 - alpha) * v * dt / alpha, rel=1e-9)
-    assert lag(CorrectionFeedback(gain=0.1, leak=0.9, axes=["vz"])) == pytest.approx(no_fb / 2, rel=1e-6)
-    assert lag(CorrectionFeedback(gain=0.3, leak=0.9, axes=["vz"])) == pytest.approx(no_fb / 4, rel=1e-6)
+    unbounded = dict(axes=["vz"], max_v=math.inf)
+    assert lag(CorrectionFeedback(gain=0.1, leak=0.9, **unbounded)) == pytest.approx(no_fb / 2, rel=1e-6)
+    assert lag(CorrectionFeedback(gain=0.3, leak=0.9, **unbounded)) == pytest.approx(no_fb / 4, rel=1e-6)
+    # Bounded at 0.1 m/s, the feedback stops there: the lag is that of a prediction missing v - 0.1.
+    assert lag(CorrectionFeedback(gain=0.3, leak=0.9, axes=["vz"], max_v=0.1)) == pytest.approx(
+        (1 - alpha) * (v - 0.1) * dt / alpha, rel=1e-6)
+
+
+def test_feedback_limits_bound_each_axis():
+    fb = CorrectionFeedback(gain=1.0, leak=0.5, axes=["vx", "vz", "wx", "wz"], max_v=0.2, max_w=1.5)
+    b = fb(torch.tensor([[5.0, 5.0, -5.0, -5.0, 5.0, 1.0]], dtype=torch.float64))
+    assert b[0].tolist() == [0.2, 0.0, -0.2, -1.5, 0.0, 1.0]
 
 
 def test_feedback_reset_and_bad_arguments():
@@ -291,6 +302,8 @@ def test_feedback_reset_and_bad_arguments():
     assert fb.b.abs().sum() == 0
     with pytest.raises(ValueError, match="leak"):
         CorrectionFeedback(leak=1.0)
+    with pytest.raises(ValueError, match="limits"):
+        CorrectionFeedback(max_w=0.0)
     with pytest.raises(ValueError, match="axes"):
         CorrectionFeedback(axes=["vq"])
     with pytest.raises(ValueError, match="axes"):

@@ -63,11 +63,13 @@ class VelocityConfig:
     r_px: float = 1.0  # measurement std per flow vector, pixels of displacement per update
     min_vectors: int = 3
     # Correction feedback (stages.velocity.CorrectionFeedback): a leaky integral of the template corrections'
-    # rate is added to the flow twist on the axes the flow hardly observes; gain 0 = off (the paper). Off by
-    # default: 0.1 tracks 6 of the 8 benchmark sequences far better but loses the can (README, changelog).
-    feedback_gain: float = 0.0
+    # rate, bounded by feedback_max_v (m/s) / feedback_max_w (rad/s), is added to the flow twist on the axes the
+    # flow hardly observes; gain 0 = off (the paper).
+    feedback_gain: float = 0.1
     feedback_leak: float = 0.9
     feedback_axes: list[str] = field(default_factory=lambda: ["vz", "wx", "wy"])
+    feedback_max_v: float = 0.1
+    feedback_max_w: float = 0.5
 
 
 @dataclass
@@ -134,9 +136,11 @@ class TrackerConfig:
             raise ValueError(f"velocity.source must be 'flow', 'poses' or 'none', got {self.velocity.source!r}")
         v = self.velocity
         if not v.feedback_gain >= 0 or not 0 <= v.feedback_leak < 1 or not isinstance(v.feedback_axes, list) \
-                or any(a not in TWIST_AXES for a in v.feedback_axes):
-            raise ValueError(f"velocity.feedback_gain must be >= 0, feedback_leak in [0, 1) and feedback_axes a list of "
-                             f"{TWIST_AXES}, got {v.feedback_gain!r}, {v.feedback_leak!r}, {v.feedback_axes!r}")
+                or any(a not in TWIST_AXES for a in v.feedback_axes) or not v.feedback_max_v > 0 \
+                or not v.feedback_max_w > 0:
+            raise ValueError(f"velocity.feedback_gain must be >= 0, feedback_leak in [0, 1), feedback_axes a list of "
+                             f"{TWIST_AXES} and feedback_max_v, feedback_max_w positive, got {v.feedback_gain!r}, "
+                             f"{v.feedback_leak!r}, {v.feedback_axes!r}, {v.feedback_max_v!r}, {v.feedback_max_w!r}")
         if self.template.rule not in RULES:
             raise ValueError(f"template.rule must be one of {RULES}, got {self.template.rule!r}")
 

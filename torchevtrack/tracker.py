@@ -179,7 +179,8 @@ class EventPoseTracker(nn.Module):
         self.velocity = VelocityKF(camera, rho=v.rho, q_v=v.q_v, q_w=v.q_w, r_px=v.r_px,
                                    min_vectors=v.min_vectors, normal=f.estimate == "normal", batch_size=B)
         # Feedback of the corrections into the flow twist (needs both; off in the paper's ablations without them).
-        self.feedback = CorrectionFeedback(v.feedback_gain, v.feedback_leak, v.feedback_axes, batch_size=B) \
+        self.feedback = CorrectionFeedback(v.feedback_gain, v.feedback_leak, v.feedback_axes, v.feedback_max_v,
+                                           v.feedback_max_w, batch_size=B) \
             if self._feedback_on(cfg) else None
         t = cfg.template
         self.corrector = TemplateCorrector(camera, canvas=t.canvas, margin_px=t.margin_px, dp_px=t.dp_px,

@@ -339,16 +339,21 @@ class VelocityKF(nn.Module):
         return out
 
 
-def feedback_update(b: torch.Tensor, rate: torch.Tensor, gain: float, leak: float, mask: torch.Tensor) -> torch.Tensor:
-    """One step of the correction feedback: ``b+ = leak b + gain rate`` on the ``mask`` axes (0 elsewhere).
+def feedback_update(b: torch.Tensor, rate: torch.Tensor, gain: float, leak: float, mask: torch.Tensor,
+                    limit: torch.Tensor | None = None) -> torch.Tensor:
+    """One step of the correction feedback: ``b+ = clip(leak b + gain rate, -limit, limit)`` on the ``mask``
+    axes (0 elsewhere).
 
     ``rate`` is the correction of this update as a twist (the correction divided by the period), so for a
-    constant rate ``r`` the feedback settles at ``gain r / (1 - leak)`` with time constant
-    ``1 / (1 - leak)`` updates.
+    constant rate ``r`` the feedback settles at ``gain r / (1 - leak)`` (within the limit) with time
+    constant ``1 / (1 - leak)`` updates.
 
-    Shape: ``(B, 6), (B, 6), float, float, (6,) bool -> (B, 6)`` (m/s, rad/s).
+    Shape: ``(B, 6), (B, 6), float, float, (6,) bool, (6,) or None -> (B, 6)`` (m/s, rad/s).
     """
-    return torch.where(mask, leak * b + gain * rate, torch.zeros_like(b))
+    b = leak * b + gain * rate
+    if limit is not None:
+        b = torch.minimum(torch.maximum(b, -limit), limit)
+    return torch.where(mask, b, torch.zeros_like(b))
 
 
 class CorrectionFeedback(nn.Module):
@@ -359,12 +364,15 @@ class CorrectionFeedback(nn.Module):
     the object and each template correction pulls it back by a little. A leaky integral of those
     corrections (:func:`feedback_update`), added to the filtered twist, moves the prediction along
     by the motion the corrections keep finding. The leak keeps it from integrating a steady bias
-    of the corrections themselves (a pure integrator, ``leak = 1``, drifts away on such a bias).
+    of the corrections themselves (a pure integrator, ``leak = 1``, drifts away on such a bias), and
+    the limits bound its authority (anti-windup): where the corrections cannot see an axis well
+    (the tilt of a can), an unbounded feedback integrates their noise into a runaway.
 
     Args:
         gain: fraction of each correction's rate taken into the feedback.
         leak: per-update retention of the feedback in ``[0, 1)``.
         axes: names from :data:`TWIST_AXES` the feedback acts on.
+        max_v, max_w: largest feedback on a velocity (m/s) and an angular-rate (rad/s) axis (``inf``: none).
         batch_size: number ``B`` of independent elements.
 
     Buffers:
@@ -379,10 +387,12 @@ class CorrectionFeedback(nn.Module):
         [0.0, 0.0, 0.1, 0.0, 0.0, 0.0]
     """
 
-    def __init__(self, gain: float = 0.1, leak: float = 0.9, axes=("vz", "wx", "wy"), batch_size: int = 1) -> None:
+    def __init__(self, gain: float = 0.1, leak: float = 0.9, axes=("vz", "wx", "wy"), max_v: float = 0.1,
+                 max_w: float = 0.5, batch_size: int = 1) -> None:
         super().__init__()
-        if not gain >= 0.0 or not 0.0 <= leak < 1.0:
-            raise ValueError(f"need gain >= 0 and 0 <= leak < 1, got gain={gain}, leak={leak}")
+        if not gain >= 0.0 or not 0.0 <= leak < 1.0 or not max_v > 0 or not max_w > 0:
+            raise ValueError(f"need gain >= 0, 0 <= leak < 1 and positive limits, got gain={gain}, leak={leak}, "
+                             f"max_v={max_v}, max_w={max_w}")
         unknown = [a for a in axes if a not in TWIST_AXES]
         if unknown or isinstance(axes, str):
             raise ValueError(f"axes must be a list of names from {TWIST_AXES}, got {axes!r}")
@@ -390,6 +400,8 @@ class CorrectionFeedback(nn.Module):
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.gain, self.leak, self.axes = float(gain), float(leak), tuple(axes)
         self.register_buffer("mask", torch.tensor([a in axes for a in TWIST_AXES]), persistent=False)
+        self.register_buffer("limit", torch.tensor([float(max_v)] * 3 + [float(max_w)] * 3, dtype=torch.float64),
+                             persistent=False)
         self.register_buffer("b", torch.zeros(batch_size, 6, dtype=torch.float64))
 
     def forward(self, rate: torch.Tensor, symmetry_axis: torch.Tensor | None = None) -> torch.Tensor:
@@ -406,7 +418,7 @@ class CorrectionFeedback(nn.Module):
             a = symmetry_axis.to(rate)
             w = rate[:, 3:]
             rate = torch.cat((rate[:, :3], w - (w * a).sum(-1, keepdim=True) * a), -1)
-        self.b.copy_(feedback_update(self.b, rate, self.gain, self.leak, self.mask))
+        self.b.copy_(feedback_update(self.b, rate, self.gain, self.leak, self.mask, self.limit))
         return self.b
 
     def reset(self, mask: torch.Tensor | None = None) -> None:
@@ -414,4 +426,5 @@ class CorrectionFeedback(nn.Module):
         self.b.masked_fill_(batch_mask(mask, self.b.shape[0])[:, None], 0.0)
 
     def extra_repr(self) -> str:
-        return f"gain={self.gain}, leak={self.leak}, axes={self.axes}"
+        return f"gain={self.gain}, leak={self.leak}, axes={self.axes}, max_v={float(self.limit[0])}, " \
+               f"max_w={float(self.limit[3])}"
