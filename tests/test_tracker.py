@@ -160,7 +160,7 @@ def test_correction_feedback_runs_only_with_flow_and_correction(seq):
         tracker = EventPoseTracker(CAM, seq.mesh, on.replace(**ABLATIONS[name]))  # merged into `on`
         assert (tracker.feedback is not None) == want, name
         tracker.close()
-    assert TrackerConfig().velocity.feedback_gain == 0.1  # on by default
+    assert TrackerConfig().velocity.feedback_gain > 0  # on by default
     off = EventPoseTracker(CAM, seq.mesh, TrackerConfig().replace(velocity={"feedback_gain": 0.0}))
     assert off.feedback is None
     off.close()

@@ -65,8 +65,8 @@ class VelocityConfig:
     # Correction feedback (stages.velocity.CorrectionFeedback): a leaky integral of the template corrections'
     # rate, bounded by feedback_max_v (m/s) / feedback_max_w (rad/s), is added to the flow twist on the axes the
     # flow hardly observes; gain 0 = off (the paper).
-    feedback_gain: float = 0.1
-    feedback_leak: float = 0.9
+    feedback_gain: float = 0.2
+    feedback_leak: float = 0.8
     feedback_axes: list[str] = field(default_factory=lambda: ["vz", "wx", "wy"])
     feedback_max_v: float = 0.1
     feedback_max_w: float = 0.5

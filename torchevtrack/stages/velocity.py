@@ -387,7 +387,7 @@ class CorrectionFeedback(nn.Module):
         [0.0, 0.0, 0.1, 0.0, 0.0, 0.0]
     """
 
-    def __init__(self, gain: float = 0.1, leak: float = 0.9, axes=("vz", "wx", "wy"), max_v: float = 0.1,
+    def __init__(self, gain: float = 0.2, leak: float = 0.8, axes=("vz", "wx", "wy"), max_v: float = 0.1,
                  max_w: float = 0.5, batch_size: int = 1) -> None:
         super().__init__()
         if not gain >= 0.0 or not 0.0 <= leak < 1.0 or not max_v > 0 or not max_w > 0:
