@@ -405,15 +405,17 @@ def test_evaluate_reports_the_error_modulo_symmetry_and_its_failures():
 def test_symmetry_axis_of_meshes():
     import trimesh
 
-    from torchevtrack.mesh import load_mesh, symmetry_axis
+    from torchevtrack.mesh import hidden_symmetry_axis, load_mesh, symmetry_axis
 
     assert np.allclose(symmetry_axis(load_mesh("can")), [0, 0, 1], atol=1e-6)
+    assert hidden_symmetry_axis(load_mesh("can")) is None  # its vertex colours show turns about the axis
     assert symmetry_axis(load_mesh("box")) is None
     rot = Rotation.from_rotvec([0.3, -0.5, 0.2])
     cyl = trimesh.creation.cylinder(radius=0.03, height=0.1, sections=48)
     cyl.apply_transform(np.block([[rot.as_matrix(), np.array([[0.01], [0.02], [0.0]])], [np.zeros((1, 3)), 1.0]]))
     got = symmetry_axis(cyl)
     assert abs(abs(got @ rot.apply([0.0, 0.0, 1.0])) - 1) < 1e-6
+    assert np.array_equal(hidden_symmetry_axis(cyl), got)  # no colours: nothing shows the turns
     squashed = trimesh.creation.cylinder(radius=0.03, height=0.1, sections=48)
     squashed.apply_scale([1.0, 1.3, 1.0])  # an elliptic cylinder has no continuous symmetry
     assert symmetry_axis(squashed) is None

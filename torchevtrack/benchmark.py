@@ -52,7 +52,7 @@ from torchevtrack.camera import Camera
 from torchevtrack.config import ABLATIONS, TrackerConfig
 from torchevtrack.io.poses import read_tum, write_tum
 from torchevtrack.loss import compare_with_ground_truth
-from torchevtrack.mesh import symmetry_axis
+from torchevtrack.mesh import hidden_symmetry_axis
 from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, evaluate, per_pose_errors
 from torchevtrack.synth.sequence import SEQUENCE_FILES, Sequence
 from torchevtrack.tracker import EventPoseTracker
@@ -158,7 +158,7 @@ def _prepare(path: Path, duration_s: float | None, period_us: int) -> _Item:
         raise ValueError(f"sequence {path.name}: {(t1 - t0) / 1e6:.4f} s to track is shorter than one update "
                          f"period ({period_us} us)")
     seq.events = seq.events.slice_time(seq.events.t_start, t1 + 1)
-    axis = symmetry_axis(seq.mesh) if seq.mesh.visual.kind is None else None
+    axis = hidden_symmetry_axis(seq.mesh)
     return _Item(path.name, path, seq, _group(path.name, seq.meta), t0, t1, n, mesh_points(seq.mesh.vertices),
                  None if axis is None else torch.as_tensor(axis))
 

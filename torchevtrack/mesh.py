@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-__all__ = ["BUILTIN_OBJECTS", "load_mesh", "list_objects", "symmetry_axis"]
+__all__ = ["BUILTIN_OBJECTS", "hidden_symmetry_axis", "load_mesh", "list_objects", "symmetry_axis"]
 
 BUILTIN_OBJECTS = ("box", "can", "bottle")
 _INSTALL_HINT = "pip install torchevtrack[ycb]"
@@ -104,6 +104,12 @@ def symmetry_axis(mesh: trimesh.Trimesh, tol: float = 0.01, samples: int = 20_00
         if all(tree.query(p)[0].mean() < tol * scale for p in turned):
             return axis * np.sign(axis[np.argmax(np.abs(axis))])
     return None
+
+
+def hidden_symmetry_axis(mesh: trimesh.Trimesh) -> np.ndarray | None:
+    """:func:`symmetry_axis` of a mesh without colours or texture, else ``None``: the axis turns about which
+    neither its edges nor its shading show (vertex colours or a texture would show them)."""
+    return symmetry_axis(mesh) if mesh.visual.kind is None else None
 
 
 def list_objects() -> list[str]:

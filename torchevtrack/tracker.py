@@ -51,7 +51,7 @@ from torchevtrack.config import TrackerConfig
 from torchevtrack.events import EventStream
 from torchevtrack.geometry import check_pose, quat_canonical, quat_rotate
 from torchevtrack.loss import LossDetector, LossUpdate, OnLost
-from torchevtrack.mesh import load_mesh, symmetry_axis
+from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
 from torchevtrack.render import Renderer
 from torchevtrack.stages import batch_mask
 from torchevtrack.stages.eros import EROS, observation
@@ -165,8 +165,7 @@ class EventPoseTracker(nn.Module):
                 seen[key] = len(self._renderers)
                 self._renderers.append(Renderer(mesh, camera))
                 self._radius.append(float(torch.as_tensor(mesh.vertices).norm(dim=1).max()))
-                # An untextured shape symmetric about an axis hides turns about it (vertex colours would show them).
-                axis = symmetry_axis(mesh) if mesh.visual.kind is None and self._feedback_on(cfg) else None
+                axis = hidden_symmetry_axis(mesh) if self._feedback_on(cfg) else None
                 self._sym_axes.append(torch.zeros(3, dtype=torch.float64) if axis is None else torch.as_tensor(axis))
             self._renderer_of.append(seen[key])
 

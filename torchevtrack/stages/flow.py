@@ -106,17 +106,22 @@ def _check_sae(sae: torch.Tensor) -> None:
                          f"{getattr(sae, 'dtype', type(sae).__name__)} {tuple(getattr(sae, 'shape', ()))}")
 
 
+def _check_time_polarity(t, p, shape: torch.Size, C: int) -> None:
+    """``t`` int64 microseconds and, with two SAE channels (``C = 2``), an integer ``p``, both of ``shape``."""
+    if not isinstance(t, torch.Tensor) or t.dtype != torch.int64 or t.shape != shape:
+        raise TypeError(f"t must be an int64 tensor of microseconds with the shape of x {tuple(shape)}")
+    if C == 2 and (not isinstance(p, torch.Tensor) or p.shape != shape or p.is_floating_point()):
+        raise TypeError(f"p must be an integer tensor with the shape of x {tuple(shape)}")
+
+
 def _prepare(sae: torch.Tensor, x, y, t, p, b):
     _check_sae(sae)
     B, C, H, W = sae.shape
     xi, yi, bi = prepare_events(x, y, b, H, W, B)
-    if not isinstance(t, torch.Tensor) or t.dtype != torch.int64 or t.shape != xi.shape:
-        raise TypeError(f"t must be an int64 tensor of microseconds with the shape of x {tuple(xi.shape)}")
+    _check_time_polarity(t, p, xi.shape, C)
     if C == 1:
         ci = torch.zeros_like(xi)
     else:
-        if not isinstance(p, torch.Tensor) or p.shape != xi.shape or p.is_floating_point():
-            raise TypeError(f"p must be an integer tensor with the shape of x {tuple(xi.shape)}")
         ci = p.long()
         if ci.numel() and bool(((ci < 0) | (ci > 1)).any()):
             raise ValueError("p must be in {0, 1}")
@@ -133,10 +138,7 @@ def sae_update_(sae: torch.Tensor, x: torch.Tensor, y: torch.Tensor, t: torch.Te
     _check_sae(sae)
     _check_fields(x, y, b)
     B, C, H, W = sae.shape
-    if not isinstance(t, torch.Tensor) or t.dtype != torch.int64 or t.shape != x.shape:
-        raise TypeError(f"t must be an int64 tensor of microseconds with the shape of x {tuple(x.shape)}")
-    if C == 2 and (not isinstance(p, torch.Tensor) or p.shape != x.shape or p.is_floating_point()):
-        raise TypeError(f"p must be an integer tensor with the shape of x {tuple(x.shape)}")
+    _check_time_polarity(t, p, x.shape, C)
     none = np.zeros(1, dtype=np.int64)
     if x.numel() and not _sae_kernel(sae.view(B * C, H, W).numpy(), x.numpy(), y.numpy(), t.numpy(),
                                      none if C == 1 else p.numpy(), none if b is None else b.numpy(), C, b is not None):
