@@ -12,7 +12,7 @@ score the model's choice loses against the exact best (in units of the spread of
 scores), and agreement of the group rule's applied sets. Then per-call timings (1 thread, B = 1,
 canvas 128): min and median ms of ``correct`` with ``scoring="warp"`` and ``"taylor"`` and of its parts.
 With ``--reuse`` also the render-reuse path (a model of the render at P_ref scoring hypotheses
-around P_ref + delta) against re-rendering at the new pose.
+around P_ref + delta, by its quadratic at P_ref or re-centred there) against re-rendering at the new pose.
 
     PYOPENGL_PLATFORM=egl .venv/bin/python tools/bench_template.py [--trials 40] [--sequence /tmp/x] [--reuse]
 """
@@ -190,8 +190,9 @@ def speed(args):
         "template_model (render side)": lambda: corr.template_model(start, rd.depth, rd.gray, roi[:2]),
         "observe (obs -> canvas)": lambda: model.observe(obs, roi[:2]),
         "fit_canvas": lambda: model.fit_canvas(o),
+        "fit_canvas at a moved centre": lambda: model.at(truth).fit_canvas(o),
         "correct_model (reuse: observe + fit + search)": lambda: corr.correct_model(model, start, obs, roi[:2]),
-        "model.at (re-centre by one warp)": lambda: model.at(start.double()),
+        "newton_search, 5 iterations (compiled)": lambda: tm.newton_search(model, start, o, CAM, iterations=5),
     }
     for k, fn in parts.items():
         print(f"  {k:46s} {'%7.2f / %7.2f' % timeit(fn, args.runs)}")

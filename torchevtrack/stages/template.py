@@ -60,28 +60,26 @@ Pipeline of one correction (all batched, no loop over pixels or hypotheses):
    the correction repeats around the new pose while the score of the corrected pose keeps improving,
    re-warping the same render (a first-order warp, accurate for a few pixels of cumulative motion).
 6. **Scores without warping** (``scoring="taylor"``, the default; ``scoring="warp"`` is item 4,
-   kept as the reference). A step ``delta = [dt, phi]`` moves canvas pixel ``q`` by
-   ``J(q) delta`` to first order (:func:`canvas_jacobian`: the interaction matrix of the canvas
-   intrinsics at the base depth, with the twist ``v = dt - phi x t``, ``w = phi`` of a rotation about
-   the object origin ``t``), so the warped template is ``T(q - J delta)`` and to second order
-   ``S(delta) = s0 - g . delta + delta^T M delta / 2`` with ``s0 = sum O T``,
-   ``g = sum O J^T grad T``, ``M = sum O J^T (Hess T) J`` (``O`` the observation canvas). ``grad``
-   and ``Hess`` are the exact derivatives of the warp's B-spline interpolant at the pixels
-   (:func:`spline_derivatives`), so the model is the Taylor expansion of the warp of item 4 up to
-   the second-order terms of the displacement (below 1 % of the first-order ones for these steps).
-   One render gives a :class:`TemplateModel` (per-pixel ``T``, ``J^T grad T``, ``J`` and
-   ``Hess T J``); an observation contracts it into a :class:`QuadraticScore` (two small matrix
-   products), which scores any pose near the render's pose in microseconds. Each further
-   iteration re-centres the model on the moved pose by warping the template once
-   (:meth:`TemplateModel.at`). Against the warp (``tools/bench_template.py``, box and mustard
-   bottle at 0.5 m, offsets up to 2 px and 1 deg, edge and EROS observations, 40 trials each) the
-   13 scores correlate above 0.995 (median 0.9997) and the argmax agrees in 97.5-100 % of the
-   trials (the rest are near-ties: the chosen hypothesis loses < 0.1 % of the score spread), at
-   about a fifth to a tenth of the cost. **Reuse:** the model of a render at ``P_ref`` scores the
-   hypotheses around a nearby ``P`` as ``S(delta_ref + delta_h)`` (:func:`correct_model`), so a
-   render can be skipped while :meth:`TemplateModel.shift_px` stays small: at 0.5 px the argmax
-   agrees with a fresh render's warp in 93-100 % of the trials, at 1 px in 82-97 %
-   (re-centring with :meth:`TemplateModel.at`, one warp, gives 90-97 % there).
+   kept as the reference). Around a centre pose ``P`` a step ``delta = [dt, phi]`` moves canvas
+   pixel ``q`` by ``J(q) delta`` to first order (the interaction matrix of the canvas intrinsics at
+   the render's depth, with the twist ``v = dt - phi x t``, ``w = phi`` of a rotation about the
+   object origin ``t``), so the template at ``P (+) delta`` is ``T_P(q - J delta)`` and to second order
+   ``S(delta) = s0 - g . delta + delta^T M delta / 2`` with ``s0 = sum O T_P``,
+   ``g = sum O J^T grad T_P``, ``M = sum O J^T (Hess T_P) J`` (``O`` the observation canvas).
+   ``T_P(q) = T(p(q))`` is the render's template warped to ``P`` (item 4), so by the chain rule
+   ``grad T_P = Dw^T grad T`` and ``Hess T_P = Dw^T (Hess T) Dw`` (dropping the warp's curvature), with
+   ``Dw = dp / dq`` and ``grad T``, ``Hess T`` the exact derivatives of the B-spline interpolant at ``p``.
+   :func:`quadratic_score` sums these terms in one compiled pass over the pixels where ``O != 0`` (a
+   quarter to a third of the canvas on EROS), evaluating the warp, the spline (4 x 4 coefficients) and
+   ``J`` on the fly: about 0.1 ms for a 128 px canvas, against 2-3 ms for the dense per-pixel tensors it
+   replaced, so every iteration re-centres exactly on its pose (:meth:`TemplateModel.at` only moves the
+   centre). One render gives a :class:`TemplateModel` (template, its spline coefficients, depth);
+   an observation contracts it into a :class:`QuadraticScore`, which scores any pose near its centre in
+   microseconds. The model is the Taylor expansion of the warp of item 4 up to the second-order terms of
+   the displacement (below 1 % of the first-order ones for these steps); ``tools/bench_template.py``
+   compares it with the warp. **Reuse:** a render can serve later updates while
+   :meth:`TemplateModel.shift_px` (how far its object points moved) stays small, as the warp
+   approximates a render only for small motions.
 
 Example:
     >>> import torch
@@ -105,6 +103,8 @@ import functools
 import math
 from typing import NamedTuple
 
+import numba
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -132,14 +132,14 @@ __all__ = [
     "prepare_canvas",
     "hypothesis_templates",
     "score",
-    "spline_derivatives",
-    "canvas_jacobian",
     "pose_delta",
     "QuadraticScore",
+    "quadratic_score",
     "TemplateModel",
     "template_model",
     "select",
     "newton_step",
+    "newton_search",
     "search",
     "correct",
     "correct_model",
@@ -501,18 +501,30 @@ def _warp_sources(depth: torch.Tensor, K: torch.Tensor, base_pose: torch.Tensor,
     ``(B * P, 2, N, N)`` canvas coordinates ``(u, v)`` in ``dt``."""
     B, N, _ = depth.shape
     P = poses.shape[1]
+    H, e = _warp_homography(K, base_pose, poses)
+    Z = _fill_depth(depth.to(dt), base_pose[:, 2], max(1, N // 16)).reshape(B, 1, 1, N * N)
+    p = Z * (H.to(dt) @ _homogeneous_grid(N, dt)) + e.to(dt)[..., None]  # (B, P, 3, N * N)
+    return (p[:, :, :2] / p[:, :, 2:].clamp_min(1e-9)).reshape(B * P, 2, N, N)
+
+
+def _warp_homography(K: torch.Tensor, base_pose: torch.Tensor, poses: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The inverse warp from the canvas at ``poses`` ``(B, P, 7)`` to the base canvas at ``base_pose`` ``(B, 7)``:
+    pixel ``q`` with base depth ``Z(q)`` samples ``p = Z(q) H q + e`` (homogeneous canvas pixels).
+
+    ``H = Kc A Kc^-1`` and ``e = Kc b``, with ``X = A X' + b`` the base-frame position of a point ``X'`` of the
+    object at the target pose and ``Kc`` the canvas intrinsics ``K`` ``(B, 4)``.
+
+    Shape: returns ``H`` ``(B, P, 3, 3)`` and ``e`` ``(B, P, 3)``, in ``base_pose``'s dtype.
+    """
+    B = K.shape[0]
     R0 = quat_to_matrix(base_pose[:, 3:])  # (B, 3, 3)
     R = quat_to_matrix(poses[..., 3:])  # (B, P, 3, 3)
-    A = R0[:, None] @ R.transpose(-1, -2)  # X = A X' + b
+    A = R0[:, None] @ R.transpose(-1, -2)
     b = base_pose[:, None, :3] - (A @ poses[..., :3, None])[..., 0]
-    # In homogeneous canvas pixels: p = Z(q) H q + e with H = Kc A Kc^-1 and e = Kc b.
     Kc = torch.zeros(B, 3, 3, dtype=A.dtype)
     Kc[:, 0, 0], Kc[:, 1, 1], Kc[:, 0, 2], Kc[:, 1, 2], Kc[:, 2, 2] = K[:, 0], K[:, 1], K[:, 2], K[:, 3], 1.0
-    H = (Kc[:, None] @ A @ torch.linalg.inv(Kc)[:, None]).to(dt)  # (B, P, 3, 3)
-    e = (Kc[:, None] @ b[..., None]).to(dt)  # (B, P, 3, 1)
-    Z = _fill_depth(depth.to(dt), base_pose[:, 2], max(1, N // 16)).reshape(B, 1, 1, N * N)
-    p = Z * (H @ _homogeneous_grid(N, dt)) + e  # (B, P, 3, N * N)
-    return (p[:, :, :2] / p[:, :, 2:].clamp_min(1e-9)).reshape(B * P, 2, N, N)
+    H = Kc[:, None] @ A @ torch.linalg.inv(Kc)[:, None]
+    return H, (Kc[:, None] @ b[..., None])[..., 0]
 
 
 @functools.lru_cache(maxsize=8)
@@ -634,65 +646,200 @@ def score(templates: torch.Tensor, observation: torch.Tensor) -> torch.Tensor:
 
 
 # -- second-order score model (module docstring, item 6) --------------------------------------
-_SPLINE_VALUE = (1 / 6, 4 / 6, 1 / 6)
-_SPLINE_D1 = (-0.5, 0.0, 0.5)
-_SPLINE_D2 = (1.0, -2.0, 1.0)
+@numba.njit(cache=True, nogil=True)
+def _bspline_weights(x, w, d, dd):
+    """Cubic B-spline weights of the taps ``i - 1 .. i + 2`` at ``i + x`` (``0 <= x < 1``) into ``w``, and their
+    first and second derivatives into ``d`` and ``dd``."""
+    x2 = x * x
+    w[0], w[3] = (1 - x) ** 3 / 6, x2 * x / 6
+    w[1] = 2 / 3 - x2 + x2 * x / 2
+    w[2] = 1 - w[0] - w[1] - w[3]
+    d[0], d[1], d[2], d[3] = -(1 - x) ** 2 / 2, -2 * x + 1.5 * x2, 0.5 + x - 1.5 * x2, x2 / 2
+    dd[0], dd[1], dd[2], dd[3] = 1 - x, 3 * x - 2, 1 - 3 * x, x
 
 
-def spline_derivatives(template: torch.Tensor) -> torch.Tensor:
-    """Derivatives at the pixels of the cubic B-spline interpolant of images (the warp's interpolant).
+@numba.njit(cache=True, nogil=True)
+def _rotation(q):
+    """Rotation matrix of a ``(w, x, y, z)`` quaternion (normalised first)."""
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    w, x, y, z = q[0] / n, q[1] / n, q[2] / n, q[3] / n
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
 
-    Returns ``[T_u, T_v, T_uu, T_uv, T_vv]`` (per pixel and per pixel squared; ``u`` = column).
 
-    Shape: ``(B, N, N) -> (B, 5, N, N)``.
+@numba.njit(cache=True, nogil=True)
+def _quadratic_terms(coef, Z, K, render_pose, pose, obs):
+    """Taylor terms ``(s0, g (6,), M (6, 6))`` of one element's warped-template score around ``pose``.
+
+    For every canvas pixel ``q`` with a non-zero observation ``O`` (``obs`` ``(N * N,)``): its object point
+    ``X`` at ``pose`` (back-projected with the render's depth ``Z(q)``, as the warp does), the point
+    ``Y = A X + b`` in the render's frame and its canvas pixel ``p``, the cubic B-spline of the render
+    template at ``p`` (value, gradient and Hessian from the 4 x 4 coefficients ``coef`` around ``p``), and
+    ``G = dp / d delta``: a step ``delta = [dt, phi]`` of the centre moves the sampled point by
+    ``-dt - phi x (X - t)`` in the centre's frame. Sums ``O T`` into ``s0``, ``-O G^T grad T`` into ``g``
+    and ``O G^T (Hess T) G`` into ``M`` (module docstring, item 6).
     """
-    return F.conv2d(_spline_prefilter(template[:, None]), _derivative_kernels(template.dtype), padding=1)
+    N = coef.shape[0]
+    wu, du, ddu = np.empty(4), np.empty(4), np.empty(4)
+    wv, dv, ddv = np.empty(4), np.empty(4), np.empty(4)
+    G = np.empty((2, 6))
+    fx, fy, cx, cy = K[0], K[1], K[2], K[3]
+    A = _rotation(render_pose[3:]) @ _rotation(pose[3:]).T  # centre frame -> render frame
+    t = pose[:3]
+    off = render_pose[:3] - A @ t
+    s0 = 0.0
+    g = np.zeros(6)
+    M = np.zeros((6, 6))
+    for v in range(N):
+        for u in range(N):
+            o = obs[v * N + u]
+            if o == 0.0:
+                continue
+            z = Z[v, u]
+            X0, X1, X2 = z * (u - cx) / fx, z * (v - cy) / fy, z
+            Y0 = A[0, 0] * X0 + A[0, 1] * X1 + A[0, 2] * X2 + off[0]
+            Y1 = A[1, 0] * X0 + A[1, 1] * X1 + A[1, 2] * X2 + off[1]
+            iz = 1.0 / max(A[2, 0] * X0 + A[2, 1] * X1 + A[2, 2] * X2 + off[2], 1e-9)
+            pu, pv = fx * Y0 * iz + cx, fy * Y1 * iz + cy
+            # the render template's spline at p
+            iu, iv = math.floor(pu), math.floor(pv)
+            _bspline_weights(pu - iu, wu, du, ddu)
+            _bspline_weights(pv - iv, wv, dv, ddv)
+            T = Tu = Tv = Tuu = Tuv = Tvv = 0.0
+            for j in range(4):
+                r = iv - 1 + j
+                if r < 0 or r >= N:
+                    continue
+                a0 = a1 = a2 = 0.0
+                for i in range(4):
+                    c = iu - 1 + i
+                    if 0 <= c < N:
+                        k = coef[r, c]
+                        a0 += k * wu[i]
+                        a1 += k * du[i]
+                        a2 += k * ddu[i]
+                T += a0 * wv[j]
+                Tu += a1 * wv[j]
+                Tuu += a2 * wv[j]
+                Tv += a0 * dv[j]
+                Tuv += a1 * dv[j]
+                Tvv += a0 * ddv[j]
+            # G = dp/dY A [-I, [X - t]x]: rows P_r = (dp_r/dY) A, then G_r = [-P_r, P_r x (X - t)]
+            d0, d1, d2 = X0 - t[0], X1 - t[1], X2 - t[2]
+            for r in range(2):
+                e0 = (fx if r == 0 else fy) * iz  # dp_r/dY = e0 in component r, e2 in z
+                e2 = -e0 * (Y0 if r == 0 else Y1) * iz
+                P0 = e0 * A[r, 0] + e2 * A[2, 0]
+                P1 = e0 * A[r, 1] + e2 * A[2, 1]
+                P2 = e0 * A[r, 2] + e2 * A[2, 2]
+                G[r, 0], G[r, 1], G[r, 2] = -P0, -P1, -P2
+                G[r, 3], G[r, 4], G[r, 5] = P1 * d2 - P2 * d1, P2 * d0 - P0 * d2, P0 * d1 - P1 * d0
+            s0 += o * T
+            for k in range(6):
+                gu, gv = G[0, k], G[1, k]
+                g[k] -= o * (Tu * gu + Tv * gv)
+                hu, hv = o * (Tuu * gu + Tuv * gv), o * (Tuv * gu + Tvv * gv)
+                for m in range(k, 6):
+                    M[k, m] += hu * G[0, m] + hv * G[1, m]
+    for k in range(6):
+        for m in range(k + 1, 6):
+            M[m, k] = M[k, m]
+    return s0, g, M
 
 
-@functools.lru_cache(maxsize=8)
-def _derivative_kernels(dtype: torch.dtype) -> torch.Tensor:
-    """``(5, 1, 3, 3)`` kernels of :func:`spline_derivatives` (cached constant, never modified in place)."""
-    val, d1, d2 = (torch.tensor(k, dtype=dtype) for k in (_SPLINE_VALUE, _SPLINE_D1, _SPLINE_D2))
-    kern = torch.stack((torch.outer(val, d1), torch.outer(d1, val), torch.outer(val, d2), torch.outer(d1, d1),
-                        torch.outer(d2, val)))  # [row kernel (v) x column kernel (u)]
-    return kern[:, None]
+@numba.njit(cache=True, nogil=True)
+def _quadratic_kernel(coef, Z, K, render_pose, pose, obs, s0, g, M):
+    """:func:`_quadratic_terms` of every batch element into ``s0`` ``(B,)``, ``g`` ``(B, 6)``, ``M`` ``(B, 6, 6)``."""
+    for b in range(coef.shape[0]):
+        s0[b], g[b], M[b] = _quadratic_terms(coef[b], Z[b], K[b], render_pose[b], pose[b], obs[b])
 
 
-def canvas_jacobian(depth: torch.Tensor, K: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
-    """Image motion of every canvas pixel per hypothesis step ``[dt, phi]`` (first order).
+@numba.njit(cache=True, nogil=True)
+def _apply_step(pose, delta):
+    """:func:`apply_steps` of one step ``[dt, phi]`` to one pose (float64)."""
+    out = np.empty(7)
+    out[:3] = pose[:3] + delta[:3]
+    sq = delta[3] ** 2 + delta[4] ** 2 + delta[5] ** 2
+    a = math.sqrt(sq)
+    k = math.sin(a / 2) / a if sq > 0 else 0.5
+    e = np.array([math.cos(a / 2) if sq > 0 else 1.0, delta[3] * k, delta[4] * k, delta[5] * k])
+    q = pose[3:]
+    r = np.array([e[0] * q[0] - e[1] * q[1] - e[2] * q[2] - e[3] * q[3],
+                  e[0] * q[1] + e[1] * q[0] + e[2] * q[3] - e[3] * q[2],
+                  e[0] * q[2] - e[1] * q[3] + e[2] * q[0] + e[3] * q[1],
+                  e[0] * q[3] + e[1] * q[2] - e[2] * q[1] + e[3] * q[0]])
+    r /= max(math.sqrt(np.sum(r * r)), 1e-12)
+    out[3:] = -r if r[0] < 0 else r
+    return out
 
-    A step moves an object point ``X`` (camera frame) by ``dt + phi x (X - t)``: the twist
-    ``v = dt - phi x t``, ``w = phi`` of :func:`torchevtrack.camera.interaction_matrix`, evaluated with the
-    canvas intrinsics and the (background-filled) base depth. Pixel ``q`` of the moved template shows
-    the base template at ``q - J(q) delta``.
+
+@numba.njit(cache=True, nogil=True)
+def _newton_kernel(coef, Z, K, render_pose, pose, obs, unit, iterations, damping, max_step,
+                   out_pose, out_score, out_scores, out_moved):
+    """The ``"newton"`` rule of :func:`search` on the exact second-order model, per element (:func:`newton_search`).
+
+    Each round fits the model at the current pose (:func:`_quadratic_terms`), where in step units ``u`` the
+    score is ``s0 + gu . u + u^T Hu u / 2`` with ``gu = -g unit``, ``Hu = unit M unit``; the damped step
+    ``u = (lambda I - Hu)^-1 gu`` (:func:`newton_step`'s ``lambda``), clipped per axis, is taken if its score
+    beats ``s0``, else the search stops. ``unit`` ``(B, 6)`` holds the hypothesis step sizes of the start pose
+    per axis; the translation units scale with the current depth, as :func:`hypothesis_steps` does.
+    """
+    for b in range(coef.shape[0]):
+        cur = pose[b].copy()
+        moved = 0
+        for it in range(iterations):
+            s0, g, M = _quadratic_terms(coef[b], Z[b], K[b], render_pose[b], cur, obs[b])
+            un = unit[b].copy()
+            un[:2] *= cur[2] / pose[b, 2]
+            if it == 0:
+                out_score[b] = s0
+                out_scores[b, 0] = s0
+                for a in range(6):
+                    for sign in range(2):
+                        d = un[a] * (1.0 - 2.0 * sign)
+                        out_scores[b, 1 + 2 * a + sign] = s0 - g[a] * d + 0.5 * M[a, a] * d * d
+            gu = -g * un
+            Hu = M * np.outer(un, un)
+            lam = max(np.linalg.eigvalsh(Hu)[-1], 0.0) + damping * np.mean(np.abs(np.diag(Hu))) + 1e-12
+            step = np.linalg.solve(lam * np.eye(6) - Hu, gu)
+            delta = np.minimum(np.maximum(step, -max_step), max_step) * un
+            new = s0 - g @ delta + 0.5 * delta @ (M @ delta)
+            if not new > s0:
+                break
+            cur = _apply_step(cur, delta)
+            out_score[b] = new
+            moved += 1
+        out_pose[b] = cur
+        out_moved[b] = moved
+
+
+def quadratic_score(coef: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, render_pose: torch.Tensor,
+                    pose: torch.Tensor, obs: torch.Tensor) -> "QuadraticScore":
+    """Second-order model of the template score around ``pose``, from a render's template made at ``render_pose``.
+
+    The template at ``pose`` is the render's template warped there (:func:`warp_canvas`), evaluated on the fly
+    at the observed pixels only (compiled; module docstring, item 6).
 
     Args:
-        depth: ``(B, N, N)`` canvas depth, metres, every pixel positive (see :func:`_fill_depth`).
-        K: ``(B, 4)`` canvas intrinsics.
-        pose: ``(B, 7)`` base pose (its translation is the rotation centre).
+        coef: ``(B, N, N)`` B-spline coefficients of the render's template (:func:`_spline_prefilter`).
+        depth: ``(B, N, N)`` canvas depth of the render, background filled (metres, all positive).
+        K: ``(B, 4)`` canvas intrinsics; render_pose, pose: ``(B, 7)``.
+        obs: ``(B, N * N)`` observation in the canvas.
 
-    Shape: returns ``(B, 6, 2, N * N)``: ``J[:, j, r]`` is the motion of pixel coordinate ``r``
-    (``u``, ``v``) per unit of ``delta_j``, canvas pixels per metre / radian.
+    Shape: returns a :class:`QuadraticScore` centred at ``pose`` (float64).
     """
-    B, N, _ = depth.shape
-    dt = depth.dtype
-    K = K.to(dt)
-    fx, fy = K[:, 0, None, None], K[:, 1, None, None]
-    ar = torch.arange(N, dtype=dt)
-    x = (ar[None, None, :] - K[:, 2, None, None]) / fx  # (B, 1, N) normalised coordinates
-    y = (ar[None, :, None] - K[:, 3, None, None]) / fy  # (B, N, 1)
-    tx, ty, tz = (pose[:, i, None, None].to(dt) for i in range(3))
-    iz = 1.0 / depth  # (B, N, N)
-    xi, yi = x * iz, y * iz
-    xy = x * y
-    zero = torch.zeros_like(iz)
-    # L of camera.interaction_matrix with the rotation columns shifted by v = dt + t x phi:
-    # J[:, :, 3:] = L[:, :, 3:] + L[:, :, :3] [t]_x.
-    ju = (iz, zero, -xi, -xy + xi * ty, 1 + x * x - iz * tz - xi * tx, -y + iz * ty)
-    jv = (zero, iz, -yi, -(1 + y * y) + iz * tz + yi * ty, xy - yi * tx, x - iz * tx)
-    ju = torch.stack([c.expand(B, N, N) for c in ju], 1) * fx[:, None]
-    jv = torch.stack([c.expand(B, N, N) for c in jv], 1) * fy[:, None]
-    return torch.stack((ju, jv), 2).reshape(B, 6, 2, N * N)
+    B = coef.shape[0]
+    pose = pose.double()
+    s0, g, M = torch.empty(B, dtype=torch.float64), torch.empty(B, 6, dtype=torch.float64), \
+        torch.empty(B, 6, 6, dtype=torch.float64)
+    _quadratic_kernel(_np(coef), _np(depth), _np(K.double()), _np(render_pose.double()), _np(pose), _np(obs),
+                      s0.numpy(), g.numpy(), M.numpy())
+    return QuadraticScore(pose, s0, g, M)
+
+
+def _np(x: torch.Tensor) -> np.ndarray:
+    return x.detach().contiguous().numpy()
 
 
 class QuadraticScore(NamedTuple):
@@ -749,10 +896,7 @@ class TemplateModel(NamedTuple):
         gain: ``(B,)`` :func:`radial_gain` of the render (sets the z step).
         render_template: ``(B, N, N)`` template (scaled DoG) of the render.
         depth: ``(B, N, N)`` canvas depth of the render, background filled (:func:`_fill_depth`).
-        linear: ``(B, 7, N * N)`` per pixel the template at ``pose`` and ``J^T grad T``
-            (:func:`canvas_jacobian`, :func:`spline_derivatives`).
-        jac: ``(B, 6, 2 N * N)`` ``J^T`` (per pixel its ``u`` then its ``v`` row).
-        hess: ``(B, 6, 2 N * N)`` ``(Hess T J)^T`` in the same layout, so ``M = sum O jac hess^T``.
+        coef: ``(B, N, N)`` cubic B-spline coefficients of ``render_template`` (the warp's interpolant).
         points: ``(B, P, 3)`` object points of the render (camera frame, metres); valid: ``(B, P)`` bool.
     """
 
@@ -763,9 +907,7 @@ class TemplateModel(NamedTuple):
     gain: torch.Tensor
     render_template: torch.Tensor
     depth: torch.Tensor
-    linear: torch.Tensor
-    jac: torch.Tensor
-    hess: torch.Tensor
+    coef: torch.Tensor
     points: torch.Tensor
     valid: torch.Tensor
 
@@ -783,15 +925,11 @@ class TemplateModel(NamedTuple):
 
     def fit_canvas(self, obs: torch.Tensor) -> QuadraticScore:
         """:meth:`fit` for an observation already in the canvas (:meth:`observe`), ``(B, N * N)``."""
-        B = obs.shape[0]
-        lin = (self.linear @ obs[..., None])[..., 0].double()  # (B, 7)
-        jo = (self.jac.view(B, 6, 2, -1) * obs[:, None, None]).view(B, 6, -1)
-        M = (jo @ self.hess.transpose(1, 2)).double()
-        return QuadraticScore(self.pose, lin[:, 0], lin[:, 1:], 0.5 * (M + M.transpose(1, 2)))
+        return quadratic_score(self.coef, self.depth, self.K, self.render_pose, self.pose, obs)
 
     def at(self, pose: torch.Tensor) -> "TemplateModel":
-        """The model centred at ``pose`` ``(B, 7)``: the render's template warped there (:func:`warp_canvas`)."""
-        return _model_at(self, pose, _spline_prefilter(self.render_template[:, None]))
+        """The model centred at ``pose`` ``(B, 7)`` (the render's template warped there when it is fitted)."""
+        return self._replace(pose=pose.double())
 
     def shift_px(self, pose: torch.Tensor) -> torch.Tensor:
         """Largest image motion (frame pixels) of the render's object points from the render's pose to ``pose``.
@@ -806,27 +944,6 @@ class TemplateModel(NamedTuple):
         shift = (f * (moved[..., :2] / moved[..., 2:] - X[..., :2] / X[..., 2:])).norm(dim=-1)
         shift = shift * (self.box[:, 2:].double() / self.depth.shape[-1])  # canvas -> frame pixels
         return torch.where(self.valid, shift, torch.zeros_like(shift)).amax(1)
-
-
-def _model_at(model: TemplateModel, pose: torch.Tensor, coef: torch.Tensor) -> TemplateModel:
-    """:meth:`TemplateModel.at` with the B-spline coefficients ``coef`` ``(B, 1, N, N)`` of its render template
-    (computed once for several moves of one model)."""
-    pose = pose.double()
-    uv = _warp_sources(model.depth, model.K, model.render_pose, pose[:, None], model.render_template.dtype)
-    t = _spline_sample(coef, uv)[:, 0]
-    return model._replace(pose=pose, **_score_terms(t, model.depth, model.K, pose))
-
-
-def _score_terms(template: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, pose: torch.Tensor) -> dict:
-    """Per-pixel terms of :class:`TemplateModel` for a template ``(B, N, N)`` centred at ``pose``."""
-    B, N, _ = template.shape
-    D = spline_derivatives(template).reshape(B, 1, 5, N * N)  # [Tu, Tv, Tuu, Tuv, Tvv]
-    J = canvas_jacobian(depth, K, pose)  # (B, 6, 2, N * N)
-    ju, jv = J[:, :, :1], J[:, :, 1:]
-    grad = ju[:, :, 0] * D[:, :, 0] + jv[:, :, 0] * D[:, :, 1]
-    hess = ju * D[:, :, 2:4] + jv * D[:, :, 3:5]  # per pixel (Hess T) J: [[Tuu, Tuv], [Tuv, Tvv]] rows
-    return dict(linear=torch.cat((template.reshape(B, 1, N * N), grad), 1), jac=J.reshape(B, 6, 2 * N * N),
-                hess=hess.reshape(B, 6, 2 * N * N))
 
 
 def template_model(
@@ -861,9 +978,8 @@ def template_model(
     y = (idx[None, :, None] - K[:, 3, None, None]) / K[:, 1, None, None] * zs
     points = torch.stack((x, y, zs), -1).reshape(B, -1, 3)
     pose = pose.double()
-    return TemplateModel(pose=pose, render_pose=pose, box=cr.box, K=cr.K, gain=gain,
-                         render_template=T, depth=Z, points=points, valid=(zs > 0).reshape(B, -1),
-                         **_score_terms(T, Z, cr.K, pose))
+    return TemplateModel(pose=pose, render_pose=pose, box=cr.box, K=cr.K, gain=gain, render_template=T, depth=Z,
+                         coef=_spline_prefilter(T[:, None])[:, 0], points=points, valid=(zs > 0).reshape(B, -1))
 
 
 def select(
@@ -1101,11 +1217,11 @@ def correct_model(
 ) -> Correction:
     """:func:`correct` with a render's :class:`TemplateModel`, around any pose near the render's.
 
-    ``pose`` may differ from ``model.pose`` (reuse of an earlier render): the first iteration scores
-    the hypotheses around ``pose`` with the quadratic around ``model.pose``
-    (``S(delta_ref + delta_h)``); keep ``model.shift_px(pose)`` below about a pixel, or pass
-    ``model.at(pose)``. Further iterations re-centre the model on the moved pose (:meth:`TemplateModel.at`).
-    The returned pose has ``pose``'s dtype, the scores the render's.
+    Every iteration fits the model at its current pose (the render's template warped there,
+    :func:`quadratic_score`), so ``pose`` may differ from the render's pose (reuse of an earlier render);
+    keep ``model.shift_px(pose)`` small, as the warp approximates a render for small motions only.
+    ``rule="newton"`` runs the whole search in one compiled call (:func:`newton_search`); the other rules
+    go through :func:`search`. The returned pose has ``pose``'s dtype, the scores the render's.
 
     Shape: ``TemplateModel, (B, 7), (B, H, W) -> Correction``.
     """
@@ -1114,28 +1230,49 @@ def correct_model(
     if pose.shape[0] != model.pose.shape[0]:
         raise ValueError(f"pose must have one row per model element ({model.pose.shape[0]}), got {tuple(pose.shape)}")
     obs = model.observe(observation, observation_origin)
+    if rule == "newton":
+        return newton_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, iterations=iterations)
 
-    at_centre = torch.equal(model.pose, pose.double())
     dtype = model.depth.dtype  # scores in the render's dtype, as with scoring="warp"
-    coef = []  # B-spline coefficients of the render template, once for all re-centrings
 
     def scorer(centre: torch.Tensor):
-        if centre is pose:  # first iteration: the given model, centred at pose or not (reuse)
-            quad = model.fit_canvas(obs)
-            exact = at_centre
-        else:
-            if not coef:
-                coef.append(_spline_prefilter(model.render_template[:, None]))
-            quad, exact = _model_at(model, centre, coef[0]).fit_canvas(obs), True
-
-        def score_steps(steps: torch.Tensor) -> torch.Tensor:
-            d = steps if exact else pose_delta(quad.pose, apply_steps(centre, steps))
-            return quad.at_steps(d).to(dtype)
-
-        return score_steps, lambda poses: quad.evaluate(poses).to(dtype)
+        quad = model.at(centre).fit_canvas(obs)
+        return lambda steps: quad.at_steps(steps).to(dtype), lambda poses: quad.evaluate(poses).to(dtype)
 
     return search(pose, scorer, model.gain, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule,
                   iterations=iterations)
+
+
+def newton_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, camera: Camera, *,
+                  dp_px: float = 1.0, dtheta_deg: float = 0.5, iterations: int = 1, damping: float = 0.5,
+                  max_step: float = 1.0) -> Correction:
+    """:func:`search` with ``rule="newton"`` on the model's exact quadratic, compiled in one call.
+
+    The same search as ``search(pose, scorer, ...)`` with the scorer of :func:`correct_model` (the quadratic
+    model refitted at every iteration's pose, the damped Newton step of :func:`newton_step`, stopping when a
+    step does not raise the score), but the model's ``g`` and ``M`` give the step directly (the 28-score fit of
+    :func:`newton_step` recovers them exactly) and everything runs in float64, without per-iteration tensors.
+
+    Args:
+        model: the render's :class:`TemplateModel`; pose: ``(B, 7)`` start poses; obs: ``(B, N * N)``
+            observation in the canvas (:meth:`TemplateModel.observe`).
+        dp_px, dtheta_deg, iterations: see :func:`correct`; damping, max_step: see :func:`newton_step`.
+
+    Shape: ``(B, 7), (B, N * N) -> Correction`` (``applied`` all false, as with :func:`search`).
+    """
+    B = pose.shape[0]
+    start = pose.double()
+    unit = hypothesis_steps(start, camera, model.gain, dp_px, dtheta_deg)[:, 1::2].diagonal(dim1=1, dim2=2)
+    out_pose = torch.empty(B, 7, dtype=torch.float64)
+    score, scores = torch.empty(B, dtype=torch.float64), torch.empty(B, NUM_HYPOTHESES, dtype=torch.float64)
+    moved = torch.empty(B, dtype=torch.int64)
+    _newton_kernel(_np(model.coef), _np(model.depth), _np(model.K.double()), _np(model.render_pose), _np(start),
+                   _np(obs), _np(unit), iterations, damping, max_step, out_pose.numpy(), score.numpy(),
+                   scores.numpy(), moved.numpy())
+    dtype = model.depth.dtype
+    scores = scores.to(dtype)
+    return Correction(out_pose.to(pose.dtype), score.to(dtype), scores, scores.argmax(1),
+                      torch.zeros(B, NUM_HYPOTHESES, dtype=torch.bool), moved)
 
 
 class TemplateCorrector(nn.Module):
