@@ -5,7 +5,8 @@ import pytest
 import scipy.ndimage
 import torch
 
-from torchevtrack.stages.eros import EROS, eros_update, eros_update_, observation
+from torchevtrack.stages.eros import EROS, eros_update, eros_update_, observation, recent_observation
+from torchevtrack.stages.flow import NEVER
 
 
 def eros_oracle(surface, xs, ys, bs, k, d):
@@ -127,3 +128,40 @@ def test_bad_inputs():
         m(torch.tensor([1, 2]), torch.tensor([0]))
     with pytest.raises(ValueError, match="contiguous"):
         eros_update_(torch.zeros(1, 6, 5).transpose(1, 2), torch.tensor([1]), torch.tensor([1]), None)
+
+
+def _recent_reference(surface, last_us, origin, size, t_now, max_age_us, recency_us):
+    """recent_observation by its definition: weigh each window's pixels by event age, then observation()."""
+    h, w = size
+    crops = []
+    for i, (u0, v0) in enumerate(origin.tolist()):
+        crop = surface[i, v0:v0 + h, u0:u0 + w]
+        age = t_now[i] - last_us[i, :, v0:v0 + h, u0:u0 + w].amax(0)
+        if max_age_us > 0:
+            crop = crop * (age < max_age_us)
+        if recency_us > 0:
+            crop = crop * torch.exp(-age.clamp_min(0).float() / recency_us)
+        crops.append(crop)
+    return observation(torch.stack(crops))
+
+
+@pytest.mark.parametrize("size", [(37, 52), (1, 9), (8, 1)])
+@pytest.mark.parametrize("max_age_us, recency_us", [(0, 0.0), (3000, 0.0), (0, 800.0), (3000, 800.0)])
+def test_recent_observation_matches_its_definition(size, max_age_us, recency_us):
+    gen = torch.Generator().manual_seed(21)
+    B, H, W = 2, 60, 80
+    surface = torch.rand(B, H, W, generator=gen) * (torch.rand(B, H, W, generator=gen) > 0.5)
+    padded = torch.full((B, 2, H + 4, W + 4), NEVER, dtype=torch.int64)  # a strided view, as the flow stage keeps it
+    last = padded[:, :, 2:-2, 2:-2]
+    fired = torch.rand(B, 2, H, W, generator=gen) > 0.3
+    last.copy_(torch.where(fired, torch.randint(0, 10000, (B, 2, H, W), generator=gen), NEVER))
+    origin = torch.tensor([[3, 5], [W - size[1], H - size[0]]])
+    t_now = torch.tensor([10000, 9000])
+    out = recent_observation(surface, last, origin, size, t_now, max_age_us, recency_us)
+    ref = _recent_reference(surface, last, origin, size, t_now, max_age_us, recency_us)
+    assert out.shape == (B, *size) and (ref > 0).any()
+    assert torch.allclose(out, ref, rtol=1e-6, atol=1e-7)  # exp may round differently in the last bit
+    with pytest.raises(ValueError, match="inside"):
+        recent_observation(surface, last, origin + 1, size, t_now)
+    with pytest.raises(ValueError, match="time surface"):
+        recent_observation(surface, last.float(), origin, size, t_now)

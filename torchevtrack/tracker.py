@@ -54,7 +54,7 @@ from torchevtrack.loss import LossDetector, LossUpdate, OnLost
 from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
 from torchevtrack.render import Renderer
 from torchevtrack.stages import batch_mask
-from torchevtrack.stages.eros import EROS, observation
+from torchevtrack.stages.eros import EROS, recent_observation
 from torchevtrack.stages.flow import TripletFlow
 from torchevtrack.stages.propagate import propagate, twist_between
 from torchevtrack.stages.template import TemplateCorrector, TemplateModel, render_window
@@ -524,21 +524,8 @@ class EventPoseTracker(nn.Module):
         ``eros.recency_us > 0`` every pixel is weighed by ``exp(-age / recency_us)``, which moves the
         observation's edges toward where the object is now (the correction lags less behind the motion).
         """
-        h, w = size
-        max_age = self.config.eros.max_age_us
-        tau = self.config.eros.recency_us
-        sae = self.flow.sae
-        crops = []
-        for i, (u0, v0) in enumerate(origin.tolist()):  # slices are views: faster than one batched gather
-            crop = self.eros.surface[i, v0:v0 + h, u0:u0 + w]
-            if max_age > 0 or tau > 0:
-                age = t_now[i] - sae[i, :, v0:v0 + h, u0:u0 + w].amax(0)
-                if max_age > 0:
-                    crop = crop * (age < max_age)
-                if tau > 0:
-                    crop = crop * torch.exp(-age.clamp_min(0).float() / tau)
-            crops.append(crop)
-        return observation(torch.stack(crops))
+        e = self.config.eros
+        return recent_observation(self.eros.surface, self.flow.sae, origin, size, t_now, e.max_age_us, e.recency_us)
 
     def _depth_at(self, uv: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         """Depth ``(B, G)`` at the ``valid`` ``(B, G)`` flow pixels ``uv`` ``(B, G, 2)`` from the last render

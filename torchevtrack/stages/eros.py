@@ -23,6 +23,8 @@ Example:
 
 from __future__ import annotations
 
+import math
+
 import kornia
 import numba
 import numpy as np
@@ -169,6 +171,81 @@ def _median3x3(surface: torch.Tensor, border: str) -> torch.Tensor:
 def _median3(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
     return torch.maximum(torch.minimum(a, b), torch.minimum(torch.maximum(a, b), c))
 
+
+
+def recent_observation(surface: torch.Tensor, last_us: torch.Tensor, origin: torch.Tensor, size: tuple[int, int],
+                       t_now_us: torch.Tensor, max_age_us: int = 0, recency_us: float = 0.0) -> torch.Tensor:
+    """The matching observation (:func:`observation`) of one window of each surface, weighed by event age.
+
+    Every pixel of the window is ``S * [age < max_age_us] * exp(-max(age, 0) / recency_us)`` before the 3x3
+    median (mirror border at the window's edges), with ``age = t_now_us - last_us`` of its newest event of
+    any polarity (each factor only when its parameter is positive). One compiled pass per window.
+
+    Args:
+        surface: ``(B, H, W)`` float32 EROS; last_us: ``(B, C, H, W)`` int64 time surface (microseconds).
+        origin: ``(B, 2)`` int64 top-left pixel ``(u0, v0)`` of each window; size: ``(h, w)``, inside the frame.
+        t_now_us: ``(B,)`` int64 current time per element.
+
+    Shape: returns ``(B, h, w)`` float32.
+    """
+    B, H, W = surface.shape
+    h, w = size
+    if last_us.shape[0] != B or last_us.shape[2:] != (H, W) or last_us.dtype != torch.int64:
+        raise ValueError(f"last_us must be an int64 ({B}, C, {H}, {W}) time surface, got {last_us.dtype} "
+                         f"{tuple(last_us.shape)}")
+    o = origin.long()
+    if o.shape != (B, 2) or not (h > 0 and w > 0) or bool(((o < 0) | (o + torch.tensor([w, h]) > torch.tensor([W, H]))).any()):
+        raise ValueError(f"windows of size {(h, w)} at origins {o.tolist()} must lie inside the {H}x{W} surface")
+    out = torch.empty(B, h, w, dtype=torch.float32)
+    _recent_kernel(surface.detach().numpy(), last_us.detach().numpy(), o.contiguous().numpy(),  # views: no copies
+                   t_now_us.long().contiguous().numpy(), int(max_age_us), float(recency_us), out.numpy())
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _recent_kernel(surface, last, origin, t_now, max_age, tau, out):
+    """:func:`recent_observation` into ``out`` ``(B, h, w)``."""
+    B, h, w = out.shape
+    C = last.shape[1]
+    buf = np.empty((h + 2, w + 2), dtype=np.float32)  # the weighted window, mirror-padded by one pixel
+    lo = np.empty((h, w + 2), dtype=np.float32)  # per column: min, median, max of rows y - 1 .. y + 1
+    mid = np.empty((h, w + 2), dtype=np.float32)
+    hi = np.empty((h, w + 2), dtype=np.float32)
+    inv_tau = np.float32(1.0 / tau) if tau > 0 else np.float32(0.0)
+    for b in range(B):
+        u0, v0 = origin[b, 0], origin[b, 1]
+        for y in range(h):
+            for x in range(w):
+                s = surface[b, v0 + y, u0 + x]
+                if s != 0 and (max_age > 0 or tau > 0):
+                    newest = last[b, 0, v0 + y, u0 + x]
+                    for c in range(1, C):
+                        newest = max(newest, last[b, c, v0 + y, u0 + x])
+                    age = t_now[b] - newest
+                    if max_age > 0 and age >= max_age:
+                        s = np.float32(0.0)
+                    elif tau > 0:
+                        s = s * np.float32(math.exp(-np.float32(max(age, 0)) * inv_tau))
+                buf[y + 1, x + 1] = s
+        # mirror border (edge not repeated); a window with a one-pixel side repeats its edges instead
+        m = 1 if min(h, w) > 1 else 0
+        for y in range(1, h + 1):
+            buf[y, 0], buf[y, w + 1] = buf[y, 1 + m], buf[y, w - m]
+        for x in range(w + 2):
+            buf[0, x], buf[h + 1, x] = buf[1 + m, x], buf[h - m, x]
+        for y in range(h):
+            for x in range(w + 2):
+                a, c, d = buf[y, x], buf[y + 1, x], buf[y + 2, x]
+                p, q = min(a, c), max(a, c)
+                p, d = min(p, d), max(p, d)
+                lo[y, x], mid[y, x], hi[y, x] = p, min(q, d), max(q, d)
+        for y in range(h):
+            for x in range(w):
+                L = max(max(lo[y, x], lo[y, x + 1]), lo[y, x + 2])
+                Hh = min(min(hi[y, x], hi[y, x + 1]), hi[y, x + 2])
+                m0, m1, m2 = mid[y, x], mid[y, x + 1], mid[y, x + 2]
+                M = max(min(m0, m1), min(max(m0, m1), m2))
+                out[b, y, x] = max(min(L, M), min(max(L, M), Hh))
 
 class EROS(nn.Module):
     """Stateful EROS surface for ``B`` independent event streams.
