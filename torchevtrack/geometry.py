@@ -22,6 +22,10 @@ Example:
 
 from __future__ import annotations
 
+import math
+
+import numba
+import numpy as np
 import torch
 from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_matrix_to_quaternion
 
@@ -234,3 +238,167 @@ def check_pose(pose: torch.Tensor, name: str = "pose", atol: float = 1e-3) -> to
     if (pose[..., 2] <= 0).any():
         raise ValueError(f"{name} places the object behind the camera (tz <= 0)")
     return torch.cat((pose[..., :3], quat_canonical(pose[..., 3:])), dim=-1)
+
+
+# -- scalar kernels --------------------------------------------------------------------------------
+# The same operations on one quaternion / vector at a time (tuples of floats), for the compiled (numba)
+# kernels of the filters and the pose propagation. Each follows its tensor function above operation by
+# operation, so the two agree to float64 rounding.
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _nb_cross(a0, a1, a2, b0, b1, b2):
+    """``a x b`` (as :func:`torch.linalg.cross`)."""
+    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _nb_quat_mul(a0, a1, a2, a3, b0, b1, b2, b3):
+    """:func:`quat_mul` (the same sums in the same order)."""
+    return (a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3,
+            a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2,
+            a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1,
+            a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _nb_quat_canonical(q0, q1, q2, q3):
+    """:func:`quat_canonical`."""
+    n = max(math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3), 1e-12)
+    q0, q1, q2, q3 = q0 / n, q1 / n, q2 / n, q3 / n
+    if q0 < 0.0:
+        return -q0, -q1, -q2, -q3
+    return q0, q1, q2, q3
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _nb_quat_exp(a0, a1, a2):
+    """:func:`quat_exp`."""
+    sq = a0 * a0 + a1 * a1 + a2 * a2
+    if sq > 0.0:
+        angle = math.sqrt(sq)
+        half = angle * 0.5
+        k = math.sin(half) / angle
+        return math.cos(half), a0 * k, a1 * k, a2 * k
+    return 1.0, a0 * 0.5, a1 * 0.5, a2 * 0.5
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _nb_quat_log(q0, q1, q2, q3):
+    """:func:`quat_log` (of the canonical quaternion)."""
+    c, x, y, z = _nb_quat_canonical(q0, q1, q2, q3)
+    s2 = x * x + y * y + z * z
+    if s2 > 0.0:
+        s = math.sqrt(s2)
+        two = 2.0 * (math.atan2(-s, -c) if c < 0.0 else math.atan2(s, c))
+        k = two / s
+    else:
+        k = 2.0 / c if c != 0.0 else 0.0
+    return x * k + 0.0, y * k + 0.0, z * k + 0.0
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _nb_quat_rotate(q0, q1, q2, q3, v0, v1, v2):
+    """:func:`quat_rotate`."""
+    c0, c1, c2 = _nb_cross(q1, q2, q3, v0, v1, v2)
+    d0, d1, d2 = _nb_cross(q1, q2, q3, c0, c1, c2)
+    return v0 + 2.0 * (q0 * c0 + d0), v1 + 2.0 * (q0 * c1 + d1), v2 + 2.0 * (q0 * c2 + d2)
+
+
+# Small dense matrices (the filters' covariances), one at a time.
+
+
+@numba.njit(cache=True, nogil=True)
+def _nb_cholesky(A, L):
+    """Lower Cholesky factor ``L`` of the symmetric part of ``A`` ``(n, n)`` (float64); False if ``A`` is not
+    positive definite."""
+    n = A.shape[0]
+    for j in range(n):
+        s = 0.5 * (A[j, j] + A[j, j])
+        for m in range(j):
+            s -= L[j, m] * L[j, m]
+        if not s > 0.0:
+            return False
+        d = np.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            s = 0.5 * (A[i, j] + A[j, i])
+            for m in range(j):
+                s -= L[i, m] * L[j, m]
+            L[i, j] = s / d
+            L[j, i] = 0.0
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _nb_cholesky_inverse(L, out):
+    """``out = (L L^T)^-1`` (symmetric) from the lower Cholesky factor ``L`` ``(n, n)``."""
+    n = L.shape[0]
+    Li = np.zeros((n, n))
+    for j in range(n):  # Li = L^-1, lower triangular, column by column
+        Li[j, j] = 1.0 / L[j, j]
+        for i in range(j + 1, n):
+            s = 0.0
+            for m in range(j, i):
+                s -= L[i, m] * Li[m, j]
+            Li[i, j] = s / L[i, i]
+    for i in range(n):  # out = Li^T Li
+        for j in range(i + 1):
+            s = 0.0
+            for m in range(i, n):
+                s += Li[m, i] * Li[m, j]
+            out[i, j] = s
+            out[j, i] = s
+
+
+@numba.njit(cache=True, nogil=True)
+def _nb_cholesky_solve(L, b, out):
+    """``out = (L L^T)^-1 b`` for the lower Cholesky factor ``L`` ``(n, n)`` and ``b`` ``(n,)``."""
+    n = L.shape[0]
+    y = np.empty(n)
+    for i in range(n):
+        s = b[i]
+        for m in range(i):
+            s -= L[i, m] * y[m]
+        y[i] = s / L[i, i]
+    for i in range(n - 1, -1, -1):
+        s = y[i]
+        for m in range(i + 1, n):
+            s -= L[m, i] * out[m]
+        out[i] = s / L[i, i]
+
+
+@numba.njit(cache=True, nogil=True)
+def _nb_lu_solve(A, Bm, out):
+    """``out = A^-1 Bm`` for ``A`` ``(n, n)`` and ``Bm`` ``(n, m)`` by Gaussian elimination with partial pivoting
+    (LAPACK ``getrf`` / ``getrs``, as :func:`torch.linalg.solve`); False if ``A`` is singular."""
+    n, m = Bm.shape
+    a = A.copy()
+    for i in range(n):
+        for j in range(m):
+            out[i, j] = Bm[i, j]
+    for k in range(n):
+        p = k
+        for i in range(k + 1, n):
+            if abs(a[i, k]) > abs(a[p, k]):
+                p = i
+        if a[p, k] == 0.0:
+            return False
+        if p != k:
+            for j in range(n):
+                a[k, j], a[p, j] = a[p, j], a[k, j]
+            for j in range(m):
+                out[k, j], out[p, j] = out[p, j], out[k, j]
+        for i in range(k + 1, n):
+            f = a[i, k] / a[k, k]
+            for j in range(k + 1, n):
+                a[i, j] -= f * a[k, j]
+            for j in range(m):
+                out[i, j] -= f * out[k, j]
+    for i in range(n - 1, -1, -1):
+        for j in range(m):
+            s = out[i, j]
+            for q in range(i + 1, n):
+                s -= a[i, q] * out[q, j]
+            out[i, j] = s / a[i, i]
+    return True

@@ -26,9 +26,22 @@ Example:
 
 from __future__ import annotations
 
+import math
+
+import numba
+import numpy as np
 import torch
 
-from torchevtrack.geometry import quat_canonical, quat_conj, quat_exp, quat_log, quat_mul, quat_rotate
+from torchevtrack.geometry import (
+    _nb_cross,
+    _nb_quat_canonical,
+    _nb_quat_exp,
+    _nb_quat_log,
+    _nb_quat_mul,
+    _nb_quat_rotate,
+    quat_exp,
+    quat_rotate,
+)
 
 __all__ = ["se3_exp_apply", "propagate", "twist_between"]
 
@@ -50,6 +63,76 @@ def se3_exp_apply(xi: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     return quat_rotate(quat_exp(phi), points) + trans
 
 
+@numba.njit(cache=True, nogil=True)
+def _propagate_kernel(pose, twist, dt, out):
+    """:func:`propagate` row by row: ``pose (N, 7)``, ``twist (N, 6)``, ``dt (N,)`` -> ``out (N, 7)``."""
+    for i in range(pose.shape[0]):
+        T = dt[i]
+        r0, r1, r2 = twist[i, 0] * T, twist[i, 1] * T, twist[i, 2] * T
+        p0, p1, p2 = twist[i, 3] * T, twist[i, 4] * T, twist[i, 5] * T
+        a2 = (p0 * p0 + p1 * p1) + p2 * p2
+        if a2 < 1e-8:
+            c1, c2 = 0.5 - a2 / 24.0, 1.0 / 6.0 - a2 / 120.0
+        else:
+            a = math.sqrt(a2)
+            c1, c2 = (1.0 - math.cos(a)) / a2, (a - math.sin(a)) / (a2 * a)
+        e0, e1, e2 = _nb_cross(p0, p1, p2, r0, r1, r2)
+        f0, f1, f2 = _nb_cross(p0, p1, p2, e0, e1, e2)
+        q0, q1, q2, q3 = _nb_quat_exp(p0, p1, p2)
+        t0, t1, t2 = _nb_quat_rotate(q0, q1, q2, q3, pose[i, 0], pose[i, 1], pose[i, 2])
+        out[i, 0] = t0 + (r0 + c1 * e0 + c2 * f0)
+        out[i, 1] = t1 + (r1 + c1 * e1 + c2 * f1)
+        out[i, 2] = t2 + (r2 + c1 * e2 + c2 * f2)
+        q0, q1, q2, q3 = _nb_quat_mul(q0, q1, q2, q3, pose[i, 3], pose[i, 4], pose[i, 5], pose[i, 6])
+        out[i, 3], out[i, 4], out[i, 5], out[i, 6] = _nb_quat_canonical(q0, q1, q2, q3)
+
+
+@numba.njit(cache=True, nogil=True)
+def _twist_between_kernel(start, end, dt, out):
+    """:func:`twist_between` row by row: ``start, end (N, 7)``, ``dt (N,)`` -> ``out (N, 6)``."""
+    for i in range(start.shape[0]):
+        q0, q1, q2, q3 = _nb_quat_mul(end[i, 3], end[i, 4], end[i, 5], end[i, 6],
+                                      start[i, 3], -start[i, 4], -start[i, 5], -start[i, 6])
+        p0, p1, p2 = _nb_quat_log(q0, q1, q2, q3)
+        s0, s1, s2 = _nb_quat_rotate(q0, q1, q2, q3, start[i, 0], start[i, 1], start[i, 2])
+        d0, d1, d2 = end[i, 0] - s0, end[i, 1] - s1, end[i, 2] - s2
+        a2 = (p0 * p0 + p1 * p1) + p2 * p2
+        if a2 < 1e-8:
+            c = 1.0 / 12.0 + a2 / 720.0
+        else:
+            a = math.sqrt(a2)
+            c = (1.0 - a * math.sin(a) / (2.0 * (1.0 - math.cos(a)))) / a2
+        e0, e1, e2 = _nb_cross(p0, p1, p2, d0, d1, d2)
+        f0, f1, f2 = _nb_cross(p0, p1, p2, e0, e1, e2)
+        T = dt[i]
+        out[i, 0] = (d0 - 0.5 * e0 + c * f0) / T
+        out[i, 1] = (d1 - 0.5 * e1 + c * f1) / T
+        out[i, 2] = (d2 - 0.5 * e2 + c * f2) / T
+        out[i, 3], out[i, 4], out[i, 5] = p0 / T, p1 / T, p2 / T
+
+
+def _rows(a: torch.Tensor, b: torch.Tensor, dt, na: int, nb: int):
+    """``a (..., na)``, ``b (..., nb)`` and ``dt`` (float, ``()`` or ``(...)``) broadcast over their leading dims,
+    as contiguous float64 numpy rows ``(N, na)``, ``(N, nb)``, ``(N,)``; and the leading shape and the dtype."""
+    dtype = a.dtype
+    if not isinstance(dt, torch.Tensor) and a.ndim == 2 and b.shape[:-1] == a.shape[:-1]:
+        lead = a.shape[:-1]
+        dt = np.full(lead[0], float(dt), dtype=np.float64)
+    else:
+        dt = torch.as_tensor(dt, dtype=torch.float64).detach()
+        lead = torch.broadcast_shapes(a.shape[:-1], b.shape[:-1], dt.shape)
+        a, b = a.expand(*lead, na), b.expand(*lead, nb)
+        dt = dt.expand(lead).reshape(-1).contiguous().numpy()
+    return _f64_rows(a, na), _f64_rows(b, nb), dt, lead, dtype
+
+
+def _f64_rows(a: torch.Tensor, n: int) -> np.ndarray:
+    """Contiguous float64 numpy rows ``(N, n)`` of ``a`` (a view when it already is one)."""
+    if a.dtype != torch.float64 or a.ndim != 2 or not a.is_contiguous() or a.requires_grad:
+        a = a.detach().to(torch.float64).reshape(-1, n).contiguous()
+    return a.numpy()
+
+
 def propagate(pose: torch.Tensor, twist: torch.Tensor, dt: torch.Tensor | float) -> torch.Tensor:
     """Move poses by a camera-frame twist held constant for ``dt`` seconds (exact SE(3) exponential).
 
@@ -61,37 +144,31 @@ def propagate(pose: torch.Tensor, twist: torch.Tensor, dt: torch.Tensor | float)
     Returns:
         ``(B, 7)`` propagated poses (canonical quaternions, ``qw >= 0``).
 
+    Computed in float64 (a compiled kernel, row by row: :func:`se3_exp_apply` on the position, ``exp(w dt) (x) q``
+    on the orientation) and returned in the dtype of ``pose``.
+
     Shape: ``(B, 7), (B, 6), () or (B,) -> (B, 7)``; any leading dims broadcast like ``B``.
     """
     if not isinstance(pose, torch.Tensor) or pose.shape[-1:] != (7,):
         raise ValueError(f"pose must be a tensor of shape (B, 7), got {getattr(pose, 'shape', type(pose))}")
     if not isinstance(twist, torch.Tensor) or twist.shape[-1:] != (6,):
         raise ValueError(f"twist must be a tensor of shape (B, 6), got {getattr(twist, 'shape', type(twist))}")
-    dt = torch.as_tensor(dt, dtype=pose.dtype, device=pose.device)[..., None]
-    xi = twist.to(pose.dtype) * dt
-    t = se3_exp_apply(xi, pose[..., :3])
-    q = quat_mul(quat_exp(xi[..., 3:]), pose[..., 3:])
-    return torch.cat((t, quat_canonical(q)), dim=-1)
+    p, tw, dt, lead, dtype = _rows(pose, twist, dt, 7, 6)
+    out = torch.empty(*lead, 7, dtype=torch.float64)
+    _propagate_kernel(p, tw, dt, out.view(-1, 7).numpy())
+    return out if dtype == torch.float64 else out.to(dtype)
 
 
 def twist_between(start: torch.Tensor, end: torch.Tensor, dt: torch.Tensor | float) -> torch.Tensor:
     """The constant twist that :func:`propagate` needs to move ``start`` to ``end`` in ``dt`` seconds.
 
     The exact SE(3) logarithm of ``T_end T_start^-1``, divided by ``dt``: ``w = log(q_end q_start^-1) / dt``
-    and ``v = V(phi)^-1 (t_end - exp(phi) t_start) / dt`` with ``phi = w dt``.
+    and ``v = V(phi)^-1 (t_end - exp(phi) t_start) / dt`` with ``phi = w dt``. Computed in float64 (a compiled
+    kernel) and returned in the dtype of ``start``.
 
     Shape: ``(..., 7), (..., 7), () or (...) -> (..., 6)`` ``[v (m/s), w (rad/s)]``.
     """
-    dt = torch.as_tensor(dt, dtype=start.dtype, device=start.device)[..., None]
-    q_rel = quat_mul(end[..., 3:], quat_conj(start[..., 3:]))
-    phi = quat_log(q_rel)
-    d = end[..., :3] - quat_rotate(q_rel, start[..., :3])
-    a2 = (phi * phi).sum(-1, keepdim=True)
-    small = a2 < 1e-8
-    a2s = torch.where(small, torch.ones_like(a2), a2)
-    a = a2s.sqrt()
-    # V^-1 = I - [phi]x / 2 + c [phi]x^2, c = (1 - a sin a / (2 (1 - cos a))) / a^2 (-> 1/12 as a -> 0)
-    c = torch.where(small, 1.0 / 12.0 + a2 / 720.0, (1.0 - a * torch.sin(a) / (2.0 * (1.0 - torch.cos(a)))) / a2s)
-    pd = torch.linalg.cross(phi, d, dim=-1)
-    rho = d - 0.5 * pd + c * torch.linalg.cross(phi, pd, dim=-1)
-    return torch.cat((rho, phi), dim=-1) / dt
+    s, e, dt, lead, dtype = _rows(start, end, dt, 7, 7)
+    out = torch.empty(*lead, 6, dtype=torch.float64)
+    _twist_between_kernel(s, e, dt, out.view(-1, 6).numpy())
+    return out if dtype == torch.float64 else out.to(dtype)

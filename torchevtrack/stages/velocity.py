@@ -48,10 +48,13 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numba
+import numpy as np
 import torch
 from torch import nn
 
-from torchevtrack.camera import Camera, interaction_matrix
+from torchevtrack.camera import Camera
+from torchevtrack.geometry import _nb_cholesky, _nb_cholesky_inverse, _nb_cholesky_solve
 from torchevtrack.stages import batch_mask
 
 __all__ = [
@@ -64,6 +67,7 @@ __all__ = [
     "kf_predict",
     "kf_update",
     "laplacian_weights",
+    "sample_depth",
 ]
 
 TWIST_AXES = ("vx", "vy", "vz", "wx", "wy", "wz")
@@ -118,28 +122,173 @@ def centre_jacobian(centre: torch.Tensor) -> torch.Tensor:
 
     ``v = c_dot - w x c = c_dot + [c]x w``. Shape: ``(B, 3) -> (B, 6, 6)``.
     """
-    B = centre.shape[0]
-    A = torch.eye(6, dtype=centre.dtype, device=centre.device).repeat(B, 1, 1)
-    cx, cy, cz = centre.unbind(-1)
-    zero = torch.zeros_like(cx)
-    A[:, :3, 3:] = torch.stack((zero, -cz, cy, cz, zero, -cx, -cy, cx, zero), -1).view(B, 3, 3)
-    return A
+    if centre.ndim != 2 or centre.shape[-1] != 3 or not centre.is_floating_point():
+        raise ValueError(f"centre must be a floating (B, 3) tensor, got {centre.dtype} {tuple(centre.shape)}")
+    A = np.empty((centre.shape[0], 6, 6), dtype=np.float32 if centre.dtype == torch.float32 else np.float64)
+    _centre_jacobian_kernel(_f32_or_f64(centre), A)
+    return torch.from_numpy(A).to(centre.dtype)
 
 
-def _information_solve(
-    Y0: torch.Tensor, x0: torch.Tensor, H: torch.Tensor, z: torch.Tensor, info: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Posterior of prior ``(x0, Y0^-1)`` and measurements ``z = H x + e``, ``e ~ N(0, diag(1 / info))``.
+@numba.njit(cache=True, nogil=True)
+def _centre_jacobian_kernel(c, A):
+    """``A[b] = [[I, [c_b]x], [0, I]]``."""
+    for b in range(A.shape[0]):
+        for i in range(6):
+            for j in range(6):
+                A[b, i, j] = 1.0 if i == j else 0.0
+        A[b, 0, 4], A[b, 0, 5] = -c[b, 2], c[b, 1]
+        A[b, 1, 3], A[b, 1, 5] = c[b, 2], -c[b, 0]
+        A[b, 2, 3], A[b, 2, 4] = -c[b, 1], c[b, 0]
 
-    Shape: ``(B, 6, 6), (B, 6), (B, M, 6), (B, M), (B, M) -> (B, 6), (B, 6, 6)``.
-    """
-    HtW = (H * info[..., None]).transpose(-1, -2)
-    A = Y0 + HtW @ H
-    b = (HtW @ (z - (H @ x0[..., None])[..., 0])[..., None])[..., 0]
-    LA = torch.linalg.cholesky(0.5 * (A + A.transpose(-1, -2)))
-    x = x0 + torch.cholesky_solve(b[..., None], LA)[..., 0]
-    P = torch.cholesky_inverse(LA)
-    return x, 0.5 * (P + P.transpose(-1, -2))
+
+@numba.njit(cache=True, nogil=True)
+def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, fy, cx, cy, r_px, iters, k,
+                      min_vectors, normal, x_out, P_out, w_out, res_out, used_out):
+    """:func:`kf_update`, one filter at a time (float64 throughout). Returns -1, or the index of a filter whose
+    prior or posterior covariance is not positive definite."""
+    B, G = valid.shape
+    rows = 1 if normal else 2
+    Hs = np.empty((G * rows, 6))
+    zs = np.empty(G * rows)
+    ok = np.empty(G, dtype=np.bool_)
+    w = np.empty(G)
+    res = np.empty(G)
+    med_buf = np.empty(G)
+    L = np.empty((6, 6))
+    Y0 = np.empty((6, 6))
+    A = np.empty((6, 6))
+    rhs = np.empty(6)
+    step = np.empty(6)
+    xp = np.empty(6)
+    info0 = 1.0 / (r_px * r_px)
+    for b in range(B):
+        n_ok = 0
+        for i in range(G):
+            f0, f1 = np.float64(flow[b, i, 0]), np.float64(flow[b, i, 1])
+            u, v, Z = np.float64(uv[b, i, 0]), np.float64(uv[b, i, 1]), np.float64(depth[b, i])
+            good = valid[b, i] and np.isfinite(Z) and Z > 0.0 and np.isfinite(f0) and np.isfinite(f1) \
+                and np.isfinite(u) and np.isfinite(v)
+            if good and normal:
+                good = np.sqrt(f0 * f0 + f1 * f1) > 0.0
+            ok[i] = good
+            if good:
+                n_ok += 1
+        used = n_ok >= min_vectors
+        used_out[b] = used
+        if not used:
+            for j in range(6):
+                x_out[b, j] = x[b, j]
+                for m in range(6):
+                    P_out[b, j, m] = P[b, j, m]
+            for i in range(G):
+                w_out[b, i] = 0.0
+                res_out[b, i] = 0.0
+            continue
+        # Measurement rows: z = H x + e, H = L(uv, Z) dT (A(c) on the right about the centre).
+        T = dt[b]
+        M = 0
+        for i in range(G):
+            if not ok[i]:
+                continue
+            f0, f1 = np.float64(flow[b, i, 0]), np.float64(flow[b, i, 1])
+            uu, vv = np.float64(uv[b, i, 0]) - cx, np.float64(uv[b, i, 1]) - cy
+            iz = 1.0 / np.float64(depth[b, i])
+            h0 = (fx * iz * T, 0.0, -uu * iz * T, -uu * vv / fy * T, (fx + uu * uu / fx) * T, -vv * fx / fy * T)
+            h1 = (0.0, fy * iz * T, -vv * iz * T, -(fy + vv * vv / fy) * T, uu * vv / fx * T, uu * fy / fx * T)
+            if normal:
+                s = np.sqrt(f0 * f0 + f1 * f1)
+                n0, n1 = f0 / s, f1 / s
+                for j in range(6):
+                    Hs[M, j] = n0 * h0[j] + n1 * h1[j]
+                zs[M] = s * T
+                M += 1
+            else:
+                for j in range(6):
+                    Hs[M, j] = h0[j]
+                    Hs[M + 1, j] = h1[j]
+                zs[M] = f0 * T
+                zs[M + 1] = f1 * T
+                M += 2
+        if has_centre:  # H A(c): the angular columns gain H[:, :3] [c]x
+            c0, c1, c2 = centre[b, 0], centre[b, 1], centre[b, 2]
+            for r in range(M):
+                a0, a1, a2 = Hs[r, 0], Hs[r, 1], Hs[r, 2]
+                Hs[r, 3] = (a1 * c2 - a2 * c1) + Hs[r, 3]
+                Hs[r, 4] = (a2 * c0 - a0 * c2) + Hs[r, 4]
+                Hs[r, 5] = (a0 * c1 - a1 * c0) + Hs[r, 5]
+        if not _nb_cholesky(P[b], L):
+            return b
+        _nb_cholesky_inverse(L, Y0)
+        n_ok_rows = M // rows
+        for i in range(n_ok_rows):
+            w[i] = 1.0
+        for it in range(iters + 1):
+            if it > 0:  # Laplacian re-weighting against the previous posterior
+                for i in range(n_ok_rows):
+                    med_buf[i] = res[i]
+                srt = np.sort(med_buf[:n_ok_rows])
+                med = srt[(n_ok_rows - 1) // 2] if n_ok_rows > 0 else 0.0
+                scale = k * max(_MAD * med, r_px)
+                for i in range(n_ok_rows):
+                    w[i] = np.exp(-max(res[i] - med, 0.0) / scale)
+            # Information form: A = Y0 + H^T W H, rhs = H^T W (z - H x0)
+            for j in range(6):
+                rhs[j] = 0.0
+                for m in range(6):
+                    A[j, m] = 0.0
+            for r in range(M):
+                wi = w[r // rows] * info0
+                e = zs[r]
+                for j in range(6):
+                    e -= Hs[r, j] * x[b, j]
+                for j in range(6):
+                    hw = Hs[r, j] * wi
+                    rhs[j] += hw * e
+                    for m in range(j + 1):
+                        A[j, m] += hw * Hs[r, m]
+            for j in range(6):
+                for m in range(j + 1):
+                    A[j, m] += Y0[j, m]
+                    A[m, j] = A[j, m]
+            if not _nb_cholesky(A, L):
+                return b
+            _nb_cholesky_solve(L, rhs, step)
+            for j in range(6):
+                xp[j] = x[b, j] + step[j]
+            for i in range(n_ok_rows):
+                s = 0.0
+                for q in range(rows):
+                    r = i * rows + q
+                    e = zs[r]
+                    for j in range(6):
+                        e -= Hs[r, j] * xp[j]
+                    s += e * e
+                res[i] = np.sqrt(s)
+        _nb_cholesky_inverse(L, P_out[b])
+        for j in range(6):
+            x_out[b, j] = xp[j]
+        i_ok = 0
+        for i in range(G):
+            if ok[i]:
+                w_out[b, i] = w[i_ok]
+                res_out[b, i] = res[i_ok]
+                i_ok += 1
+            else:
+                w_out[b, i] = 0.0
+                res_out[b, i] = 0.0
+    return -1
+
+
+def _f32_or_f64(t: torch.Tensor) -> np.ndarray:
+    """A numpy view of a CPU tensor (float32 and float64 kept, anything else as float64)."""
+    if t.dtype not in (torch.float32, torch.float64) or t.requires_grad:
+        t = t.detach().double()
+    return t.numpy()
+
+
+def _f64(t: torch.Tensor) -> np.ndarray:
+    """A float64 numpy view (or copy) of a CPU tensor."""
+    return t.numpy() if t.dtype == torch.float64 and not t.requires_grad else t.detach().double().numpy()
 
 
 def kf_update(
@@ -186,6 +335,9 @@ def kf_update(
     Returns:
         :class:`VelocityUpdate`.
 
+    The filters are updated one at a time in a compiled kernel (float64; the ``6 x 6`` information
+    matrix, its Cholesky factor and the re-weighting rounds of one filter never leave it).
+
     Shape: ``(B, 6), (B, 6, 6), (B, G, 2), (B, G, 2), (B, G), (B, G) -> VelocityUpdate``.
     """
     if x.ndim != 2 or x.shape[-1] != 6 or P.shape != x.shape + (6,):
@@ -204,49 +356,82 @@ def kf_update(
         raise TypeError(f"valid must be a bool tensor, got {valid.dtype}")
     if r_px <= 0 or iters < 0 or k <= 0:
         raise ValueError(f"need r_px > 0, iters >= 0, k > 0; got r_px={r_px}, iters={iters}, k={k}")
-    dtype = x.dtype
-    dt = torch.as_tensor(dt, dtype=dtype, device=x.device).expand(B)
-    if not bool((dt > 0).all()):
-        raise ValueError(f"dt must be positive seconds, got {dt.tolist()}")
-    uv, flow, depth = uv.to(dtype), flow.to(dtype), depth.to(dtype)
-    ok = valid & torch.isfinite(depth) & (depth > 0) & torch.isfinite(flow).all(-1) & torch.isfinite(uv).all(-1)
-    speed = flow.norm(dim=-1)
-    if normal:
-        ok = ok & (speed > 0)
-    used = ok.sum(-1) >= min_vectors
-    ok = ok & used[:, None]
-    safe_depth = torch.where(ok, depth, torch.ones_like(depth))
-    safe_uv = torch.where(ok[..., None], uv, torch.zeros_like(uv))
-    H = interaction_matrix(safe_uv, safe_depth, camera.fx, camera.fy, camera.cx, camera.cy) * dt[:, None, None, None]
-    if centre is not None:
-        if centre.shape != (B, 3):
-            raise ValueError(f"centre must have shape ({B}, 3), got {tuple(centre.shape)}")
-        H = H @ centre_jacobian(centre.to(dtype))[:, None]
-    z = torch.where(ok[..., None], flow, torch.zeros_like(flow)) * dt[:, None, None]
-
-    LP = torch.linalg.cholesky(0.5 * (P + P.transpose(-1, -2)))
-    Y0 = torch.cholesky_inverse(LP)
-    if normal:
-        n = flow / torch.where(ok, speed, torch.ones_like(speed))[..., None]
-        Hf = (n[..., None, :] @ H)[..., 0, :]
-        zf = torch.where(ok, speed, torch.zeros_like(speed)) * dt[:, None]
-        rows = 1
+    if isinstance(dt, torch.Tensor):
+        dt = dt.to(torch.float64).expand(B)
+        if not bool((dt > 0).all()):
+            raise ValueError(f"dt must be positive seconds, got {dt.tolist()}")
+        dt_np = dt.contiguous().numpy()
     else:
-        Hf, zf, rows = H.reshape(B, 2 * G, 6), z.reshape(B, 2 * G), 2
+        if not dt > 0:
+            raise ValueError(f"dt must be positive seconds, got {dt}")
+        dt_np = np.full(B, dt, dtype=np.float64)
+    if centre is not None and centre.shape != (B, 3):
+        raise ValueError(f"centre must have shape ({B}, 3), got {tuple(centre.shape)}")
+    x_out, P_out = np.empty((B, 6)), np.empty((B, 6, 6))
+    w_out, res_out, used = np.empty((B, G)), np.empty((B, G)), np.empty(B, dtype=np.bool_)
+    bad = _kf_update_kernel(_f64(x), _f64(P), _f32_or_f64(uv), _f32_or_f64(flow), _f32_or_f64(depth),
+                            valid.numpy(), dt_np, _NO_CENTRE if centre is None else _f64(centre), centre is not None,
+                            float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), float(r_px),
+                            int(iters), float(k), int(min_vectors), bool(normal), x_out, P_out, w_out, res_out, used)
+    if bad >= 0:
+        raise torch.linalg.LinAlgError(f"kf_update: the covariance of filter {bad} is not positive-definite")
+    out = VelocityUpdate(*(torch.from_numpy(a) for a in (x_out, P_out, w_out, res_out, used)))
+    if x.dtype != torch.float64:
+        out = out._replace(**{f: getattr(out, f).to(x.dtype) for f in ("x", "P", "weights", "residual")})
+    return out
 
-    def solve(w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        xp, Pp = _information_solve(Y0, x, Hf, zf, (w / r_px**2).repeat_interleave(rows, dim=-1))
-        residual = (zf - (Hf @ xp[..., None])[..., 0]).reshape(B, G, rows).norm(dim=-1)
-        return xp, Pp, residual
 
-    w = ok.to(dtype)
-    xp, Pp, residual = solve(w)
-    for _ in range(iters):
-        w = laplacian_weights(residual, ok, r_px, k)
-        xp, Pp, residual = solve(w)
-    xp = torch.where(used[:, None], xp, x)
-    Pp = torch.where(used[:, None, None], Pp, P)
-    return VelocityUpdate(xp, Pp, w, torch.where(ok, residual, torch.zeros_like(residual)), used)
+_NO_CENTRE = np.zeros((1, 3))
+
+
+def sample_depth(depth: torch.Tensor, origin: torch.Tensor, uv: torch.Tensor, valid: torch.Tensor,
+                 radius: int) -> torch.Tensor:
+    """Mean object depth around flow pixels, for :func:`kf_update`.
+
+    For each ``valid`` vector, the mean of the positive depths at the pixels ``round(uv) + (du, dv)``,
+    ``du, dv`` in ``-radius, -radius + 2, ..., radius`` (a sparse neighbourhood: flow lies on edges, where
+    the pixel itself may fall just off the silhouette), read from ``depth`` whose top-left pixel is
+    ``origin`` (pixels outside it count as background); 0 where there is no object pixel around, and for
+    the vectors that are not valid (the filter ignores them). Sums in float64.
+
+    Shape: ``depth (B, h, w)``, ``origin (B, 2)`` integer ``(u0, v0)``, ``uv (B, G, 2)``, ``valid (B, G)`` bool
+    -> ``(B, G)`` float64 metres.
+    """
+    if depth.ndim != 3 or origin.shape != (depth.shape[0], 2) or uv.ndim != 3 or uv.shape[-1] != 2 \
+            or valid.shape != uv.shape[:2] or uv.shape[0] != depth.shape[0] or valid.dtype != torch.bool:
+        raise ValueError("expected depth (B, h, w), origin (B, 2), uv (B, G, 2) and a bool valid (B, G), got "
+                         f"{tuple(depth.shape)}, {tuple(origin.shape)}, {tuple(uv.shape)}, {valid.dtype} "
+                         f"{tuple(valid.shape)}")
+    out = np.empty(valid.shape)
+    _sample_depth_kernel(_f32_or_f64(depth), origin.long().numpy(), _f32_or_f64(uv), valid.numpy(), int(radius), out)
+    return torch.from_numpy(out)
+
+
+@numba.njit(cache=True, nogil=True)
+def _sample_depth_kernel(depth, origin, uv, valid, r, out):
+    B, h, w = depth.shape
+    for b in range(B):
+        for g in range(valid.shape[1]):
+            out[b, g] = 0.0
+            if not valid[b, g]:
+                continue
+            u0 = np.int64(np.rint(uv[b, g, 0])) - origin[b, 0]
+            v0 = np.int64(np.rint(uv[b, g, 1])) - origin[b, 1]
+            s, n = 0.0, 0
+            for dv in range(-r, r + 1, 2):
+                v = v0 + dv
+                if v < 0 or v >= h:
+                    continue
+                for du in range(-r, r + 1, 2):
+                    u = u0 + du
+                    if u < 0 or u >= w:
+                        continue
+                    z = np.float64(depth[b, v, u])
+                    if z > 0.0:
+                        s += z
+                        n += 1
+            if n > 0:
+                out[b, g] = s / n
 
 
 class VelocityKF(nn.Module):
@@ -314,9 +499,8 @@ class VelocityKF(nn.Module):
 
     def predict(self) -> torch.Tensor:
         """Apply the motion model in place; returns the predicted twist ``(B, 6)``."""
-        x, P = kf_predict(self.x, self.P, self.rho, self.Q)
-        self.x.copy_(x)
-        self.P.copy_(P)
+        self.x.mul_(self.rho)  # kf_predict, in place
+        self.P.mul_(self.rho * self.rho).add_(self.Q)
         return self.x
 
     def update(
@@ -350,10 +534,40 @@ def feedback_update(b: torch.Tensor, rate: torch.Tensor, gain: float, leak: floa
 
     Shape: ``(B, 6), (B, 6), float, float, (6,) bool, (6,) or None -> (B, 6)`` (m/s, rad/s).
     """
-    b = leak * b + gain * rate
-    if limit is not None:
-        b = torch.minimum(torch.maximum(b, -limit), limit)
-    return torch.where(mask, b, torch.zeros_like(b))
+    out = np.empty((b.shape[0], 6)) if b.ndim == 2 else None
+    _feedback_into(b, rate, None, gain, leak, mask, limit, out)
+    return torch.from_numpy(out).to(b.dtype)
+
+
+def _feedback_into(b, rate, axis, gain, leak, mask, limit, out) -> None:
+    """:func:`feedback_update` of ``b`` ``(B, 6)`` into ``out`` (which may be ``b``), with the component of the
+    angular rate along ``axis`` ``(B, 3)`` (if given) removed first."""
+    if b.ndim != 2 or b.shape[-1] != 6 or rate.shape != b.shape:
+        raise ValueError(f"b and rate must have shape (B, 6), got {tuple(b.shape)} and {tuple(rate.shape)}")
+    if axis is not None and axis.shape != (b.shape[0], 3):
+        raise ValueError(f"symmetry_axis must have shape ({b.shape[0]}, 3), got {tuple(axis.shape)}")
+    lim = _NO_LIMIT if limit is None else _f64(limit.expand(6))
+    _feedback_kernel(_f64(b), _f64(rate), _NO_AXIS if axis is None else _f64(axis), axis is not None, float(gain),
+                     float(leak), mask.detach().expand(6).numpy(), lim, limit is not None,
+                     out if isinstance(out, np.ndarray) else out.numpy())
+
+
+_NO_AXIS = np.zeros((1, 3))
+_NO_LIMIT = np.zeros(6)
+
+
+@numba.njit(cache=True, nogil=True)
+def _feedback_kernel(b, rate, axis, has_axis, gain, leak, mask, limit, has_limit, out):
+    for i in range(b.shape[0]):
+        r = rate[i].copy()
+        if has_axis:  # w - (w . a) a
+            s = r[3] * axis[i, 0] + r[4] * axis[i, 1] + r[5] * axis[i, 2]
+            r[3], r[4], r[5] = r[3] - s * axis[i, 0], r[4] - s * axis[i, 1], r[5] - s * axis[i, 2]
+        for j in range(6):
+            v = leak * b[i, j] + gain * r[j]
+            if has_limit:
+                v = np.minimum(np.maximum(v, -limit[j]), limit[j])
+            out[i, j] = v if mask[j] else 0.0
 
 
 class CorrectionFeedback(nn.Module):
@@ -413,12 +627,7 @@ class CorrectionFeedback(nn.Module):
         """
         if rate.shape != self.b.shape:
             raise ValueError(f"rate must have shape {tuple(self.b.shape)}, got {tuple(rate.shape)}")
-        rate = rate.to(self.b)
-        if symmetry_axis is not None:
-            a = symmetry_axis.to(rate)
-            w = rate[:, 3:]
-            rate = torch.cat((rate[:, :3], w - (w * a).sum(-1, keepdim=True) * a), -1)
-        self.b.copy_(feedback_update(self.b, rate, self.gain, self.leak, self.mask, self.limit))
+        _feedback_into(self.b, rate, symmetry_axis, self.gain, self.leak, self.mask, self.limit, self.b)
         return self.b
 
     def reset(self, mask: torch.Tensor | None = None) -> None:
