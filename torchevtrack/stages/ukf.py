@@ -38,10 +38,25 @@ from __future__ import annotations
 
 import functools
 
+import numba
+import numpy as np
 import torch
 from torch import nn
 
-from torchevtrack.geometry import quat_canonical, quat_conj, quat_exp, quat_log, quat_mul
+from torchevtrack.geometry import (
+    _nb_cholesky,
+    _nb_cross,
+    _nb_lu_solve,
+    _nb_quat_canonical,
+    _nb_quat_exp,
+    _nb_quat_log,
+    _nb_quat_mul,
+    quat_canonical,
+    quat_conj,
+    quat_exp,
+    quat_log,
+    quat_mul,
+)
 from torchevtrack.stages import batch_mask
 
 __all__ = [
@@ -91,10 +106,6 @@ def merwe_weights(
     return Wm, Wc, c
 
 
-# Internal constant weights (never modified in place); merwe_weights itself returns fresh tensors.
-_merwe_weights_cached = functools.lru_cache(maxsize=16)(merwe_weights)
-
-
 def sigma_points(x: torch.Tensor, P: torch.Tensor, spread: float) -> torch.Tensor:
     """Sigma points ``[x, x [+] cols(L), x [+] -cols(L)]`` with ``L L^T = spread * P``.
 
@@ -116,15 +127,304 @@ def quat_mean(q: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return quat_canonical(vecs[..., -1])
 
 
-def _mean(X: torch.Tensor, Wm: torch.Tensor) -> torch.Tensor:
-    """Weighted mean of sigma states ``(B, S, 13) -> (B, 13)``."""
-    return torch.cat((Wm @ X[..., :9], quat_mean(X[..., 9:13], Wm)), dim=-1)
+# -- compiled filter steps ---------------------------------------------------------------------------
+# One filter at a time, float64: the functions above, operation by operation, on (25, 13) sigma points.
 
 
-def _noise_cov(d: torch.Tensor, B: int) -> torch.Tensor:
-    """Covariance ``(B, n, n)`` from a diagonal ``(n,)`` or a full ``(n, n)`` matrix."""
-    M = torch.diag(d) if d.ndim == 1 else d
-    return M.expand(B, -1, -1)
+@numba.njit(cache=True, nogil=True)
+def _nb_boxplus(x, d, sign, out):
+    """``out = x [+] sign * d`` (:func:`boxplus`) for ``x`` ``(13,)``, ``d`` ``(12,)``."""
+    for i in range(9):
+        out[i] = x[i] + sign * d[i]
+    e0, e1, e2, e3 = _nb_quat_exp(sign * d[9], sign * d[10], sign * d[11])
+    q0, q1, q2, q3 = _nb_quat_mul(e0, e1, e2, e3, x[9], x[10], x[11], x[12])
+    out[9], out[10], out[11], out[12] = _nb_quat_canonical(q0, q1, q2, q3)
+
+
+@numba.njit(cache=True, nogil=True)
+def _nb_sigma_points(x, P, spread, X, S, L):
+    """:func:`sigma_points` of one filter into ``X`` ``(25, 13)`` (scratch ``S``, ``L`` ``(12, 12)``); False if
+    ``spread * P`` is not positive definite."""
+    h = spread * 0.5
+    for i in range(12):
+        for j in range(12):
+            S[i, j] = h * (P[i, j] + P[j, i])
+    if not _nb_cholesky(S, L):
+        return False
+    zero = np.zeros(12)
+    _nb_boxplus(x, zero, 1.0, X[0])
+    col = np.empty(12)
+    for i in range(12):
+        for j in range(12):
+            col[j] = L[j, i]
+        _nb_boxplus(x, col, 1.0, X[1 + i])
+        _nb_boxplus(x, col, -1.0, X[13 + i])
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _nb_quat_mean(X, Wm, out):
+    """:func:`quat_mean` of the quaternions ``X[:, 9:13]`` into ``out`` ``(4,)``."""
+    M = np.zeros((4, 4))
+    for s in range(X.shape[0]):
+        for i in range(4):
+            a = X[s, 9 + i] * Wm[s]
+            for j in range(4):
+                M[i, j] += a * X[s, 9 + j]
+    V = _nb_jacobi_eigh(M)
+    out[0], out[1], out[2], out[3] = _nb_quat_canonical(V[0], V[1], V[2], V[3])
+
+
+@numba.njit(cache=True, nogil=True)
+def _nb_jacobi_eigh(a):
+    """Eigenvector of the largest eigenvalue of the symmetric ``a`` ``(n, n)`` (overwritten), by cyclic Jacobi
+    rotations until the off-diagonal part vanishes in float64 (Numerical Recipes' ``jacobi``): accurate to
+    rounding like :func:`torch.linalg.eigh`, without its LAPACK call (a 4 x 4 takes a few sweeps)."""
+    n = a.shape[0]
+    v = np.eye(n)
+    d = np.empty(n)
+    bb = np.empty(n)
+    z = np.zeros(n)
+    for i in range(n):
+        d[i] = bb[i] = a[i, i]
+    for sweep in range(50):
+        sm = 0.0
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                sm += abs(a[p, q])
+        if sm == 0.0:
+            break
+        tresh = 0.2 * sm / (n * n) if sweep < 3 else 0.0
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                g = 100.0 * abs(a[p, q])
+                if sweep > 3 and abs(d[p]) + g == abs(d[p]) and abs(d[q]) + g == abs(d[q]):
+                    a[p, q] = 0.0
+                elif abs(a[p, q]) > tresh:
+                    h = d[q] - d[p]
+                    if abs(h) + g == abs(h):
+                        t = a[p, q] / h
+                    else:
+                        theta = 0.5 * h / a[p, q]
+                        t = 1.0 / (abs(theta) + np.sqrt(1.0 + theta * theta))
+                        if theta < 0.0:
+                            t = -t
+                    c = 1.0 / np.sqrt(1.0 + t * t)
+                    s = t * c
+                    tau = s / (1.0 + c)
+                    h = t * a[p, q]
+                    z[p] -= h
+                    z[q] += h
+                    d[p] -= h
+                    d[q] += h
+                    a[p, q] = 0.0
+                    for j in range(p):
+                        g, h = a[j, p], a[j, q]
+                        a[j, p], a[j, q] = g - s * (h + g * tau), h + s * (g - h * tau)
+                    for j in range(p + 1, q):
+                        g, h = a[p, j], a[j, q]
+                        a[p, j], a[j, q] = g - s * (h + g * tau), h + s * (g - h * tau)
+                    for j in range(q + 1, n):
+                        g, h = a[p, j], a[q, j]
+                        a[p, j], a[q, j] = g - s * (h + g * tau), h + s * (g - h * tau)
+                    for j in range(n):
+                        g, h = v[j, p], v[j, q]
+                        v[j, p], v[j, q] = g - s * (h + g * tau), h + s * (g - h * tau)
+        for i in range(n):
+            bb[i] += z[i]
+            d[i] = bb[i]
+            z[i] = 0.0
+    top = 0
+    for i in range(1, n):
+        if d[i] > d[top]:
+            top = i
+    return v[:, top].copy()
+
+
+@numba.njit(cache=True, nogil=True)
+def _nb_rot_error(X, s, q, out, k):
+    """``out[k:k+3] = log(X[s, 9:13] (x) q^-1)``."""
+    a0, a1, a2, a3 = _nb_quat_mul(X[s, 9], X[s, 10], X[s, 11], X[s, 12], q[0], -q[1], -q[2], -q[3])
+    out[k], out[k + 1], out[k + 2] = _nb_quat_log(a0, a1, a2, a3)
+
+
+@numba.njit(cache=True, nogil=True)
+def _ukf_predict_kernel(x, P, T, q, q_diag, twist, has_twist, Wm, Wc, spread, x_out, P_out):
+    """:func:`ukf_predict` (with the known twist of :meth:`PoseUKF.predict`) of every filter. The outputs are
+    written once all filters are done (they may alias the inputs); returns -1, or the failing filter."""
+    B = x.shape[0]
+    Sc, L = np.empty((12, 12)), np.empty((12, 12))
+    X = np.empty((25, 13))
+    D = np.empty((25, 12))
+    xb = np.empty(13)
+    xn, Pn = np.empty((B, 13)), np.empty((B, 12, 12))
+    Pm = np.empty((12, 12))
+    for b in range(B):
+        for i in range(13):
+            xb[i] = x[b, i]
+        if has_twist:  # p_dot = v + w x p, w given
+            c0, c1, c2 = _nb_cross(twist[b, 3], twist[b, 4], twist[b, 5], xb[6], xb[7], xb[8])
+            xb[0], xb[1], xb[2] = twist[b, 0] + c0, twist[b, 1] + c1, twist[b, 2] + c2
+            xb[3], xb[4], xb[5] = twist[b, 3], twist[b, 4], twist[b, 5]
+        if not _nb_sigma_points(xb, P[b], spread, X, Sc, L):
+            return b
+        Tb = T[b]
+        for s in range(25):  # p+ = p + p_dot T, q+ = exp(w T) (x) q
+            X[s, 6], X[s, 7], X[s, 8] = X[s, 6] + X[s, 0] * Tb, X[s, 7] + X[s, 1] * Tb, X[s, 8] + X[s, 2] * Tb
+            e0, e1, e2, e3 = _nb_quat_exp(X[s, 3] * Tb, X[s, 4] * Tb, X[s, 5] * Tb)
+            q0, q1, q2, q3 = _nb_quat_mul(e0, e1, e2, e3, X[s, 9], X[s, 10], X[s, 11], X[s, 12])
+            X[s, 9], X[s, 10], X[s, 11], X[s, 12] = _nb_quat_canonical(q0, q1, q2, q3)
+        for i in range(9):
+            m = 0.0
+            for s in range(25):
+                m += Wm[s] * X[s, i]
+            xn[b, i] = m
+        _nb_quat_mean(X, Wm, xn[b, 9:13])
+        for s in range(25):
+            for i in range(9):
+                D[s, i] = X[s, i] - xn[b, i]
+            _nb_rot_error(X, s, xn[b, 9:13], D[s], 9)
+        for i in range(12):
+            for j in range(12):
+                m = 0.0
+                for s in range(25):
+                    m += D[s, i] * Wc[s] * D[s, j]
+                Qij = (q[0, i] if i == j else 0.0) if q_diag else q[i, j]
+                Pm[i, j] = m + Qij * Tb
+        for i in range(12):
+            for j in range(12):
+                Pn[b, i, j] = 0.5 * (Pm[i, j] + Pm[j, i])
+    x_out[:] = xn
+    P_out[:] = Pn
+    return -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _ukf_update_kernel(x, P, z, R, r_diag, Wm, Wc, spread, x_out, P_out):
+    """:func:`ukf_update` of every filter. The outputs are written once all filters are done (they may alias the
+    inputs); returns -1, or the failing filter."""
+    B = x.shape[0]
+    Sc, L = np.empty((12, 12)), np.empty((12, 12))
+    X = np.empty((25, 13))
+    DZ, DX = np.empty((25, 6)), np.empty((25, 12))
+    zp, zq = np.empty(3), np.empty(4)
+    S, Pzx, Kt = np.empty((6, 6)), np.empty((6, 12)), np.empty((6, 12))
+    KS = np.empty((12, 6))
+    nu, dx = np.empty(6), np.empty(12)
+    xn, Pn = np.empty((B, 13)), np.empty((B, 12, 12))
+    Pm = np.empty((12, 12))
+    for b in range(B):
+        if not _nb_sigma_points(x[b], P[b], spread, X, Sc, L):
+            return b
+        for i in range(3):
+            m = 0.0
+            for s in range(25):
+                m += Wm[s] * X[s, 6 + i]
+            zp[i] = m
+        _nb_quat_mean(X, Wm, zq)
+        for s in range(25):
+            for i in range(3):
+                DZ[s, i] = X[s, 6 + i] - zp[i]
+            _nb_rot_error(X, s, zq, DZ[s], 3)
+            for i in range(9):
+                DX[s, i] = X[s, i] - x[b, i]
+            _nb_rot_error(X, s, x[b, 9:13], DX[s], 9)
+        for i in range(6):
+            for j in range(6):
+                m = 0.0
+                for s in range(25):
+                    m += DZ[s, i] * Wc[s] * DZ[s, j]
+                S[i, j] = m + ((R[0, i] if i == j else 0.0) if r_diag else R[i, j])
+            for j in range(12):  # Pxz^T
+                m = 0.0
+                for s in range(25):
+                    m += DX[s, j] * Wc[s] * DZ[s, i]
+                Pzx[i, j] = m
+        if not _nb_lu_solve(S, Pzx, Kt):  # K^T = S^-1 Pxz^T
+            return b
+        for i in range(3):
+            nu[i] = z[b, i] - zp[i]
+        a0, a1, a2, a3 = _nb_quat_mul(z[b, 3], z[b, 4], z[b, 5], z[b, 6], zq[0], -zq[1], -zq[2], -zq[3])
+        nu[3], nu[4], nu[5] = _nb_quat_log(a0, a1, a2, a3)
+        for i in range(12):
+            m = 0.0
+            for j in range(6):
+                m += Kt[j, i] * nu[j]
+            dx[i] = m
+        _nb_boxplus(x[b], dx, 1.0, xn[b])
+        for i in range(12):  # K S
+            for j in range(6):
+                m = 0.0
+                for k in range(6):
+                    m += Kt[k, i] * S[k, j]
+                KS[i, j] = m
+        for i in range(12):  # P - (K S) K^T
+            for j in range(12):
+                m = 0.0
+                for k in range(6):
+                    m += KS[i, k] * Kt[k, j]
+                Pm[i, j] = P[b, i, j] - m
+        for i in range(12):
+            for j in range(12):
+                Pn[b, i, j] = 0.5 * (Pm[i, j] + Pm[j, i])
+    x_out[:] = xn
+    P_out[:] = Pn
+    return -1
+
+
+@functools.lru_cache(maxsize=16)
+def _weights_np(alpha: float, beta: float, kappa: float) -> tuple[np.ndarray, np.ndarray, float]:
+    Wm, Wc, spread = merwe_weights(N_TANGENT, alpha, beta, kappa)
+    return Wm.numpy(), Wc.numpy(), spread
+
+
+def _f64(t: torch.Tensor) -> np.ndarray:
+    """A float64 numpy view (or copy) of a CPU tensor."""
+    return t.numpy() if t.dtype == torch.float64 and not t.requires_grad else t.detach().double().numpy()
+
+
+def _per_filter(T: torch.Tensor | float, B: int) -> np.ndarray:
+    """Seconds ``T`` (float or ``(B,)``) as a float64 ``(B,)`` array."""
+    if isinstance(T, torch.Tensor):
+        return np.ascontiguousarray(np.broadcast_to(_f64(T), (B,)))
+    return np.full(B, float(T))
+
+
+def _cov_arg(c: torch.Tensor) -> tuple[np.ndarray, bool]:
+    """A noise covariance given as a diagonal ``(n,)`` or a full ``(n, n)`` matrix: a 2-D array and a diagonal flag."""
+    c = _f64(c)
+    return (c[None], True) if c.ndim == 1 else (c, False)
+
+
+def _raise_not_pd(name: str, b: int) -> None:
+    raise torch.linalg.LinAlgError(f"{name}: the covariance of filter {b} is not positive-definite")
+
+
+def _predict_into(x, P, T, q_density, alpha, beta, kappa, twist, x_out, P_out) -> None:
+    _check_state(x, P)
+    B = x.shape[0]
+    Wm, Wc, spread = _weights_np(float(alpha), float(beta), float(kappa))
+    q, q_diag = _cov_arg(q_density)
+    tw = _NO_TWIST if twist is None else _f64(twist)
+    bad = _ukf_predict_kernel(_f64(x), _f64(P), _per_filter(T, B), q, q_diag, tw, twist is not None, Wm, Wc, spread,
+                              x_out, P_out)
+    if bad >= 0:
+        _raise_not_pd("ukf_predict", bad)
+
+
+def _update_into(x, P, z, R, alpha, beta, kappa, x_out, P_out) -> None:
+    _check_state(x, P)
+    B = x.shape[0]
+    if z.shape != (B, 7):
+        raise ValueError(f"pose measurement must have shape ({B}, 7), got {tuple(z.shape)}")
+    Wm, Wc, spread = _weights_np(float(alpha), float(beta), float(kappa))
+    r, r_diag = _cov_arg(R)
+    bad = _ukf_update_kernel(_f64(x), _f64(P), _f64(z), r, r_diag, Wm, Wc, spread, x_out, P_out)
+    if bad >= 0:
+        _raise_not_pd("ukf_update", bad)
+
+
+_NO_TWIST = np.zeros((1, 6))
 
 
 def ukf_predict(
@@ -143,22 +443,14 @@ def ukf_predict(
         T: seconds, float or ``(B,)``.
         q_density: process noise spectral densities ``(12,)`` (diagonal) or ``(12, 12)``; ``Q = q_density T``.
 
+    Each filter runs in a compiled kernel (float64), sigma points as :func:`sigma_points`, means as :func:`quat_mean`.
+
     Shape: ``(B, 13), (B, 12, 12) -> (B, 13), (B, 12, 12)``.
     """
-    _check_state(x, P)
-    B = x.shape[0]
-    T = torch.as_tensor(T, dtype=x.dtype, device=x.device).expand(B)
-    Wm, Wc, spread = _merwe_weights_cached(N_TANGENT, alpha, beta, kappa, x.dtype)
-    X = sigma_points(x, P, spread)
-    Tb = T[:, None, None]
-    p = X[..., 6:9] + X[..., 0:3] * Tb
-    q = quat_canonical(quat_mul(quat_exp(X[..., 3:6] * Tb), X[..., 9:13]))
-    X = torch.cat((X[..., :6], p, q), dim=-1)
-    xm = _mean(X, Wm)
-    D = boxminus(X, xm[:, None])
-    Q = _noise_cov(q_density.to(x), B) * T[:, None, None]
-    Pm = (D.transpose(1, 2) * Wc) @ D + Q
-    return xm, 0.5 * (Pm + Pm.transpose(-1, -2))
+    B = x.shape[0] if x.ndim else 0
+    x_out, P_out = np.empty((B, 13)), np.empty((B, 12, 12))
+    _predict_into(x, P, T, q_density, alpha, beta, kappa, None, x_out, P_out)
+    return torch.from_numpy(x_out).to(x.dtype), torch.from_numpy(P_out).to(x.dtype)
 
 
 def ukf_update(
@@ -177,27 +469,14 @@ def ukf_update(
         z: measured poses ``(B, 7)`` ``[p (m), q (w, x, y, z)]``.
         R: measurement covariance ``(6,)`` (diagonal) or ``(6, 6)``, order ``[p (m^2), rotation vector (rad^2)]``.
 
+    Each filter runs in a compiled kernel (float64); the gain solves ``S K^T = P_xz^T`` (LU, partial pivoting).
+
     Shape: ``(B, 13), (B, 12, 12), (B, 7) -> (B, 13), (B, 12, 12)``.
     """
-    _check_state(x, P)
-    B = x.shape[0]
-    if z.shape != (B, 7):
-        raise ValueError(f"pose measurement must have shape ({B}, 7), got {tuple(z.shape)}")
-    z = z.to(x)
-    Wm, Wc, spread = _merwe_weights_cached(N_TANGENT, alpha, beta, kappa, x.dtype)
-    X = sigma_points(x, P, spread)
-    Zp, Zq = X[..., 6:9], X[..., 9:13]
-    zp = Wm @ Zp
-    zq = quat_mean(Zq, Wm)
-    DZ = torch.cat((Zp - zp[:, None], quat_log(quat_mul(Zq, quat_conj(zq)[:, None]))), dim=-1)
-    DX = boxminus(X, x[:, None])
-    S = (DZ.transpose(1, 2) * Wc) @ DZ + _noise_cov(R.to(x), B)
-    Pxz = (DX.transpose(1, 2) * Wc) @ DZ
-    K = torch.linalg.solve(S, Pxz.transpose(-1, -2)).transpose(-1, -2)  # S symmetric
-    nu = torch.cat((z[:, :3] - zp, quat_log(quat_mul(z[:, 3:], quat_conj(zq)))), dim=-1)
-    x_new = boxplus(x, (K @ nu[..., None])[..., 0])
-    P_new = P - K @ S @ K.transpose(-1, -2)
-    return x_new, 0.5 * (P_new + P_new.transpose(-1, -2))
+    B = x.shape[0] if x.ndim else 0
+    x_out, P_out = np.empty((B, 13)), np.empty((B, 12, 12))
+    _update_into(x, P, z, R, alpha, beta, kappa, x_out, P_out)
+    return torch.from_numpy(x_out).to(x.dtype), torch.from_numpy(P_out).to(x.dtype)
 
 
 def _check_state(x: torch.Tensor, P: torch.Tensor) -> None:
@@ -295,18 +574,12 @@ class PoseUKF(nn.Module):
         around the motion the velocity stage measured instead of around its own constant-velocity guess
         (which lags by many pixels when the object accelerates).
         """
-        if twist is not None:
-            if tuple(twist.shape) != (self.batch_size, 6):
-                raise ValueError(f"twist must have shape ({self.batch_size}, 6), got {tuple(twist.shape)}")
-            twist = twist.to(self.x)
-            self.x[:, 3:6] = twist[:, 3:]
-            self.x[:, 0:3] = twist[:, :3] + torch.linalg.cross(twist[:, 3:], self.x[:, 6:9], dim=-1)
-        x, P = ukf_predict(self.x, self.P, T, self.q_density, self.alpha, self.beta, self.kappa)
-        self.x.copy_(x)
-        self.P.copy_(P)
+        if twist is not None and tuple(twist.shape) != (self.batch_size, 6):
+            raise ValueError(f"twist must have shape ({self.batch_size}, 6), got {tuple(twist.shape)}")
+        _predict_into(self.x, self.P, T, self.q_density, self.alpha, self.beta, self.kappa, twist, self.x.numpy(),
+                      self.P.numpy())
 
     def update(self, pose_meas: torch.Tensor) -> None:
         """Fuse measured poses ``(B, 7)`` in place."""
-        x, P = ukf_update(self.x, self.P, pose_meas, self.R, self.alpha, self.beta, self.kappa)
-        self.x.copy_(x)
-        self.P.copy_(P)
+        _update_into(self.x, self.P, pose_meas, self.R, self.alpha, self.beta, self.kappa, self.x.numpy(),
+                     self.P.numpy())
