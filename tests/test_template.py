@@ -475,6 +475,24 @@ def test_dog_and_edges_match_kornia_filters():
     assert torch.allclose(tm.edge_map(gray, mask, 0.1), edges, atol=1e-6)
 
 
+def test_canvas_box_and_radial_gain_match_their_definitions():
+    gen = torch.Generator().manual_seed(13)
+    depth = (torch.rand(3, 30, 41, generator=gen) + 0.3) * (torch.rand(3, 30, 41, generator=gen) > 0.97)
+    depth[2] = 0.0  # no object pixels
+    origin = torch.tensor([[5.0, 7.0], [100.0, 20.0], [0.0, 0.0]])
+    box, gain = tm.canvas_box(depth, origin, 4.0), tm.radial_gain(depth, origin, CAM)
+    for b in range(3):
+        v, u = torch.nonzero(depth[b] > 0, as_tuple=True)
+        if len(u) == 0:
+            assert box[b].tolist() == [20.0, 14.5, 41.0] and float(gain[b]) == 0.0
+            continue
+        cu, cv = (u.min() + u.max()) / 2 + origin[b, 0], (v.min() + v.max()) / 2 + origin[b, 1]
+        side = max(u.max() - u.min(), v.max() - v.min()) + 1 + 8
+        assert box[b].tolist() == pytest.approx([float(cu), float(cv), float(side)])
+        r = torch.hypot(u + origin[b, 0] - CAM.cx, v + origin[b, 1] - CAM.cy) / depth[b, v, u]
+        assert float(gain[b]) == pytest.approx(float(r.double().mean()), rel=1e-6)
+
+
 def test_fill_depth_matches_a_pixel_loop():
     torch.manual_seed(4)
     depth = torch.zeros(1, 20, 24, dtype=torch.float64)

@@ -215,19 +215,53 @@ def canvas_box(depth: torch.Tensor, origin, margin_px: float = 20.0) -> torch.Te
     Shape: ``(B, h, w), (B, 2) -> (B, 3)``.
     """
     depth = _check_images(depth, "depth")
+    return _box_of(_object_extent(depth, origin), depth, origin, margin_px)
+
+
+def _box_of(extent: torch.Tensor, depth: torch.Tensor, origin, margin_px: float) -> torch.Tensor:
+    """:func:`canvas_box` from the :func:`_object_extent` of the render ``depth``."""
     B, h, w = depth.shape
     origin = _origin(origin, B, depth.dtype)
-    cols, rows = depth.amax(1) > 0, depth.amax(2) > 0  # (a reduction is cheaper than a mask of the window)
-    iu = torch.arange(w, dtype=depth.dtype)
-    iv = torch.arange(h, dtype=depth.dtype)
-    inf = torch.tensor(math.inf, dtype=depth.dtype)
-    umin, umax = torch.where(cols, iu, inf).amin(1), torch.where(cols, iu, -inf).amax(1)
-    vmin, vmax = torch.where(rows, iv, inf).amin(1), torch.where(rows, iv, -inf).amax(1)
-    empty = ~cols.any(1)
+    e = extent.to(depth.dtype)
+    umin, umax, vmin, vmax = e[:, 0], e[:, 1], e[:, 2], e[:, 3]
+    empty = e[:, 5] == 0
     cu = torch.where(empty, (w - 1) / 2.0, (umin + umax) / 2) + origin[:, 0]
     cv = torch.where(empty, (h - 1) / 2.0, (vmin + vmax) / 2) + origin[:, 1]
     side = torch.where(empty, float(max(h, w)), torch.maximum(umax - umin, vmax - vmin) + 1 + 2 * margin_px)
     return torch.stack((cu, cv, side), -1)
+
+
+def _object_extent(depth: torch.Tensor, origin, camera: Camera | None = None) -> torch.Tensor:
+    """One compiled pass over the ``depth > 0`` pixels of renders ``(B, h, w)`` (window at ``origin``).
+
+    Returns ``(B, 6)`` float64: the window-pixel bounds ``umin, umax, vmin, vmax`` (0 without object pixels),
+    the sum of ``|(u - cx, v - cy)| / Z`` over the object pixels (frame pixels ``u, v``; 0 without a
+    ``camera``) and their count.
+    """
+    B = depth.shape[0]
+    o = _origin(origin, B, torch.float64)
+    c = (0.0, 0.0) if camera is None else (camera.cx, camera.cy)
+    out = torch.empty(B, 6, dtype=torch.float64)
+    _extent_kernel(depth.detach().numpy(), o.numpy(), c[0], c[1], camera is not None, out.numpy())
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _extent_kernel(depth, origin, cx, cy, gain, out):
+    B, h, w = depth.shape
+    for b in range(B):
+        umin, umax, vmin, vmax, total, n = w, -1, h, -1, 0.0, 0
+        for v in range(h):
+            for u in range(w):
+                z = depth[b, v, u]
+                if z > 0:
+                    umin, umax, vmin, vmax, n = min(umin, u), max(umax, u), min(vmin, v), max(vmax, v), n + 1
+                    if gain:
+                        du, dv = u + origin[b, 0] - cx, v + origin[b, 1] - cy
+                        total += math.sqrt(du * du + dv * dv) / z
+        if n == 0:
+            umin = umax = vmin = vmax = 0
+        out[b, 0], out[b, 1], out[b, 2], out[b, 3], out[b, 4], out[b, 5] = umin, umax, vmin, vmax, total, n
 
 
 def canvas_intrinsics(box: torch.Tensor, camera: Camera, canvas: int) -> torch.Tensor:
@@ -354,13 +388,12 @@ def radial_gain(depth: torch.Tensor, origin, camera: Camera) -> torch.Tensor:
     Shape: ``(B, h, w), (B, 2) -> (B,)``.
     """
     depth = _check_images(depth, "depth")
-    B, h, w = depth.shape
-    origin = _origin(origin, B, depth.dtype)
-    u = torch.arange(w, dtype=depth.dtype)[None, None, :] + origin[:, 0, None, None] - camera.cx
-    v = torch.arange(h, dtype=depth.dtype)[None, :, None] + origin[:, 1, None, None] - camera.cy
-    mask = depth > 0
-    r = torch.sqrt(u * u + v * v) / torch.where(mask, depth, torch.ones_like(depth))
-    return (r * mask).flatten(1).sum(1) / mask.flatten(1).sum(1).clamp_min(1)
+    return _gain_of(_object_extent(depth, origin, camera), depth.dtype)
+
+
+def _gain_of(extent: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """:func:`radial_gain` from an :func:`_object_extent` with a camera."""
+    return (extent[:, 4] / extent[:, 5].clamp_min(1)).to(dtype)
 
 
 def hypothesis_steps(
@@ -399,23 +432,34 @@ def apply_steps(pose: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
 
 
 # -- warping and scoring ----------------------------------------------------------------------
-def _box_sum(x: torch.Tensor, radius: int, dim: int) -> torch.Tensor:
-    """Sums over windows of ``2 radius + 1`` along ``dim`` (zero outside), by differences of a cumulative sum."""
-    n = x.shape[dim]
-    pad = [0, 0] * (x.ndim - 1 - dim % x.ndim) + [radius + 1, radius]
-    c = F.pad(x, pad).cumsum(dim)
-    return c.narrow(dim, 2 * radius + 1, n) - c.narrow(dim, 0, n)
-
-
 def _fill_depth(depth: torch.Tensor, fallback: torch.Tensor, radius: int) -> torch.Tensor:
     """Background pixels (depth 0) get the mean object depth within ``radius`` or ``fallback`` (B,)."""
-    mask = depth > 0
-    if bool(mask.all()):  # nothing to fill (e.g. an already filled depth)
-        return depth
-    both = torch.stack((torch.where(mask, depth, 0.0), mask.to(depth.dtype)), 1).double()
-    num, den = _box_sum(_box_sum(both, radius, -1), radius, -2).unbind(1)  # float64: exact counts
-    local = torch.where(den > 0.5, num / den.clamp_min(1.0), fallback.double()[:, None, None]).to(depth.dtype)
-    return torch.where(mask, depth, local)
+    out = depth.clone(memory_format=torch.contiguous_format)
+    _fill_kernel(out.numpy(), fallback.double().expand(depth.shape[0]).contiguous().numpy(), radius)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _fill_kernel(depth, fallback, r):
+    """:func:`_fill_depth` in place, with float64 integral images of the object depths and counts."""
+    B, h, w = depth.shape
+    S = np.zeros((h + 1, w + 1))
+    C = np.zeros((h + 1, w + 1))
+    for b in range(B):
+        for v in range(h):
+            for u in range(w):
+                z = depth[b, v, u]
+                inside = z > 0
+                S[v + 1, u + 1] = S[v, u + 1] + S[v + 1, u] - S[v, u] + (z if inside else 0.0)
+                C[v + 1, u + 1] = C[v, u + 1] + C[v + 1, u] - C[v, u] + (1.0 if inside else 0.0)
+        for v in range(h):
+            v0, v1 = max(v - r, 0), min(v + r + 1, h)
+            for u in range(w):
+                if depth[b, v, u] > 0:
+                    continue
+                u0, u1 = max(u - r, 0), min(u + r + 1, w)
+                n = C[v1, u1] - C[v0, u1] - C[v1, u0] + C[v0, u0]
+                depth[b, v, u] = (S[v1, u1] - S[v0, u1] - S[v1, u0] + S[v0, u0]) / n if n > 0.5 else fallback[b]
 
 
 # Cubic B-spline interpolation for the warp (module docstring, item 4): exact at the samples and
@@ -574,10 +618,11 @@ def _crop_to_boxes(depth: torch.Tensor, gray: torch.Tensor | None, origin, box: 
 
 def _canvas_and_gain(depth, gray, origin, camera: Camera, canvas: int, margin_px: float):
     """:func:`prepare_canvas` and :func:`radial_gain` of a render, both from the crop the canvas samples."""
-    box = canvas_box(depth, origin, margin_px)
+    depth = _check_images(depth, "depth")
+    extent = _object_extent(depth, origin, camera)  # the crop below holds every object pixel: same gain
+    box = _box_of(extent, depth, origin, margin_px)
     depth, gray, origin = _crop_to_boxes(depth, gray, origin, box)
-    cr = prepare_canvas(depth, gray, origin, camera, canvas, margin_px, box)
-    return cr, radial_gain(depth, origin, camera)
+    return prepare_canvas(depth, gray, origin, camera, canvas, margin_px, box), _gain_of(extent, depth.dtype)
 
 
 def prepare_canvas(
