@@ -327,7 +327,7 @@ class EventPoseTracker(nn.Module):
             if not reuse:
                 self._model = self.corrector.template_model(pose32, render.depth, render.gray, origin)
             obs = self._observation(self.origin, self.depth.shape[-2:], self._t_now(t, b))
-            corr = self.corrector.correct_model(self._model, pose32, obs, self.origin)
+            corr = self.corrector.correct_model(self._model, predicted, obs, self.origin)  # float64 search
             # Until the EROS holds enough events, its edges are too sparse to correct against.
             warm = (self.events_seen >= cfg.template.warmup_events)[:, None]
             measured = torch.where(warm, corr.pose.double(), predicted)
