@@ -128,6 +128,39 @@ def _prepare(sae: torch.Tensor, x, y, t, p, b):
     return xi, yi, bi * C + ci
 
 
+_NONE = np.zeros(1, dtype=np.int64)
+
+
+def _event_arrays(shape: tuple[int, int, int, int], x, y, t, p, b):
+    """The packed events as numpy arrays for the compiled kernels, checked against an SAE of ``shape``
+    ``(B, C, H, W)`` as :func:`_prepare` checks them (and with its messages), the ranges in one compiled pass.
+
+    Returns ``(x, y, t, p, b, batched)``; ``p`` (only read when ``C = 2``) and ``b`` (only read when ``batched``)
+    may be placeholders."""
+    _check_fields(x, y, b)
+    B, C, H, W = shape
+    _check_time_polarity(t, p, x.shape, C)
+    pn = _NONE if C == 1 else (p.long() if p.dtype == torch.bool else p).numpy()
+    bn = _NONE if b is None else b.numpy()
+    xn, yn = x.numpy(), y.numpy()
+    if x.numel() and not _events_in_range(xn, yn, pn, bn, C, b is not None, B, H, W):
+        _prepare(torch.empty(shape, dtype=torch.int64), x, y, t, p, b)  # raises the range error
+    return xn, yn, t.numpy(), pn, bn, b is not None
+
+
+@numba.njit(cache=True, nogil=True)
+def _events_in_range(x, y, p, b, C, batched, B, H, W):
+    """Every event inside ``[0, W) x [0, H)``, batch index in ``[0, B)`` and (``C = 2``) polarity in ``{0, 1}``."""
+    for i in range(x.shape[0]):
+        if x[i] < 0 or x[i] >= W or y[i] < 0 or y[i] >= H:
+            return False
+        if batched and (b[i] < 0 or b[i] >= B):
+            return False
+        if C == 2 and (p[i] < 0 or p[i] > 1):
+            return False
+    return True
+
+
 def sae_update_(sae: torch.Tensor, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor | None,
                 b: torch.Tensor | None = None) -> torch.Tensor:
     """In place: ``sae[b, c, y, x] = max(sae, t)`` per event (``c = p`` if two channels, else 0); returns ``sae``.
@@ -172,41 +205,68 @@ def _pad_sae(sae: torch.Tensor, pad: int) -> torch.Tensor:
     return out
 
 
-def _triplets_padded(sae_pad: torch.Tensor, pad: int, xi, yi, ch, t, D: int, dt_max_us: int, tol: float):
-    """Triplet samples of prepared events against the padded SAE ``(B, C, Hp, Wp)``, which the events update
-    in place as they go (each event looks up, then writes: the module docstring's "strictly earlier")."""
-    n = xi.numel()
-    dirs = _directions(D)
+def _triplets_padded(sae_pad: torch.Tensor, pad: int, events, D: int, dt_max_us: int, tol: float, start: int = 0,
+                     stop: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Triplet samples of the events ``start:stop`` of ``events`` (:func:`_event_arrays`) against the padded SAE
+    ``(B, C, Hp, Wp)``, which they update in place as they go (each event looks up, then writes: the module
+    docstring's "strictly earlier"). Returns ``event (S,)`` (index into the packet) and ``flow (S, 2)`` float32."""
+    x, y, t, p, b, batched = events
+    stop = x.shape[0] if stop is None else min(stop, x.shape[0])
+    dirs = _DIRECTIONS.get(D)
+    if dirs is None:
+        dirs = _DIRECTIONS[D] = _directions(D).numpy()
     B, C, Hp, Wp = sae_pad.shape
-    event = np.empty(n * dirs.shape[0], dtype=np.int64)
-    flow = np.empty((n * dirs.shape[0], 2), dtype=np.float32)
-    s = _triplet_kernel(sae_pad.view(B * C, Hp, Wp).numpy(), xi.numpy(), yi.numpy(), ch.numpy(), t.numpy(),
-                        dirs.numpy(), pad, dt_max_us, tol, event, flow)
-    return torch.from_numpy(event[:s]), torch.from_numpy(flow[:s])
+    n = max(stop - start, 0) * dirs.shape[0]
+    event = np.empty(n, dtype=np.int64)
+    flow = np.empty((n, 2), dtype=np.float32)
+    s = _triplet_kernel(sae_pad.view(B * C, Hp, Wp).numpy(), x, y, t, p, b, C, batched, start, stop, dirs, pad,
+                        dt_max_us, tol, event, flow)
+    return event[:s], flow[:s]
+
+
+_DIRECTIONS: dict[int, np.ndarray] = {}
 
 
 @numba.njit(cache=True, nogil=True)
-def _triplet_kernel(sae, x, y, ch, t, dirs, pad, dt_max_us, tol, event, flow):
-    """Per event: look up ``p0 + d`` and ``p0 + 2 d`` for every direction ``d``, keep the triplets that pass, then
-    write the event into the SAE. Returns the number of samples written to ``event``, ``flow``."""
+def _triplet_kernel(sae, x, y, t, p, b, C, batched, start, stop, dirs, pad, dt_max_us, tol, event, flow):
+    """Per event ``i`` in ``start:stop``: look up ``p0 + d`` and ``p0 + 2 d`` for every direction ``d``, keep the
+    triplets that pass, then write the event into the SAE (plane ``b C + p``). Returns the number of samples
+    written to ``event``, ``flow``.
+
+    The tests of the ``K`` directions of an event run without branches (a vectorisable loop), then the passing
+    ones are written in direction order; the samples are those of the test-by-test loop, bit for bit."""
+    n_planes, Hp, Wp = sae.shape
+    flat = sae.reshape(n_planes * Hp * Wp)
+    K = dirs.shape[0]
+    off1 = np.empty(K, dtype=np.int64)
+    fx, fy = np.empty(K), np.empty(K)
+    ok = np.empty(K, dtype=np.bool_)
+    span = np.empty(K)
+    for k in range(K):
+        off1[k] = dirs[k, 1] * Wp + dirs[k, 0]
+        fx[k], fy[k] = -2.0 * dirs[k, 0], -2.0 * dirs[k, 1]
     s = 0
-    for i in range(x.shape[0]):
-        c, u, v, t0 = ch[i], x[i] + pad, y[i] + pad, t[i]
-        for k in range(dirs.shape[0]):
-            dx, dy = dirs[k, 0], dirs[k, 1]
-            t1 = sae[c, v + dy, u + dx]
+    for i in range(start, stop):
+        c = (b[i] if batched else 0) * C + (p[i] if C == 2 else 0)
+        at = (c * Hp + y[i] + pad) * Wp + x[i] + pad
+        t0 = t[i]
+        found = False
+        for k in range(K):
+            t1 = flat[at + off1[k]]
             dt01 = t0 - t1
-            if dt01 <= 0 or dt01 >= dt_max_us:
-                continue
-            dt12 = t1 - sae[c, v + 2 * dy, u + 2 * dx]
-            if dt12 <= 0 or abs(1.0 - dt12 / dt01) >= tol:
-                continue
-            span = (dt01 + dt12) * 1e-6  # t0 - t2, seconds
-            event[s] = i
-            flow[s, 0] = -2.0 * dx / span
-            flow[s, 1] = -2.0 * dy / span
-            s += 1
-        sae[c, v, u] = max(sae[c, v, u], t0)
+            dt12 = t1 - flat[at + 2 * off1[k]]
+            # 0 < dt01 < dt_max, dt12 > 0 and |1 - dt12 / dt01| < tol (max(., 1) only guards the rejected)
+            good = (dt01 > 0) & (dt01 < dt_max_us) & (dt12 > 0) & (abs(1.0 - dt12 / max(dt01, 1)) < tol)
+            ok[k] = good
+            found |= good
+            span[k] = max(dt01 + dt12, 1) * 1e-6  # t0 - t2, seconds
+        if found:
+            for k in range(K):  # branch-free compaction
+                event[s] = i
+                flow[s, 0] = fx[k] / span[k]
+                flow[s, 1] = fy[k] / span[k]
+                s += ok[k]
+        flat[at] = max(flat[at], t0)
     return s
 
 
@@ -232,9 +292,11 @@ def triplet_samples(sae: torch.Tensor, x: torch.Tensor, y: torch.Tensor, t: torc
         Returns ``event (S,)`` int64 index into the packet (sorted) and ``flow (S, 2)`` float32 px/s.
     """
     _check_flow_params(D, dt_max_us, tol)
-    xi, yi, ch = _prepare(sae, x, y, t, p, b)
+    _check_sae(sae)
+    events = _event_arrays(tuple(sae.shape), x, y, t, p, b)
     pad = 2 * D
-    return _triplets_padded(_pad_sae(sae, pad), pad, xi, yi, ch, t, D, dt_max_us, tol)
+    ev, flow = _triplets_padded(_pad_sae(sae, pad), pad, events, D, dt_max_us, tol)
+    return torch.from_numpy(ev), torch.from_numpy(flow)
 
 
 def block_grid(height: int, width: int, block: int) -> tuple[int, int, torch.Tensor]:
@@ -274,89 +336,182 @@ def register_blocks(block_id: torch.Tensor, event: torch.Tensor, flow: torch.Ten
                          f"{min_samples}, {max_candidates}, {tie_tol}, {inlier}")
     if estimate not in ("register", "normal"):
         raise ValueError(f"estimate must be 'register' or 'normal', got {estimate!r}")
-    count = torch.bincount(block_id, minlength=n_blocks)
-    out = torch.zeros(n_blocks, 2, dtype=torch.float32)
-    uv_out = torch.full((n_blocks, 2), math.nan, dtype=torch.float32)
-    valid = count >= min_samples
-    keep = valid[block_id].nonzero().squeeze(1)
-    if keep.numel() == 0:
-        return out, uv_out, valid, count
-    perm = keep[torch.argsort(block_id[keep] * (event.max() + 1) + event[keep], stable=True)]
-    g, ev = block_id[perm], event[perm]
-    # Rank of each sample's event inside its block, and deterministic event subsampling.
-    new_ev = torch.ones_like(ev, dtype=torch.bool)
-    new_ev[1:] = (g[1:] != g[:-1]) | (ev[1:] != ev[:-1])
-    ev_rank = torch.cumsum(new_ev.long(), 0) - 1
-    block_start = torch.ones_like(new_ev)
-    block_start[1:] = g[1:] != g[:-1]
-    ev_rank = ev_rank - torch.cummax(torch.where(block_start, ev_rank, 0), 0).values
-    stride = torch.div(count[g] + max_candidates - 1, max_candidates, rounding_mode="floor")
-    sub = (ev_rank % stride == 0).nonzero().squeeze(1)
-    perm, g, ev_rank = perm[sub], g[sub], torch.div(ev_rank[sub], stride[sub], rounding_mode="floor")
-    # Slot of each kept sample inside its block; truncate to max_candidates.
-    idx = torch.arange(g.numel())
-    start = torch.ones_like(g, dtype=torch.bool)
-    start[1:] = g[1:] != g[:-1]
-    slot = idx - torch.cummax(torch.where(start, idx, 0), 0).values
-    fit = (slot < max_candidates).nonzero().squeeze(1)
-    perm, g, ev_rank = perm[fit], g[fit], ev_rank[fit]
-    blocks = torch.unique_consecutive(g)
-    chosen, uv = _register_kernel(g.numpy(), ev_rank.numpy(), flow[perm].double().numpy(),
-                                  pixel[perm].double().numpy(), blocks.numel(), float(tie_tol),
-                                  estimate == "normal", float(inlier))
-    out[blocks] = torch.from_numpy(chosen).float()
-    uv_out[blocks] = torch.from_numpy(uv).float()
-    return out, uv_out, valid, count
+    out, uv, valid, count = _register(_ints(block_id), _ints(event), flow.numpy(), pixel.numpy(), n_blocks,
+                                      min_samples, max_candidates, tie_tol, estimate, inlier, _NAN_UV)
+    return torch.from_numpy(out), torch.from_numpy(uv), torch.from_numpy(valid), torch.from_numpy(count)
+
+
+_NAN_UV = np.full((1, 2), np.nan, dtype=np.float32)
+
+
+def _ints(t: torch.Tensor) -> np.ndarray:
+    return t.numpy() if t.dtype == torch.int64 else t.long().numpy()
+
+
+def _register(block_id: np.ndarray, event: np.ndarray, flow: np.ndarray, pixel: np.ndarray, n_blocks: int,
+              min_samples: int, max_candidates: int, tie_tol: float, estimate: str, inlier: float, fill: np.ndarray):
+    """:func:`register_blocks` on numpy arrays; an invalid block ``k`` gets ``uv = fill[k % len(fill)]``."""
+    out = np.zeros((n_blocks, 2), dtype=np.float32)
+    uv = np.empty((n_blocks, 2), dtype=np.float32)
+    valid = np.empty(n_blocks, dtype=np.bool_)
+    count = np.empty(n_blocks, dtype=np.int64)
+    if block_id.shape != event.shape or flow.shape != block_id.shape + (2,) or pixel.shape != flow.shape:
+        raise ValueError(f"need block_id, event (S,) and flow, pixel (S, 2), got {block_id.shape}, {event.shape}, "
+                         f"{flow.shape}, {pixel.shape}")
+    if not _register_all(block_id, event, flow, pixel, min_samples, max_candidates, float(tie_tol),
+                         estimate == "normal", float(inlier), fill, out, uv, valid, count):
+        raise ValueError(f"block_id must lie in [0, {n_blocks})")
+    return out, uv, valid, count
 
 
 @numba.njit(cache=True, nogil=True)
-def _register_kernel(g, ev_rank, flow, pixel, n_out, tie_tol, normal, inlier):
+def _register_all(block_id, event, flow, pixel, min_samples, max_candidates, tie_tol, normal, inlier, fill, out,
+                  uv_out, valid, count):
+    """:func:`register_blocks` into ``out``, ``uv_out``, ``valid``, ``count`` (``n_blocks`` rows); False (nothing
+    registered) if a block id lies outside ``[0, n_blocks)``.
+
+    The samples of the valid blocks are ordered by ``(block, event)`` (stable: a counting sort by block when
+    the events are already in packet order, as the matching writes them), their events ranked within their
+    block and subsampled (every ``s``-th event, ``s = ceil(samples / max_candidates)``), the first
+    ``max_candidates`` samples kept; then :func:`_register_kernel` registers each block."""
+    n_blocks = count.shape[0]
+    S = block_id.shape[0]
+    for i in range(S):
+        if block_id[i] < 0 or block_id[i] >= n_blocks:
+            return False
+    count[:] = 0
+    for i in range(S):
+        count[block_id[i]] += 1
+    n_keep = 0
+    for k in range(n_blocks):
+        valid[k] = count[k] >= min_samples
+        if valid[k]:
+            n_keep += count[k]
+    # stable order of the kept samples by (block, event)
+    order = np.empty(n_keep, dtype=np.int64)
+    sorted_events = True
+    for i in range(1, S):
+        if event[i] < event[i - 1]:
+            sorted_events = False
+            break
+    if sorted_events:
+        pos = np.empty(n_blocks, dtype=np.int64)
+        acc = 0
+        for k in range(n_blocks):
+            pos[k] = acc
+            if valid[k]:
+                acc += count[k]
+        for i in range(S):
+            k = block_id[i]
+            if valid[k]:
+                order[pos[k]] = i
+                pos[k] += 1
+    else:
+        e_span = event.max() + 1
+        key = np.empty(n_keep, dtype=np.int64)
+        idx = np.empty(n_keep, dtype=np.int64)
+        j = 0
+        for i in range(S):
+            if valid[block_id[i]]:
+                key[j] = block_id[i] * e_span + event[i]
+                idx[j] = i
+                j += 1
+        order = idx[np.argsort(key, kind="mergesort")]
+    # event rank within the block, every stride-th event, at most max_candidates samples per block
+    g = np.empty(n_keep, dtype=np.int64)
+    rank = np.empty(n_keep, dtype=np.int64)
+    F = np.empty((n_keep, 2))
+    px = np.empty((n_keep, 2))
+    m = 0
+    r, slot, stride = 0, 0, 1
+    for j in range(n_keep):
+        i = order[j]
+        k = block_id[i]
+        if j == 0 or k != block_id[order[j - 1]]:
+            r, slot = 0, 0
+            stride = (count[k] + max_candidates - 1) // max_candidates
+        elif event[i] != event[order[j - 1]]:
+            r += 1
+        if r % stride == 0:
+            if slot < max_candidates:
+                g[m], rank[m] = k, r // stride
+                F[m, 0], F[m, 1] = flow[i, 0], flow[i, 1]
+                px[m, 0], px[m, 1] = pixel[i, 0], pixel[i, 1]
+                m += 1
+            slot += 1
+    chosen, uv = _register_kernel(g[:m], rank[:m], F[:m], px[:m], tie_tol, normal, inlier)
+    b = 0
+    nf = fill.shape[0]
+    for k in range(n_blocks):
+        if valid[k]:
+            out[k, 0], out[k, 1] = chosen[b, 0], chosen[b, 1]
+            uv_out[k, 0], uv_out[k, 1] = uv[b, 0], uv[b, 1]
+            b += 1
+        else:
+            uv_out[k, 0], uv_out[k, 1] = fill[k % nf, 0], fill[k % nf, 1]
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _register_kernel(g, ev_rank, flow, pixel, tie_tol, normal, inlier):
     """Registration of the blocks in ``g`` (sorted; a block's samples consecutive, their event ranks
-    ``0 .. E - 1``), one block at a time. Returns flow and uv ``(n_out, 2)`` float64 in block order."""
-    chosen = np.zeros((n_out, 2))
-    uv = np.zeros((n_out, 2))
+    ``0 .. E - 1``), one block at a time. Returns flow and uv ``(blocks, 2)`` float64 in block order."""
+    n_out = 0
     K_max = 0
     start = 0
     for i in range(1, g.shape[0] + 1):
         if i == g.shape[0] or g[i] != g[start]:
             K_max = max(K_max, i - start)
+            n_out += 1
             start = i
+    chosen = np.zeros((n_out, 2))
+    uv = np.zeros((n_out, 2))
     dist = np.empty((K_max, K_max))
     per_ev = np.empty((K_max, K_max))
     cost = np.empty(K_max)
     ok = np.empty(K_max, dtype=np.bool_)
+    F0 = np.empty(K_max)
+    F1 = np.empty(K_max)
     start, out = 0, 0
     for end in range(1, g.shape[0] + 1):
         if end < g.shape[0] and g[end] == g[start]:
             continue
         K = end - start
-        F = flow[start:end]
         ev = ev_rank[start:end]
         E = ev.max() + 1
+        for j in range(K):
+            F0[j], F1[j] = flow[start + j, 0], flow[start + j, 1]
         # dist[j, c] = |F_c - F_j|; per_ev[i, c] = min over the samples j of event i; cost[c] = sum_i of it
+        # (rows of contiguous candidates: the loops over c vectorise)
         per_ev[:E, :K] = np.inf
         for j in range(K):
+            fj0, fj1 = F0[j], F1[j]
+            drow = dist[j]
+            prow = per_ev[ev[j]]
             for c in range(K):
-                d = np.sqrt((F[c, 0] - F[j, 0]) ** 2 + (F[c, 1] - F[j, 1]) ** 2)
-                dist[j, c] = d
-                per_ev[ev[j], c] = min(per_ev[ev[j], c], d)
+                a, b = F0[c] - fj0, F1[c] - fj1
+                d = np.sqrt(a * a + b * b)
+                drow[c] = d
+                prow[c] = min(prow[c], d)
+        cost[:K] = 0.0
+        for e in range(E):
+            prow = per_ev[e]
+            for c in range(K):
+                cost[c] += prow[c]
         c_min = np.inf
         for c in range(K):
-            cost[c] = 0.0
-            for e in range(E):
-                cost[c] += per_ev[e, c]
             c_min = min(c_min, cost[c])
         # Among the near-optimal candidates, the one closest to all samples (first on ties).
         best, best_spread = 0, np.inf
         for c in range(K):
-            norm = np.sqrt(F[c, 0] ** 2 + F[c, 1] ** 2)
+            norm = np.sqrt(F0[c] ** 2 + F1[c] ** 2)
             if cost[c] <= c_min + tie_tol * E * norm:
                 spread = 0.0
                 for j in range(K):
                     spread += dist[j, c]
                 if spread < best_spread:
                     best, best_spread = c, spread
-        fx, fy = F[best, 0], F[best, 1]
+        fx, fy = F0[best], F1[best]
         radius = inlier * np.sqrt(fx * fx + fy * fy)
         for e in range(E):
             ok[e] = per_ev[e, best] <= radius
@@ -369,12 +524,12 @@ def _register_kernel(g, ev_rank, flow, pixel, n_out, tie_tol, normal, inlier):
                 sv += py
                 sw += 1.0
                 if normal:
-                    wn = 1.0 / max(np.sqrt(F[j, 0] ** 2 + F[j, 1] ** 2), 1e-12)
-                    a00 += wn * F[j, 0] * F[j, 0]
-                    a01 += wn * F[j, 0] * F[j, 1]
-                    a11 += wn * F[j, 1] * F[j, 1]
-                    r0 += wn * F[j, 0]
-                    r1 += wn * F[j, 1]
+                    wn = 1.0 / max(np.sqrt(F0[j] ** 2 + F1[j] ** 2), 1e-12)
+                    a00 += wn * F0[j] * F0[j]
+                    a01 += wn * F0[j] * F1[j]
+                    a11 += wn * F1[j] * F1[j]
+                    r0 += wn * F0[j]
+                    r1 += wn * F1[j]
         if normal:
             fx, fy = _normal_flow(a00, a01, a11, r0, r1)
         chosen[out, 0], chosen[out, 1] = fx, fy
@@ -411,6 +566,20 @@ def _normal_flow(a00, a01, a11, r0, r1):
         gx, gy = gx - p * e1, gy + p * e0
     n2 = max(gx * gx + gy * gy, 1e-30)
     return gx / n2, gy / n2
+
+
+@numba.njit(cache=True, nogil=True)
+def _sample_blocks(ev, x, y, b, batched, block, gx, G):
+    """Block ``b G + (y // block) gx + x // block`` and pixel ``(x, y)`` of the event of each sample."""
+    S = ev.shape[0]
+    gid = np.empty(S, dtype=np.int64)
+    pixel = np.empty((S, 2), dtype=np.int64)
+    for s in range(S):
+        i = ev[s]
+        bi = b[i] if batched else 0
+        gid[s] = bi * G + (y[i] // block) * gx + x[i] // block
+        pixel[s, 0], pixel[s, 1] = x[i], y[i]
+    return gid, pixel
 
 
 def _smooth(flow: torch.Tensor, uv: torch.Tensor, valid: torch.Tensor, gy: int, gx: int):
@@ -500,38 +669,31 @@ class TripletFlow(nn.Module):
 
     def forward(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor | None = None,
                 b: torch.Tensor | None = None) -> FlowField:
-        B = self.sae_padded.shape[0]
+        B, C, Hp, Wp = self.sae_padded.shape
         G = self.n_blocks
-        xi, yi, ch = _prepare(self.sae, x, y, t, p, b)
-        C = self.sae_padded.shape[1]
-        ev, flow = self._match(xi, yi, ch, t)
-        bi = torch.div(ch, C, rounding_mode="floor")
-        ex, ey, eb = xi[ev], yi[ev], bi[ev]
-        gid = eb * G + torch.div(ey, self.block, rounding_mode="floor") * self.gx + torch.div(
-            ex, self.block, rounding_mode="floor")
-        out, uv, valid, count = register_blocks(gid, ev, flow, torch.stack([ex, ey], 1), B * G, self.min_samples,
-                                                self.max_candidates, self.tie_tol, self.estimate, self.inlier)
-        uv = torch.where(valid[:, None], uv, self.centres.repeat(B, 1))
-        out, valid, count = out.view(B, G, 2), valid.view(B, G), count.view(B, G)
-        uv = uv.view(B, G, 2)
+        events = _event_arrays((B, C, self.height, self.width), x, y, t, p, b)
+        ev, flow = self._match(events)
+        block_id, pixel = _sample_blocks(ev, events[0], events[1], events[4], events[5], self.block, self.gx, G)
+        out, uv, valid, count = _register(block_id, ev, flow, pixel, B * G, self.min_samples, self.max_candidates,
+                                          self.tie_tol, self.estimate, self.inlier, self.centres.numpy())
+        out, uv = torch.from_numpy(out.reshape(B, G, 2)), torch.from_numpy(uv.reshape(B, G, 2))
+        valid, count = torch.from_numpy(valid.reshape(B, G)), torch.from_numpy(count.reshape(B, G))
         if self.smooth:
             out, uv = _smooth(out, uv, valid, self.gy, self.gx)
         return FlowField(uv, out, valid, count)
 
-    def _match(self, xi: torch.Tensor, yi: torch.Tensor, ch: torch.Tensor, t: torch.Tensor):
-        """Triplet samples of a packet, at most ``chunk`` events at a time, updating the SAE after each chunk
-        (a usual window is one chunk; an empty one, one empty chunk).
+    def _match(self, events) -> tuple[np.ndarray, np.ndarray]:
+        """Triplet samples of a packet (:func:`_event_arrays`), at most ``chunk`` events at a time, updating the
+        SAE as they go (a usual window is one chunk).
 
-        Shape: prepared events ``(N,)``; returns ``event (S,)`` (index into the packet) and ``flow (S, 2)``.
+        Returns ``event (S,)`` (index into the packet) and ``flow (S, 2)`` float32.
         """
-        events, flows = [], []
-        for s in range(0, max(xi.numel(), 1), self.chunk):
-            c = slice(s, s + self.chunk)
-            ev, flow = _triplets_padded(self.sae_padded, self.pad, xi[c], yi[c], ch[c], t[c], self.D, self.dt_max_us,
-                                        self.tol)
-            events.append(ev + s)
-            flows.append(flow)
-        return torch.cat(events), torch.cat(flows)
+        n = events[0].shape[0]
+        if n <= self.chunk:
+            return _triplets_padded(self.sae_padded, self.pad, events, self.D, self.dt_max_us, self.tol)
+        parts = [_triplets_padded(self.sae_padded, self.pad, events, self.D, self.dt_max_us, self.tol, s,
+                                  s + self.chunk) for s in range(0, n, self.chunk)]
+        return np.concatenate([e for e, _ in parts]), np.concatenate([f for _, f in parts])
 
     def extra_repr(self) -> str:
         return (f"height={self.height}, width={self.width}, block={self.block}, min_samples={self.min_samples}, "
