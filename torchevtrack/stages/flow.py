@@ -140,12 +140,20 @@ def _event_arrays(shape: tuple[int, int, int, int], x, y, t, p, b):
     _check_fields(x, y, b)
     B, C, H, W = shape
     _check_time_polarity(t, p, x.shape, C)
-    pn = _NONE if C == 1 else (p.long() if p.dtype == torch.bool else p).numpy()
-    bn = _NONE if b is None else b.numpy()
-    xn, yn = x.numpy(), y.numpy()
+    pn = _NONE if C == 1 else _index_array(p)
+    bn = _NONE if b is None else _index_array(b)
+    xn, yn = _index_array(x), _index_array(y)
     if x.numel() and not _events_in_range(xn, yn, pn, bn, C, b is not None, B, H, W):
         _prepare(torch.empty(shape, dtype=torch.int64), x, y, t, p, b)  # raises the range error
     return xn, yn, t.numpy(), pn, bn, b is not None
+
+
+_INDEX_DTYPES = (torch.int64, torch.int32, torch.int16, torch.int8, torch.uint8)
+
+
+def _index_array(v: torch.Tensor) -> np.ndarray:
+    """A numpy view of an integer tensor the kernels index with (other integer types, and bool, as int64)."""
+    return (v if v.dtype in _INDEX_DTYPES else v.long()).numpy()
 
 
 @numba.njit(cache=True, nogil=True)
@@ -233,8 +241,9 @@ def _triplet_kernel(sae, x, y, t, p, b, C, batched, start, stop, dirs, pad, dt_m
     triplets that pass, then write the event into the SAE (plane ``b C + p``). Returns the number of samples
     written to ``event``, ``flow``.
 
-    The tests of the ``K`` directions of an event run without branches (a vectorisable loop), then the passing
-    ones are written in direction order; the samples are those of the test-by-test loop, bit for bit."""
+    The tests of the ``K`` directions of an event run without branches (one hard-to-predict branch per event
+    instead of two or three per direction), then the passing ones are written in direction order; the samples
+    are those of the test-by-test loop, bit for bit."""
     n_planes, Hp, Wp = sae.shape
     flat = sae.reshape(n_planes * Hp * Wp)
     K = dirs.shape[0]
@@ -261,11 +270,12 @@ def _triplet_kernel(sae, x, y, t, p, b, C, batched, start, stop, dirs, pad, dt_m
             found |= good
             span[k] = max(dt01 + dt12, 1) * 1e-6  # t0 - t2, seconds
         if found:
-            for k in range(K):  # branch-free compaction
-                event[s] = i
-                flow[s, 0] = fx[k] / span[k]
-                flow[s, 1] = fy[k] / span[k]
-                s += ok[k]
+            for k in range(K):
+                if ok[k]:
+                    event[s] = i
+                    flow[s, 0] = fx[k] / span[k]
+                    flow[s, 1] = fy[k] / span[k]
+                    s += 1
         flat[at] = max(flat[at], t0)
     return s
 
