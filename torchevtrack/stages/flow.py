@@ -135,8 +135,8 @@ def _event_arrays(shape: tuple[int, int, int, int], x, y, t, p, b):
     """The packed events as numpy arrays for the compiled kernels, checked against an SAE of ``shape``
     ``(B, C, H, W)`` as :func:`_prepare` checks them (and with its messages), the ranges in one compiled pass.
 
-    Returns ``(x, y, t, p, b, batched)``; ``p`` (only read when ``C = 2``) and ``b`` (only read when ``batched``)
-    may be placeholders."""
+    Returns ``(x, y, t, p, b, batched, C)``: the event of index ``i`` updates the SAE plane ``b[i] C + p[i]``;
+    ``p`` (only read when ``C = 2``) and ``b`` (only read when ``batched``) may be placeholders."""
     _check_fields(x, y, b)
     B, C, H, W = shape
     _check_time_polarity(t, p, x.shape, C)
@@ -145,7 +145,7 @@ def _event_arrays(shape: tuple[int, int, int, int], x, y, t, p, b):
     xn, yn = _index_array(x), _index_array(y)
     if x.numel() and not _events_in_range(xn, yn, pn, bn, C, b is not None, B, H, W):
         _prepare(torch.empty(shape, dtype=torch.int64), x, y, t, p, b)  # raises the range error
-    return xn, yn, t.numpy(), pn, bn, b is not None
+    return xn, yn, t.numpy(), pn, bn, b is not None, C
 
 
 _INDEX_DTYPES = (torch.int64, torch.int32, torch.int16, torch.int8, torch.uint8)
@@ -218,16 +218,16 @@ def _triplets_padded(sae_pad: torch.Tensor, pad: int, events, D: int, dt_max_us:
     """Triplet samples of the events ``start:stop`` of ``events`` (:func:`_event_arrays`) against the padded SAE
     ``(B, C, Hp, Wp)``, which they update in place as they go (each event looks up, then writes: the module
     docstring's "strictly earlier"). Returns ``event (S,)`` (index into the packet) and ``flow (S, 2)`` float32."""
-    x, y, t, p, b, batched = events
+    x, y, t, p, b, batched, C = events
     stop = x.shape[0] if stop is None else min(stop, x.shape[0])
     dirs = _DIRECTIONS.get(D)
     if dirs is None:
         dirs = _DIRECTIONS[D] = _directions(D).numpy()
-    B, C, Hp, Wp = sae_pad.shape
+    B, Cs, Hp, Wp = sae_pad.shape
     n = max(stop - start, 0) * dirs.shape[0]
     event = np.empty(n, dtype=np.int64)
     flow = np.empty((n, 2), dtype=np.float32)
-    s = _triplet_kernel(sae_pad.view(B * C, Hp, Wp).numpy(), x, y, t, p, b, C, batched, start, stop, dirs, pad,
+    s = _triplet_kernel(sae_pad.view(B * Cs, Hp, Wp).numpy(), x, y, t, p, b, C, batched, start, stop, dirs, pad,
                         dt_max_us, tol, event, flow)
     return event[:s], flow[:s]
 
@@ -682,7 +682,7 @@ class TripletFlow(nn.Module):
         B, C, Hp, Wp = self.sae_padded.shape
         G = self.n_blocks
         events = _event_arrays((B, C, self.height, self.width), x, y, t, p, b)
-        ev, flow = self._match(events)
+        ev, flow = self._match_events(events)
         block_id, pixel = _sample_blocks(ev, events[0], events[1], events[4], events[5], self.block, self.gx, G)
         out, uv, valid, count = _register(block_id, ev, flow, pixel, B * G, self.min_samples, self.max_candidates,
                                           self.tie_tol, self.estimate, self.inlier, self.centres.numpy())
@@ -692,12 +692,17 @@ class TripletFlow(nn.Module):
             out, uv = _smooth(out, uv, valid, self.gy, self.gx)
         return FlowField(uv, out, valid, count)
 
-    def _match(self, events) -> tuple[np.ndarray, np.ndarray]:
-        """Triplet samples of a packet (:func:`_event_arrays`), at most ``chunk`` events at a time, updating the
-        SAE as they go (a usual window is one chunk).
+    def _match(self, xi: torch.Tensor, yi: torch.Tensor, ch: torch.Tensor, t: torch.Tensor):
+        """Triplet samples of prepared events (:func:`_prepare`: pixel ``xi, yi``, SAE plane ``ch = b C + p``),
+        at most ``chunk`` events at a time, updating the SAE as they go.
 
-        Returns ``event (S,)`` (index into the packet) and ``flow (S, 2)`` float32.
+        Shape: prepared events ``(N,)``; returns ``event (S,)`` (index into the packet) and ``flow (S, 2)``.
         """
+        ev, flow = self._match_events((xi.numpy(), yi.numpy(), t.numpy(), _NONE, ch.numpy(), True, 1))
+        return torch.from_numpy(ev), torch.from_numpy(flow)
+
+    def _match_events(self, events) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_match` of the events of :func:`_event_arrays` (a usual window is one chunk): numpy arrays."""
         n = events[0].shape[0]
         if n <= self.chunk:
             return _triplets_padded(self.sae_padded, self.pad, events, self.D, self.dt_max_us, self.tol)
