@@ -434,6 +434,17 @@ def _sample_depth_kernel(depth, origin, uv, valid, r, out):
                 out[b, g] = s / n
 
 
+@numba.njit(cache=True, nogil=True)
+def _kf_predict_kernel(x, P, rho, Q):
+    """:func:`kf_predict` in place: ``x = rho x``, ``P = rho^2 P + Q`` (``Q`` ``(6, 6)``)."""
+    r2 = rho * rho
+    for b in range(x.shape[0]):
+        for i in range(6):
+            x[b, i] = rho * x[b, i]
+            for j in range(6):
+                P[b, i, j] = r2 * P[b, i, j] + Q[i, j]
+
+
 class VelocityKF(nn.Module):
     """Batched velocity Kalman filter (state in buffers ``x`` ``(B, 6)`` and ``P`` ``(B, 6, 6)``, float64).
 
@@ -499,9 +510,13 @@ class VelocityKF(nn.Module):
 
     def predict(self) -> torch.Tensor:
         """Apply the motion model in place; returns the predicted twist ``(B, 6)``."""
-        self.x.mul_(self.rho)  # kf_predict, in place
-        self.P.mul_(self.rho * self.rho).add_(self.Q)
-        return self.x
+        x, P, Q = self.x, self.P, self.Q
+        if Q.shape == (6, 6) and x.dtype == P.dtype == Q.dtype == torch.float64:  # kf_predict, in place
+            _kf_predict_kernel(x.numpy(), P.numpy(), self.rho, Q.numpy())
+        else:
+            x.mul_(self.rho)
+            P.mul_(self.rho * self.rho).add_(Q)
+        return x
 
     def update(
         self,
