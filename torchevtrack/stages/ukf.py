@@ -274,23 +274,25 @@ def _ukf_predict_kernel(x, P, T, q, q_diag, twist, has_twist, Wm, Wc, spread, x_
             e0, e1, e2, e3 = _nb_quat_exp(X[s, 3] * Tb, X[s, 4] * Tb, X[s, 5] * Tb)
             q0, q1, q2, q3 = _nb_quat_mul(e0, e1, e2, e3, X[s, 9], X[s, 10], X[s, 11], X[s, 12])
             X[s, 9], X[s, 10], X[s, 11], X[s, 12] = _nb_quat_canonical(q0, q1, q2, q3)
-        for i in range(9):
-            m = 0.0
-            for s in range(25):
-                m += Wm[s] * X[s, i]
-            xn[b, i] = m
+        acc = np.zeros(9)  # every sum below runs over s in order 0..24 (s outermost: independent chains)
+        for s in range(25):
+            for i in range(9):
+                acc[i] += Wm[s] * X[s, i]
+        xn[b, :9] = acc
         _nb_quat_mean(X, Wm, xn[b, 9:13])
         for s in range(25):
             for i in range(9):
                 D[s, i] = X[s, i] - xn[b, i]
             _nb_rot_error(X, s, xn[b, 9:13], D[s], 9)
+        Pm[:] = 0.0
+        for s in range(25):
+            for i in range(12):
+                dw = D[s, i] * Wc[s]
+                for j in range(12):
+                    Pm[i, j] += dw * D[s, j]
         for i in range(12):
             for j in range(12):
-                m = 0.0
-                for s in range(25):
-                    m += D[s, i] * Wc[s] * D[s, j]
-                Qij = (q[0, i] if i == j else 0.0) if q_diag else q[i, j]
-                Pm[i, j] = m + Qij * Tb
+                Pm[i, j] += ((q[0, i] if i == j else 0.0) if q_diag else q[i, j]) * Tb
         for i in range(12):
             for j in range(12):
                 Pn[b, i, j] = 0.5 * (Pm[i, j] + Pm[j, i])
@@ -316,11 +318,10 @@ def _ukf_update_kernel(x, P, z, R, r_diag, Wm, Wc, spread, x_out, P_out):
     for b in range(B):
         if not _nb_sigma_points(x[b], P[b], spread, X, Sc, L):
             return b
-        for i in range(3):
-            m = 0.0
-            for s in range(25):
-                m += Wm[s] * X[s, 6 + i]
-            zp[i] = m
+        zp[:] = 0.0  # every sum below runs over s in order 0..24 (s outermost: independent chains)
+        for s in range(25):
+            for i in range(3):
+                zp[i] += Wm[s] * X[s, 6 + i]
         _nb_quat_mean(X, Wm, zq)
         for s in range(25):
             for i in range(3):
@@ -329,17 +330,20 @@ def _ukf_update_kernel(x, P, z, R, r_diag, Wm, Wc, spread, x_out, P_out):
             for i in range(9):
                 DX[s, i] = X[s, i] - x[b, i]
             _nb_rot_error(X, s, x[b, 9:13], DX[s], 9)
+        S[:] = 0.0
+        Pzx[:] = 0.0
+        for s in range(25):
+            for i in range(6):
+                dw = DZ[s, i] * Wc[s]
+                for j in range(6):
+                    S[i, j] += dw * DZ[s, j]
+            for j in range(12):  # Pxz^T
+                dw = DX[s, j] * Wc[s]
+                for i in range(6):
+                    Pzx[i, j] += dw * DZ[s, i]
         for i in range(6):
             for j in range(6):
-                m = 0.0
-                for s in range(25):
-                    m += DZ[s, i] * Wc[s] * DZ[s, j]
-                S[i, j] = m + ((R[0, i] if i == j else 0.0) if r_diag else R[i, j])
-            for j in range(12):  # Pxz^T
-                m = 0.0
-                for s in range(25):
-                    m += DX[s, j] * Wc[s] * DZ[s, i]
-                Pzx[i, j] = m
+                S[i, j] += (R[0, i] if i == j else 0.0) if r_diag else R[i, j]
         if not _nb_lu_solve(S, Pzx, Kt):  # K^T = S^-1 Pxz^T
             return b
         for i in range(3):
