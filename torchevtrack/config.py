@@ -18,6 +18,7 @@ from pathlib import Path
 
 import yaml
 
+from torchevtrack.render import BACKENDS
 from torchevtrack.stages.template import RULES
 from torchevtrack.stages.velocity import TWIST_AXES
 
@@ -101,6 +102,7 @@ class RenderConfig:
     decimate: int | None = None  # faces of the hot-path mesh (None = full mesh)
     margin_px: int = 24  # region rendered around the projected object
     reuse_px: float = 0.0  # > 0: keep the last render (and its template) while no object point moved this many pixels
+    backend: str = "pyrender"  # "pyrender" (OpenGL) or "raster" (compiled CPU z-buffer, faster on small windows)
 
 
 @dataclass
@@ -143,6 +145,8 @@ class TrackerConfig:
                              f"{v.feedback_leak!r}, {v.feedback_axes!r}, {v.feedback_max_v!r}, {v.feedback_max_w!r}")
         if self.template.rule not in RULES:
             raise ValueError(f"template.rule must be one of {RULES}, got {self.template.rule!r}")
+        if self.render.backend not in BACKENDS:
+            raise ValueError(f"render.backend must be one of {BACKENDS}, got {self.render.backend!r}")
 
     @property
     def period_us(self) -> int:

@@ -23,6 +23,9 @@ programs directly into one framebuffer that only grows (pyrender's own forward p
 looks up every uniform and recreates its framebuffers whenever the viewport size changes; the pixels are
 the same).
 
+A second backend with the same interface and images, a compiled CPU z-buffer without OpenGL, is
+:class:`torchevtrack.raster.RasterRenderer`; :func:`make_renderer` builds either.
+
 Conventions: poses are ``[tx, ty, tz, qw, qx, qy, qz]`` (object in the OpenCV camera frame, metres);
 pixel ``(u, v)`` centres are at integer coordinates, so a point projected by
 :meth:`torchevtrack.camera.Camera.project` to ``(u, v)`` lands in pixel ``(round(u), round(v))``.
@@ -54,7 +57,7 @@ import trimesh
 from torchevtrack.camera import Camera
 from torchevtrack.geometry import pose_to_matrix, quat_normalize
 
-__all__ = ["AMBIENT", "DEFAULT_ALBEDO", "LIGHT_DIRECTION", "Render", "Renderer"]
+__all__ = ["AMBIENT", "BACKENDS", "DEFAULT_ALBEDO", "LIGHT_DIRECTION", "Render", "Renderer", "make_renderer"]
 
 # Camera node pose: the OpenGL camera frame (x right, y up, z backwards) seen from the OpenCV frame.
 _GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -64,6 +67,7 @@ AMBIENT = 0.3
 LIGHT_DIRECTION = np.array([-0.3, -0.4, -1.0]) / np.linalg.norm([-0.3, -0.4, -1.0])
 DEFAULT_ALBEDO = 0.75
 _CREASE_ANGLE = math.radians(30.0)
+BACKENDS = ("pyrender", "raster")  # make_renderer's choices: this module's Renderer, torchevtrack.raster.RasterRenderer
 
 
 def _select_gl_platform() -> None:
@@ -146,16 +150,7 @@ class Renderer:
         zfar: float = 20.0,
         background: float = 0.0,
     ) -> None:
-        if not isinstance(mesh, trimesh.Trimesh):
-            raise TypeError(f"mesh must be a trimesh.Trimesh, got {type(mesh).__name__}")
-        if len(mesh.faces) == 0:
-            raise ValueError("mesh has no faces")
-        if not isinstance(camera, Camera):
-            raise TypeError(f"camera must be a torchevtrack Camera, got {type(camera).__name__}")
-        if not (0.0 < znear < zfar and math.isfinite(zfar)):
-            raise ValueError(f"need 0 < znear < zfar < inf, got znear={znear}, zfar={zfar}")
-        if not math.isfinite(background):
-            raise ValueError(f"background must be a finite grey value, got {background}")
+        _check_renderer_args(mesh, camera, znear, zfar, background)
         self.camera = camera
         self.background = float(background)
 
@@ -245,6 +240,20 @@ class Renderer:
             if shaded:
                 gray[b] = _shade(rgba, depth[b] > 0, T[b, :3, :3], self.background)
         return Render(depth=torch.from_numpy(depth), gray=None if gray is None else torch.from_numpy(gray), camera=cam)
+
+
+def make_renderer(mesh: trimesh.Trimesh, camera: Camera, backend: str = "pyrender", **kwargs):
+    """A renderer of ``mesh`` seen by ``camera`` with one of the :data:`BACKENDS`: ``"pyrender"``
+    (:class:`Renderer`, OpenGL) or ``"raster"`` (:class:`torchevtrack.raster.RasterRenderer`, a compiled
+    CPU z-buffer). Both take the same arguments (``kwargs``: ``znear``, ``zfar``, ``background``) and
+    render the same images (see the modules' docstrings)."""
+    if backend == "pyrender":
+        return Renderer(mesh, camera, **kwargs)
+    if backend == "raster":
+        from torchevtrack.raster import RasterRenderer  # raster builds on this module
+
+        return RasterRenderer(mesh, camera, **kwargs)
+    raise ValueError(f"render backend must be one of {BACKENDS}, got {backend!r}")
 
 
 class _GLTarget:
@@ -381,29 +390,61 @@ def _shade(rgba: np.ndarray, mask: np.ndarray, R: np.ndarray, background: float)
     return gray
 
 
-def _pyrender_mesh(mesh: trimesh.Trimesh) -> pyrender.Mesh:
-    """pyrender mesh whose vertex colours carry (albedo, normal * 0.5 + 0.5) for the flat pass;
-    normals are smooth except across creases, where vertices are split."""
+def _shading_mesh(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The triangles and per-vertex shading attributes every backend interpolates: normals are smooth
+    except across creases sharper than 30 degrees, where vertices are split.
+
+    Shape: returns vertices ``(V, 3)`` float64 metres, faces ``(F, 3)`` int64, albedo ``(V,)`` float64
+    in ``[0, 1]`` and unit object-frame normals ``(V, 3)`` float64.
+    """
     smooth = trimesh.graph.smooth_shade(mesh, angle=_CREASE_ANGLE)
     if smooth.visual.kind == "vertex":
         albedo = np.asarray(smooth.visual.vertex_colors[:, :3], dtype=np.float64) @ _LUMA / 255.0
     else:
         albedo = np.full(len(smooth.vertices), DEFAULT_ALBEDO)
-    attributes = np.concatenate((albedo[:, None], np.asarray(smooth.vertex_normals) * 0.5 + 0.5), axis=1)
+    return (np.asarray(smooth.vertices, dtype=np.float64), np.asarray(smooth.faces, dtype=np.int64), albedo,
+            np.asarray(smooth.vertex_normals, dtype=np.float64))
+
+
+def _pyrender_mesh(mesh: trimesh.Trimesh) -> pyrender.Mesh:
+    """pyrender mesh of :func:`_shading_mesh` whose vertex colours carry (albedo, normal * 0.5 + 0.5) for
+    the flat pass."""
+    vertices, faces, albedo, normals = _shading_mesh(mesh)
+    attributes = np.concatenate((albedo[:, None], normals * 0.5 + 0.5), axis=1)
     material = pyrender.MetallicRoughnessMaterial(baseColorFactor=(1.0, 1.0, 1.0, 1.0), alphaMode="OPAQUE")
     primitive = pyrender.Primitive(
-        positions=np.asarray(smooth.vertices, dtype=np.float32),
-        normals=np.asarray(smooth.vertex_normals, dtype=np.float32),
+        positions=vertices.astype(np.float32),
+        normals=normals.astype(np.float32),
         color_0=attributes.astype(np.float32),
-        indices=np.asarray(smooth.faces, dtype=np.uint32),
+        indices=faces.astype(np.uint32),
         material=material,
         mode=pyrender.constants.GLTF.TRIANGLES,
     )
     return pyrender.Mesh(primitives=[primitive])
 
 
+def _check_renderer_args(mesh: trimesh.Trimesh, camera: Camera, znear: float, zfar: float,
+                         background: float) -> None:
+    """The constructor checks every backend shares (see :class:`Renderer`)."""
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise TypeError(f"mesh must be a trimesh.Trimesh, got {type(mesh).__name__}")
+    if len(mesh.faces) == 0:
+        raise ValueError("mesh has no faces")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera must be a torchevtrack Camera, got {type(camera).__name__}")
+    if not (0.0 < znear < zfar and math.isfinite(zfar)):
+        raise ValueError(f"need 0 < znear < zfar < inf, got znear={znear}, zfar={zfar}")
+    if not math.isfinite(background):
+        raise ValueError(f"background must be a finite grey value, got {background}")
+
+
 def _pose_matrices(poses: torch.Tensor) -> np.ndarray:
     """Validated ``(B, 4, 4)`` float64 object-to-camera (OpenCV) transforms."""
+    return pose_to_matrix(_unit_poses(poses)).numpy()
+
+
+def _unit_poses(poses: torch.Tensor) -> torch.Tensor:
+    """Validated ``(B, 7)`` float64 CPU poses with their quaternions normalised."""
     poses = torch.as_tensor(poses)
     if poses.ndim == 1:
         poses = poses[None]
@@ -417,8 +458,7 @@ def _pose_matrices(poses: torch.Tensor) -> np.ndarray:
     norm = poses[:, 3:].norm(dim=-1)
     if ((norm - 1).abs() > 1e-3).any():
         raise ValueError(f"pose quaternions must be unit norm, got |q| = {norm.tolist()}")
-    poses = torch.cat((poses[:, :3], quat_normalize(poses[:, 3:])), dim=-1)
-    return pose_to_matrix(poses).numpy()
+    return torch.cat((poses[:, :3], quat_normalize(poses[:, 3:])), dim=-1)
 
 
 def _check_roi(roi) -> tuple[int, int, int, int]:
