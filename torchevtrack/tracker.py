@@ -41,6 +41,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
+import numpy as np
 import torch
 import trimesh
 from torch import nn
@@ -52,14 +53,14 @@ from torchevtrack.events import EventStream
 from torchevtrack.geometry import check_pose, quat_canonical, quat_rotate
 from torchevtrack.loss import LossDetector, LossUpdate, OnLost
 from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
-from torchevtrack.render import Renderer
+from torchevtrack.render import make_renderer
 from torchevtrack.stages import batch_mask
 from torchevtrack.stages.eros import EROS, recent_observation
 from torchevtrack.stages.flow import TripletFlow
 from torchevtrack.stages.propagate import propagate, twist_between
 from torchevtrack.stages.template import TemplateCorrector, TemplateModel, render_window
 from torchevtrack.stages.ukf import PoseUKF
-from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, centre_jacobian
+from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, centre_jacobian, sample_depth
 
 __all__ = ["EventPoseTracker", "Quality"]
 
@@ -153,7 +154,7 @@ class EventPoseTracker(nn.Module):
         self.dt = self.period_us * 1e-6
 
         # One renderer per distinct mesh (sequences of the same object share it).
-        self._renderers: list[Renderer] = []
+        self._renderers: list = []
         self._renderer_of: list[int] = []
         self._radius: list[float] = []
         self._sym_axes: list[torch.Tensor] = []
@@ -163,7 +164,7 @@ class EventPoseTracker(nn.Module):
             if key not in seen:
                 mesh = load_mesh(m, decimate=cfg.render.decimate) if cfg.render.decimate else load_mesh(m)
                 seen[key] = len(self._renderers)
-                self._renderers.append(Renderer(mesh, camera))
+                self._renderers.append(make_renderer(mesh, camera, cfg.render.backend))
                 self._radius.append(float(torch.as_tensor(mesh.vertices).norm(dim=1).max()))
                 axis = hidden_symmetry_axis(mesh) if self._feedback_on(cfg) else None
                 self._sym_axes.append(torch.zeros(3, dtype=torch.float64) if axis is None else torch.as_tensor(axis))
@@ -513,7 +514,8 @@ class EventPoseTracker(nn.Module):
 
     def _invalid(self, pose: torch.Tensor) -> torch.Tensor:
         """``(B,)`` bool: non-finite poses and poses with the object centre closer than its radius."""
-        return ~torch.isfinite(pose).all(-1) | (pose[:, 2] <= self._min_depth)
+        p = pose.detach().numpy()  # numpy: two small tensors per update, without torch's dispatch
+        return torch.from_numpy(~np.isfinite(p).all(-1) | (p[:, 2] <= self._min_depth.numpy()))
 
     def _observation(self, origin: torch.Tensor, size: tuple[int, int], t_now: torch.Tensor) -> torch.Tensor:
         """Median-blurred EROS in the render window (same origin and size as the render), ``(B, h, w)``.
@@ -529,27 +531,9 @@ class EventPoseTracker(nn.Module):
 
     def _depth_at(self, uv: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         """Depth ``(B, G)`` at the ``valid`` ``(B, G)`` flow pixels ``uv`` ``(B, G, 2)`` from the last render
-        (0 for the others).
-
-        Flow lives on edges, where the pixel may fall just off the silhouette, so the depth is the mean
-        object depth over a sparse ``(2 r + 1)^2`` neighbourhood (radius ``r = block / 4``, step 2 px).
-        Vectors with no object pixel around them get 0 (the velocity filter ignores them).
-        """
-        B, h, w = self.depth.shape
-        r = max(self.config.flow.block // 4, 2)
-        off = torch.arange(-r, r + 1, 2)
-        dv, du = torch.meshgrid(off, off, indexing="ij")
-        bi, gi = valid.nonzero().unbind(1)
-        at, origin = uv[bi, gi], self.origin[bi]
-        u = at[:, 0].round().long()[:, None] - origin[:, :1] + du.reshape(-1)
-        v = at[:, 1].round().long()[:, None] - origin[:, 1:] + dv.reshape(-1)
-        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        idx = (bi[:, None] * h + v.clamp(0, h - 1)) * w + u.clamp(0, w - 1)
-        z = self.depth.view(-1)[idx] * inside
-        n = (z > 0).sum(-1)
-        out = torch.zeros(valid.shape, dtype=torch.float64)
-        out[bi, gi] = (z.sum(-1) / n.clamp_min(1)).double()
-        return out
+        (0 for the others): :func:`~torchevtrack.stages.velocity.sample_depth` over a sparse neighbourhood of
+        radius ``block / 4`` (flow lies on edges, where the pixel may fall just off the silhouette)."""
+        return sample_depth(self.depth, self.origin, uv, valid, max(self.config.flow.block // 4, 2))
 
 
 @dataclass
