@@ -16,6 +16,7 @@ from torchevtrack.geometry import quat_exp, quat_to_matrix
 from torchevtrack.mesh import load_mesh
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.render import Render, Renderer, make_renderer
+from torchevtrack.tracker import EventPoseTracker
 
 CAM = Camera(160, 120, 150.0, 140.0, 79.3, 61.7)
 FULL = Camera.default()  # 640x480, the tracker's camera
@@ -305,7 +306,12 @@ def test_backend_factory_and_config_switch():
         assert isinstance(r, Renderer)
     with pytest.raises(ValueError, match="backend"):
         make_renderer(mesh, CAM, "opengl")
-    assert TrackerConfig().render.backend == "pyrender"
-    assert TrackerConfig.from_dict({"render": {"backend": "raster"}}).render.backend == "raster"
+    assert TrackerConfig().render.backend == "raster"
+    pyr = TrackerConfig.from_dict({"render": {"backend": "pyrender"}})
+    assert pyr.render.backend == "pyrender"
+    for cfg, kind in ((TrackerConfig(), RasterRenderer), (pyr, Renderer)):  # the tracker renders with it
+        tracker = EventPoseTracker(CAM, mesh, cfg)
+        assert all(type(r) is kind for r in tracker._renderers)
+        tracker.close()
     with pytest.raises(ValueError, match="render.backend must be one of"):
         TrackerConfig.from_dict({"render": {"backend": "numba"}})
