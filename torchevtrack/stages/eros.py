@@ -114,9 +114,15 @@ def _eros_kernel(surface, x, y, b, batched, r, lam):
             return False
     for i in range(x.shape[0]):
         u, v, k = x[i], y[i], b[i] if batched else 0
+        u0, u1 = max(u - r, 0), min(u + r + 1, W)
         for yy in range(max(v - r, 0), min(v + r + 1, H)):
-            for xx in range(max(u - r, 0), min(u + r + 1, W)):
-                surface[k, yy, xx] *= lam
+            row = surface[k, yy]
+            if u1 - u0 == 7:  # the default 7 x 7 window away from the border: a fixed-length row (unrolled)
+                for dx in range(7):
+                    row[u0 + dx] *= lam
+            else:
+                for xx in range(u0, u1):
+                    row[xx] *= lam
         surface[k, v, u] = 1.0
     return True
 
