@@ -493,6 +493,27 @@ def test_canvas_box_and_radial_gain_match_their_definitions():
         assert float(gain[b]) == pytest.approx(float(r.double().mean()), rel=1e-6)
 
 
+@pytest.mark.parametrize("name", ["box", "006_mustard_bottle"])
+@pytest.mark.parametrize("grey, silhouette", [(True, True), (False, True), (True, False)])
+def test_template_model_is_the_template_of_the_canvas_render(scenes, name, grey, silhouette):
+    # the oracle: the tensor functions the compiled model builder fuses (prepare_canvas, edge_map, dog, ...)
+    _, roi, base = scenes[name]
+    depth, gray = base.depth.expand(2, -1, -1), base.gray.expand(2, -1, -1) if grey else None
+    origin = torch.tensor([roi[:2], [roi[0] - 3, roi[1] + 5]])  # the second window seen at another place
+    pose = POSE.expand(2, 7)
+    model = tm.template_model(pose, depth, gray, origin, CAM, silhouette=silhouette)
+    cr = tm.prepare_canvas(depth, gray, origin, CAM, 128, 20.0)
+    edges = tm.dog(tm.edge_map(cr.gray, cr.mask if silhouette else None, 0.1), 128)[:, None]
+    T = tm._scale(edges, edges)[:, 0]
+    assert torch.equal(model.box, cr.box) and torch.equal(model.K, cr.K)
+    assert torch.allclose(model.gain, tm.radial_gain(depth, origin, CAM))
+    assert torch.allclose(model.render_template, T, atol=1e-5)
+    assert torch.allclose(model.coef, torch.nn.functional.pad(tm._spline_prefilter(T[:, None])[:, 0], (3,) * 4),
+                          atol=1e-5)
+    assert torch.allclose(model.depth, tm._fill_depth(cr.depth, pose[:, 2], 8), atol=1e-6)
+    assert (model.render_template.abs() > 0.1).any()  # a template, not an empty canvas
+
+
 def test_fill_depth_matches_a_pixel_loop():
     torch.manual_seed(4)
     depth = torch.zeros(1, 20, 24, dtype=torch.float64)

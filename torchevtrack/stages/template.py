@@ -337,8 +337,10 @@ def _odd(n: float) -> int:
     return k if k % 2 else k + 1
 
 
+@functools.lru_cache(maxsize=16)
 def _gaussian(k: int, dtype: torch.dtype) -> torch.Tensor:
-    """Normalised Gaussian kernel of odd size ``k``, sigma ``0.3 ((k - 1) / 2 - 1) + 0.8`` (OpenCV's default)."""
+    """Normalised Gaussian kernel of odd size ``k``, sigma ``0.3 ((k - 1) / 2 - 1) + 0.8`` (OpenCV's default;
+    cached constant, never modified in place)."""
     s = 0.3 * ((k - 1) / 2 - 1) + 0.8
     x = torch.arange(k, dtype=torch.float64) - k // 2
     g = torch.exp(-x * x / (2 * s * s))
@@ -1007,6 +1009,92 @@ class TemplateModel(NamedTuple):
         return torch.where(self.valid, shift, torch.zeros_like(shift)).amax(1)
 
 
+@numba.njit(cache=True, nogil=True, fastmath=True)
+def _blur_columns(x, k):
+    """``out[v, u] = sum_i k[i] x[v + i - r, u]`` (zero outside, ``r = len(k) // 2``), row by row."""
+    n, m = x.shape
+    r = len(k) // 2
+    out = np.zeros((n, m))
+    for v in range(n):
+        row = out[v]
+        for i in range(max(0, r - v), min(len(k), n + r - v)):
+            src, w = x[v + i - r], k[i]
+            for u in range(m):
+                row[u] += w * src[u]
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _blur(x, k):
+    """Separable blur of an image by the 1-D kernel ``k`` along both axes, zero outside."""
+    return _blur_columns(_blur_columns(x, k).T.copy(), k).T
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True)
+def _sobel_max(x, E):
+    """``E = max(E, |Sobel x|^2)`` (unnormalised Sobel, replicated border)."""
+    N, M = x.shape
+    for v in range(N):
+        v0, v1 = max(v - 1, 0), min(v + 1, N - 1)
+        a, b, c = x[v0], x[v], x[v1]
+        for u in range(M):
+            u0, u1 = max(u - 1, 0), min(u + 1, M - 1)
+            gu = (a[u1] - a[u0]) + 2 * (b[u1] - b[u0]) + (c[u1] - c[u0])
+            gv = (c[u0] - a[u0]) + 2 * (c[u] - a[u]) + (c[u1] - a[u1])
+            E[v, u] = max(E[v, u], gu * gu + gv * gv)
+
+
+@numba.njit(cache=True, nogil=True)
+def _model_kernel(depth, gray, origin, box, use_gray, use_mask, edge_scale, g1, g2, pre, c_depth, c_mask, c_gray, T,
+                  coef):
+    """The canvas render and template of :func:`template_model`, per element: ``depth`` / ``gray`` ``(B, h, w)``
+    (the window at ``origin``) resampled into the ``box`` (:func:`prepare_canvas`), then Sobel edges, DoG,
+    scale and clip (:func:`hypothesis_templates`' template) and the B-spline prefilter (zero-padded by 3)."""
+    B, h, w = depth.shape
+    N = T.shape[-1]
+    E = np.empty((N, N))
+    for b in range(B):
+        step = box[b, 2] / N
+        for i in range(N):  # bilinear, zero outside the window (to_canvas)
+            v = box[b, 1] + (i + 0.5 - N / 2) * step - origin[b, 1]
+            v0 = math.floor(v)
+            fv = v - v0
+            for j in range(N):
+                u = box[b, 0] + (j + 0.5 - N / 2) * step - origin[b, 0]
+                u0 = math.floor(u)
+                fu = u - u0
+                sd = sm = sg = 0.0
+                for dv in range(2):
+                    y = v0 + dv
+                    if y < 0 or y >= h:
+                        continue
+                    wv = fv if dv else 1 - fv
+                    for du in range(2):
+                        x = u0 + du
+                        if x < 0 or x >= w:
+                            continue
+                        wgt = wv * (fu if du else 1 - fu)
+                        z = depth[b, y, x]
+                        if z > 0:
+                            sd += wgt * z
+                            sm += wgt
+                        if use_gray:
+                            sg += wgt * gray[b, y, x]
+                c_mask[b, i, j] = sm
+                c_depth[b, i, j] = sd / sm if sm > 1e-6 else 0.0
+                c_gray[b, i, j] = sg
+        E[:] = 0.0
+        if use_gray:
+            _sobel_max(c_gray[b], E)
+        if use_mask:
+            _sobel_max(c_mask[b], E)
+        E = np.minimum(np.sqrt(E) * edge_scale, 1.0)
+        D = _blur(E, g1) - _blur(E, g2)  # Difference of Gaussians
+        Tb = np.minimum(np.maximum(D * (0.5 / max(np.abs(D).max(), 1e-12)), -0.5), 0.5)
+        T[b] = Tb
+        coef[b, 3:N + 3, 3:N + 3] = _blur(Tb, pre)  # the B-spline coefficients
+
+
 def template_model(
     pose: torch.Tensor,
     depth: torch.Tensor,
@@ -1025,11 +1113,21 @@ def template_model(
     """
     if gray is None and not silhouette:
         raise ValueError("without a grey render the template needs silhouette=True")
-    cr, gain = _canvas_and_gain(depth, gray, origin, camera, canvas, margin_px)
-    sil = cr.mask if silhouette else None
-    B, N = pose.shape[0], canvas
-    base = dog(edge_map(cr.gray, sil, edge_clip), N)[:, None]
-    T = _scale(base, base)[:, 0]
+    if not edge_clip > 0:
+        raise ValueError(f"edge_clip must be positive, got {edge_clip}")
+    depth = _check_images(depth, "depth")
+    B, N, dt = pose.shape[0], canvas, depth.dtype
+    extent = _object_extent(depth, origin, camera)
+    box = _box_of(extent, depth, origin, margin_px)
+    c_depth, c_mask, c_gray, T = (torch.empty(B, N, N, dtype=dt) for _ in range(4))
+    coef = torch.zeros(B, N + 6, N + 6, dtype=dt)
+    f64 = torch.float64
+    _model_kernel(depth.detach().numpy(), (depth if gray is None else gray.to(dt)).detach().numpy(),
+                  _origin(origin, B, f64).contiguous().numpy(), box.double().contiguous().numpy(), gray is not None,
+                  silhouette, 0.125 / edge_clip, _gaussian(_odd(N / 20), f64).numpy(),
+                  _gaussian(_odd(N / 8), f64).numpy(), _prefilter_kernel(f64).numpy(), c_depth.numpy(),
+                  c_mask.numpy(), c_gray.numpy(), T.numpy(), coef.numpy())
+    cr = CanvasRender(box, canvas_intrinsics(box, camera, N), c_depth, c_mask, None if gray is None else c_gray)
     Z = _fill_depth(cr.depth, pose[:, 2], max(1, N // 16))
     s = max(1, N // 16)  # object points for shift_px: every s-th canvas pixel
     zs = cr.depth[:, s // 2 :: s, s // 2 :: s]
@@ -1039,8 +1137,8 @@ def template_model(
     y = (idx[None, :, None] - K[:, 3, None, None]) / K[:, 1, None, None] * zs
     points = torch.stack((x, y, zs), -1).reshape(B, -1, 3)
     pose = pose.double()
-    return TemplateModel(pose=pose, render_pose=pose, box=cr.box, K=cr.K, gain=gain, render_template=T, depth=Z,
-                         coef=F.pad(_spline_prefilter(T[:, None])[:, 0], (3, 3, 3, 3)), points=points, valid=(zs > 0).reshape(B, -1))
+    return TemplateModel(pose=pose, render_pose=pose, box=box, K=cr.K, gain=_gain_of(extent, dt), render_template=T,
+                         depth=Z, coef=coef, points=points, valid=(zs > 0).reshape(B, -1))
 
 
 def select(
