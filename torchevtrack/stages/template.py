@@ -822,10 +822,9 @@ def _apply_step(pose, delta):
 
 
 @numba.njit(cache=True, nogil=True)
-def _newton_element(b, coef, Z, K, render_pose, pose, obs, unit, iterations, damping, max_step,
-                    out_pose, out_score, out_scores, out_moved):
-    """The ``"newton"`` rule of :func:`search` on the exact second-order model, for element ``b``
-    (:func:`newton_search`).
+def _newton_kernel(coef, Z, K, render_pose, pose, obs, unit, iterations, damping, max_step,
+                   out_pose, out_score, out_scores, out_moved):
+    """The ``"newton"`` rule of :func:`search` on the exact second-order model, per element (:func:`newton_search`).
 
     Each round fits the model at the current pose (:func:`_quadratic_terms`), where in step units ``u`` the
     score is ``s0 + gu . u + u^T Hu u / 2`` with ``gu = -g unit``, ``Hu = unit M unit``; the damped step
@@ -833,46 +832,33 @@ def _newton_element(b, coef, Z, K, render_pose, pose, obs, unit, iterations, dam
     beats ``s0``, else the search stops. ``unit`` ``(B, 6)`` holds the hypothesis step sizes of the start pose
     per axis; the translation units scale with the current depth, as :func:`hypothesis_steps` does.
     """
-    cur = pose[b].copy()
-    moved = 0
-    for it in range(iterations):
-        s0, g, M = _quadratic_terms(coef[b], Z[b], K[b], render_pose[b], cur, obs[b])
-        un = unit[b].copy()
-        un[:2] *= cur[2] / pose[b, 2]
-        if it == 0:
-            out_score[b] = s0
-            out_scores[b, 0] = s0
-            for a in range(6):
-                for sign in range(2):
-                    d = un[a] * (1.0 - 2.0 * sign)
-                    out_scores[b, 1 + 2 * a + sign] = s0 - g[a] * d + 0.5 * M[a, a] * d * d
-        gu = -g * un
-        Hu = M * np.outer(un, un)
-        lam = max(np.linalg.eigvalsh(Hu)[-1], 0.0) + damping * np.mean(np.abs(np.diag(Hu))) + 1e-12
-        step = np.linalg.solve(lam * np.eye(6) - Hu, gu)
-        delta = np.minimum(np.maximum(step, -max_step), max_step) * un
-        new = s0 - g @ delta + 0.5 * delta @ (M @ delta)
-        if not new > s0:
-            break
-        cur = _apply_step(cur, delta)
-        out_score[b] = new
-        moved += 1
-    out_pose[b] = cur
-    out_moved[b] = moved
-
-
-@numba.njit(cache=True, nogil=True)
-def _newton_kernel(*args):
-    """:func:`_newton_element` for every element, in turn (``args[0]`` is ``coef``)."""
-    for b in range(args[0].shape[0]):
-        _newton_element(b, *args)
-
-
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _newton_kernel_parallel(*args):
-    """:func:`_newton_kernel` with the elements spread over numba's threads (for B > 1)."""
-    for b in numba.prange(args[0].shape[0]):
-        _newton_element(b, *args)
+    for b in range(coef.shape[0]):
+        cur = pose[b].copy()
+        moved = 0
+        for it in range(iterations):
+            s0, g, M = _quadratic_terms(coef[b], Z[b], K[b], render_pose[b], cur, obs[b])
+            un = unit[b].copy()
+            un[:2] *= cur[2] / pose[b, 2]
+            if it == 0:
+                out_score[b] = s0
+                out_scores[b, 0] = s0
+                for a in range(6):
+                    for sign in range(2):
+                        d = un[a] * (1.0 - 2.0 * sign)
+                        out_scores[b, 1 + 2 * a + sign] = s0 - g[a] * d + 0.5 * M[a, a] * d * d
+            gu = -g * un
+            Hu = M * np.outer(un, un)
+            lam = max(np.linalg.eigvalsh(Hu)[-1], 0.0) + damping * np.mean(np.abs(np.diag(Hu))) + 1e-12
+            step = np.linalg.solve(lam * np.eye(6) - Hu, gu)
+            delta = np.minimum(np.maximum(step, -max_step), max_step) * un
+            new = s0 - g @ delta + 0.5 * delta @ (M @ delta)
+            if not new > s0:
+                break
+            cur = _apply_step(cur, delta)
+            out_score[b] = new
+            moved += 1
+        out_pose[b] = cur
+        out_moved[b] = moved
 
 
 def quadratic_score(coef: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, render_pose: torch.Tensor,
@@ -1425,9 +1411,9 @@ def newton_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, c
     out_pose = torch.empty(B, 7, dtype=torch.float64)
     score, scores = torch.empty(B, dtype=torch.float64), torch.empty(B, NUM_HYPOTHESES, dtype=torch.float64)
     moved = torch.empty(B, dtype=torch.int64)
-    kernel = _newton_kernel_parallel if B > 1 else _newton_kernel  # threads cost more than they give at B = 1
-    kernel(_np(model.coef), _np(model.depth), _np(model.K.double()), _np(model.render_pose), _np(start), _np(obs),
-           _np(unit), iterations, damping, max_step, out_pose.numpy(), score.numpy(), scores.numpy(), moved.numpy())
+    _newton_kernel(_np(model.coef), _np(model.depth), _np(model.K.double()), _np(model.render_pose), _np(start),
+                   _np(obs), _np(unit), iterations, damping, max_step, out_pose.numpy(), score.numpy(),
+                   scores.numpy(), moved.numpy())
     dtype = model.depth.dtype
     scores = scores.to(dtype)
     return Correction(out_pose.to(pose.dtype), score.to(dtype), scores, scores.argmax(1),
