@@ -268,36 +268,6 @@ def test_invisible_object_renders_empty(t, roi):
     assert out.depth.shape == ((1, 120, 160) if roi is None else (1, roi[3], roi[2]))
 
 
-def test_bad_inputs():
-    mesh = load_mesh("can")
-    with pytest.raises(TypeError, match="mesh"):
-        RasterRenderer("can", CAM)
-    with pytest.raises(ValueError, match="no faces"):
-        RasterRenderer(trimesh.Trimesh(), CAM)
-    with pytest.raises(TypeError, match="camera"):
-        RasterRenderer(mesh, (160, 120))
-    with pytest.raises(ValueError, match="znear"):
-        RasterRenderer(mesh, CAM, znear=0.0)
-    with pytest.raises(ValueError, match="background"):
-        RasterRenderer(mesh, CAM, background=math.nan)
-    r = RasterRenderer(mesh, CAM)
-    with pytest.raises(ValueError, match=r"\(B, 7\)"):
-        r.render(torch.zeros(2, 6))
-    with pytest.raises(ValueError, match="unit norm"):
-        r.render(torch.tensor([0.0, 0.0, 0.5, 2.0, 0.0, 0.0, 0.0]))
-    with pytest.raises(ValueError, match="NaN"):
-        r.render(torch.tensor([0.0, math.nan, 0.5, 1.0, 0.0, 0.0, 0.0]))
-    with pytest.raises(TypeError, match="floating"):
-        r.render(torch.tensor([0, 0, 1, 1, 0, 0, 0]))
-    with pytest.raises(ValueError, match="roi"):
-        r.render(pose([0.0, 0.0, 0.5]), roi=(0, 0, 0, 10))
-    with pytest.raises(ValueError, match="roi"):
-        r.render(pose([0.0, 0.0, 0.5]), roi=(0.5, 0, 10, 10))
-    r.close()
-    with pytest.raises(RuntimeError, match="closed"):
-        r.render(pose([0.0, 0.0, 0.5]))
-
-
 def test_backend_factory_and_config_switch():
     mesh = load_mesh("can")
     with make_renderer(mesh, CAM, "raster", background=0.2) as r:

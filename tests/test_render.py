@@ -11,7 +11,7 @@ import trimesh
 from torchevtrack.camera import Camera
 from torchevtrack.geometry import quat_exp, quat_to_matrix, transform_points
 from torchevtrack.mesh import load_mesh
-from torchevtrack.render import Render, Renderer
+from torchevtrack.render import BACKENDS, Render, Renderer, make_renderer
 
 CAM = Camera(160, 120, 150.0, 140.0, 79.3, 61.7)
 
@@ -223,15 +223,21 @@ def test_grey_pattern_from_vertex_colours():
     assert float(inner.max() - inner.min()) > 0.4
 
 
-def test_bad_inputs():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_bad_inputs(backend):
     mesh = load_mesh("can")
+    make = lambda *a, **k: make_renderer(*a, backend=backend, **k)  # noqa: E731
     with pytest.raises(TypeError, match="mesh"):
-        Renderer("can", CAM)
+        make("can", CAM)
     with pytest.raises(TypeError, match="camera"):
-        Renderer(mesh, (160, 120))
+        make(mesh, (160, 120))
     with pytest.raises(ValueError, match="znear"):
-        Renderer(mesh, CAM, znear=0.0)
-    r = Renderer(mesh, CAM)
+        make(mesh, CAM, znear=0.0)
+    with pytest.raises(ValueError, match="no faces"):
+        make(trimesh.Trimesh(), CAM)
+    with pytest.raises(ValueError, match="background"):
+        make(mesh, CAM, background=math.nan)
+    r = make(mesh, CAM)
     with pytest.raises(ValueError, match=r"\(B, 7\)"):
         r.render(torch.zeros(2, 6))
     with pytest.raises(ValueError, match="unit norm"):

@@ -323,19 +323,9 @@ class RasterRenderer:
         roi: tuple[int, int, int, int] | None = None,
         shaded: bool = True,
     ) -> Render:
-        """Render the mesh at each pose (as :meth:`torchevtrack.render.Renderer.render`).
-
-        Args:
-            poses: ``(B, 7)`` or ``(7,)`` object-in-camera poses ``[t (m), q (w, x, y, z)]``. Poses
-                behind the camera or out of view give all-zero depth.
-            roi: ``(u0, v0, width, height)``: render only this window of the full frame (the same pixels
-                as cropping the full-frame render; the window may extend past the sensor).
-            shaded: also render the grey image; ``False`` renders depth only (faster).
-
-        Returns:
-            :class:`~torchevtrack.render.Render` with ``depth`` ``(B, h, w)`` and ``gray`` ``(B, h, w)`` or
-            ``None``; ``(h, w)`` is the roi size or the camera size.
-        """
+        """Render the mesh at each pose: the arguments, result and errors of
+        :meth:`torchevtrack.render.Renderer.render` (poses ``(B, 7)`` or ``(7,)``, an optional ``roi`` window,
+        ``shaded=False`` for depth only)."""
         if self._mesh is None:
             raise RuntimeError("renderer is closed")
         poses = _unit_poses(poses).numpy()
