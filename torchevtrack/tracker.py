@@ -39,7 +39,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import torch
@@ -61,6 +61,10 @@ from torchevtrack.stages.propagate import propagate, twist_between
 from torchevtrack.stages.template import TemplateCorrector, TemplateModel, render_window
 from torchevtrack.stages.ukf import PoseUKF
 from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, centre_jacobian, sample_depth
+
+if TYPE_CHECKING:
+    from torchevtrack.raster import RasterRenderer
+    from torchevtrack.render import Renderer
 
 __all__ = ["EventPoseTracker", "Quality"]
 
@@ -154,7 +158,7 @@ class EventPoseTracker(nn.Module):
         self.dt = self.period_us * 1e-6
 
         # One renderer per distinct mesh (sequences of the same object share it).
-        self._renderers: list = []
+        self._renderers: list[Renderer | RasterRenderer] = []
         self._renderer_of: list[int] = []
         self._radius: list[float] = []
         self._sym_axes: list[torch.Tensor] = []
