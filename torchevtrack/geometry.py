@@ -305,6 +305,15 @@ def _nb_quat_rotate(q0, q1, q2, q3, v0, v1, v2):
     return v0 + 2.0 * (q0 * c0 + d0), v1 + 2.0 * (q0 * c1 + d1), v2 + 2.0 * (q0 * c2 + d2)
 
 
+
+@numba.njit(cache=True, nogil=True)
+def _nb_quat_to_matrix(w, x, y, z):
+    """Rotation matrix ``(3, 3)`` of the unit quaternion ``(w, x, y, z)`` (:func:`quat_to_matrix` without the
+    normalisation)."""
+    return np.array([[1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
+                     [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
+                     [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)]])
+
 # Small dense matrices (the filters' covariances), one at a time.
 
 

@@ -57,6 +57,7 @@ import torch
 import trimesh
 
 from torchevtrack.camera import Camera
+from torchevtrack.geometry import _nb_quat_to_matrix
 from torchevtrack.render import (
     AMBIENT,
     LIGHT_DIRECTION,
@@ -126,7 +127,7 @@ def _render_kernel(vertices, faces, planes, albedo, normals, poses, fx, fy, cx, 
     face = np.empty((H, W), dtype=np.int32)
     weights = np.empty((H, W, 2), dtype=np.float32)
     for b in range(B):
-        R, t = _rotation(poses[b, 3], poses[b, 4], poses[b, 5], poses[b, 6]), poses[b, :3]
+        R, t = _nb_quat_to_matrix(poses[b, 3], poses[b, 4], poses[b, 5], poses[b, 6]), poses[b, :3]
         _project(vertices, R, t, fx, fy, cx, cy, znear, hom, uv)
         # the camera centre in the object frame, -R^T t, and the faces it sees the front of
         c0 = -(R[0, 0] * t[0] + R[1, 0] * t[1] + R[2, 0] * t[2])
@@ -144,14 +145,6 @@ def _render_kernel(vertices, faces, planes, albedo, normals, poses, fx, fy, cx, 
                          R[0, 1] * light[0] + R[1, 1] * light[1] + R[2, 1] * light[2],
                          R[0, 2] * light[0] + R[1, 2] * light[1] + R[2, 2] * light[2])
             _shade(faces, albedo, normals, depth[b], face, weights, light_obj, ambient, background, gray[b])
-
-
-@numba.njit(cache=True, nogil=True)
-def _rotation(w, x, y, z):
-    """Rotation matrix ``(3, 3)`` of the unit quaternion ``(w, x, y, z)``."""
-    return np.array([[1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
-                     [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
-                     [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)]])
 
 
 @numba.njit(cache=True, nogil=True)

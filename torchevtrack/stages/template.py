@@ -110,7 +110,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from torchevtrack.camera import Camera
-from torchevtrack.geometry import quat_canonical, quat_conj, quat_exp, quat_log, quat_mul, quat_rotate, quat_to_matrix
+from torchevtrack.geometry import (_nb_quat_canonical, _nb_quat_exp, _nb_quat_mul, _nb_quat_to_matrix, quat_canonical,
+                                  quat_conj, quat_exp, quat_log, quat_mul, quat_rotate, quat_to_matrix)
 
 __all__ = [
     "AXES",
@@ -714,10 +715,7 @@ def _bspline_weights(x):
 def _rotation(q):
     """Rotation matrix of a ``(w, x, y, z)`` quaternion (normalised first)."""
     n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    w, x, y, z = q[0] / n, q[1] / n, q[2] / n, q[3] / n
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return _nb_quat_to_matrix(q[0] / n, q[1] / n, q[2] / n, q[3] / n)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -807,17 +805,9 @@ def _apply_step(pose, delta):
     """:func:`apply_steps` of one step ``[dt, phi]`` to one pose (float64)."""
     out = np.empty(7)
     out[:3] = pose[:3] + delta[:3]
-    sq = delta[3] ** 2 + delta[4] ** 2 + delta[5] ** 2
-    a = math.sqrt(sq)
-    k = math.sin(a / 2) / a if sq > 0 else 0.5
-    e = np.array([math.cos(a / 2) if sq > 0 else 1.0, delta[3] * k, delta[4] * k, delta[5] * k])
-    q = pose[3:]
-    r = np.array([e[0] * q[0] - e[1] * q[1] - e[2] * q[2] - e[3] * q[3],
-                  e[0] * q[1] + e[1] * q[0] + e[2] * q[3] - e[3] * q[2],
-                  e[0] * q[2] - e[1] * q[3] + e[2] * q[0] + e[3] * q[1],
-                  e[0] * q[3] + e[1] * q[2] - e[2] * q[1] + e[3] * q[0]])
-    r /= max(math.sqrt(np.sum(r * r)), 1e-12)
-    out[3:] = -r if r[0] < 0 else r
+    e0, e1, e2, e3 = _nb_quat_exp(delta[3], delta[4], delta[5])
+    q0, q1, q2, q3 = _nb_quat_mul(e0, e1, e2, e3, pose[3], pose[4], pose[5], pose[6])
+    out[3], out[4], out[5], out[6] = _nb_quat_canonical(q0, q1, q2, q3)
     return out
 
 
