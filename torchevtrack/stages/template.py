@@ -1,10 +1,12 @@
 """Stage 5: local template correction (EDOPT-style), batched over B and over the 13 hypotheses.
 
-Pipeline of one correction (all batched, no loop over pixels or hypotheses):
+Pipeline of one correction, batched over ``B``. The tensor functions below define each step; the default
+path (:func:`template_model`, :func:`quadratic_score`, :func:`newton_search`) runs the same steps as compiled
+(numba) loops over the pixels, tested against them:
 
 1. **Canvas.** The object's pixels in a render at the propagated pose (``depth > 0``; the render may be
    a window of the frame whose top-left pixel is ``origin``) give a bounding box; it is grown by
-   ``margin_px``, made square and resampled (bilinear ``grid_sample``) into a ``canvas x canvas``
+   ``margin_px``, made square and resampled (bilinear, :func:`to_canvas`) into a ``canvas x canvas``
    image. The EROS observation goes through the same box. The canvas is itself a pinhole camera
    (:func:`canvas_intrinsics`), so all geometry below happens in canvas pixels.
 2. **Template.** Edge map = ``|Sobel|`` of the grey render together with the ``|Sobel|`` of the
