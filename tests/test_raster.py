@@ -141,26 +141,6 @@ def test_back_faces_are_culled_like_pyrender():
             compare(ref, out)
 
 
-def test_tilted_plane_depth_is_analytic():
-    slab = trimesh.creation.box((0.2, 0.2, 0.01))
-    t = np.array([0.01, -0.02, 0.6])
-    rotvec = (0.3, -0.5, 0.1)
-    with RasterRenderer(slab, CAM, background=0.25) as r:
-        out = r.render(pose(t.tolist(), rotvec))
-    R = quat_to_matrix(quat_exp(torch.tensor(rotvec, dtype=torch.float64))).numpy()
-    n = R[:, 2]
-    uv = CAM.pixel_grid(torch.float64).numpy()
-    rays = np.stack(((uv[..., 0] - CAM.cx) / CAM.fx, (uv[..., 1] - CAM.cy) / CAM.fy, np.ones(uv.shape[:2])), -1)
-    assert n[2] > 0  # the face seen is the one with outward normal -n, at t - 0.005 n
-    z_plane = (n @ (t - 0.005 * n)) / (rays @ n)
-    local = (rays * z_plane[..., None] - t) @ R
-    inner = (np.abs(local[..., 0]) < 0.099) & (np.abs(local[..., 1]) < 0.099)
-    outside = (np.abs(local[..., 0]) > 0.13) | (np.abs(local[..., 1]) > 0.13)
-    assert inner.sum() > 1000 and outside.sum() > 1000
-    np.testing.assert_allclose(out.depth[0].numpy()[inner], z_plane[inner], rtol=1e-6)
-    assert (out.depth[0].numpy()[outside] == 0).all() and (out.gray[0].numpy()[outside] == 0.25).all()
-
-
 @pytest.mark.parametrize("rotvec", [(0.0, 0.0, 0.0), (0.0, 1.2, 0.0), (0.5, -0.4, 0.3), (1.0, -0.8, 0.0)])  # 4th unlit
 def test_grey_is_documented_lambert_model(rotvec):
     slab = trimesh.creation.box((0.3, 0.3, 0.01))  # uncoloured: albedo 0.75
