@@ -1,11 +1,15 @@
 """EROS against a sequential per-event oracle (plain Python loops, float64)."""
 
+import math
+
 import numpy as np
 import pytest
 import scipy.ndimage
 import torch
 
-from torchevtrack.stages.eros import EROS, eros_update, eros_update_, observation, recent_observation
+from torchevtrack.stages.eros import (EROS, canvas_observation, eros_update, eros_update_, observation,
+                                     recent_observation)
+from torchevtrack.stages.template import to_canvas
 from torchevtrack.stages.flow import NEVER
 
 
@@ -165,3 +169,29 @@ def test_recent_observation_matches_its_definition(size, max_age_us, recency_us)
         recent_observation(surface, last, origin + 1, size, t_now)
     with pytest.raises(ValueError, match="time surface"):
         recent_observation(surface, last.float(), origin, size, t_now)
+
+
+@pytest.mark.parametrize("max_age_us, recency_us", [(0, 0.0), (3000, 800.0)])
+def test_canvas_observation_is_the_recent_observation_of_the_tap_window_in_the_canvas(max_age_us, recency_us):
+    gen = torch.Generator().manual_seed(5)
+    B, H, W, N = 3, 60, 80, 24
+    surface = torch.rand(B, H, W, generator=gen) * (torch.rand(B, H, W, generator=gen) > 0.4)
+    last = torch.where(torch.rand(B, 2, H, W, generator=gen) > 0.3,
+                       torch.randint(0, 10000, (B, 2, H, W), generator=gen), NEVER)
+    t_now = torch.tensor([10000, 9000, 9500])
+    # inside the frame at 1.7 frame px per canvas px; over the top-left corner; wholly outside the frame
+    box = torch.tensor([[40.3, 31.2, 40.8], [3.0, 4.5, 30.0], [-50.0, 20.0, 20.0]], dtype=torch.float64)
+    out = canvas_observation(surface, last, box, N, t_now, max_age_us, recency_us)
+    assert out.shape == (B, N, N) and out.dtype == torch.float32
+    assert (out[2] == 0).all() and (out[0] > 0).any()
+    for i, (cu, cv, side) in enumerate(box[:2].tolist()):  # the oracle: the window under the taps, then to_canvas
+        s = side / N
+        u0, v0 = max(math.floor(cu + (0.5 - N / 2) * s), 0), max(math.floor(cv + (0.5 - N / 2) * s), 0)
+        u1, v1 = min(math.floor(cu + (N / 2 - 0.5) * s) + 2, W), min(math.floor(cv + (N / 2 - 0.5) * s) + 2, H)
+        origin = torch.tensor([[u0, v0]])
+        win = _recent_reference(surface[i:i + 1], last[i:i + 1], origin, (v1 - v0, u1 - u0), t_now[i:i + 1],
+                                max_age_us, recency_us)
+        ref = to_canvas(win, box[i:i + 1].float(), N, origin)
+        assert torch.allclose(out[i:i + 1], ref, atol=2e-6), (out[i:i + 1] - ref).abs().max()
+    with pytest.raises(ValueError, match="box"):
+        canvas_observation(surface, last, box[:2], N, t_now)

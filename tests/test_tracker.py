@@ -124,8 +124,10 @@ def test_render_reuse_skips_renders_only_within_the_threshold(seq):
 
 def test_observation_drops_old_pixels_and_weighs_recent_ones(seq):
     """The tracker's observation against a per-pixel reference: EROS, zero where the last event is
-    ``max_age_us`` old or older, times ``exp(-age / recency_us)``, then the 3x3 median."""
+    ``max_age_us`` old or older, times ``exp(-age / recency_us)``, then the 3x3 median over the window under
+    the canvas box, resampled into the canvas."""
     from torchevtrack.stages.eros import observation
+    from torchevtrack.stages.template import to_canvas
 
     cfg = TrackerConfig().replace(eros={"max_age_us": 4000, "recency_us": 1500.0})
     tracker = EventPoseTracker(CAM, seq.mesh, cfg)
@@ -134,18 +136,21 @@ def test_observation_drops_old_pixels_and_weighs_recent_ones(seq):
     t = ev.t.long()
     tracker(ev.x.long(), ev.y.long(), t, ev.p.long())
     tracker.close()
-    t_now = tracker.t_last
-    origin, (h, w) = tracker.origin, tracker.depth.shape[-2:]
-    u0, v0 = origin[0].tolist()
-    ref = torch.zeros(h, w)
+    t_now, box, N = tracker.t_last, tracker._model.box, cfg.template.canvas
+    cu, cv, side = box[0].tolist()
+    first, last = (0.5 - N / 2) * side / N, (N / 2 - 0.5) * side / N  # the canvas' outermost samples
+    u0, v0 = max(math.floor(cu + first), 0), max(math.floor(cv + first), 0)
+    u1, v1 = min(math.floor(cu + last) + 2, CAM.width), min(math.floor(cv + last) + 2, CAM.height)
+    ref = torch.zeros(v1 - v0, u1 - u0)
     sae = tracker.flow.sae[0].amax(0)
-    for v in range(h):
-        for u in range(w):
-            age = int(t_now[0]) - int(sae[v0 + v, u0 + u])
+    for v in range(v0, v1):
+        for u in range(u0, u1):
+            age = int(t_now[0]) - int(sae[v, u])
             if age < 4000:
-                ref[v, u] = float(tracker.eros.surface[0, v0 + v, u0 + u]) * math.exp(-age / 1500.0)
-    got = tracker._observation(origin, (h, w), t_now)
-    torch.testing.assert_close(got[0], observation(ref[None])[0], atol=1e-6, rtol=1e-5)
+                ref[v - v0, u - u0] = float(tracker.eros.surface[0, v, u]) * math.exp(-age / 1500.0)
+    got = tracker._observation(box, t_now)
+    want = to_canvas(observation(ref[None]), box, N, (u0, v0))
+    torch.testing.assert_close(got, want, atol=1e-6, rtol=1e-5)
     assert float(ref.gt(0).float().mean()) > 0.005  # the window holds recent edges
     with pytest.raises(ValueError, match="recency_us"):
         TrackerConfig().replace(eros={"recency_us": -1.0})

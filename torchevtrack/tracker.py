@@ -55,7 +55,7 @@ from torchevtrack.loss import LossDetector, LossUpdate, OnLost
 from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
 from torchevtrack.render import make_renderer
 from torchevtrack.stages import batch_mask
-from torchevtrack.stages.eros import EROS, recent_observation
+from torchevtrack.stages.eros import EROS, canvas_observation
 from torchevtrack.stages.flow import TripletFlow
 from torchevtrack.stages.propagate import propagate, twist_between
 from torchevtrack.stages.template import TemplateCorrector, TemplateModel, render_window
@@ -219,6 +219,7 @@ class EventPoseTracker(nn.Module):
                              persistent=False)  # (B, 3) object frame, zero: none
         self.register_buffer("_min_depth", torch.tensor([self._radius[i] + 0.01 for i in self._renderer_of],
                                                         dtype=torch.float64), persistent=False)
+        self._radius_of = torch.tensor([self._radius[i] for i in self._renderer_of], dtype=torch.float64)  # (B,)
 
     # -- state -------------------------------------------------------------------------------
     def reset(self, initial_pose: torch.Tensor, twist: torch.Tensor | None = None,
@@ -331,8 +332,8 @@ class EventPoseTracker(nn.Module):
         if cfg.template.enabled:
             if not reuse:
                 self._model = self.corrector.template_model(pose32, render.depth, render.gray, origin)
-            obs = self._observation(self.origin, self.depth.shape[-2:], self._t_now(t, b))
-            corr = self.corrector.correct_model(self._model, predicted, obs, self.origin)  # float64 search
+            obs = self._observation(self._model.box, self._t_now(t, b))
+            corr = self.corrector.correct_canvas(self._model, predicted, obs)  # float64 search
             # Until the EROS holds enough events, its edges are too sparse to correct against.
             warm = (self.events_seen >= cfg.template.warmup_events)[:, None]
             measured = torch.where(warm, corr.pose.double(), predicted)
@@ -430,15 +431,14 @@ class EventPoseTracker(nn.Module):
         return (times, poses, lost) if return_lost else (times, poses)
 
     # -- internals ---------------------------------------------------------------------------
-    def _windows(self, poses: torch.Tensor, index: list[int]) -> torch.Tensor:
+    def _windows(self, poses: torch.Tensor, index: list[int]) -> np.ndarray:
         """Render windows ``(K, 4)`` ``(u0, v0, w, h)`` of the elements ``index``, clipped to the frame."""
         H, W = self.camera.height, self.camera.width
-        radius = torch.tensor([self._radius[self._renderer_of[i]] for i in index])
-        win = render_window(poses[index], self.camera, radius, self.config.render.margin_px)
-        w, h = win[:, 2].clamp(max=W), win[:, 3].clamp(max=H)
-        return torch.stack((win[:, 0].clamp(min=0).minimum(W - w), win[:, 1].clamp(min=0).minimum(H - h), w, h), -1)
+        win = render_window(poses[index], self.camera, self._radius_of[index], self.config.render.margin_px).numpy()
+        w, h = np.minimum(win[:, 2], W), np.minimum(win[:, 3], H)
+        return np.stack((np.clip(win[:, 0], 0, W - w), np.clip(win[:, 1], 0, H - h), w, h), -1)
 
-    def _render_into(self, i: int, pose: torch.Tensor, win: torch.Tensor, origin: torch.Tensor, depth: torch.Tensor,
+    def _render_into(self, i: int, pose: torch.Tensor, win: np.ndarray, origin: np.ndarray, depth: torch.Tensor,
                      gray: torch.Tensor | None) -> None:
         """Render element ``i`` at ``pose`` ``(1, 7)`` in its own window ``win`` and write it into row ``i`` of
         the common-size buffers whose top-left pixel is ``origin`` ``(2,)`` (the own window lies inside)."""
@@ -458,15 +458,16 @@ class EventPoseTracker(nn.Module):
         H, W = self.camera.height, self.camera.width
         win = self._windows(poses, list(range(B)))
         w, h = int(win[:, 2].max()), int(win[:, 3].max())
-        origin = torch.stack((win[:, 0].clamp(max=W - w), win[:, 1].clamp(max=H - h)), -1)
+        origin = np.stack((np.minimum(win[:, 0], W - w), np.minimum(win[:, 1], H - h)), -1)
         depth = torch.zeros(B, h, w)
-        gray = torch.stack([torch.full((h, w), self._renderers[r].background) for r in self._renderer_of]) \
-            if shaded else None
+        gray = torch.empty(B, h, w) if shaded else None
         for i in range(B):
+            if shaded:
+                gray[i] = self._renderers[self._renderer_of[i]].background
             self._render_into(i, poses[i:i + 1], win[i], origin[i], depth, gray)
         self.depth = depth
-        self.origin.copy_(origin)
-        return _Render(depth, gray), origin
+        self.origin.copy_(torch.from_numpy(origin))
+        return _Render(depth, gray), self.origin
 
     def _render_depth(self, poses: torch.Tensor, mask: torch.Tensor) -> None:
         """Render the depth of the ``mask`` elements at ``poses`` ``(B, 7)`` into the depth buffer.
@@ -490,9 +491,9 @@ class EventPoseTracker(nn.Module):
             for i, ((u0, v0), (u1, v1)) in enumerate(zip(self.origin.tolist(), origin.tolist())):
                 depth[i, v0 - v1:v0 - v1 + h0, u0 - u1:u0 - u1 + w0] = self.depth[i]
         for i, wi in zip(index, win):
-            origin[i] = torch.stack((wi[0].clamp(max=W - w), wi[1].clamp(max=H - h)))
+            origin[i] = torch.tensor([min(wi[0], W - w), min(wi[1], H - h)])
             depth[i] = 0.0
-            self._render_into(i, poses[i:i + 1], wi, origin[i], depth, None)
+            self._render_into(i, poses[i:i + 1], wi, origin[i].numpy(), depth, None)
         self.depth = depth
         self.origin.copy_(origin)
 
@@ -521,8 +522,8 @@ class EventPoseTracker(nn.Module):
         p = pose.detach().numpy()  # numpy: two small tensors per update, without torch's dispatch
         return torch.from_numpy(~np.isfinite(p).all(-1) | (p[:, 2] <= self._min_depth.numpy()))
 
-    def _observation(self, origin: torch.Tensor, size: tuple[int, int], t_now: torch.Tensor) -> torch.Tensor:
-        """Median-blurred EROS in the render window (same origin and size as the render), ``(B, h, w)``.
+    def _observation(self, box: torch.Tensor, t_now: torch.Tensor) -> torch.Tensor:
+        """Median-blurred EROS under the template's canvas ``box`` ``(B, 3)``, in the canvas: ``(B, N, N)``.
 
         EROS only decays where new events arrive, so edges the object left stay at full strength until
         something else fires there. With ``eros.max_age_us > 0`` pixels whose last event (timestamp
@@ -531,7 +532,8 @@ class EventPoseTracker(nn.Module):
         observation's edges toward where the object is now (the correction lags less behind the motion).
         """
         e = self.config.eros
-        return recent_observation(self.eros.surface, self.flow.sae, origin, size, t_now, e.max_age_us, e.recency_us)
+        return canvas_observation(self.eros.surface, self.flow.sae, box, self.config.template.canvas, t_now,
+                                  e.max_age_us, e.recency_us)
 
     def _depth_at(self, uv: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         """Depth ``(B, G)`` at the ``valid`` ``(B, G)`` flow pixels ``uv`` ``(B, G, 2)`` from the last render

@@ -34,7 +34,8 @@ from torch import nn
 
 from torchevtrack.stages import batch_mask
 
-__all__ = ["EROS", "eros_update", "eros_update_", "observation", "prepare_events"]
+__all__ = ["EROS", "canvas_observation", "eros_update", "eros_update_", "observation", "prepare_events",
+           "recent_observation"]
 
 
 def prepare_events(x: torch.Tensor, y: torch.Tensor, b: torch.Tensor | None, height: int, width: int,
@@ -208,50 +209,128 @@ def recent_observation(surface: torch.Tensor, last_us: torch.Tensor, origin: tor
     return out
 
 
+def canvas_observation(surface: torch.Tensor, last_us: torch.Tensor, box: torch.Tensor, canvas: int,
+                       t_now_us: torch.Tensor, max_age_us: int = 0, recency_us: float = 0.0) -> torch.Tensor:
+    """:func:`recent_observation` of the frame under each canvas box, resampled into the canvas.
+
+    Canvas pixel ``i`` (column or row) samples frame coordinate ``c + (i + 0.5 - canvas / 2) side / canvas`` of
+    the box ``[cu, cv, side]`` (bilinear, zero outside the frame), as
+    :func:`torchevtrack.stages.template.to_canvas` does. The observation is made over the smallest window of
+    the frame holding every tap (its median mirrors at that window's edges), in one compiled pass per element.
+
+    Args:
+        surface, last_us, t_now_us, max_age_us, recency_us: see :func:`recent_observation`.
+        box: ``(B, 3)`` float64 ``[cu, cv, side]`` frame pixels; canvas: side ``N`` of the canvas, pixels.
+
+    Shape: returns ``(B, N, N)`` float32.
+    """
+    B, H, W = surface.shape
+    if last_us.shape[0] != B or last_us.shape[2:] != (H, W) or last_us.dtype != torch.int64:
+        raise ValueError(f"last_us must be an int64 ({B}, C, {H}, {W}) time surface, got {last_us.dtype} "
+                         f"{tuple(last_us.shape)}")
+    if box.shape != (B, 3):
+        raise ValueError(f"box must have shape ({B}, 3) [cu, cv, side], got {tuple(box.shape)}")
+    out = torch.empty(B, canvas, canvas, dtype=torch.float32)
+    _canvas_kernel(surface.detach().numpy(), last_us.detach().numpy(), box.double().contiguous().numpy(),
+                   t_now_us.long().contiguous().numpy(), int(max_age_us), float(recency_us), out.numpy())
+    return out
+
+
 @numba.njit(cache=True, nogil=True)
 def _recent_kernel(surface, last, origin, t_now, max_age, tau, out):
     """:func:`recent_observation` into ``out`` ``(B, h, w)``."""
-    B, h, w = out.shape
-    C = last.shape[1]
+    for b in range(out.shape[0]):
+        _recent_window(surface[b], last[b], origin[b, 0], origin[b, 1], t_now[b], max_age, tau, out[b])
+
+
+@numba.njit(cache=True, nogil=True)
+def _canvas_kernel(surface, last, box, t_now, max_age, tau, out):
+    """:func:`canvas_observation` into ``out`` ``(B, N, N)``."""
+    B, N = out.shape[0], out.shape[1]
+    H, W = surface.shape[1], surface.shape[2]
+    for b in range(B):
+        step = box[b, 2] / N
+        first, last_tap = (0.5 - N / 2) * step, (N - 0.5 - N / 2) * step
+        u0, v0 = max(math.floor(box[b, 0] + first), 0), max(math.floor(box[b, 1] + first), 0)
+        u1, v1 = min(math.floor(box[b, 0] + last_tap) + 2, W), min(math.floor(box[b, 1] + last_tap) + 2, H)
+        out[b] = 0.0
+        if u1 <= u0 or v1 <= v0:
+            continue
+        win = np.empty((v1 - v0, u1 - u0), dtype=np.float32)
+        _recent_window(surface[b], last[b], u0, v0, t_now[b], max_age, tau, win)
+        _bilinear(win, box[b, 0] - u0, box[b, 1] - v0, step, out[b])
+
+
+@numba.njit(cache=True, nogil=True)
+def _bilinear(img, cu, cv, step, out):
+    """``out[i, j]`` = ``img`` at ``(cu + (j + 0.5 - N / 2) step, cv + (i + 0.5 - N / 2) step)``, bilinear, zero
+    outside ``img``."""
+    h, w = img.shape
+    N = out.shape[0]
+    for i in range(N):
+        v = cv + (i + 0.5 - N / 2) * step
+        y0 = math.floor(v)
+        fv = v - y0
+        for j in range(N):
+            u = cu + (j + 0.5 - N / 2) * step
+            x0 = math.floor(u)
+            fu = u - x0
+            acc = 0.0
+            for dy in range(2):
+                y = y0 + dy
+                if 0 <= y < h:
+                    wv = fv if dy else 1.0 - fv
+                    for dx in range(2):
+                        x = x0 + dx
+                        if 0 <= x < w:
+                            acc += wv * (fu if dx else 1.0 - fu) * img[y, x]
+            out[i, j] = acc
+
+
+@numba.njit(cache=True, nogil=True)
+def _recent_window(surface, last, u0, v0, t_now, max_age, tau, out):
+    """The age-weighted, 3x3-median observation of one element's window at ``(u0, v0)`` into ``out`` ``(h, w)``
+    (:func:`recent_observation`); ``surface`` ``(H, W)``, ``last`` ``(C, H, W)``."""
+    h, w = out.shape
+    C = last.shape[0]
     buf = np.empty((h + 2, w + 2), dtype=np.float32)  # the weighted window, mirror-padded by one pixel
     lo = np.empty((h, w + 2), dtype=np.float32)  # per column: min, median, max of rows y - 1 .. y + 1
     mid = np.empty((h, w + 2), dtype=np.float32)
     hi = np.empty((h, w + 2), dtype=np.float32)
     inv_tau = np.float32(1.0 / tau) if tau > 0 else np.float32(0.0)
-    for b in range(B):
-        u0, v0 = origin[b, 0], origin[b, 1]
-        for y in range(h):
-            for x in range(w):
-                s = surface[b, v0 + y, u0 + x]
-                if s != 0 and (max_age > 0 or tau > 0):
-                    newest = last[b, 0, v0 + y, u0 + x]
-                    for c in range(1, C):
-                        newest = max(newest, last[b, c, v0 + y, u0 + x])
-                    age = t_now[b] - newest
-                    if max_age > 0 and age >= max_age:
-                        s = np.float32(0.0)
-                    elif tau > 0:
-                        s = s * np.float32(math.exp(-np.float32(max(age, 0)) * inv_tau))
-                buf[y + 1, x + 1] = s
-        # mirror border (edge not repeated); a window with a one-pixel side repeats its edges instead
-        m = 1 if min(h, w) > 1 else 0
-        for y in range(1, h + 1):
-            buf[y, 0], buf[y, w + 1] = buf[y, 1 + m], buf[y, w - m]
+    for y in range(h):
+        for x in range(w):
+            s = surface[v0 + y, u0 + x]
+            if s != 0 and (max_age > 0 or tau > 0):
+                newest = last[0, v0 + y, u0 + x]
+                for c in range(1, C):
+                    newest = max(newest, last[c, v0 + y, u0 + x])
+                age = t_now - newest
+                if max_age > 0 and age >= max_age:
+                    s = np.float32(0.0)
+                elif tau > 0:
+                    s = s * np.float32(math.exp(-np.float32(max(age, 0)) * inv_tau))
+            buf[y + 1, x + 1] = s
+    # mirror border (edge not repeated); a window with a one-pixel side repeats its edges instead
+    m = 1 if min(h, w) > 1 else 0
+    for y in range(1, h + 1):
+        buf[y, 0], buf[y, w + 1] = buf[y, 1 + m], buf[y, w - m]
+    for x in range(w + 2):
+        buf[0, x], buf[h + 1, x] = buf[1 + m, x], buf[h - m, x]
+    for y in range(h):
         for x in range(w + 2):
-            buf[0, x], buf[h + 1, x] = buf[1 + m, x], buf[h - m, x]
-        for y in range(h):
-            for x in range(w + 2):
-                a, c, d = buf[y, x], buf[y + 1, x], buf[y + 2, x]
-                p, q = min(a, c), max(a, c)
-                p, d = min(p, d), max(p, d)
-                lo[y, x], mid[y, x], hi[y, x] = p, min(q, d), max(q, d)
-        for y in range(h):
-            for x in range(w):
-                L = max(max(lo[y, x], lo[y, x + 1]), lo[y, x + 2])
-                Hh = min(min(hi[y, x], hi[y, x + 1]), hi[y, x + 2])
-                m0, m1, m2 = mid[y, x], mid[y, x + 1], mid[y, x + 2]
-                M = max(min(m0, m1), min(max(m0, m1), m2))
-                out[b, y, x] = max(min(L, M), min(max(L, M), Hh))
+            a, c, d = buf[y, x], buf[y + 1, x], buf[y + 2, x]
+            p, q = min(a, c), max(a, c)
+            p, d = min(p, d), max(p, d)
+            lo[y, x], mid[y, x], hi[y, x] = p, min(q, d), max(q, d)
+    for y in range(h):
+        for x in range(w):
+            L = max(max(lo[y, x], lo[y, x + 1]), lo[y, x + 2])
+            Hh = min(min(hi[y, x], hi[y, x + 1]), hi[y, x + 2])
+            m0, m1, m2 = mid[y, x], mid[y, x + 1], mid[y, x + 2]
+            M = max(min(m0, m1), min(max(m0, m1), m2))
+            out[y, x] = max(min(L, M), min(max(L, M), Hh))
+
 
 class EROS(nn.Module):
     """Stateful EROS surface for ``B`` independent event streams.

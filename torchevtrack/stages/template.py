@@ -146,6 +146,7 @@ __all__ = [
     "search",
     "correct",
     "correct_model",
+    "correct_canvas",
     "TemplateCorrector",
 ]
 
@@ -192,16 +193,17 @@ def render_window(pose: torch.Tensor, camera: Camera, radius: float | torch.Tens
     if isinstance(radius, torch.Tensor):
         if radius.shape != pose.shape[:1] or not bool((radius > 0).all()):
             raise ValueError(f"radius must be positive (metres), one per pose, got {radius}")
-        radius = radius.double()
+        radius = radius.detach().double().numpy()
     elif not radius > 0:
         raise ValueError(f"radius must be positive (metres), got {radius}")
-    t = pose[:, :3].double()
-    z = torch.maximum(t[:, 2], torch.as_tensor(radius * 1.05, dtype=torch.float64))
-    centre = torch.stack((camera.fx * t[:, 0] / t[:, 2] + camera.cx, camera.fy * t[:, 1] / t[:, 2] + camera.cy), -1)
-    half = torch.stack((camera.fx * radius / (z - radius), camera.fy * radius / (z - radius)), -1) + margin_px
-    lo = torch.floor(centre - half)
-    size = torch.ceil(centre + half) - lo + 1
-    return torch.cat((lo, size), -1).long()
+    t = pose[:, :3].detach().double().numpy()  # numpy: a dozen operations on a few numbers
+    z = np.maximum(t[:, 2], radius * 1.05)
+    f = np.array([camera.fx, camera.fy])
+    centre = f * t[:, :2] / t[:, 2:] + np.array([camera.cx, camera.cy])
+    half = f * (radius / (z - radius))[:, None] + margin_px
+    lo = np.floor(centre - half)
+    size = np.ceil(centre + half) - lo + 1
+    return torch.from_numpy(np.concatenate((lo, size), -1).astype(np.int64))
 
 
 def canvas_box(depth: torch.Tensor, origin, margin_px: float = 20.0) -> torch.Tensor:
@@ -251,20 +253,26 @@ def _object_extent(depth: torch.Tensor, origin, camera: Camera | None = None) ->
 
 @numba.njit(cache=True, nogil=True)
 def _extent_kernel(depth, origin, cx, cy, gain, out):
-    B, h, w = depth.shape
-    for b in range(B):
-        umin, umax, vmin, vmax, total, n = w, -1, h, -1, 0.0, 0
-        for v in range(h):
-            for u in range(w):
-                z = depth[b, v, u]
-                if z > 0:
-                    umin, umax, vmin, vmax, n = min(umin, u), max(umax, u), min(vmin, v), max(vmax, v), n + 1
-                    if gain:
-                        du, dv = u + origin[b, 0] - cx, v + origin[b, 1] - cy
-                        total += math.sqrt(du * du + dv * dv) / z
-        if n == 0:
-            umin = umax = vmin = vmax = 0
-        out[b, 0], out[b, 1], out[b, 2], out[b, 3], out[b, 4], out[b, 5] = umin, umax, vmin, vmax, total, n
+    for b in range(depth.shape[0]):
+        out[b] = _extent(depth[b], origin[b, 0], origin[b, 1], cx, cy, gain)
+
+
+@numba.njit(cache=True, nogil=True)
+def _extent(depth, u0, v0, cx, cy, gain):
+    """:func:`_object_extent` of one window ``(h, w)`` at ``(u0, v0)``: a 6-tuple."""
+    h, w = depth.shape
+    umin, umax, vmin, vmax, total, n = w, -1, h, -1, 0.0, 0
+    for v in range(h):
+        for u in range(w):
+            z = depth[v, u]
+            if z > 0:
+                umin, umax, vmin, vmax, n = min(umin, u), max(umax, u), min(vmin, v), max(vmax, v), n + 1
+                if gain:
+                    du, dv = u + u0 - cx, v + v0 - cy
+                    total += math.sqrt(du * du + dv * dv) / z
+    if n == 0:
+        umin = umax = vmin = vmax = 0
+    return float(umin), float(umax), float(vmin), float(vmax), total, float(n)
 
 
 def canvas_intrinsics(box: torch.Tensor, camera: Camera, canvas: int) -> torch.Tensor:
@@ -446,25 +454,32 @@ def _fill_depth(depth: torch.Tensor, fallback: torch.Tensor, radius: int) -> tor
 
 @numba.njit(cache=True, nogil=True)
 def _fill_kernel(depth, fallback, r):
-    """:func:`_fill_depth` in place, with float64 integral images of the object depths and counts."""
-    B, h, w = depth.shape
+    """:func:`_fill_depth` in place."""
+    for b in range(depth.shape[0]):
+        _fill(depth[b], fallback[b], r)
+
+
+@numba.njit(cache=True, nogil=True)
+def _fill(depth, fallback, r):
+    """:func:`_fill_depth` of one image ``(h, w)`` in place, with float64 integral images of the object depths
+    and counts."""
+    h, w = depth.shape
     S = np.zeros((h + 1, w + 1))
     C = np.zeros((h + 1, w + 1))
-    for b in range(B):
-        for v in range(h):
-            for u in range(w):
-                z = depth[b, v, u]
-                inside = z > 0
-                S[v + 1, u + 1] = S[v, u + 1] + S[v + 1, u] - S[v, u] + (z if inside else 0.0)
-                C[v + 1, u + 1] = C[v, u + 1] + C[v + 1, u] - C[v, u] + (1.0 if inside else 0.0)
-        for v in range(h):
-            v0, v1 = max(v - r, 0), min(v + r + 1, h)
-            for u in range(w):
-                if depth[b, v, u] > 0:
-                    continue
-                u0, u1 = max(u - r, 0), min(u + r + 1, w)
-                n = C[v1, u1] - C[v0, u1] - C[v1, u0] + C[v0, u0]
-                depth[b, v, u] = (S[v1, u1] - S[v0, u1] - S[v1, u0] + S[v0, u0]) / n if n > 0.5 else fallback[b]
+    for v in range(h):
+        for u in range(w):
+            z = depth[v, u]
+            inside = z > 0
+            S[v + 1, u + 1] = S[v, u + 1] + S[v + 1, u] - S[v, u] + (z if inside else 0.0)
+            C[v + 1, u + 1] = C[v, u + 1] + C[v + 1, u] - C[v, u] + (1.0 if inside else 0.0)
+    for v in range(h):
+        v0, v1 = max(v - r, 0), min(v + r + 1, h)
+        for u in range(w):
+            if depth[v, u] > 0:
+                continue
+            u0, u1 = max(u - r, 0), min(u + r + 1, w)
+            n = C[v1, u1] - C[v0, u1] - C[v1, u0] + C[v0, u0]
+            depth[v, u] = (S[v1, u1] - S[v0, u1] - S[v1, u0] + S[v0, u0]) / n if n > 0.5 else fallback
 
 
 # Cubic B-spline interpolation for the warp (module docstring, item 4): exact at the samples and
@@ -814,22 +829,26 @@ def _apply_step(pose, delta):
 
 
 @numba.njit(cache=True, nogil=True)
-def _newton_kernel(coef, Z, K, render_pose, pose, obs, unit, iterations, damping, max_step,
+def _newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, iterations, damping, max_step,
                    out_pose, out_score, out_scores, out_moved):
     """The ``"newton"`` rule of :func:`search` on the exact second-order model, per element (:func:`newton_search`).
 
     Each round fits the model at the current pose (:func:`_quadratic_terms`), where in step units ``u`` the
     score is ``s0 + gu . u + u^T Hu u / 2`` with ``gu = -g unit``, ``Hu = unit M unit``; the damped step
     ``u = (lambda I - Hu)^-1 gu`` (:func:`newton_step`'s ``lambda``), clipped per axis, is taken if its score
-    beats ``s0``, else the search stops. ``unit`` ``(B, 6)`` holds the hypothesis step sizes of the start pose
-    per axis; the translation units scale with the current depth, as :func:`hypothesis_steps` does.
+    beats ``s0``, else the search stops. ``unit`` holds the hypothesis step sizes of the start pose per axis
+    (:func:`hypothesis_steps` of ``gain``, the frame's ``fx``, ``fy``, ``dp`` pixels and ``dtheta`` radians); the
+    translation units scale with the current depth.
     """
     for b in range(coef.shape[0]):
+        z = pose[b, 2]
+        unit = np.array([z * dp / fx, z * dp / fy, dp / max(gain[b], 1e-12) if gain[b] > 0 else 0.0,
+                         dtheta, dtheta, dtheta])
         cur = pose[b].copy()
         moved = 0
         for it in range(iterations):
             s0, g, M = _quadratic_terms(coef[b], Z[b], K[b], render_pose[b], cur, obs[b])
-            un = unit[b].copy()
+            un = unit.copy()
             un[:2] *= cur[2] / pose[b, 2]
             if it == 0:
                 out_score[b] = s0
@@ -1023,54 +1042,97 @@ def _sobel_max(x, E):
 
 
 @numba.njit(cache=True, nogil=True)
-def _model_kernel(depth, gray, origin, box, use_gray, use_mask, edge_scale, g1, g2, pre, c_depth, c_mask, c_gray, T,
-                  coef):
-    """The canvas render and template of :func:`template_model`, per element: ``depth`` / ``gray`` ``(B, h, w)``
-    (the window at ``origin``) resampled into the ``box`` (:func:`prepare_canvas`), then Sobel edges, DoG,
-    scale and clip (:func:`hypothesis_templates`' template) and the B-spline prefilter (zero-padded by 3)."""
+def _model_kernel(depth, gray, origin, z_fallback, cam, margin, use_gray, use_mask, edge_scale, g1, g2, pre, fill_radius,
+                  point_step, box, K, gain, T, coef, Z, points, valid):
+    """:func:`template_model` of each window ``depth`` / ``gray`` ``(B, h, w)`` at ``origin``, in one pass per element.
+
+    The object's extent gives the canvas ``box`` (:func:`canvas_box`), its intrinsics ``K``
+    (:func:`canvas_intrinsics`) and the ``gain`` (:func:`radial_gain`); the window resampled into the box
+    (:func:`prepare_canvas`) gives the template (Sobel edges, DoG, scale and clip: the template of
+    :func:`hypothesis_templates`), its B-spline coefficients ``coef`` (zero-padded by 3), the object points of every
+    ``point_step``-th canvas pixel and the background-filled depth ``Z`` (:func:`_fill_depth`).
+    """
     B, h, w = depth.shape
     N = T.shape[-1]
-    E = np.empty((N, N))
+    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
+    mask, shade, E = np.empty((N, N)), np.empty((N, N)), np.empty((N, N))
     for b in range(B):
-        step = box[b, 2] / N
-        for i in range(N):  # bilinear, zero outside the window (to_canvas)
-            v = box[b, 1] + (i + 0.5 - N / 2) * step - origin[b, 1]
-            v0 = math.floor(v)
-            fv = v - v0
-            for j in range(N):
-                u = box[b, 0] + (j + 0.5 - N / 2) * step - origin[b, 0]
-                u0 = math.floor(u)
-                fu = u - u0
-                sd = sm = sg = 0.0
-                for dv in range(2):
-                    y = v0 + dv
-                    if y < 0 or y >= h:
-                        continue
-                    wv = fv if dv else 1 - fv
-                    for du in range(2):
-                        x = u0 + du
-                        if x < 0 or x >= w:
-                            continue
-                        wgt = wv * (fu if du else 1 - fu)
-                        z = depth[b, y, x]
-                        if z > 0:
-                            sd += wgt * z
-                            sm += wgt
-                        if use_gray:
-                            sg += wgt * gray[b, y, x]
-                c_mask[b, i, j] = sm
-                c_depth[b, i, j] = sd / sm if sm > 1e-6 else 0.0
-                c_gray[b, i, j] = sg
+        ou, ov = origin[b, 0], origin[b, 1]
+        umin, umax, vmin, vmax, total, n = _extent(depth[b], ou, ov, cx, cy, True)
+        if n == 0:
+            cu, cv, side = (w - 1) / 2.0 + ou, (h - 1) / 2.0 + ov, float(max(h, w))
+        else:
+            cu, cv, side = (umin + umax) / 2 + ou, (vmin + vmax) / 2 + ov, max(umax - umin, vmax - vmin) + 1 + 2 * margin
+        box[b, 0], box[b, 1], box[b, 2] = cu, cv, side
+        step, half = side / N, N / 2.0 - 0.5
+        K[b, 0], K[b, 1], K[b, 2], K[b, 3] = fx / step, fy / step, (cx - cu) / step + half, (cy - cv) / step + half
+        gain[b] = total / max(n, 1.0)
+        _resample(depth[b], gray[b], cu - ou, cv - ov, step, use_gray, Z[b], mask, shade)
+        k = 0
+        for i in range(point_step // 2, N, point_step):
+            for j in range(point_step // 2, N, point_step):
+                z = Z[b, i, j]
+                points[b, k, 0], points[b, k, 1], points[b, k, 2] = (j - K[b, 2]) / K[b, 0] * z, (i - K[b, 3]) / K[b, 1] * z, z
+                valid[b, k] = z > 0
+                k += 1
         E[:] = 0.0
         if use_gray:
-            _sobel_max(c_gray[b], E)
+            _sobel_max(shade, E)
         if use_mask:
-            _sobel_max(c_mask[b], E)
+            _sobel_max(mask, E)
         E = np.minimum(np.sqrt(E) * edge_scale, 1.0)
         D = _blur(E, g1) - _blur(E, g2)  # Difference of Gaussians
         Tb = np.minimum(np.maximum(D * (0.5 / max(np.abs(D).max(), 1e-12)), -0.5), 0.5)
         T[b] = Tb
         coef[b, 3:N + 3, 3:N + 3] = _blur(Tb, pre)  # the B-spline coefficients
+        _fill(Z[b], z_fallback[b], fill_radius)
+
+
+@numba.njit(cache=True, nogil=True)
+def _resample(depth, gray, cu, cv, step, use_gray, c_depth, c_mask, c_gray):
+    """:func:`to_canvas` of one window (box centre ``(cu, cv)`` in window pixels, ``step`` window pixels per canvas
+    pixel): the object depth (depth-weighted over the object taps only), the mask and, if ``use_gray``, the grey."""
+    h, w = depth.shape
+    N = c_depth.shape[0]
+    cols, fus = np.empty(N, dtype=np.int64), np.empty(N)
+    for j in range(N):
+        u = cu + (j + 0.5 - N / 2) * step
+        cols[j] = math.floor(u)
+        fus[j] = u - cols[j]
+    for i in range(N):  # bilinear, zero outside the window
+        v = cv + (i + 0.5 - N / 2) * step
+        v0 = math.floor(v)
+        fv = v - v0
+        for j in range(N):
+            u0, fu = cols[j], fus[j]
+            sd = sm = sg = 0.0
+            for dv in range(2):
+                y = v0 + dv
+                if y < 0 or y >= h:
+                    continue
+                wv = fv if dv else 1 - fv
+                for du in range(2):
+                    x = u0 + du
+                    if x < 0 or x >= w:
+                        continue
+                    wgt = wv * (fu if du else 1 - fu)
+                    z = depth[y, x]
+                    if z > 0:
+                        sd += wgt * z
+                        sm += wgt
+                    if use_gray:
+                        sg += wgt * gray[y, x]
+            c_mask[i, j] = sm
+            c_depth[i, j] = sd / sm if sm > 1e-6 else 0.0
+            c_gray[i, j] = sg
+
+
+@functools.lru_cache(maxsize=8)
+def _model_filters(canvas: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The DoG's two Gaussians and the B-spline prefilter of a canvas size, float64 (cached constants)."""
+    f64 = torch.float64
+    return (_gaussian(_odd(canvas / 20), f64).numpy(), _gaussian(_odd(canvas / 8), f64).numpy(),
+            _prefilter_kernel(f64).numpy())
 
 
 def template_model(
@@ -1085,7 +1147,7 @@ def template_model(
     edge_clip: float = 0.1,
     silhouette: bool = True,
 ) -> TemplateModel:
-    """Build the :class:`TemplateModel` of a render (window at ``origin``) made at ``pose``.
+    """Build the :class:`TemplateModel` of a render (window at ``origin``) made at ``pose``, in one compiled call.
 
     Shape: ``(B, 7), (B, h, w), (B, h, w) or None, (B, 2) -> TemplateModel`` with ``N = canvas``.
     """
@@ -1095,28 +1157,20 @@ def template_model(
         raise ValueError(f"edge_clip must be positive, got {edge_clip}")
     depth = _check_images(depth, "depth")
     B, N, dt = pose.shape[0], canvas, depth.dtype
-    extent = _object_extent(depth, origin, camera)
-    box = _box_of(extent, depth, origin, margin_px)
-    c_depth, c_mask, c_gray, T = (torch.empty(B, N, N, dtype=dt) for _ in range(4))
+    step = max(1, N // 16)  # object points for shift_px: every step-th canvas pixel
+    P = len(range(step // 2, N, step)) ** 2
+    box, K, gain = torch.empty(B, 3, dtype=dt), torch.empty(B, 4, dtype=dt), torch.empty(B, dtype=dt)
+    T, Z = torch.empty(B, N, N, dtype=dt), torch.empty(B, N, N, dtype=dt)
     coef = torch.zeros(B, N + 6, N + 6, dtype=dt)
-    f64 = torch.float64
-    _model_kernel(depth.detach().numpy(), (depth if gray is None else gray.to(dt)).detach().numpy(),
-                  _origin(origin, B, f64).contiguous().numpy(), box.double().contiguous().numpy(), gray is not None,
-                  silhouette, 0.125 / edge_clip, _gaussian(_odd(N / 20), f64).numpy(),
-                  _gaussian(_odd(N / 8), f64).numpy(), _prefilter_kernel(f64).numpy(), c_depth.numpy(),
-                  c_mask.numpy(), c_gray.numpy(), T.numpy(), coef.numpy())
-    cr = CanvasRender(box, canvas_intrinsics(box, camera, N), c_depth, c_mask, None if gray is None else c_gray)
-    Z = _fill_depth(cr.depth, pose[:, 2], max(1, N // 16))
-    s = max(1, N // 16)  # object points for shift_px: every s-th canvas pixel
-    zs = cr.depth[:, s // 2 :: s, s // 2 :: s]
-    idx = torch.arange(s // 2, N, s, dtype=zs.dtype)
-    K = cr.K.to(zs.dtype)
-    x = (idx[None, None, :] - K[:, 2, None, None]) / K[:, 0, None, None] * zs
-    y = (idx[None, :, None] - K[:, 3, None, None]) / K[:, 1, None, None] * zs
-    points = torch.stack((x, y, zs), -1).reshape(B, -1, 3)
+    points, valid = torch.empty(B, P, 3, dtype=dt), torch.empty(B, P, dtype=torch.bool)
     pose = pose.double()
-    return TemplateModel(pose=pose, render_pose=pose, box=box, K=cr.K, gain=_gain_of(extent, dt), render_template=T,
-                         depth=Z, coef=coef, points=points, valid=(zs > 0).reshape(B, -1))
+    _model_kernel(depth.detach().numpy(), (depth if gray is None else gray.to(dt)).detach().numpy(),
+                  _origin(origin, B, torch.float64).contiguous().numpy(), pose[:, 2].contiguous().numpy(),
+                  np.array([camera.fx, camera.fy, camera.cx, camera.cy]), float(margin_px), gray is not None,
+                  silhouette, 0.125 / edge_clip, *_model_filters(N), max(1, N // 16), step, box.numpy(), K.numpy(),
+                  gain.numpy(), T.numpy(), coef.numpy(), Z.numpy(), points.numpy(), valid.numpy())
+    return TemplateModel(pose=pose, render_pose=pose, box=box, K=K, gain=gain, render_template=T, depth=Z, coef=coef,
+                         points=points, valid=valid)
 
 
 def select(
@@ -1362,11 +1416,34 @@ def correct_model(
 
     Shape: ``TemplateModel, (B, 7), (B, H, W) -> Correction``.
     """
+    return correct_canvas(model, pose, model.observe(observation, observation_origin), camera, dp_px=dp_px,
+                          dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
+
+
+def correct_canvas(
+    model: TemplateModel,
+    pose: torch.Tensor,
+    obs: torch.Tensor,
+    camera: Camera,
+    *,
+    dp_px: float = 1.0,
+    dtheta_deg: float = 0.5,
+    rule: str = "argmax",
+    iterations: int = 1,
+) -> Correction:
+    """:func:`correct_model` with the observation already in the model's canvas (:meth:`TemplateModel.observe`,
+    or :func:`torchevtrack.stages.eros.canvas_observation` of ``model.box``).
+
+    Shape: ``TemplateModel, (B, 7), (B, N, N) or (B, N * N) -> Correction``.
+    """
     pose = _check_poses(pose, "pose")
     _check_options(rule, iterations, "taylor", "template")
-    if pose.shape[0] != model.pose.shape[0]:
-        raise ValueError(f"pose must have one row per model element ({model.pose.shape[0]}), got {tuple(pose.shape)}")
-    obs = model.observe(observation, observation_origin)
+    B, N = model.pose.shape[0], model.depth.shape[-1]
+    if pose.shape[0] != B:
+        raise ValueError(f"pose must have one row per model element ({B}), got {tuple(pose.shape)}")
+    if obs.shape not in ((B, N, N), (B, N * N)):
+        raise ValueError(f"obs must be the ({B}, {N}, {N}) canvas observation, got {tuple(obs.shape)}")
+    obs = obs.reshape(B, N * N)
     if rule == "newton":
         return newton_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, iterations=iterations)
 
@@ -1399,13 +1476,12 @@ def newton_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, c
     """
     B = pose.shape[0]
     start = pose.double()
-    unit = hypothesis_steps(start, camera, model.gain, dp_px, dtheta_deg)[:, 1::2].diagonal(dim1=1, dim2=2)
     out_pose = torch.empty(B, 7, dtype=torch.float64)
     score, scores = torch.empty(B, dtype=torch.float64), torch.empty(B, NUM_HYPOTHESES, dtype=torch.float64)
     moved = torch.empty(B, dtype=torch.int64)
     _newton_kernel(_np(model.coef), _np(model.depth), _np(model.K.double()), _np(model.render_pose), _np(start),
-                   _np(obs), _np(unit), iterations, damping, max_step, out_pose.numpy(), score.numpy(),
-                   scores.numpy(), moved.numpy())
+                   _np(obs), _np(model.gain.double()), camera.fx, camera.fy, float(dp_px), math.radians(dtheta_deg),
+                   iterations, damping, max_step, out_pose.numpy(), score.numpy(), scores.numpy(), moved.numpy())
     dtype = model.depth.dtype
     scores = scores.to(dtype)
     return Correction(out_pose.to(pose.dtype), score.to(dtype), scores, scores.argmax(1),
@@ -1472,9 +1548,13 @@ class TemplateCorrector(nn.Module):
 
     def correct_model(self, model: TemplateModel, pose, observation, observation_origin=(0, 0)) -> Correction:
         """:func:`correct_model` with this corrector's steps, rule and iterations."""
+        return self.correct_canvas(model, pose, model.observe(observation, observation_origin))
+
+    def correct_canvas(self, model: TemplateModel, pose, obs) -> Correction:
+        """:func:`correct_canvas` (the observation already in the model's canvas) with this corrector's options."""
         o = self.options
-        return correct_model(model, pose, observation, self.camera, observation_origin=observation_origin,
-                             dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"], rule=o["rule"], iterations=o["iterations"])
+        return correct_canvas(model, pose, obs, self.camera, dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"],
+                              rule=o["rule"], iterations=o["iterations"])
 
     def extra_repr(self) -> str:
         return ", ".join(f"{k}={v!r}" for k, v in self.options.items())
