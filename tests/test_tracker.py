@@ -21,8 +21,8 @@ def seq():
     return generate_sequence("box", "regular", DURATION_S, seed=3, camera=CAM, progress=False)
 
 
-def _track(seq, config=None, batch=1):
-    tracker = EventPoseTracker(CAM, [seq.mesh] * batch, config)
+def _track(seq, config=None, batch=1, workers=None):
+    tracker = EventPoseTracker(CAM, [seq.mesh] * batch, config, workers=workers)
     times, poses = tracker.track([seq.events] * batch, seq.gt_poses[0], t_start_us=int(seq.gt_t_us[0]),
                                  t_end_us=int(seq.gt_t_us[-1]), progress=False)
     tracker.close()
@@ -51,6 +51,25 @@ def test_batch_elements_are_independent(seq):
     assert torch.equal(t2[0], t1[0]) and torch.equal(t2[1], t1[0])
     torch.testing.assert_close(p2[0], p1[0], atol=1e-5, rtol=0)
     torch.testing.assert_close(p2[1], p1[0], atol=1e-5, rtol=0)
+
+
+def test_worker_threads_do_not_change_the_poses(seq):
+    # three elements (started 0, 2 and 4 mm off) over one, two and three threads: the same poses, bit for bit
+    start = seq.gt_poses[0].expand(3, 7).clone()
+    start[:, 0] += torch.tensor([0.0, 0.002, 0.004], dtype=start.dtype)
+
+    def poses(workers):
+        tracker = EventPoseTracker(CAM, seq.mesh, batch_size=3, workers=workers)
+        out = tracker.track([seq.events] * 3, start, progress=False)[1]
+        tracker.close()
+        return out
+
+    ref = poses(1)
+    assert not torch.equal(ref[0], ref[2])
+    for workers in (2, 3):
+        assert torch.equal(poses(workers), ref)
+    with pytest.raises(ValueError, match="workers"):
+        EventPoseTracker(CAM, seq.mesh, workers=0)
 
 
 def test_empty_windows_keep_a_valid_pose():

@@ -36,10 +36,12 @@ Example:
 
 from __future__ import annotations
 
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence, TypeVar
 
 import numpy as np
 import torch
@@ -58,7 +60,7 @@ from torchevtrack.stages import batch_mask
 from torchevtrack.stages.eros import EROS, canvas_observation
 from torchevtrack.stages.flow import TripletFlow
 from torchevtrack.stages.propagate import propagate, twist_between
-from torchevtrack.stages.template import TemplateCorrector, TemplateModel, render_window
+from torchevtrack.stages.template import Correction, TemplateCorrector, TemplateModel, render_window
 from torchevtrack.stages.ukf import PoseUKF
 from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, centre_jacobian, sample_depth
 
@@ -110,6 +112,9 @@ class EventPoseTracker(nn.Module):
         meshes: one mesh for all, or a list of ``B`` meshes: paths, built-in / YCB names or trimesh objects.
         config: :class:`~torchevtrack.config.TrackerConfig` (default: the paper's settings).
         batch_size: ``B`` when one mesh is given for several sequences (default 1).
+        workers: threads that run the batch's renders and template corrections, each on its own share of the
+            elements (the compiled kernels release the GIL, so they run on as many cores); default
+            ``min(B, usable cores)``, 1 runs everything in the calling thread. Results do not depend on it.
         on_lost: re-initialisation callback of the loss detector (needs ``config.loss.enabled``):
             ``on_lost(batch_indices (K,) int64, t_us (K,) int64) -> poses (K, 7) or None``, called with
             the elements declared lost in an update; the elements it returns poses for restart there
@@ -140,6 +145,7 @@ class EventPoseTracker(nn.Module):
         config: TrackerConfig | None = None,
         batch_size: int | None = None,
         on_lost: OnLost | None = None,
+        workers: int | None = None,
     ) -> None:
         super().__init__()
         cfg = config or TrackerConfig()
@@ -153,7 +159,15 @@ class EventPoseTracker(nn.Module):
         if not meshes:
             raise ValueError("at least one mesh is needed")
         B = len(meshes)
+        if workers is None:
+            workers = min(B, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+        elif isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+            raise ValueError(f"workers must be a positive int or None, got {workers!r}")
         self.camera, self.config, self.batch_size = camera, cfg, B
+        # Contiguous shares of the batch, one per worker thread (the pool exists only with two or more).
+        n = min(workers, B)
+        self._shares = [slice(i * B // n, (i + 1) * B // n) for i in range(n)]
+        self._pool = ThreadPoolExecutor(n, thread_name_prefix="torchevtrack") if n > 1 else None
         self.period_us = cfg.period_us
         self.dt = self.period_us * 1e-6
 
@@ -275,9 +289,11 @@ class EventPoseTracker(nn.Module):
         self._model = None  # the template of the last render (see render.reuse_px)
 
     def close(self) -> None:
-        """Release the renderers' GL contexts."""
+        """Release the renderers' GL contexts and the worker threads."""
         for r in self._renderers:
             r.close()
+        if self._pool is not None:
+            self._pool.shutdown()
 
     # -- one update --------------------------------------------------------------------------
     def forward(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor,
@@ -330,10 +346,7 @@ class EventPoseTracker(nn.Module):
         n_events = torch.bincount(b, minlength=B) if b is not None else torch.tensor([x.numel()] * B)
         self.events_seen += n_events
         if cfg.template.enabled:
-            if not reuse:
-                self._model = self.corrector.template_model(pose32, render.depth, render.gray, origin)
-            obs = self._observation(self._model.box, self._t_now(t, b))
-            corr = self.corrector.correct_canvas(self._model, predicted, obs)  # float64 search
+            corr = self._correct(predicted, pose32, None if reuse else render, self._t_now(t, b))  # float64 search
             # Until the EROS holds enough events, its edges are too sparse to correct against.
             warm = (self.events_seen >= cfg.template.warmup_events)[:, None]
             measured = torch.where(warm, corr.pose.double(), predicted)
@@ -522,8 +535,33 @@ class EventPoseTracker(nn.Module):
         p = pose.detach().numpy()  # numpy: two small tensors per update, without torch's dispatch
         return torch.from_numpy(~np.isfinite(p).all(-1) | (p[:, 2] <= self._min_depth.numpy()))
 
-    def _observation(self, box: torch.Tensor, t_now: torch.Tensor) -> torch.Tensor:
-        """Median-blurred EROS under the template's canvas ``box`` ``(B, 3)``, in the canvas: ``(B, N, N)``.
+    def _correct(self, predicted: torch.Tensor, pose32: torch.Tensor, render: "_Render | None",
+                 t_now: torch.Tensor) -> Correction:
+        """Template correction of the ``predicted`` poses with a new template model of ``render`` (made at ``pose32``),
+        or the last model when ``render`` is ``None``; each worker corrects its share of the batch."""
+        def share(rows: slice) -> tuple[TemplateModel, Correction]:
+            if render is None:
+                model = TemplateModel(*(f[rows] for f in self._model))
+            else:
+                model = self.corrector.template_model(pose32[rows], render.depth[rows],
+                                                      None if render.gray is None else render.gray[rows],
+                                                      self.origin[rows])
+            obs = self._observation(model.box, t_now, rows)
+            return model, self.corrector.correct_canvas(model, predicted[rows], obs)
+
+        parts = self._map(share)
+        self._model = _cat([m for m, _ in parts])
+        return _cat([c for _, c in parts])
+
+    def _map(self, fn: Callable[[slice], _T]) -> list[_T]:
+        """``fn`` of each worker's share of the batch (rows), in the worker threads."""
+        if self._pool is None:
+            return [fn(slice(None))]
+        return list(self._pool.map(fn, self._shares))
+
+    def _observation(self, box: torch.Tensor, t_now: torch.Tensor, rows: slice = slice(None)) -> torch.Tensor:
+        """Median-blurred EROS of the batch ``rows`` under their template's canvas ``box`` ``(K, 3)``, in the canvas:
+        ``(K, N, N)``.
 
         EROS only decays where new events arrive, so edges the object left stay at full strength until
         something else fires there. With ``eros.max_age_us > 0`` pixels whose last event (timestamp
@@ -532,8 +570,8 @@ class EventPoseTracker(nn.Module):
         observation's edges toward where the object is now (the correction lags less behind the motion).
         """
         e = self.config.eros
-        return canvas_observation(self.eros.surface, self.flow.sae, box, self.config.template.canvas, t_now,
-                                  e.max_age_us, e.recency_us)
+        return canvas_observation(self.eros.surface[rows], self.flow.sae[rows], box, self.config.template.canvas,
+                                  t_now[rows], e.max_age_us, e.recency_us)
 
     def _depth_at(self, uv: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         """Depth ``(B, G)`` at the ``valid`` ``(B, G)`` flow pixels ``uv`` ``(B, G, 2)`` from the last render
@@ -546,6 +584,14 @@ class EventPoseTracker(nn.Module):
 class _Render:
     depth: torch.Tensor
     gray: torch.Tensor | None
+
+
+_T = TypeVar("_T")
+
+
+def _cat(parts: list[_T]) -> _T:
+    """Named tuples of batch-leading tensors, concatenated field by field (the only one as it is)."""
+    return parts[0] if len(parts) == 1 else type(parts[0])(*(torch.cat(f) for f in zip(*parts)))
 
 
 def _per_stream(value, default: list[int], name: str) -> list[int]:
