@@ -99,10 +99,10 @@ def brute_force_register(flows, events, tie_tol):
 
 
 # ----------------------------------------------------------------------------------------------- tests
-@pytest.mark.parametrize("C,B", [(1, 1), (2, 2)])
-def test_triplet_samples_match_sequential_oracle(C, B):
+@pytest.mark.parametrize("C,B,D", [(1, 1, 2), (2, 2, 2), (1, 1, 4)])  # D = 4: 80 directions, over one bit mask
+def test_triplet_samples_match_sequential_oracle(C, B, D):
     rng = np.random.default_rng(3 + C)
-    H, W, D, dt_max, tol = 9, 11, 2, 3000, 0.4
+    H, W, dt_max, tol = 9, 11, 3000, 0.4
     sae = np.full((B, C, H, W), NEVER, dtype=np.int64)
     t_now = 0
     total = 0

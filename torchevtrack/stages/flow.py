@@ -56,6 +56,7 @@ import numba
 import numpy as np
 import torch
 import torch.nn.functional as Fnn
+from numba.cpython.unsafe.numbers import trailing_zeros
 from torch import nn
 
 from torchevtrack.stages import batch_mask
@@ -235,48 +236,79 @@ def _triplets_padded(sae_pad: torch.Tensor, pad: int, events, D: int, dt_max_us:
 _DIRECTIONS: dict[int, np.ndarray] = {}
 
 
+_WORD = 63
+"""Directions per bit mask of :func:`_triplet_kernel` (bits 0..62 of an int64)."""
+
+
 @numba.njit(cache=True, nogil=True)
 def _triplet_kernel(sae, x, y, t, p, b, C, batched, start, stop, dirs, pad, dt_max_us, tol, event, flow):
     """Per event ``i`` in ``start:stop``: look up ``p0 + d`` and ``p0 + 2 d`` for every direction ``d``, keep the
     triplets that pass, then write the event into the SAE (plane ``b C + p``). Returns the number of samples
     written to ``event``, ``flow``.
 
-    The tests of the ``K`` directions of an event run without branches (one hard-to-predict branch per event
-    instead of two or three per direction), then the passing ones are written in direction order; the samples
-    are those of the test-by-test loop, bit for bit."""
+    The tests of an event's ``K`` directions run as one vector loop into a bit mask (:func:`_pass_mask`), then
+    the samples of the set bits are written in direction order (:func:`_emit`). With ``K <= 63`` (one mask) an
+    event's samples are written one event later, so that the branches over them do not hold up the next
+    event's lookups."""
     n_planes, Hp, Wp = sae.shape
     flat = sae.reshape(n_planes * Hp * Wp)
     K = dirs.shape[0]
     off1 = np.empty(K, dtype=np.int64)
     fx, fy = np.empty(K), np.empty(K)
-    ok = np.empty(K, dtype=np.bool_)
-    span = np.empty(K)
     for k in range(K):
         off1[k] = dirs[k, 1] * Wp + dirs[k, 0]
         fx[k], fy[k] = -2.0 * dirs[k, 0], -2.0 * dirs[k, 1]
+    lag = K <= _WORD
     s = 0
+    at_prev = t_prev = m_prev = 0
     for i in range(start, stop):
         c = (b[i] if batched else 0) * C + (p[i] if C == 2 else 0)
         at = (c * Hp + y[i] + pad) * Wp + x[i] + pad
-        t0 = t[i]
-        found = False
-        for k in range(K):
-            t1 = flat[at + off1[k]]
-            dt01 = t0 - t1
-            dt12 = t1 - flat[at + 2 * off1[k]]
-            # 0 < dt01 < dt_max, dt12 > 0 and |1 - dt12 / dt01| < tol (max(., 1) only guards the rejected)
-            good = (dt01 > 0) & (dt01 < dt_max_us) & (dt12 > 0) & (abs(1.0 - dt12 / max(dt01, 1)) < tol)
-            ok[k] = good
-            found |= good
-            span[k] = max(dt01 + dt12, 1) * 1e-6  # t0 - t2, seconds
-        if found:
-            for k in range(K):
-                if ok[k]:
-                    event[s] = i
-                    flow[s, 0] = fx[k] / span[k]
-                    flow[s, 1] = fy[k] / span[k]
-                    s += 1
-        flat[at] = max(flat[at], t0)
+        if lag:
+            m = _pass_mask(flat, at, t[i], off1, 0, K, dt_max_us, tol)
+            s = _emit(flat, at_prev, t_prev, i - 1, off1, 0, fx, fy, tol, m_prev, event, flow, s)
+            at_prev, t_prev, m_prev = at, t[i], m
+        else:
+            for lo in range(0, K, _WORD):
+                m = _pass_mask(flat, at, t[i], off1, lo, min(K, lo + _WORD), dt_max_us, tol)
+                s = _emit(flat, at, t[i], i, off1, lo, fx, fy, tol, m, event, flow, s)
+        flat[at] = max(flat[at], t[i])
+    return _emit(flat, at_prev, t_prev, stop - 1, off1, 0, fx, fy, tol, m_prev, event, flow, s)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _pass_mask(flat, at, t0, off1, lo, hi, dt_max_us, tol):
+    """Bit ``k - lo`` set: direction ``k`` in ``lo:hi`` may pass for the event at SAE index ``at``, time ``t0``
+    (the exact integer tests, and ``|dt12 - dt01| <= tol' dt01`` with ``tol'`` a hair above ``tol``: a superset of
+    the passing directions, whose float test :func:`_emit` applies)."""
+    tol_up = tol * (1.0 + 2.0 ** -30) + 2.0 ** -40
+    m = 0
+    for k in range(lo, hi):
+        t1 = flat[at + off1[k]]
+        dt01 = t0 - t1
+        dt12 = t1 - flat[at + 2 * off1[k]]
+        good = (dt01 > 0) & (dt01 < dt_max_us) & (dt12 > 0) & (abs(dt12 - dt01) <= tol_up * dt01)
+        m |= np.int64(good) << (k - lo)
+    return m
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _emit(flat, at, t0, i, off1, lo, fx, fy, tol, m, event, flow, s):
+    """Write the samples of event ``i`` (SAE index ``at``, time ``t0``) for the directions ``lo + bit`` of mask
+    ``m`` that pass ``|1 - dt12 / dt01| < tol``, from ``event[s]``, ``flow[s]`` on; returns the new ``s``. The
+    event's own SAE write, if already done, is at ``at``, which is none of its lookups."""
+    while m:
+        k = lo + trailing_zeros(m)
+        m &= m - 1
+        t1 = flat[at + off1[k]]
+        dt01 = t0 - t1
+        dt12 = t1 - flat[at + 2 * off1[k]]
+        if abs(1.0 - dt12 / dt01) < tol:
+            span = (dt01 + dt12) * 1e-6  # t0 - t2, seconds
+            event[s] = i
+            flow[s, 0] = fx[k] / span
+            flow[s, 1] = fy[k] / span
+            s += 1
     return s
 
 
