@@ -15,20 +15,25 @@ Per pose, the kernel
    its plane (outward normal from the counter-clockwise winding); also skipped are faces with every vertex
    nearer than ``znear`` or every vertex farther than ``zfar``, and faces whose bounding box holds no
    pixel centre of the window;
-3. finds the pixel centres inside each remaining face with homogeneous edge functions (2D homogeneous
-   rasterisation, Olano and Greer 1997), row by row within its box: each edge bounds the row's x range at
-   the point where its edge function is 0. The three edge values at a pixel are its barycentric weights up
-   to one common factor, so ``values / sum`` are the perspective-correct weights and the camera ``z`` of
-   the surface point is ``det / sum``. Faces that cross the near plane need no clipping: their points
-   nearer than ``znear`` (or farther than ``zfar``) are dropped pixel by pixel, which is what OpenGL's
-   clipping leaves. A centre exactly on an edge belongs to the face, and the two faces of a shared edge
-   compute the same bound, so no centre falls between them;
+3. finds the pixel centres inside each remaining face among those of its box: a centre is inside when its
+   three homogeneous edge functions (2D homogeneous rasterisation, Olano and Greer 1997) are all <= 0 (the
+   sign of the face's determinant). The three edge values at a pixel are its barycentric weights up to one
+   common factor, so ``values / sum`` are the perspective-correct weights and the camera ``z`` of the
+   surface point is ``det / sum``. Faces that cross the near plane need no clipping: their points nearer
+   than ``znear`` (or farther than ``zfar``) are dropped pixel by pixel, which is what OpenGL's clipping
+   leaves. A centre exactly on an edge belongs to the face, and the two faces of a shared edge compute
+   exactly opposite values of it, so no centre falls between them;
 4. keeps, per pixel, the face with the smallest ``z`` (z-buffer on camera ``z``, in the float32 output;
    the first face drawn wins ties);
 5. shades only the visible pixels: albedo and object-frame normal are interpolated with the
    perspective-correct weights from the per-vertex attributes the pyrender backend packs
    (``torchevtrack.render._shading_mesh``), then ``gray = albedo * (AMBIENT + (1 - AMBIENT) *
    max(0, n . l) / |n|)`` with the light direction ``l`` in the object frame.
+
+Steps 3-5 run on chunks of faces: the chunk's faces are set up (box, edge functions) in one loop, then
+their box pixels are z-tested without branches (data-dependent branches on ~1-pixel faces cost more than
+the arithmetic), queueing the pixels each face wins with its weights; the queue is shaded in order, so a
+pixel won again later ends with the grey of its final face.
 
 Arithmetic is float64. Against the pyrender backend (which snaps vertices to 1/256 px and quantises albedo
 and normal to 8 bits): silhouettes differ only on pixels whose centre lies within ~1/256 px of an edge,
@@ -76,7 +81,7 @@ class RasterMesh(NamedTuple):
 
     Shape:
         vertices: ``(V, 3)`` float64, object frame, metres.
-        faces: ``(F, 3)`` int32 vertex indices, counter-clockwise seen from outside.
+        faces: ``(F, 3)`` uint32 vertex indices, counter-clockwise seen from outside.
         planes: ``(4, F)`` float64: each face's outward normal (not normalised) and its offset ``n . v0``.
         albedo: ``(V,)`` float64 in ``[0, 1]``.
         normals: ``(V, 3)`` float64 unit object-frame normals.
@@ -96,7 +101,7 @@ def raster_mesh(mesh: trimesh.Trimesh) -> RasterMesh:
     corners = vertices[faces]
     n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     planes = np.concatenate((n, np.einsum("fk,fk->f", n, corners[:, 0])[:, None]), axis=1).T
-    return RasterMesh(vertices, faces.astype(np.int32), np.ascontiguousarray(planes), albedo, normals)
+    return RasterMesh(vertices, faces.astype(np.uint32), np.ascontiguousarray(planes), albedo, normals)
 
 
 def rasterise(mesh: RasterMesh, poses: np.ndarray, camera: Camera, *, znear: float = 0.01, zfar: float = 20.0,
@@ -110,22 +115,27 @@ def rasterise(mesh: RasterMesh, poses: np.ndarray, camera: Camera, *, znear: flo
         camera size.
     """
     depth = np.empty((len(poses), camera.height, camera.width), dtype=np.float32)
-    gray = np.empty_like(depth) if shaded else np.empty((0, 0, 0), dtype=np.float32)
+    gray = np.empty_like(depth) if shaded else np.empty((len(poses), 0, 0), dtype=np.float32)
     _render_kernel(*mesh, poses, camera.fx, camera.fy, camera.cx, camera.cy, znear, zfar, LIGHT_DIRECTION, AMBIENT,
                    background, depth, gray)
     return depth, gray if shaded else None
 
 
+_CHUNK = 256  # faces set up at a time (their records stay in the L1 cache)
+_FLUSH = 2048  # pixel wins shaded at a time
+
+
 @numba.njit(cache=True, nogil=True)
 def _render_kernel(vertices, faces, planes, albedo, normals, poses, fx, fy, cx, cy, znear, zfar, light, ambient,
                    background, depth, gray):
-    """Rasterise pose ``b`` into ``depth[b]`` and, unless ``gray`` is empty, shade it into ``gray[b]``."""
+    """Rasterise pose ``b`` into ``depth[b]`` and, unless ``gray`` has no pixels, shade it into ``gray[b]``."""
     B, H, W = depth.shape
     hom = np.empty((vertices.shape[0], 3))
     uv = np.empty((vertices.shape[0], 2))
-    front = np.empty(faces.shape[0], dtype=np.int32)
-    face = np.empty((H, W), dtype=np.int32)
-    weights = np.empty((H, W, 2), dtype=np.float32)
+    front = np.empty(faces.shape[0], dtype=np.uint32)
+    box, edges = np.empty((_CHUNK, 7), dtype=np.int64), np.empty((_CHUNK, 10))
+    size = max(H * W, _FLUSH)  # _draw's queue never holds more
+    wins, weights = np.empty((size, 2), dtype=np.int32), np.empty((size, 2), dtype=np.float32)
     for b in range(B):
         R, t = _nb_quat_to_matrix(poses[b, 3], poses[b, 4], poses[b, 5], poses[b, 6]), poses[b, :3]
         _project(vertices, R, t, fx, fy, cx, cy, znear, hom, uv)
@@ -138,13 +148,36 @@ def _render_kernel(vertices, faces, planes, albedo, normals, poses, fx, fy, cx, 
             front[n] = f
             n += planes[0, f] * c0 + planes[1, f] * c1 + planes[2, f] * c2 > planes[3, f]
         depth[b] = 0.0
-        _visible_faces(hom, uv, faces, front[:n], znear, zfar, depth[b], face, weights)
-        if gray.size:
-            # n_cam . l = n_obj . (R^T l)
-            light_obj = (R[0, 0] * light[0] + R[1, 0] * light[1] + R[2, 0] * light[2],
-                         R[0, 1] * light[0] + R[1, 1] * light[1] + R[2, 1] * light[2],
-                         R[0, 2] * light[0] + R[1, 2] * light[1] + R[2, 2] * light[2])
-            _shade(faces, albedo, normals, depth[b], face, weights, light_obj, ambient, background, gray[b])
+        gray[b] = background
+        # n_cam . l = n_obj . (R^T l)
+        light_obj = (R[0, 0] * light[0] + R[1, 0] * light[1] + R[2, 0] * light[2],
+                     R[0, 1] * light[0] + R[1, 1] * light[1] + R[2, 1] * light[2],
+                     R[0, 2] * light[0] + R[1, 2] * light[1] + R[2, 2] * light[2])
+        shading = (albedo, normals, light_obj, ambient, gray[b].reshape(-1))
+        _draw(hom, uv, faces, front[:n], znear, zfar, depth[b], shading, box, edges, wins, weights)
+
+
+@numba.njit(cache=True, nogil=True)
+def _draw(hom, uv, faces, front, znear, zfar, depth, shading, box, edges, wins, weights):
+    """Z-buffer pass of the faces ``front`` over an all-zero ``depth`` ``(h, w)``: for each pixel, the camera
+    ``z`` (metres) of the nearest of them in ``[znear, zfar]`` and, unless the grey image (the last of the
+    ``shading`` arguments of :func:`_shade`) has no pixels, its Lambert grey. Per chunk of ``_CHUNK`` faces:
+    :func:`_face_setups`, then :func:`_cover` per face, queueing the pixels won in ``wins, weights``, which
+    are shaded at the end of the chunk or before ``_FLUSH`` would be passed."""
+    H, W = depth.shape
+    depth = depth.reshape(-1)
+    shaded = shading[-1].size != 0
+    for start in range(0, len(front), _CHUNK):
+        k = _face_setups(hom, uv, faces, front[start:start + _CHUNK], znear, zfar, W, H, box, edges)
+        m = 0
+        for r in range(k):
+            if m + (box[r, 1] - box[r, 0] + 1) * (box[r, 3] - box[r, 2] + 1) > _FLUSH:
+                if shaded:
+                    _shade(box, wins[:m], weights, *shading)
+                m = 0
+            m = _cover(box[r], edges[r], r, W, znear, zfar, depth, wins, weights, m)
+        if shaded:
+            _shade(box, wins[:m], weights, *shading)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -190,13 +223,13 @@ def _near_clipped_box(hom, i0, i1, i2, znear):
     return umin, umax, vmin, vmax
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")  # 1 / 0 = inf (a sliver's z fails the range test)
-def _visible_faces(hom, uv, faces, front, znear, zfar, depth, face, weights):
-    """Z-buffer pass of the faces ``front`` over an all-zero ``depth`` ``(h, w)``: for each pixel, the camera
-    ``z`` (metres, ``depth``) of the nearest of them in ``[znear, zfar]``, its index (``face``) and the
-    perspective-correct weights of its first two vertices (``weights`` ``(h, w, 2)``); ``face`` and
-    ``weights`` are left as they are where ``depth`` stays 0."""
-    H, W = depth.shape
+@numba.njit(cache=True, nogil=True)
+def _face_setups(hom, uv, faces, front, znear, zfar, W, H, box, edges):
+    """Records of the faces ``front`` whose pixel box in the ``W x H`` window is not empty: ``box[r]`` their box
+    ``(xmin, xmax, ymin, ymax)`` and vertex indices, ``edges[r]`` their three edge functions and ``det``
+    (< 0 for a front face); returns the number of records. Skips faces wholly nearer than ``znear`` or
+    farther than ``zfar`` and edge-on faces (``det >= 0`` by rounding)."""
+    k = 0
     for f in front:
         i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
         z0, z1, z2 = hom[i0, 2], hom[i1, 2], hom[i2, 2]
@@ -209,65 +242,58 @@ def _visible_faces(hom, uv, faces, front, znear, zfar, depth, face, weights):
             umin, umax, vmin, vmax = _near_clipped_box(hom, i0, i1, i2, znear)
         xmin, xmax = max(math.ceil(umin), 0), min(math.floor(umax), W - 1)
         ymin, ymax = max(math.ceil(vmin), 0), min(math.floor(vmax), H - 1)
-        if xmin > xmax or ymin > ymax:
-            continue
-        a0, b0, c0 = _cross(hom, i1, i2)
-        a1, b1, c1 = _cross(hom, i2, i0)
-        a2, b2, c2 = _cross(hom, i0, i1)
-        det = a0 * hom[i0, 0] + b0 * hom[i0, 1] + c0 * hom[i0, 2]  # < 0 for a front face
-        if det >= 0.0:  # edge-on (rounding)
-            continue
-        # inside: every edge value a x + b y + c <= 0 (the sign of det), so the weights e_k / sum are >= 0 and
-        # z = det / sum > 0; per row, each edge bounds x by -(b y + c) / a (the same bound for both faces of
-        # a shared edge, which take the centres on either side of it, both a centre on it)
-        for y in range(ymin, ymax + 1):
-            lo, hi, empty0 = _span(a0, -(b0 * y + c0), float(xmin), float(xmax))
-            lo, hi, empty1 = _span(a1, -(b1 * y + c1), lo, hi)
-            lo, hi, empty2 = _span(a2, -(b2 * y + c2), lo, hi)
-            if empty0 or empty1 or empty2:
-                continue
-            for x in range(math.ceil(lo), math.floor(hi) + 1):
-                e0 = a0 * x + b0 * y + c0
-                e1 = a1 * x + b1 * y + c1
-                inv = 1.0 / (e0 + e1 + a2 * x + b2 * y + c2)
-                z = det * inv
-                if znear <= z <= zfar and (depth[y, x] == 0.0 or z < depth[y, x]):
-                    depth[y, x] = z
-                    face[y, x] = f
-                    weights[y, x, 0] = e0 * inv
-                    weights[y, x, 1] = e1 * inv
+        e = edges[k]
+        e[0], e[1], e[2] = _cross(hom, i1, i2)
+        e[3], e[4], e[5] = _cross(hom, i2, i0)
+        e[6], e[7], e[8] = _cross(hom, i0, i1)
+        e[9] = e[0] * hom[i0, 0] + e[1] * hom[i0, 1] + e[2] * hom[i0, 2]
+        box[k, 0], box[k, 1], box[k, 2], box[k, 3], box[k, 4], box[k, 5], box[k, 6] = xmin, xmax, ymin, ymax, i0, i1, i2
+        k += (xmin <= xmax) & (ymin <= ymax) & (e[9] < 0.0)  # branch-free compaction
+    return k
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")  # 1 / 0 = inf (a sliver's z fails the range test)
+def _cover(box, e, r, W, znear, zfar, depth, wins, weights, m):
+    """Z-test record ``r``'s face at the pixel centres of its box against ``depth`` (the window, flattened) and
+    keep it where it is nearer: there, write its ``z`` into ``depth`` and append the pixel, ``r`` and its
+    first two weights at ``wins[m], weights[m]``. Returns the new ``m``. Branch-free per pixel."""
+    xmin, xmax, y = box[0], box[1], box[2]
+    a0, b0, c0, a1, b1, c1, a2, b2, c2, det = e[0], e[1], e[2], e[3], e[4], e[5], e[6], e[7], e[8], e[9]
+    x = xmin
+    for _ in range((xmax - xmin + 1) * (box[3] - y + 1)):
+        e0 = a0 * x + b0 * y + c0
+        e1 = a1 * x + b1 * y + c1
+        e2 = a2 * x + b2 * y + c2
+        inv = 1.0 / (e0 + e1 + e2)
+        z = det * inv
+        p = y * W + x
+        d = depth[p]
+        keep = (max(e0, e1, e2) <= 0.0) & (znear <= z) & (z <= zfar) & ((d == 0.0) | (z < d))
+        depth[p] = np.float32(z) if keep else d
+        wins[m, 0], wins[m, 1], weights[m, 0], weights[m, 1] = p, r, e0 * inv, e1 * inv
+        m += keep
+        x += 1
+        wrap = x > xmax
+        x = xmin if wrap else x
+        y += wrap
+    return m
 
 
 @numba.njit(cache=True, nogil=True)
-def _span(a, r, lo, hi):
-    """Narrow the x range ``[lo, hi]`` to where ``a x <= r``; also whether no x qualifies (``a = 0 > r``)."""
-    if a > 0.0:
-        hi = min(hi, r / a)
-    elif a < 0.0:
-        lo = max(lo, r / a)
-    return lo, hi, a == 0.0 and r < 0.0
-
-
-@numba.njit(cache=True, nogil=True)
-def _shade(faces, albedo, normals, depth, face, weights, light, ambient, background, gray):
-    """Lambert grey where ``depth > 0`` from the albedo and normal interpolated with the ``weights`` of
-    :func:`_visible_faces`; ``background`` elsewhere."""
-    H, W = depth.shape
-    for y in range(H):
-        for x in range(W):
-            if depth[y, x] == 0.0:
-                gray[y, x] = background
-                continue
-            f = face[y, x]
-            i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-            w0, w1 = np.float64(weights[y, x, 0]), np.float64(weights[y, x, 1])
-            w2 = 1.0 - w0 - w1
-            alb = w0 * albedo[i0] + w1 * albedo[i1] + w2 * albedo[i2]
-            n0 = w0 * normals[i0, 0] + w1 * normals[i1, 0] + w2 * normals[i2, 0]
-            n1 = w0 * normals[i0, 1] + w1 * normals[i1, 1] + w2 * normals[i2, 1]
-            n2 = w0 * normals[i0, 2] + w1 * normals[i1, 2] + w2 * normals[i2, 2]
-            cos = (n0 * light[0] + n1 * light[1] + n2 * light[2]) / max(math.sqrt(n0 * n0 + n1 * n1 + n2 * n2), 1e-6)
-            gray[y, x] = alb * (ambient + (1.0 - ambient) * max(cos, 0.0))
+def _shade(box, wins, weights, albedo, normals, light, ambient, gray):
+    """Lambert grey at the pixels ``wins[:, 0]`` of the window (``gray`` flattened), in order, from the albedo
+    and normal interpolated at ``weights`` over the vertices of the records ``wins[:, 1]``."""
+    for j in range(wins.shape[0]):
+        p, r = wins[j, 0], wins[j, 1]
+        i0, i1, i2 = box[r, 4], box[r, 5], box[r, 6]
+        w0, w1 = np.float64(weights[j, 0]), np.float64(weights[j, 1])
+        w2 = 1.0 - w0 - w1
+        alb = w0 * albedo[i0] + w1 * albedo[i1] + w2 * albedo[i2]
+        n0 = w0 * normals[i0, 0] + w1 * normals[i1, 0] + w2 * normals[i2, 0]
+        n1 = w0 * normals[i0, 1] + w1 * normals[i1, 1] + w2 * normals[i2, 1]
+        n2 = w0 * normals[i0, 2] + w1 * normals[i1, 2] + w2 * normals[i2, 2]
+        cos = (n0 * light[0] + n1 * light[1] + n2 * light[2]) / max(math.sqrt(n0 * n0 + n1 * n1 + n2 * n2), 1e-6)
+        gray[p] = alb * (ambient + (1.0 - ambient) * max(cos, 0.0))
 
 
 class RasterRenderer:
