@@ -225,8 +225,8 @@ def test_normal_flow_update_is_projected_least_squares():
 
 def test_centre_parametrisation_recovers_the_centre_velocity():
     """With centre=c the state is [c_dot, w], c_dot = v + w x c; lstsq on L A(c) is the oracle, and
-    mapping back with A(c) gives the camera-origin twist."""
-    from torchevtrack.stages.velocity import centre_jacobian
+    shift_twist by -c maps it back to the camera-origin twist (and by +c forward)."""
+    from torchevtrack.stages.velocity import shift_twist
 
     gen = torch.Generator().manual_seed(11)
     uv, depth = _scene(gen, 60)
@@ -240,8 +240,9 @@ def test_centre_parametrisation_recovers_the_centre_velocity():
     c_dot = twist[:3] + torch.linalg.cross(twist[3:], c[0])
     np.testing.assert_allclose(out.x[0, :3].numpy(), c_dot.numpy(), atol=1e-7)
     np.testing.assert_allclose(out.x[0, 3:].numpy(), twist[3:].numpy(), atol=1e-7)
-    back = (centre_jacobian(c) @ out.x[..., None])[0, :, 0]
+    back = shift_twist(out.x, -c)[0]
     np.testing.assert_allclose(back.numpy(), twist.numpy(), atol=1e-7)
+    np.testing.assert_allclose(shift_twist(twist[None], c)[0, :3].numpy(), c_dot.numpy(), rtol=1e-12)
 
 
 # -- correction feedback -----------------------------------------------------------------------------

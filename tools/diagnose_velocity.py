@@ -22,7 +22,7 @@ import torch
 
 from torchevtrack.config import TrackerConfig
 from torchevtrack.metrics import per_pose_errors, twists_from_poses
-from torchevtrack.stages.velocity import VelocityKF, centre_jacobian
+from torchevtrack.stages.velocity import VelocityKF, shift_twist
 from torchevtrack.synth.sequence import Sequence
 from torchevtrack.tracker import EventPoseTracker
 
@@ -69,7 +69,7 @@ def main() -> None:
 
     def truth() -> torch.Tensor:
         k = int(torch.searchsorted(gt_t, tracker.t_last[0] - tracker.period_us // 2).clamp(0, len(gt_t) - 1))
-        return (centre_jacobian(-gt[k:k + 1, :3]) @ gt_twist[k, :, None])[..., 0]
+        return shift_twist(gt_twist[k:k + 1], gt[k:k + 1, :3])
 
     oracle = OracleVelocityKF(tracker.velocity, truth, args.oracle)
     tracker.velocity = oracle

@@ -62,7 +62,7 @@ from torchevtrack.stages.flow import TripletFlow
 from torchevtrack.stages.propagate import propagate, twist_between
 from torchevtrack.stages.template import Correction, TemplateCorrector, TemplateModel, render_window
 from torchevtrack.stages.ukf import PoseUKF
-from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, centre_jacobian, sample_depth
+from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, sample_depth, shift_twist
 
 if TYPE_CHECKING:
     from torchevtrack.raster import RasterRenderer
@@ -271,7 +271,7 @@ class EventPoseTracker(nn.Module):
             raise ValueError("initial_pose puts the object centre closer to the camera than the object's radius")
         self.eros.reset(m)
         self.flow.reset(m)
-        self.velocity.reset(torch.einsum("bij,bj->bi", centre_jacobian(-pose[:, :3]), twist), m)  # about the centre
+        self.velocity.reset(shift_twist(twist, pose[:, :3]), m)  # about the centre
         self.ukf.reset(pose, twist, m)
         self.pose.copy_(pose)
         self.prev_pose.copy_(torch.where(m[:, None], propagate(pose, twist, -self.dt), self.prev_pose))
@@ -321,7 +321,7 @@ class EventPoseTracker(nn.Module):
             centre = self.pose[:, :3]
             upd = self.velocity.update(flow.uv, flow.flow, depth, valid, self.dt, centre=centre)
             twist_c = self.velocity.x + self.feedback.b if self.feedback is not None else self.velocity.x
-            twist = (centre_jacobian(centre) @ twist_c[:, :, None])[..., 0]  # [c_dot, w] -> [v, w]
+            twist = shift_twist(twist_c, -centre)  # [c_dot, w] -> [v, w]
             n_vectors = (upd.weights > 0).sum(-1)
         elif cfg.velocity.source == "poses":
             twist = twist_between(self.prev_pose, self.pose, self.dt)
@@ -354,7 +354,7 @@ class EventPoseTracker(nn.Module):
             if self.feedback is not None:  # the correction's rate, as a twist about the predicted centre
                 rate = twist_between(predicted, measured, self.dt)
                 axis = quat_rotate(measured[:, 3:], self._symmetry_axis)  # camera frame (zero stays zero)
-                self.feedback((centre_jacobian(-predicted[:, :3]) @ rate[:, :, None])[..., 0], axis)
+                self.feedback(shift_twist(rate, predicted[:, :3]), axis)
         else:
             measured, score = predicted, torch.full((B,), float("nan"))
         clock.lap("correction")

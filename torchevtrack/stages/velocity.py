@@ -62,7 +62,7 @@ __all__ = [
     "CorrectionFeedback",
     "VelocityUpdate",
     "VelocityKF",
-    "centre_jacobian",
+    "shift_twist",
     "feedback_update",
     "kf_predict",
     "kf_update",
@@ -117,28 +117,29 @@ def laplacian_weights(residual: torch.Tensor, valid: torch.Tensor, r_px: float, 
     return torch.where(valid, w, torch.zeros_like(w))
 
 
-def centre_jacobian(centre: torch.Tensor) -> torch.Tensor:
-    """``A(c)`` mapping the twist about ``c`` ``[c_dot, w]`` to the camera-origin twist ``[v, w]``.
+def shift_twist(twist: torch.Tensor, point: torch.Tensor) -> torch.Tensor:
+    """The twist ``[v, w]`` (``dP/dt = v + w x P``) as the velocity of ``point`` and ``w``: ``[v + w x point, w]``.
 
-    ``v = c_dot - w x c = c_dot + [c]x w``. Shape: ``(B, 3) -> (B, 6, 6)``.
+    With ``point = c`` this is the state of :func:`kf_update` with ``centre=c`` (the twist about the centre,
+    ``[c_dot, w]``); ``shift_twist(x, -c)`` maps that state back to ``[v, w]``. Float64, one compiled pass.
+
+    Shape: ``(B, 6), (B, 3) -> (B, 6)`` (m/s, rad/s; point in metres).
     """
-    if centre.ndim != 2 or centre.shape[-1] != 3 or not centre.is_floating_point():
-        raise ValueError(f"centre must be a floating (B, 3) tensor, got {centre.dtype} {tuple(centre.shape)}")
-    A = np.empty((centre.shape[0], 6, 6), dtype=np.float32 if centre.dtype == torch.float32 else np.float64)
-    _centre_jacobian_kernel(_f32_or_f64(centre), A)
-    return torch.from_numpy(A).to(centre.dtype)
+    if twist.ndim != 2 or twist.shape[-1] != 6 or point.shape != (twist.shape[0], 3):
+        raise ValueError(f"expected twist (B, 6) and point (B, 3), got {tuple(twist.shape)} and {tuple(point.shape)}")
+    out = np.empty((twist.shape[0], 6))
+    _shift_twist_kernel(_f64(twist), _f64(point), out)
+    return torch.from_numpy(out)
 
 
 @numba.njit(cache=True, nogil=True)
-def _centre_jacobian_kernel(c, A):
-    """``A[b] = [[I, [c_b]x], [0, I]]``."""
-    for b in range(A.shape[0]):
-        for i in range(6):
-            for j in range(6):
-                A[b, i, j] = 1.0 if i == j else 0.0
-        A[b, 0, 4], A[b, 0, 5] = -c[b, 2], c[b, 1]
-        A[b, 1, 3], A[b, 1, 5] = c[b, 2], -c[b, 0]
-        A[b, 2, 3], A[b, 2, 4] = -c[b, 1], c[b, 0]
+def _shift_twist_kernel(twist, c, out):
+    for b in range(out.shape[0]):
+        w0, w1, w2 = twist[b, 3], twist[b, 4], twist[b, 5]
+        out[b, 0] = twist[b, 0] + (w1 * c[b, 2] - w2 * c[b, 1])
+        out[b, 1] = twist[b, 1] + (w2 * c[b, 0] - w0 * c[b, 2])
+        out[b, 2] = twist[b, 2] + (w0 * c[b, 1] - w1 * c[b, 0])
+        out[b, 3], out[b, 4], out[b, 5] = w0, w1, w2
 
 
 @numba.njit(cache=True, nogil=True)
