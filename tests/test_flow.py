@@ -170,6 +170,23 @@ def test_registration_subsamples_whole_events_when_capped():
 
 
 
+def test_registration_of_unsorted_strided_samples():
+    # Samples in any order register as if ordered by (block, event), stably: shuffling whole events (the samples
+    # of an event keep their order) leaves the result unchanged, for strided inputs as well.
+    rng = np.random.default_rng(2)
+    S = 400
+    events = np.sort(rng.integers(0, 120, S))
+    block = events % 3
+    flows = rng.normal(0, 100, (S, 2)) + np.array([[100.0, 0.0], [0.0, 50.0], [-80.0, 30.0]])[block]
+    pixels = rng.random((S, 2)) * 30
+    kw = dict(min_samples=5, max_candidates=64, tie_tol=0.02, estimate="normal", inlier=0.25)
+    ref = _register(block, events, flows, pixels, 3, **kw)
+    perm = np.argsort(rng.permutation(120)[events], kind="stable")
+    assert (np.diff(events[perm]) < 0).any()
+    got = _register(block[perm], events[perm], np.asfortranarray(flows[perm]), pixels[perm][::-1][::-1], 3, **kw)
+    assert all(torch.equal(a, b) for a, b in zip(ref, got))
+
+
 @pytest.mark.parametrize("estimate", ["register", "normal"])
 def test_each_block_registers_as_if_alone(estimate):
     # 60 blocks of 5..300 samples (size groups of up to 16/32/64/128 samples after the 128 cap, the

@@ -412,158 +412,188 @@ def _register_all(block_id, event, flow, pixel, min_samples, max_candidates, tie
     """:func:`register_blocks` into ``out``, ``uv_out``, ``valid``, ``count`` (``n_blocks`` rows); False (nothing
     registered) if a block id lies outside ``[0, n_blocks)``.
 
-    The samples of the valid blocks are ordered by ``(block, event)`` (stable: a counting sort by block when
-    the events are already in packet order, as the matching writes them), their events ranked within their
-    block and subsampled (every ``s``-th event, ``s = ceil(samples / max_candidates)``), the first
-    ``max_candidates`` samples kept; then :func:`_register_kernel` registers each block."""
+    The samples of the valid blocks are grouped by block in event order (:func:`_group`), then each block's
+    are subsampled (:func:`_subsample`) and registered (:func:`_register_block`)."""
     n_blocks = count.shape[0]
-    S = block_id.shape[0]
-    for i in range(S):
-        if block_id[i] < 0 or block_id[i] >= n_blocks:
-            return False
     count[:] = 0
-    for i in range(S):
-        count[block_id[i]] += 1
-    n_keep = 0
+    in_order = True
+    for i in range(block_id.shape[0]):
+        k = block_id[i]
+        if k < 0 or k >= n_blocks:
+            return False
+        count[k] += 1
+        in_order &= i == 0 or event[i] >= event[i - 1]
+    if not in_order:  # stably by event: the grouping keeps that order
+        perm = np.argsort(event, kind="mergesort")
+        block_id, event, flow, pixel = block_id[perm], event[perm], flow[perm], pixel[perm]
+    cap = 1
     for k in range(n_blocks):
         valid[k] = count[k] >= min_samples
         if valid[k]:
-            n_keep += count[k]
-    # stable order of the kept samples by (block, event)
-    order = np.empty(n_keep, dtype=np.int64)
-    sorted_events = True
-    for i in range(1, S):
-        if event[i] < event[i - 1]:
-            sorted_events = False
-            break
-    if sorted_events:
-        pos = np.empty(n_blocks, dtype=np.int64)
-        acc = 0
-        for k in range(n_blocks):
-            pos[k] = acc
-            if valid[k]:
-                acc += count[k]
-        for i in range(S):
-            k = block_id[i]
-            if valid[k]:
-                order[pos[k]] = i
-                pos[k] += 1
-    else:
-        e_span = event.max() + 1
-        key = np.empty(n_keep, dtype=np.int64)
-        idx = np.empty(n_keep, dtype=np.int64)
-        j = 0
-        for i in range(S):
-            if valid[block_id[i]]:
-                key[j] = block_id[i] * e_span + event[i]
-                idx[j] = i
-                j += 1
-        order = idx[np.argsort(key, kind="mergesort")]
-    # event rank within the block, every stride-th event, at most max_candidates samples per block
-    g = np.empty(n_keep, dtype=np.int64)
-    rank = np.empty(n_keep, dtype=np.int64)
-    F = np.empty((n_keep, 2))
-    px = np.empty((n_keep, 2))
-    m = 0
-    r, slot, stride = 0, 0, 1
-    for j in range(n_keep):
-        i = order[j]
-        k = block_id[i]
-        if j == 0 or k != block_id[order[j - 1]]:
-            r, slot = 0, 0
-            stride = (count[k] + max_candidates - 1) // max_candidates
-        elif event[i] != event[order[j - 1]]:
-            r += 1
-        if r % stride == 0:
-            if slot < max_candidates:
-                g[m], rank[m] = k, r // stride
-                F[m, 0], F[m, 1] = flow[i, 0], flow[i, 1]
-                px[m, 0], px[m, 1] = pixel[i, 0], pixel[i, 1]
-                m += 1
-            slot += 1
-    chosen, uv = _register_kernel(g[:m], rank[:m], F[:m], px[:m], tie_tol, normal, inlier)
-    b = 0
+            cap = max(cap, min(count[k], max_candidates))
+    rec, rec_event = _group(block_id, event, flow, pixel, valid, count)
+    F = np.empty((4, cap))
+    ev = np.empty(cap, dtype=np.int64)
+    work = _Scratch(np.empty((5, cap)), np.empty(cap, dtype=np.int64))
+    pos = 0
     nf = fill.shape[0]
     for k in range(n_blocks):
-        if valid[k]:
-            out[k, 0], out[k, 1] = chosen[b, 0], chosen[b, 1]
-            uv_out[k, 0], uv_out[k, 1] = uv[b, 0], uv[b, 1]
-            b += 1
-        else:
+        if not valid[k]:
             uv_out[k, 0], uv_out[k, 1] = fill[k % nf, 0], fill[k % nf, 1]
+            continue
+        n = _subsample(rec[pos:pos + count[k]], rec_event[pos:pos + count[k]], max_candidates, F, ev)
+        pos += count[k]
+        out[k, 0], out[k, 1], uv_out[k, 0], uv_out[k, 1] = _register_block(
+            F[0, :n], F[1, :n], ev[:n], F[2, :n], F[3, :n], tie_tol, normal, inlier, work)
     return True
 
 
+class _Scratch(NamedTuple):
+    """Work arrays of :func:`_register_block`: ``f (5, >= K)`` float64, ``idx (>= K,)`` int64."""
+
+    f: np.ndarray
+    idx: np.ndarray
+
+
 @numba.njit(cache=True, nogil=True)
-def _register_kernel(g, ev_rank, flow, pixel, tie_tol, normal, inlier):
-    """Registration of the blocks in ``g`` (sorted; a block's samples consecutive, their event ranks
-    ``0 .. E - 1``), one block at a time. Returns flow and uv ``(blocks, 2)`` float64 in block order."""
-    n_out = 0
-    K_max = 0
+def _group(block_id, event, flow, pixel, valid, count):
+    """The samples (in event order) of the valid blocks grouped by block, in order, as rows ``(F_u, F_v, pixel_u,
+    pixel_v)`` and their events: a counting sort by block, stable.
+
+    Shape: block_id, event ``(S,)``; flow, pixel ``(S, 2)``; valid, count ``(n_blocks,)``. Returns ``rec (n, 4)``
+    float64 and ``event (n,)``, ``n = sum(count[valid])``."""
+    pos = np.empty(count.shape[0], dtype=np.int64)
+    n = 0
+    for k in range(count.shape[0]):
+        pos[k] = n
+        if valid[k]:
+            n += count[k]
+    rec = np.empty((n, 4))
+    rec_event = np.empty(n, dtype=np.int64)
+    for i in range(block_id.shape[0]):
+        k = block_id[i]
+        if valid[k]:
+            d = pos[k]
+            pos[k] += 1
+            rec[d, 0], rec[d, 1] = flow[i, 0], flow[i, 1]
+            rec[d, 2], rec[d, 3] = pixel[i, 0], pixel[i, 1]
+            rec_event[d] = event[i]
+    return rec, rec_event
+
+
+@numba.njit(cache=True, nogil=True)
+def _subsample(rec, event, max_candidates, F, ev):
+    """The samples a block registers: of its samples ``rec`` (rows of :func:`_group`, of ``event``, in event
+    order) those of every ``s``-th event, ``s = ceil(len(rec) / max_candidates)``, the first ``max_candidates`` of
+    them. Writes their ``(F_u, F_v, pixel_u, pixel_v)`` to ``F[:, :n]`` and their event rank (``0 .. E - 1``) to
+    ``ev[:n]``; returns ``n``."""
+    stride = (rec.shape[0] + max_candidates - 1) // max_candidates
+    phase = rank = n = 0  # the event rank within the block is rank * stride + phase
+    for q in range(rec.shape[0]):
+        if q > 0 and event[q] != event[q - 1]:
+            phase += 1
+            if phase == stride:
+                phase, rank = 0, rank + 1
+        if phase == 0:
+            if n == max_candidates:
+                break
+            for r in range(4):
+                F[r, n] = rec[q, r]
+            ev[n] = rank
+            n += 1
+    return n
+
+
+@numba.njit(cache=True, nogil=True)
+def _register_block(F0, F1, ev, px, py, tie_tol, normal, inlier, work):
+    """Registration of one block's ``K`` samples ``(F0, F1)`` of events ``ev`` (sorted ranks ``0 .. E - 1``) at
+    pixels ``(px, py)`` (module docstring). Returns ``(flow_u, flow_v, u, v)``.
+
+    Shape: F0, F1, ev, px, py ``(K,)``; work: :class:`_Scratch` of at least ``K``."""
+    K = F0.shape[0]
+    E = ev[K - 1] + 1
+    cost = work.f[0, :K]
+    _costs(F0, F1, ev, work.f[1, :K], cost)
+    c_min = np.inf
+    for c in range(K):
+        c_min = min(c_min, cost[c])
+    # Among the near-optimal candidates, the one closest to all samples (first on ties).
+    near = work.idx
+    n = 0
+    for c in range(K):
+        norm = np.sqrt(F0[c] ** 2 + F1[c] ** 2)
+        if cost[c] <= c_min + tie_tol * E * norm:
+            near[n] = c
+            n += 1
+    spread = _spreads(F0, F1, near[:n], work.f[2], work.f[3], work.f[4])
+    best, best_spread = 0, np.inf
+    for q in range(n):
+        if spread[q] < best_spread:
+            best, best_spread = near[q], spread[q]
+    return _inlier_fit(F0, F1, ev, px, py, best, normal, inlier)
+
+
+@numba.njit(cache=True, nogil=True)
+def _costs(F0, F1, ev, row, cost):
+    """``cost[c] = sum_e min_{j in e} |F_c - F_j|`` (summed in event order) over the events ``e`` of the
+    samples ``F_j``, grouped in ``ev``; the minimum is taken of the squared norms, then its root (the same
+    value: the root is monotonic).
+
+    Shape: F0, F1, ev ``(K,)``; row (scratch), cost ``(K,)``."""
+    K = F0.shape[0]
+    cost[:] = 0.0
+    j = 0
+    while j < K:
+        e = ev[j]
+        row[:] = np.inf
+        while j < K and ev[j] == e:
+            f0, f1 = F0[j], F1[j]
+            for c in range(K):
+                a, b = F0[c] - f0, F1[c] - f1
+                row[c] = min(row[c], a * a + b * b)
+            j += 1
+        for c in range(K):
+            cost[c] += np.sqrt(row[c])
+
+
+@numba.njit(cache=True, nogil=True)
+def _spreads(F0, F1, near, g0, g1, spread):
+    """``spread[q] = sum_j |F_near[q] - F_j|`` (summed in sample order), all ``q`` at once.
+
+    Shape: F0, F1 ``(K,)``; near ``(Q,)``; g0, g1 (scratch), spread ``(>= Q,)``; returns ``spread[:Q]``."""
+    Q = near.shape[0]
+    for q in range(Q):
+        g0[q], g1[q] = F0[near[q]], F1[near[q]]
+        spread[q] = 0.0
+    for j in range(F0.shape[0]):
+        f0, f1 = F0[j], F1[j]
+        for q in range(Q):
+            a, b = g0[q] - f0, g1[q] - f1
+            spread[q] += np.sqrt(a * a + b * b)
+    return spread[:Q]
+
+
+@numba.njit(cache=True, nogil=True)
+def _inlier_fit(F0, F1, ev, px, py, best, normal, inlier):
+    """Flow and ``uv`` of a block registered to candidate ``best``: over the samples of its inlier events (nearest
+    sample within ``inlier |F_best|`` of ``F_best``) the mean pixel and, if ``normal``, the normal flow fitted to
+    them (:func:`_normal_flow`), else ``F_best``. Shape: all ``(K,)``; returns four floats."""
+    fx, fy = F0[best], F1[best]
+    radius = inlier * np.sqrt(fx * fx + fy * fy)
+    a00 = a01 = a11 = r0 = r1 = su = sv = sw = 0.0
+    K = F0.shape[0]
     start = 0
-    for i in range(1, g.shape[0] + 1):
-        if i == g.shape[0] or g[i] != g[start]:
-            K_max = max(K_max, i - start)
-            n_out += 1
-            start = i
-    chosen = np.zeros((n_out, 2))
-    uv = np.zeros((n_out, 2))
-    dist = np.empty((K_max, K_max))
-    per_ev = np.empty((K_max, K_max))
-    cost = np.empty(K_max)
-    ok = np.empty(K_max, dtype=np.bool_)
-    F0 = np.empty(K_max)
-    F1 = np.empty(K_max)
-    start, out = 0, 0
-    for end in range(1, g.shape[0] + 1):
-        if end < g.shape[0] and g[end] == g[start]:
+    for end in range(1, K + 1):
+        if end < K and ev[end] == ev[start]:
             continue
-        K = end - start
-        ev = ev_rank[start:end]
-        E = ev.max() + 1
-        for j in range(K):
-            F0[j], F1[j] = flow[start + j, 0], flow[start + j, 1]
-        # dist[j, c] = |F_c - F_j|; per_ev[i, c] = min over the samples j of event i; cost[c] = sum_i of it
-        # (rows of contiguous candidates: the loops over c vectorise)
-        per_ev[:E, :K] = np.inf
-        for j in range(K):
-            fj0, fj1 = F0[j], F1[j]
-            drow = dist[j]
-            prow = per_ev[ev[j]]
-            for c in range(K):
-                a, b = F0[c] - fj0, F1[c] - fj1
-                d = np.sqrt(a * a + b * b)
-                drow[c] = d
-                prow[c] = min(prow[c], d)
-        cost[:K] = 0.0
-        for e in range(E):
-            prow = per_ev[e]
-            for c in range(K):
-                cost[c] += prow[c]
-        c_min = np.inf
-        for c in range(K):
-            c_min = min(c_min, cost[c])
-        # Among the near-optimal candidates, the one closest to all samples (first on ties).
-        best, best_spread = 0, np.inf
-        for c in range(K):
-            norm = np.sqrt(F0[c] ** 2 + F1[c] ** 2)
-            if cost[c] <= c_min + tie_tol * E * norm:
-                spread = 0.0
-                for j in range(K):
-                    spread += dist[j, c]
-                if spread < best_spread:
-                    best, best_spread = c, spread
-        fx, fy = F0[best], F1[best]
-        radius = inlier * np.sqrt(fx * fx + fy * fy)
-        for e in range(E):
-            ok[e] = per_ev[e, best] <= radius
-        # Inlier samples: those of events whose nearest candidate lies within inlier * |F| of F.
-        a00 = a01 = a11 = r0 = r1 = su = sv = sw = 0.0
-        for j in range(K):
-            if ok[ev[j]]:
-                px, py = pixel[start + j, 0], pixel[start + j, 1]
-                su += px
-                sv += py
+        d2 = np.inf
+        for j in range(start, end):
+            a, b = fx - F0[j], fy - F1[j]
+            d2 = min(d2, a * a + b * b)
+        if np.sqrt(d2) <= radius:
+            for j in range(start, end):
+                su += px[j]
+                sv += py[j]
                 sw += 1.0
                 if normal:
                     wn = 1.0 / max(np.sqrt(F0[j] ** 2 + F1[j] ** 2), 1e-12)
@@ -572,13 +602,10 @@ def _register_kernel(g, ev_rank, flow, pixel, tie_tol, normal, inlier):
                     a11 += wn * F1[j] * F1[j]
                     r0 += wn * F0[j]
                     r1 += wn * F1[j]
-        if normal:
-            fx, fy = _normal_flow(a00, a01, a11, r0, r1)
-        chosen[out, 0], chosen[out, 1] = fx, fy
-        uv[out, 0], uv[out, 1] = su / sw, sv / sw
-        out += 1
         start = end
-    return chosen, uv
+    if normal:
+        fx, fy = _normal_flow(a00, a01, a11, r0, r1)
+    return fx, fy, su / sw, sv / sw
 
 
 @numba.njit(cache=True, nogil=True)
@@ -611,15 +638,16 @@ def _normal_flow(a00, a01, a11, r0, r1):
 
 
 @numba.njit(cache=True, nogil=True)
-def _sample_blocks(ev, x, y, b, batched, block, gx, G):
-    """Block ``b G + (y // block) gx + x // block`` and pixel ``(x, y)`` of the event of each sample."""
+def _sample_blocks(ev, x, y, b, batched, block_x, block_y, G):
+    """Block ``b G + block_y[y] + block_x[x]`` and pixel ``(x, y)`` of the event of each sample.
+
+    Shape: ev ``(S,)``; x, y, b ``(N,)``; block_x ``(W,)``, block_y ``(H,)``; returns ``(S,)`` and ``(S, 2)``."""
     S = ev.shape[0]
     gid = np.empty(S, dtype=np.int64)
     pixel = np.empty((S, 2), dtype=np.int64)
     for s in range(S):
         i = ev[s]
-        bi = b[i] if batched else 0
-        gid[s] = bi * G + (y[i] // block) * gx + x[i] // block
+        gid[s] = (b[i] if batched else 0) * G + block_y[y[i]] + block_x[x[i]]
         pixel[s, 0], pixel[s, 1] = x[i], y[i]
     return gid, pixel
 
@@ -687,6 +715,9 @@ class TripletFlow(nn.Module):
         C = 2 if per_polarity else 1
         self.gy, self.gx, centres = block_grid(height, width, block)
         self.register_buffer("centres", centres, persistent=False)
+        # block grid column of each pixel column, first block of each pixel row (see _sample_blocks)
+        self._block_x = np.arange(width) // block
+        self._block_y = np.arange(height) // block * self.gx
         # Stored padded by 2D with NEVER so that p1, p2 lookups need no bounds checks.
         self.register_buffer("sae_padded", torch.full((batch_size, C, height + 2 * self.pad, width + 2 * self.pad),
                                                       NEVER, dtype=torch.int64))
@@ -715,7 +746,8 @@ class TripletFlow(nn.Module):
         G = self.n_blocks
         events = _event_arrays((B, C, self.height, self.width), x, y, t, p, b)
         ev, flow = self._match_events(events)
-        block_id, pixel = _sample_blocks(ev, events[0], events[1], events[4], events[5], self.block, self.gx, G)
+        block_id, pixel = _sample_blocks(ev, events[0], events[1], events[4], events[5], self._block_x, self._block_y,
+                                          G)
         out, uv, valid, count = _register(block_id, ev, flow, pixel, B * G, self.min_samples, self.max_candidates,
                                           self.tie_tol, self.estimate, self.inlier, self.centres.numpy())
         out, uv = torch.from_numpy(out.reshape(B, G, 2)), torch.from_numpy(uv.reshape(B, G, 2))
