@@ -187,6 +187,8 @@ class EventPoseTracker(nn.Module):
                 axis = hidden_symmetry_axis(mesh) if self._feedback_on(cfg) else None
                 self._sym_axes.append(torch.zeros(3, dtype=torch.float64) if axis is None else torch.as_tensor(axis))
             self._renderer_of.append(seen[key])
+        # OpenGL contexts belong to the thread that made them: only the compiled rasteriser renders in the workers.
+        self._threaded_render = self._pool is not None and cfg.render.backend == "raster"
 
         H, W = camera.height, camera.width
         self.eros = EROS(H, W, cfg.eros.kernel_size, cfg.eros.decay, batch_size=B)
@@ -474,10 +476,17 @@ class EventPoseTracker(nn.Module):
         origin = np.stack((np.minimum(win[:, 0], W - w), np.minimum(win[:, 1], H - h)), -1)
         depth = torch.zeros(B, h, w)
         gray = torch.empty(B, h, w) if shaded else None
-        for i in range(B):
-            if shaded:
-                gray[i] = self._renderers[self._renderer_of[i]].background
-            self._render_into(i, poses[i:i + 1], win[i], origin[i], depth, gray)
+
+        def share(rows: slice) -> None:
+            for i in range(B)[rows]:
+                if shaded:
+                    gray[i] = self._renderers[self._renderer_of[i]].background
+                self._render_into(i, poses[i:i + 1], win[i], origin[i], depth, gray)
+
+        if self._threaded_render:
+            self._map(share)
+        else:
+            share(slice(None))
         self.depth = depth
         self.origin.copy_(torch.from_numpy(origin))
         return _Render(depth, gray), self.origin
