@@ -180,6 +180,34 @@ def test_vertex_albedo_is_interpolated_perspective_correctly():
     assert np.abs(affine - expected)[inner].max() > 0.02
 
 
+def grid_plate(n: int, half: float, z: float, grey: int) -> trimesh.Trimesh:
+    """A square of ``2 n^2`` faces facing the camera at depth ``z``, one vertex colour ``grey``."""
+    g = np.linspace(-half, half, n + 1)
+    xx, yy = np.meshgrid(g, g)
+    vertices = np.stack((xx.ravel(), yy.ravel(), np.full(xx.size, z)), -1)
+    k = (np.arange(n)[:, None] * (n + 1) + np.arange(n)[None, :]).ravel()
+    faces = np.concatenate((np.stack((k, k + n + 2, k + 1), -1), np.stack((k, k + n + 1, k + n + 2), -1)))
+    colours = np.tile(np.array([[grey, grey, grey, 255]], dtype=np.uint8), (len(vertices), 1))
+    return trimesh.Trimesh(vertices, faces, vertex_colors=colours, process=False)
+
+
+def test_overdraw_keeps_the_nearest_surface_in_either_drawing_order():
+    # a dark plate behind a bright one, each of thousands of faces: whichever is drawn first, every pixel shows
+    # the nearest surface and its grey (the queued shading of won pixels follows the drawing order)
+    far, near = grid_plate(40, 0.1, 0.05, 60), grid_plate(40, 0.05, 0.0, 220)
+    p = pose([0.0, 0.0, 0.3], (0.2, -0.3, 0.1))
+    renders = []
+    for mesh in (trimesh.util.concatenate([far, near]), trimesh.util.concatenate([near, far]), near):
+        with RasterRenderer(mesh, CAM) as r:
+            renders.append(r.render(p))
+    back_to_front, front_to_back, alone = renders
+    assert torch.equal(back_to_front.depth, front_to_back.depth) and torch.equal(back_to_front.gray, front_to_back.gray)
+    seen = alone.depth[0] > 0
+    assert int(seen.sum()) > 1500 and int(((back_to_front.depth[0] > 0) & ~seen).sum()) > 1500
+    assert torch.equal(back_to_front.depth[0][seen], alone.depth[0][seen])
+    assert torch.equal(back_to_front.gray[0][seen], alone.gray[0][seen])
+
+
 def test_pixel_centres_on_edges_are_covered_once_and_without_gaps():
     # a fronto-parallel grid whose vertices (binary fractions) project exactly onto pixel centres: every
     # diagonal and grid line passes through centres, which must all be covered (edges are inclusive and a
