@@ -233,6 +233,7 @@ class EventPoseTracker(nn.Module):
         # The object centre must stay farther than its bounding radius (plus the near plane).
         self.register_buffer("_symmetry_axis", torch.stack([self._sym_axes[i] for i in self._renderer_of]),
                              persistent=False)  # (B, 3) object frame, zero: none
+        self._symmetric = bool(self._symmetry_axis.any())
         self.register_buffer("_min_depth", torch.tensor([self._radius[i] + 0.01 for i in self._renderer_of],
                                                         dtype=torch.float64), persistent=False)
         self._radius_of = torch.tensor([self._radius[i] for i in self._renderer_of], dtype=torch.float64)  # (B,)
@@ -355,7 +356,8 @@ class EventPoseTracker(nn.Module):
             score = corr.score
             if self.feedback is not None:  # the correction's rate, as a twist about the predicted centre
                 rate = twist_between(predicted, measured, self.dt)
-                axis = quat_rotate(measured[:, 3:], self._symmetry_axis)  # camera frame (zero stays zero)
+                # the objects' symmetry axes in the camera frame (zero stays zero; none: no rotation needed)
+                axis = quat_rotate(measured[:, 3:], self._symmetry_axis) if self._symmetric else None
                 self.feedback(shift_twist(rate, predicted[:, :3]), axis)
         else:
             measured, score = predicted, torch.full((B,), float("nan"))
@@ -614,7 +616,10 @@ def _per_stream(value, default: list[int], name: str) -> list[int]:
 
 
 def _pack(parts: Sequence[EventStream]):
-    """Concatenate per-element windows into packed tensors with a batch index."""
+    """Concatenate per-element windows into packed tensors with a batch index (``None`` for one element)."""
+    if len(parts) == 1:
+        q = parts[0]
+        return q.x.long(), q.y.long(), q.t.long(), q.p.long(), None
     sizes = torch.tensor([len(q) for q in parts])
     b = torch.repeat_interleave(torch.arange(len(parts)), sizes)
     cat = lambda f: torch.cat([getattr(q, f) for q in parts]).long()  # noqa: E731
