@@ -55,7 +55,7 @@ import torch
 import trimesh
 
 from torchevtrack.camera import Camera
-from torchevtrack.geometry import pose_to_matrix, quat_normalize
+from torchevtrack.geometry import pose_to_matrix
 
 __all__ = ["AMBIENT", "BACKENDS", "DEFAULT_ALBEDO", "LIGHT_DIRECTION", "Render", "Renderer", "make_renderer"]
 
@@ -444,7 +444,7 @@ def _pose_matrices(poses: torch.Tensor) -> np.ndarray:
 
 
 def _unit_poses(poses: torch.Tensor) -> torch.Tensor:
-    """Validated ``(B, 7)`` float64 CPU poses with their quaternions normalised."""
+    """Validated ``(B, 7)`` float64 CPU poses with their quaternions normalised (numpy: a render's few numbers)."""
     poses = torch.as_tensor(poses)
     if poses.ndim == 1:
         poses = poses[None]
@@ -452,13 +452,15 @@ def _unit_poses(poses: torch.Tensor) -> torch.Tensor:
         raise ValueError(f"poses must have shape (B, 7) or (7,) [tx, ty, tz, qw, qx, qy, qz], got {tuple(poses.shape)}")
     if not poses.is_floating_point():
         raise TypeError(f"poses must be a floating-point tensor, got {poses.dtype}")
-    poses = poses.detach().to("cpu", torch.float64)
-    if not torch.isfinite(poses).all():
+    p = poses.detach().to("cpu", torch.float64).numpy()
+    if not np.isfinite(p).all():
         raise ValueError("poses contain NaN or infinite values")
-    norm = poses[:, 3:].norm(dim=-1)
-    if ((norm - 1).abs() > 1e-3).any():
+    norm = np.sqrt(np.einsum("bi,bi->b", p[:, 3:], p[:, 3:]))
+    if (np.abs(norm - 1) > 1e-3).any():
         raise ValueError(f"pose quaternions must be unit norm, got |q| = {norm.tolist()}")
-    return torch.cat((poses[:, :3], quat_normalize(poses[:, 3:])), dim=-1)
+    out = p.copy()
+    out[:, 3:] /= norm[:, None]
+    return torch.from_numpy(out)
 
 
 def _check_roi(roi) -> tuple[int, int, int, int]:

@@ -448,10 +448,14 @@ class EventPoseTracker(nn.Module):
         return (times, poses, lost) if return_lost else (times, poses)
 
     # -- internals ---------------------------------------------------------------------------
-    def _windows(self, poses: torch.Tensor, index: list[int]) -> np.ndarray:
-        """Render windows ``(K, 4)`` ``(u0, v0, w, h)`` of the elements ``index``, clipped to the frame."""
+    def _windows(self, poses: torch.Tensor, index: list[int] | None = None) -> np.ndarray:
+        """Render windows ``(K, 4)`` ``(u0, v0, w, h)`` of the elements ``index`` (default all), clipped to the frame."""
         H, W = self.camera.height, self.camera.width
-        win = render_window(poses[index], self.camera, self._radius_of[index], self.config.render.margin_px).numpy()
+        if index is not None:
+            poses, radius = poses[index], self._radius_of[index]
+        else:
+            radius = self._radius_of
+        win = render_window(poses, self.camera, radius, self.config.render.margin_px).numpy()
         w, h = np.minimum(win[:, 2], W), np.minimum(win[:, 3], H)
         return np.stack((np.clip(win[:, 0], 0, W - w), np.clip(win[:, 1], 0, H - h), w, h), -1)
 
@@ -473,7 +477,7 @@ class EventPoseTracker(nn.Module):
         elements from changing each other's renders. Keeps the depth."""
         B = self.batch_size
         H, W = self.camera.height, self.camera.width
-        win = self._windows(poses, list(range(B)))
+        win = self._windows(poses)
         w, h = int(win[:, 2].max()), int(win[:, 3].max())
         origin = np.stack((np.minimum(win[:, 0], W - w), np.minimum(win[:, 1], H - h)), -1)
         depth = torch.zeros(B, h, w)
