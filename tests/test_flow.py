@@ -98,6 +98,40 @@ def brute_force_register(flows, events, tie_tol):
     return min(near, key=lambda k: (sum(math.dist(flows[k], g) for g in flows), k)), costs
 
 
+def register_oracle(flows, events, pixels, tie_tol, inlier):
+    """One block registered as the module docstring defines it, in plain float64 arithmetic with every sum taken
+    in order (events sorted): the registered flow and uv."""
+    F = [(float(u), float(v)) for u, v in flows]
+    K = len(F)
+    groups = [[j for j in range(K) if events[j] == e] for e in sorted(set(events))]
+
+    def dist(c, j):
+        a, b = F[c][0] - F[j][0], F[c][1] - F[j][1]
+        return math.sqrt(a * a + b * b)
+
+    cost = []
+    for c in range(K):
+        s = 0.0
+        for g in groups:
+            s += min(dist(c, j) for j in g)
+        cost.append(s)
+    c_min, best, best_spread = min(cost), 0, math.inf
+    for c in range(K):
+        if cost[c] <= c_min + tie_tol * len(groups) * math.sqrt(F[c][0] * F[c][0] + F[c][1] * F[c][1]):
+            spread = 0.0
+            for j in range(K):
+                spread += dist(c, j)
+            if spread < best_spread:
+                best, best_spread = c, spread
+    radius = inlier * math.sqrt(F[best][0] * F[best][0] + F[best][1] * F[best][1])
+    su = sv = sw = 0.0
+    for g in groups:
+        if min(dist(best, j) for j in g) <= radius:
+            for j in g:
+                su, sv, sw = su + float(pixels[j][0]), sv + float(pixels[j][1]), sw + 1.0
+    return F[best], (su / sw, sv / sw)
+
+
 # ----------------------------------------------------------------------------------------------- tests
 @pytest.mark.parametrize("C,B,D", [(1, 1, 2), (2, 2, 2), (1, 1, 4)])  # D = 4: 80 directions, over one bit mask
 def test_triplet_samples_match_sequential_oracle(C, B, D):
@@ -156,6 +190,34 @@ def test_registration_equals_brute_force():
                    <= 0.25 * np.linalg.norm(best)]
             np.testing.assert_allclose(uv[g].numpy(), pixels[m][np.isin(events[m], inl)].mean(0), rtol=1e-5)
         assert out[3].tolist() == [0.0, 0.0] and bool(uv[3].isnan().all())
+
+
+@pytest.mark.parametrize("kind", ["grid", "float32", "float64"])
+def test_registration_equals_sequential_oracle(kind):
+    # Bit for bit, ties included: flows on a coarse grid (many equal costs and spreads: the first candidate
+    # wins), float32 flows (as the matching writes them) and float64 flows; 1..3 samples per event.
+    rng = np.random.default_rng({"grid": 0, "float32": 1, "float64": 2}[kind])
+    for tie_tol in (0.0, 0.02, 0.2):
+        block, events, flows = [], [], []
+        for g in range(12):
+            per = rng.integers(1, 4, int(rng.integers(2, 40)))
+            n = int(per.sum())
+            block += [g] * n
+            events += [g * 100 + e for e, k in enumerate(per) for _ in range(k)]
+            if kind == "grid":
+                flows.append(rng.integers(-3, 4, (n, 2)) * 50.0 + rng.integers(-2, 3, 2) * 100.0)
+            else:
+                f = rng.normal(0, 300, 2) + rng.normal(0, 40, (n, 2))
+                flows.append(f.astype(np.float32).astype(np.float64) if kind == "float32" else f)
+        block, events, flows = np.array(block), np.array(events), np.concatenate(flows)
+        pixels = rng.integers(0, 30, (len(block), 2)).astype(np.float64)
+        out, uv, valid, _ = _register(block, events, flows, pixels, 12, min_samples=1, max_candidates=1000,
+                                      tie_tol=tie_tol, estimate="register", inlier=0.25)
+        assert valid.all()
+        for g in range(12):
+            m = block == g
+            f, u = register_oracle(flows[m], events[m], pixels[m], tie_tol, 0.25)
+            assert out[g].tolist() == np.float32(f).tolist() and uv[g].tolist() == np.float32(u).tolist(), (g, tie_tol)
 
 
 def test_registration_subsamples_whole_events_when_capped():

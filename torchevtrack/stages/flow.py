@@ -284,10 +284,11 @@ def _pass_mask(flat, at, t0, off1, lo, hi, dt_max_us, tol):
     tol_up = tol * (1.0 + 2.0 ** -30) + 2.0 ** -40
     m = 0
     for k in range(lo, hi):
-        t1 = flat[at + off1[k]]
+        # unsigned: an index needs no negative wrap-around, 0 < dt01 < dt_max is one comparison
+        t1 = flat[np.uint64(at + off1[k])]
         dt01 = t0 - t1
-        dt12 = t1 - flat[at + 2 * off1[k]]
-        good = (dt01 > 0) & (dt01 < dt_max_us) & (dt12 > 0) & (abs(dt12 - dt01) <= tol_up * dt01)
+        dt12 = t1 - flat[np.uint64(at + 2 * off1[k])]
+        good = (np.uint64(dt01 - 1) < np.uint64(dt_max_us - 1)) & (dt12 > 0) & (abs(dt12 - dt01) <= tol_up * dt01)
         m |= np.int64(good) << (k - lo)
     return m
 
@@ -434,7 +435,7 @@ def _register_all(block_id, event, flow, pixel, min_samples, max_candidates, tie
     rec, rec_event = _group(block_id, event, flow, pixel, valid, count)
     F = np.empty((4, cap))
     ev = np.empty(cap, dtype=np.int64)
-    work = _Scratch(np.empty((5, cap)), np.empty(cap, dtype=np.int64))
+    work = _scratch(cap)
     pos = 0
     nf = fill.shape[0]
     for k in range(n_blocks):
@@ -449,10 +450,20 @@ def _register_all(block_id, event, flow, pixel, min_samples, max_candidates, tie
 
 
 class _Scratch(NamedTuple):
-    """Work arrays of :func:`_register_block`: ``f (5, >= K)`` float64, ``idx (>= K,)`` int64."""
+    """Work arrays of :func:`_register_block` for up to ``cap`` samples: ``f64 (4, cap)``, ``f32 (6, cap)``,
+    ``idx (3, cap)`` int64 (row 2: ``0 .. cap - 1``), ``exact (cap,)`` bool."""
 
-    f: np.ndarray
+    f64: np.ndarray
+    f32: np.ndarray
     idx: np.ndarray
+    exact: np.ndarray
+
+
+@numba.njit(cache=True, nogil=True)
+def _scratch(cap):
+    idx = np.empty((3, cap), dtype=np.int64)
+    idx[2] = np.arange(cap)
+    return _Scratch(np.empty((4, cap)), np.empty((6, cap), dtype=np.float32), idx, np.empty(cap, dtype=np.bool_))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -509,68 +520,148 @@ def _register_block(F0, F1, ev, px, py, tie_tol, normal, inlier, work):
     """Registration of one block's ``K`` samples ``(F0, F1)`` of events ``ev`` (sorted ranks ``0 .. E - 1``) at
     pixels ``(px, py)`` (module docstring). Returns ``(flow_u, flow_v, u, v)``.
 
+    The costs ``C(F_c)``, then the spreads of the near-optimal candidates, are bounded in float32
+    (:func:`_sum_bounds`) and evaluated exactly, as sums of float64 distances, only where the bounds leave
+    the comparisons that pick the block's candidate open (:func:`_least`): the choice is that of evaluating
+    them all.
+
     Shape: F0, F1, ev, px, py ``(K,)``; work: :class:`_Scratch` of at least ``K``."""
     K = F0.shape[0]
     E = ev[K - 1] + 1
-    cost = work.f[0, :K]
-    _costs(F0, F1, ev, work.f[1, :K], cost)
-    c_min = np.inf
+    cand, lo, hi, exact = work.idx[2, :K], work.f64[0, :K], work.f64[1, :K], work.exact[:K]
+    _sum_bounds(F0, F1, ev, cand, lo, hi, exact, work)
+    c_min = _least(F0, F1, ev, cand, lo, hi, exact, work, True)[1]
+    # Among the near-optimal candidates, C <= C_min + tie_tol E |F|, the one closest to all samples.
+    thr, undecided, near = work.f64[2, :K], work.idx[0], work.idx[1]
     for c in range(K):
-        c_min = min(c_min, cost[c])
-    # Among the near-optimal candidates, the one closest to all samples (first on ties).
-    near = work.idx
+        thr[c] = c_min + tie_tol * E * np.sqrt(F0[c] ** 2 + F1[c] ** 2)
     n = 0
     for c in range(K):
-        norm = np.sqrt(F0[c] ** 2 + F1[c] ** 2)
-        if cost[c] <= c_min + tie_tol * E * norm:
-            near[n] = c
-            n += 1
-    spread = _spreads(F0, F1, near[:n], work.f[2], work.f[3], work.f[4])
-    best, best_spread = 0, np.inf
-    for q in range(n):
-        if spread[q] < best_spread:
-            best, best_spread = near[q], spread[q]
-    return _inlier_fit(F0, F1, ev, px, py, best, normal, inlier)
+        undecided[n] = c
+        n += not (exact[c] | (hi[c] <= thr[c]) | (lo[c] > thr[c]))
+    _exact_sums(F0, F1, ev, cand, undecided[:n], lo, hi, exact, work)
+    n = 0
+    for c in range(K):
+        near[n] = c
+        n += hi[c] <= thr[c]
+    near, lo, hi, exact = near[:n], lo[:n], hi[:n], exact[:n]
+    _sum_bounds(F0, F1, cand, near, lo, hi, exact, work)  # ranks cand = 0 .. K - 1: the spreads sum_j |F - F_j|
+    q = _least(F0, F1, cand, near, lo, hi, exact, work, False)[0]
+    return _inlier_fit(F0, F1, ev, px, py, near[q] if q >= 0 else 0, normal, inlier)
 
 
 @numba.njit(cache=True, nogil=True)
-def _costs(F0, F1, ev, row, cost):
-    """``cost[c] = sum_e min_{j in e} |F_c - F_j|`` (summed in event order) over the events ``e`` of the
-    samples ``F_j``, grouped in ``ev``; the minimum is taken of the squared norms, then its root (the same
-    value: the root is monotonic).
+def _dist_sums(C0, C1, F0, F1, ev, row, out):
+    """``out[q] = sum_e min_{j in e} |C_q - F_j|`` over the events ``e`` of the samples ``F_j`` in order, in the
+    arrays' float type; the minimum is taken of the squared norms, then its root (the same value: the root is
+    monotonic).
 
-    Shape: F0, F1, ev ``(K,)``; row (scratch), cost ``(K,)``."""
+    Shape: C0, C1, row (scratch), out ``(Q,)``; F0, F1, ev ``(K,)`` (ev: event ranks, grouped)."""
     K = F0.shape[0]
-    cost[:] = 0.0
+    out[:] = 0
     j = 0
     while j < K:
         e = ev[j]
-        row[:] = np.inf
+        f0, f1 = F0[j], F1[j]
+        for q in range(C0.shape[0]):
+            a, b = C0[q] - f0, C1[q] - f1
+            row[q] = a * a + b * b
+        j += 1
         while j < K and ev[j] == e:
             f0, f1 = F0[j], F1[j]
-            for c in range(K):
-                a, b = F0[c] - f0, F1[c] - f1
-                row[c] = min(row[c], a * a + b * b)
+            for q in range(C0.shape[0]):
+                a, b = C0[q] - f0, C1[q] - f1
+                row[q] = min(row[q], a * a + b * b)
             j += 1
-        for c in range(K):
-            cost[c] += np.sqrt(row[c])
+        for q in range(C0.shape[0]):
+            out[q] += np.sqrt(row[q])
 
 
 @numba.njit(cache=True, nogil=True)
-def _spreads(F0, F1, near, g0, g1, spread):
-    """``spread[q] = sum_j |F_near[q] - F_j|`` (summed in sample order), all ``q`` at once.
+def _sum_bounds(F0, F1, ev, cand, lo, hi, exact, work):
+    """``lo[q] <= S_q <= hi[q]`` for the float64 sums ``S_q`` of :func:`_dist_sums` of the candidates
+    ``C_q = F_cand[q]`` from their float32 evaluation ``s``: ``s +- 2^-21 E (s + 2 M) + 2^-60 E``, which bounds the
+    float32 rounding of the differences, squares, roots and the sum of ``E`` terms, of the inputs (``M``: the
+    largest ``|F|`` component; 0 if all are float32 numbers, as the matching writes them) and of underflow,
+    with room. Where float32 would not do (huge or non-finite flows, ``E > 4096``) the sums themselves
+    (``exact[q]``).
 
-    Shape: F0, F1 ``(K,)``; near ``(Q,)``; g0, g1 (scratch), spread ``(>= Q,)``; returns ``spread[:Q]``."""
-    Q = near.shape[0]
+    Shape: F0, F1, ev ``(K,)``; cand, lo, hi, exact ``(Q,)``."""
+    K, Q = F0.shape[0], cand.shape[0]
+    E = ev[K - 1] + 1
+    G0, G1, C0, C1, s = work.f32[0, :K], work.f32[1, :K], work.f32[2, :Q], work.f32[3, :Q], work.f32[5, :Q]
+    M, fits, rounded = 0.0, E <= 4096, False
+    for j in range(K):
+        m = max(abs(F0[j]), abs(F1[j]))
+        fits &= m <= 2.0 ** 60
+        M = max(M, m)
+        G0[j], G1[j] = F0[j], F1[j]
+        rounded |= (G0[j] != F0[j]) | (G1[j] != F1[j])
+    exact[:] = False
+    if not fits:
+        _exact_sums(F0, F1, ev, cand, work.idx[2, :Q], lo, hi, exact, work)
+        return
     for q in range(Q):
-        g0[q], g1[q] = F0[near[q]], F1[near[q]]
-        spread[q] = 0.0
-    for j in range(F0.shape[0]):
-        f0, f1 = F0[j], F1[j]
-        for q in range(Q):
-            a, b = g0[q] - f0, g1[q] - f1
-            spread[q] += np.sqrt(a * a + b * b)
-    return spread[:Q]
+        C0[q], C1[q] = G0[cand[q]], G1[cand[q]]
+    _dist_sums(C0, C1, G0, G1, ev, work.f32[4, :Q], s)
+    M = 2.0 * M if rounded else 0.0
+    for q in range(Q):
+        err = 2.0 ** -21 * E * (s[q] + M) + 2.0 ** -60 * E
+        lo[q], hi[q] = s[q] - err, s[q] + err
+
+
+@numba.njit(cache=True, nogil=True)
+def _exact_sums(F0, F1, ev, cand, sel, lo, hi, exact, work):
+    """``lo[q] = hi[q] =`` the float64 sum of :func:`_dist_sums` of candidate ``F_cand[q]``, ``exact[q] = True``,
+    for ``q`` in ``sel`` (unless already exact), one candidate at a time (:func:`_dist_sum`)."""
+    row = work.f64[3, :F0.shape[0]]
+    for q in sel:
+        if not exact[q]:
+            lo[q] = hi[q] = _dist_sum(F0[cand[q]], F1[cand[q]], F0, F1, ev, row)
+            exact[q] = True
+
+
+@numba.njit(cache=True, nogil=True)
+def _dist_sum(c0, c1, F0, F1, ev, row):
+    """:func:`_dist_sums` of one candidate ``(c0, c1)``, the same value: the squared distances in one vector loop,
+    then the per-event minima and their roots summed in order without branches.
+
+    Shape: F0, F1, ev, row (scratch) ``(K,)``."""
+    K = F0.shape[0]
+    for j in range(K):
+        a, b = c0 - F0[j], c1 - F1[j]
+        row[j] = a * a + b * b
+    s, m = 0.0, row[0]
+    for j in range(1, K):
+        new = ev[j] != ev[j - 1]
+        s += np.sqrt(m) if new else 0.0
+        m = row[j] if new else min(m, row[j])
+    return s + np.sqrt(m)
+
+
+@numba.njit(cache=True, nogil=True)
+def _least(F0, F1, ev, cand, lo, hi, exact, work, value):
+    """The first ``q`` with the least sum ``S_q`` and that sum (``(-1, inf)`` if there are no candidates), from the
+    bounds of :func:`_sum_bounds`: only the candidates whose lower bound does not exceed the least upper bound
+    can be it; they are evaluated exactly (:func:`_exact_sums`), unless there is one and its sum is not asked
+    for (``value`` False: the sum returned is then ``inf``)."""
+    top = np.inf
+    for q in range(cand.shape[0]):
+        if hi[q] < top:
+            top = hi[q]
+    sel = work.idx[0]
+    n = 0
+    for q in range(cand.shape[0]):
+        sel[n] = q
+        n += not (lo[q] > top)
+    if n == 1 and not value:
+        return sel[0], np.inf
+    _exact_sums(F0, F1, ev, cand, sel[:n], lo, hi, exact, work)
+    best, least = -1, np.inf
+    for q in sel[:n]:
+        if hi[q] < least:
+            best, least = q, hi[q]
+    return best, least
 
 
 @numba.njit(cache=True, nogil=True)
