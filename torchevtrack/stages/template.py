@@ -1008,10 +1008,10 @@ class TemplateModel(NamedTuple):
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
 def _blur_columns(x, k):
-    """``out[v, u] = sum_i k[i] x[v + i - r, u]`` (zero outside, ``r = len(k) // 2``), row by row."""
+    """``out[v, u] = sum_i k[i] x[v + i - r, u]`` (zero outside, ``r = len(k) // 2``), row by row, in ``x``'s dtype."""
     n, m = x.shape
     r = len(k) // 2
-    out = np.zeros((n, m))
+    out = np.zeros((n, m), dtype=x.dtype)
     for v in range(n):
         row = out[v]
         for i in range(max(0, r - v), min(len(k), n + r - v)):
@@ -1055,7 +1055,8 @@ def _model_kernel(depth, gray, origin, z_fallback, cam, margin, use_gray, use_ma
     B, h, w = depth.shape
     N = T.shape[-1]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
-    mask, shade, E = np.empty((N, N)), np.empty((N, N)), np.empty((N, N))
+    # the canvas images and filters in float32 (twice the SIMD width; the template is float32)
+    mask, shade, E = np.empty((N, N), np.float32), np.empty((N, N), np.float32), np.empty((N, N), np.float32)
     for b in range(B):
         ou, ov = origin[b, 0], origin[b, 1]
         umin, umax, vmin, vmax, total, n = _extent(depth[b], ou, ov, cx, cy, True)
@@ -1080,9 +1081,10 @@ def _model_kernel(depth, gray, origin, z_fallback, cam, margin, use_gray, use_ma
             _sobel_max(shade, E)
         if use_mask:
             _sobel_max(mask, E)
-        E = np.minimum(np.sqrt(E) * edge_scale, 1.0)
+        E = np.minimum(np.sqrt(E) * np.float32(edge_scale), np.float32(1.0))
         D = _blur(E, g1) - _blur(E, g2)  # Difference of Gaussians
-        Tb = np.minimum(np.maximum(D * (0.5 / max(np.abs(D).max(), 1e-12)), -0.5), 0.5)
+        Tb = np.minimum(np.maximum(D * np.float32(0.5 / max(np.abs(D).max(), 1e-12)), np.float32(-0.5)),
+                        np.float32(0.5))
         T[b] = Tb
         coef[b, 3:N + 3, 3:N + 3] = _blur(Tb, pre)  # the B-spline coefficients
         _fill(Z[b], z_fallback[b], fill_radius)
@@ -1129,10 +1131,10 @@ def _resample(depth, gray, cu, cv, step, use_gray, c_depth, c_mask, c_gray):
 
 @functools.lru_cache(maxsize=8)
 def _model_filters(canvas: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The DoG's two Gaussians and the B-spline prefilter of a canvas size, float64 (cached constants)."""
-    f64 = torch.float64
-    return (_gaussian(_odd(canvas / 20), f64).numpy(), _gaussian(_odd(canvas / 8), f64).numpy(),
-            _prefilter_kernel(f64).numpy())
+    """The DoG's two Gaussians and the B-spline prefilter of a canvas size, float32 (cached constants)."""
+    f32 = torch.float32
+    return (_gaussian(_odd(canvas / 20), f32).numpy(), _gaussian(_odd(canvas / 8), f32).numpy(),
+            _prefilter_kernel(f32).numpy())
 
 
 def template_model(
