@@ -344,7 +344,7 @@ class EventPoseTracker(nn.Module):
         pose32 = predicted.float()
         reuse = cfg.template.enabled and self._reusable(pose32)
         if not reuse:
-            render, origin = self._render(predicted, shaded=cfg.template.enabled)
+            render = self._render(predicted, shaded=cfg.template.enabled)
         clock.lap("render")
         n_events = torch.bincount(b, minlength=B) if b is not None else torch.tensor([x.numel()] * B)
         self.events_seen += n_events
@@ -474,7 +474,7 @@ class EventPoseTracker(nn.Module):
         """Render each element in its own window around its pose, placed in buffers of one common size
         (the largest window; outside its own window an element's buffers hold background, as its window
         contains its object). A render's pixels depend slightly on its window, so own windows keep the
-        elements from changing each other's renders. Keeps the depth."""
+        elements from changing each other's renders. Keeps the depth and the windows' common ``origin``."""
         B = self.batch_size
         H, W = self.camera.height, self.camera.width
         win = self._windows(poses)
@@ -495,7 +495,7 @@ class EventPoseTracker(nn.Module):
             share(slice(None))
         self.depth = depth
         self.origin.copy_(torch.from_numpy(origin))
-        return _Render(depth, gray), self.origin
+        return _Render(depth, gray)
 
     def _render_depth(self, poses: torch.Tensor, mask: torch.Tensor) -> None:
         """Render the depth of the ``mask`` elements at ``poses`` ``(B, 7)`` into the depth buffer.
