@@ -450,7 +450,7 @@ def _register_all(block_id, event, flow, pixel, min_samples, max_candidates, tie
 
 
 class _Scratch(NamedTuple):
-    """Work arrays of :func:`_register_block` for up to ``cap`` samples: ``f64 (4, cap)``, ``f32 (6, cap)``,
+    """Work arrays of :func:`_register_block` for up to ``cap`` samples: ``f64 (5, cap)``, ``f32 (6, cap)``,
     ``idx (3, cap)`` int64 (row 2: ``0 .. cap - 1``), ``exact (cap,)`` bool."""
 
     f64: np.ndarray
@@ -463,7 +463,7 @@ class _Scratch(NamedTuple):
 def _scratch(cap):
     idx = np.empty((3, cap), dtype=np.int64)
     idx[2] = np.arange(cap)
-    return _Scratch(np.empty((4, cap)), np.empty((6, cap), dtype=np.float32), idx, np.empty(cap, dtype=np.bool_))
+    return _Scratch(np.empty((5, cap)), np.empty((6, cap), dtype=np.float32), idx, np.empty(cap, dtype=np.bool_))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -532,9 +532,10 @@ def _register_block(F0, F1, ev, px, py, tie_tol, normal, inlier, work):
     _sum_bounds(F0, F1, ev, cand, lo, hi, exact, work)
     c_min = _least(F0, F1, ev, cand, lo, hi, exact, work, True)[1]
     # Among the near-optimal candidates, C <= C_min + tie_tol E |F|, the one closest to all samples.
-    thr, undecided, near = work.f64[2, :K], work.idx[0], work.idx[1]
+    thr, norm, undecided, near = work.f64[2, :K], work.f64[4, :K], work.idx[0], work.idx[1]
     for c in range(K):
-        thr[c] = c_min + tie_tol * E * np.sqrt(F0[c] ** 2 + F1[c] ** 2)
+        norm[c] = np.sqrt(F0[c] ** 2 + F1[c] ** 2)
+        thr[c] = c_min + tie_tol * E * norm[c]
     n = 0
     for c in range(K):
         undecided[n] = c
@@ -547,7 +548,7 @@ def _register_block(F0, F1, ev, px, py, tie_tol, normal, inlier, work):
     near, lo, hi, exact = near[:n], lo[:n], hi[:n], exact[:n]
     _sum_bounds(F0, F1, cand, near, lo, hi, exact, work)  # ranks cand = 0 .. K - 1: the spreads sum_j |F - F_j|
     q = _least(F0, F1, cand, near, lo, hi, exact, work, False)[0]
-    return _inlier_fit(F0, F1, ev, px, py, near[q] if q >= 0 else 0, normal, inlier)
+    return _inlier_fit(F0, F1, ev, px, py, norm, near[q] if q >= 0 else 0, normal, inlier, work)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -623,20 +624,26 @@ def _exact_sums(F0, F1, ev, cand, sel, lo, hi, exact, work):
 
 @numba.njit(cache=True, nogil=True)
 def _dist_sum(c0, c1, F0, F1, ev, row):
-    """:func:`_dist_sums` of one candidate ``(c0, c1)``, the same value: the squared distances in one vector loop,
-    then the per-event minima and their roots summed in order without branches.
+    """:func:`_dist_sums` of one candidate ``(c0, c1)``, the same value: the squared distances, the per-event
+    minima (in place: event ``e`` is no later than its samples) and their roots in vector loops, then the sum
+    in order.
 
     Shape: F0, F1, ev, row (scratch) ``(K,)``."""
     K = F0.shape[0]
     for j in range(K):
         a, b = c0 - F0[j], c1 - F1[j]
         row[j] = a * a + b * b
-    s, m = 0.0, row[0]
-    for j in range(1, K):
-        new = ev[j] != ev[j - 1]
-        s += np.sqrt(m) if new else 0.0
-        m = row[j] if new else min(m, row[j])
-    return s + np.sqrt(m)
+    m = 0.0
+    for j in range(K):
+        m = row[j] if j == 0 or ev[j] != ev[j - 1] else min(m, row[j])
+        row[ev[j]] = m
+    E = ev[K - 1] + 1
+    for e in range(E):
+        row[e] = np.sqrt(row[e])
+    s = 0.0
+    for e in range(E):
+        s += row[e]
+    return s
 
 
 @numba.njit(cache=True, nogil=True)
@@ -665,35 +672,37 @@ def _least(F0, F1, ev, cand, lo, hi, exact, work, value):
 
 
 @numba.njit(cache=True, nogil=True)
-def _inlier_fit(F0, F1, ev, px, py, best, normal, inlier):
+def _inlier_fit(F0, F1, ev, px, py, norm, best, normal, inlier, work):
     """Flow and ``uv`` of a block registered to candidate ``best``: over the samples of its inlier events (nearest
     sample within ``inlier |F_best|`` of ``F_best``) the mean pixel and, if ``normal``, the normal flow fitted to
-    them (:func:`_normal_flow`), else ``F_best``. Shape: all ``(K,)``; returns four floats."""
-    fx, fy = F0[best], F1[best]
-    radius = inlier * np.sqrt(fx * fx + fy * fy)
-    a00 = a01 = a11 = r0 = r1 = su = sv = sw = 0.0
+    them (:func:`_normal_flow`), else ``F_best``. Shape: all ``(K,)`` (``norm``: ``|F_j|``); returns four
+    floats."""
     K = F0.shape[0]
-    start = 0
-    for end in range(1, K + 1):
-        if end < K and ev[end] == ev[start]:
-            continue
-        d2 = np.inf
-        for j in range(start, end):
-            a, b = fx - F0[j], fy - F1[j]
-            d2 = min(d2, a * a + b * b)
-        if np.sqrt(d2) <= radius:
-            for j in range(start, end):
-                su += px[j]
-                sv += py[j]
-                sw += 1.0
-                if normal:
-                    wn = 1.0 / max(np.sqrt(F0[j] ** 2 + F1[j] ** 2), 1e-12)
-                    a00 += wn * F0[j] * F0[j]
-                    a01 += wn * F0[j] * F1[j]
-                    a11 += wn * F1[j] * F1[j]
-                    r0 += wn * F0[j]
-                    r1 += wn * F1[j]
-        start = end
+    fx, fy = F0[best], F1[best]
+    radius = inlier * norm[best]
+    d2, w, least = work.f64[2, :K], work.f64[3, :K], work.f64[0, :K]
+    for j in range(K):
+        a, b = fx - F0[j], fy - F1[j]
+        d2[j] = a * a + b * b
+        w[j] = 1.0 / max(norm[j], 1e-12)
+    m = 0.0
+    for j in range(K):  # least[e]: the least d2 over event e's samples
+        m = d2[j] if j == 0 or ev[j] != ev[j - 1] else min(m, d2[j])
+        least[ev[j]] = m
+    for e in range(ev[K - 1] + 1):  # 1.0: an inlier event
+        least[e] = np.sqrt(least[e]) <= radius
+    a00 = a01 = a11 = r0 = r1 = su = sv = sw = 0.0
+    for j in range(K):  # adding 0.0 leaves a sum as it is (none is -0.0)
+        ok = least[ev[j]] != 0.0
+        su += px[j] if ok else 0.0
+        sv += py[j] if ok else 0.0
+        sw += 1.0 if ok else 0.0
+        if normal:
+            a00 += w[j] * F0[j] * F0[j] if ok else 0.0
+            a01 += w[j] * F0[j] * F1[j] if ok else 0.0
+            a11 += w[j] * F1[j] * F1[j] if ok else 0.0
+            r0 += w[j] * F0[j] if ok else 0.0
+            r1 += w[j] * F1[j] if ok else 0.0
     if normal:
         fx, fy = _normal_flow(a00, a01, a11, r0, r1)
     return fx, fy, su / sw, sv / sw
