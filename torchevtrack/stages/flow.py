@@ -132,21 +132,22 @@ def _prepare(sae: torch.Tensor, x, y, t, p, b):
 _NONE = np.zeros(1, dtype=np.int64)
 
 
-def _event_arrays(shape: tuple[int, int, int, int], x, y, t, p, b):
-    """The packed events as numpy arrays for the compiled kernels, checked against an SAE of ``shape``
-    ``(B, C, H, W)`` as :func:`_prepare` checks them (and with its messages), the ranges in one compiled pass.
+def _event_arrays(C: int, x, y, t, p, b):
+    """The packed events as numpy arrays for the compiled kernels, their types and shapes checked as
+    :func:`_prepare` checks them (the ranges are checked by :func:`_match_packet`), for an SAE of ``C`` channels.
 
-    Returns ``(x, y, t, p, b, batched, C)``: the event of index ``i`` updates the SAE plane ``b[i] C + p[i]``;
+    Returns ``(x, y, t, p, b, batched)``: the event of index ``i`` updates the SAE plane ``b[i] C + p[i]``;
     ``p`` (only read when ``C = 2``) and ``b`` (only read when ``batched``) may be placeholders."""
     _check_fields(x, y, b)
-    B, C, H, W = shape
     _check_time_polarity(t, p, x.shape, C)
     pn = _NONE if C == 1 else _index_array(p)
     bn = _NONE if b is None else _index_array(b)
-    xn, yn = _index_array(x), _index_array(y)
-    if x.numel() and not _events_in_range(xn, yn, pn, bn, C, b is not None, B, H, W):
-        _prepare(torch.empty(shape, dtype=torch.int64), x, y, t, p, b)  # raises the range error
-    return xn, yn, t.numpy(), pn, bn, b is not None, C
+    return _index_array(x), _index_array(y), t.numpy(), pn, bn, b is not None
+
+
+def _range_error(shape: tuple[int, int, int, int], x, y, t, p, b):
+    """Raise the error :func:`_prepare` raises for events outside an SAE of ``shape``."""
+    _prepare(torch.empty(shape, dtype=torch.int64), x, y, t, p, b)
 
 
 _INDEX_DTYPES = (torch.int64, torch.int32, torch.int16, torch.int8, torch.uint8)
@@ -214,26 +215,47 @@ def _pad_sae(sae: torch.Tensor, pad: int) -> torch.Tensor:
     return out
 
 
-def _triplets_padded(sae_pad: torch.Tensor, pad: int, events, D: int, dt_max_us: int, tol: float, start: int = 0,
-                     stop: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Triplet samples of the events ``start:stop`` of ``events`` (:func:`_event_arrays`) against the padded SAE
-    ``(B, C, Hp, Wp)``, which they update in place as they go (each event looks up, then writes: the module
-    docstring's "strictly earlier"). Returns ``event (S,)`` (index into the packet) and ``flow (S, 2)`` float32."""
-    x, y, t, p, b, batched, C = events
-    stop = x.shape[0] if stop is None else min(stop, x.shape[0])
+def _direction_array(D: int) -> np.ndarray:
+    """:func:`_directions` as a numpy array, cached."""
     dirs = _DIRECTIONS.get(D)
     if dirs is None:
         dirs = _DIRECTIONS[D] = _directions(D).numpy()
-    B, Cs, Hp, Wp = sae_pad.shape
-    n = max(stop - start, 0) * dirs.shape[0]
-    event = np.empty(n, dtype=np.int64)
-    flow = np.empty((n, 2), dtype=np.float32)
-    s = _triplet_kernel(sae_pad.view(B * Cs, Hp, Wp).numpy(), x, y, t, p, b, C, batched, start, stop, dirs, pad,
-                        dt_max_us, tol, event, flow)
-    return event[:s], flow[:s]
+    return dirs
 
 
 _DIRECTIONS: dict[int, np.ndarray] = {}
+
+
+@numba.njit(cache=True, nogil=True)
+def _match_packet(sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, chunk):
+    """Triplet samples of a packet of events (:func:`_event_arrays`: event ``i`` in SAE plane ``b[i] C + p[i]``)
+    against the padded SAE ``(B, Cs, Hp, Wp)``, which they update in place as they go (each event looks up, then
+    writes: the module docstring's "strictly earlier"), ``chunk`` events at a time (a buffer of ``chunk K``
+    samples). Returns ``event (S,)`` (index into the packet), ``flow (S, 2)`` float32 and ``ok``: False, nothing
+    matched or written, if an event lies outside the SAE."""
+    B, Cs, Hp, Wp = sae.shape
+    planes = B * Cs
+    sae3 = sae.reshape(planes, Hp, Wp)
+    n, K = x.shape[0], dirs.shape[0]
+    size = min(n, chunk) * K
+    event, flow = np.empty(size, dtype=np.int64), np.empty((size, 2), dtype=np.float32)
+    if not _events_in_range(x, y, p, b, C, batched, planes // C, Hp - 2 * pad, Wp - 2 * pad):
+        return event[:0], flow[:0], False
+    if n <= chunk:
+        s = _triplet_kernel(sae3, x, y, t, p, b, C, batched, 0, n, dirs, pad, dt_max_us, tol, event, flow)
+        return event[:s], flow[:s], True
+    out_event, out_flow = np.empty(size, dtype=np.int64), np.empty((size, 2), dtype=np.float32)
+    S = 0
+    for start in range(0, n, chunk):
+        s = _triplet_kernel(sae3, x, y, t, p, b, C, batched, start, min(n, start + chunk), dirs, pad, dt_max_us, tol,
+                            event, flow)
+        if S + s > out_event.shape[0]:  # grow
+            grown = max(S + s, 2 * out_event.shape[0])
+            out_event = np.concatenate((out_event[:S], np.empty(grown - S, dtype=np.int64)))
+            out_flow = np.concatenate((out_flow[:S], np.empty((grown - S, 2), dtype=np.float32)))
+        out_event[S:S + s], out_flow[S:S + s] = event[:s], flow[:s]
+        S += s
+    return out_event[:S], out_flow[:S], True
 
 
 _WORD = 63
@@ -336,9 +358,14 @@ def triplet_samples(sae: torch.Tensor, x: torch.Tensor, y: torch.Tensor, t: torc
     """
     _check_flow_params(D, dt_max_us, tol)
     _check_sae(sae)
-    events = _event_arrays(tuple(sae.shape), x, y, t, p, b)
     pad = 2 * D
-    ev, flow = _triplets_padded(_pad_sae(sae, pad), pad, events, D, dt_max_us, tol)
+    sae_pad = _pad_sae(sae, pad)
+    C = sae_pad.shape[1]
+    xn, yn, tn, pn, bn, batched = _event_arrays(C, x, y, t, p, b)
+    ev, flow, ok = _match_packet(sae_pad.numpy(), xn, yn, tn, pn, bn, C, batched,
+                                 _direction_array(D), pad, dt_max_us, tol, max(xn.shape[0], 1))
+    if not ok:
+        _range_error(tuple(sae.shape), x, y, t, p, b)
     return torch.from_numpy(ev), torch.from_numpy(flow)
 
 
@@ -752,6 +779,21 @@ def _sample_blocks(ev, x, y, b, batched, block_x, block_y, G):
     return gid, pixel
 
 
+@numba.njit(cache=True, nogil=True)
+def _flow_packet(sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, chunk, block_x, block_y, G, min_samples,
+                 max_candidates, tie_tol, normal, inlier, fill, out, uv, valid, count):
+    """:meth:`TripletFlow.forward` in one call: :func:`_match_packet`, :func:`_sample_blocks`, then
+    :func:`_register_all` into ``out``, ``uv`` ``(B, G, 2)`` and ``valid``, ``count`` ``(B, G)``; False (nothing
+    done) if an event lies outside the SAE."""
+    event, flow, ok = _match_packet(sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, chunk)
+    if ok:
+        B = count.shape[0]
+        block_id, pixel = _sample_blocks(event, x, y, b, batched, block_x, block_y, G)
+        _register_all(block_id, event, flow, pixel, min_samples, max_candidates, tie_tol, normal, inlier, fill,
+                      out.reshape(B * G, 2), uv.reshape(B * G, 2), valid.reshape(B * G), count.reshape(B * G))
+    return ok
+
+
 def _smooth(flow: torch.Tensor, uv: torch.Tensor, valid: torch.Tensor, gy: int, gx: int):
     """Mean flow and mean ``uv`` over the valid blocks of each valid block's 3x3 block neighbourhood."""
     B = flow.shape[0]
@@ -815,9 +857,12 @@ class TripletFlow(nn.Module):
         C = 2 if per_polarity else 1
         self.gy, self.gx, centres = block_grid(height, width, block)
         self.register_buffer("centres", centres, persistent=False)
-        # block grid column of each pixel column, first block of each pixel row (see _sample_blocks)
+        # constant arrays of the compiled step (_flow_packet): the directions, the block grid column of each
+        # pixel column and first block of each pixel row (_sample_blocks), the centres as numpy
+        self._dirs = _direction_array(D)
         self._block_x = np.arange(width) // block
         self._block_y = np.arange(height) // block * self.gx
+        self._centres = centres.numpy()
         # Stored padded by 2D with NEVER so that p1, p2 lookups need no bounds checks.
         self.register_buffer("sae_padded", torch.full((batch_size, C, height + 2 * self.pad, width + 2 * self.pad),
                                                       NEVER, dtype=torch.int64))
@@ -842,16 +887,21 @@ class TripletFlow(nn.Module):
 
     def forward(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor | None = None,
                 b: torch.Tensor | None = None) -> FlowField:
-        B, C, Hp, Wp = self.sae_padded.shape
-        G = self.n_blocks
-        events = _event_arrays((B, C, self.height, self.width), x, y, t, p, b)
-        ev, flow = self._match_events(events)
-        block_id, pixel = _sample_blocks(ev, events[0], events[1], events[4], events[5], self._block_x, self._block_y,
-                                          G)
-        out, uv, valid, count = _register(block_id, ev, flow, pixel, B * G, self.min_samples, self.max_candidates,
-                                          self.tie_tol, self.estimate, self.inlier, self.centres.numpy())
-        out, uv = torch.from_numpy(out.reshape(B, G, 2)), torch.from_numpy(uv.reshape(B, G, 2))
-        valid, count = torch.from_numpy(valid.reshape(B, G)), torch.from_numpy(count.reshape(B, G))
+        sae = self.sae_padded
+        B, C = sae.shape[:2]
+        G = self.gy * self.gx
+        xn, yn, tn, pn, bn, batched = _event_arrays(C, x, y, t, p, b)
+        out = np.zeros((B, G, 2), dtype=np.float32)
+        uv = np.empty((B, G, 2), dtype=np.float32)
+        valid = np.empty((B, G), dtype=np.bool_)
+        count = np.empty((B, G), dtype=np.int64)
+        if not _flow_packet(sae.numpy(), xn, yn, tn, pn, bn, C, batched, self._dirs,
+                            self.pad, self.dt_max_us, self.tol, self.chunk, self._block_x, self._block_y, G,
+                            self.min_samples, self.max_candidates, self.tie_tol, self.estimate == "normal",
+                            self.inlier, self._centres, out, uv, valid, count):
+            _range_error((B, C, self.height, self.width), x, y, t, p, b)
+        out, uv, valid, count = torch.from_numpy(out), torch.from_numpy(uv), torch.from_numpy(valid), \
+            torch.from_numpy(count)
         if self.smooth:
             out, uv = _smooth(out, uv, valid, self.gy, self.gx)
         return FlowField(uv, out, valid, count)
@@ -862,17 +912,10 @@ class TripletFlow(nn.Module):
 
         Shape: prepared events ``(N,)``; returns ``event (S,)`` (index into the packet) and ``flow (S, 2)``.
         """
-        ev, flow = self._match_events((xi.numpy(), yi.numpy(), t.numpy(), _NONE, ch.numpy(), True, 1))
+        ev, flow, _ = _match_packet(self.sae_padded.numpy(), xi.numpy(), yi.numpy(), t.numpy(),
+                                    _NONE, ch.numpy(), 1, True, self._dirs, self.pad, self.dt_max_us, self.tol,
+                                    self.chunk)
         return torch.from_numpy(ev), torch.from_numpy(flow)
-
-    def _match_events(self, events) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`_match` of the events of :func:`_event_arrays` (a usual window is one chunk): numpy arrays."""
-        n = events[0].shape[0]
-        if n <= self.chunk:
-            return _triplets_padded(self.sae_padded, self.pad, events, self.D, self.dt_max_us, self.tol)
-        parts = [_triplets_padded(self.sae_padded, self.pad, events, self.D, self.dt_max_us, self.tol, s,
-                                  s + self.chunk) for s in range(0, n, self.chunk)]
-        return np.concatenate([e for e, _ in parts]), np.concatenate([f for _, f in parts])
 
     def extra_repr(self) -> str:
         return (f"height={self.height}, width={self.width}, block={self.block}, min_samples={self.min_samples}, "
