@@ -660,9 +660,9 @@ def _dist_sum(c0, c1, F0, F1, ev, row):
     for j in range(K):
         a, b = c0 - F0[j], c1 - F1[j]
         row[j] = a * a + b * b
-    m = 0.0
+    m = np.inf
     for j in range(K):
-        m = row[j] if j == 0 or ev[j] != ev[j - 1] else min(m, row[j])
+        m = min(np.inf if j == 0 or ev[j] != ev[j - 1] else m, row[j])
         row[ev[j]] = m
     E = ev[K - 1] + 1
     for e in range(E):
@@ -677,8 +677,8 @@ def _dist_sum(c0, c1, F0, F1, ev, row):
 def _least(F0, F1, ev, cand, lo, hi, exact, work, value):
     """The first ``q`` with the least sum ``S_q`` and that sum (``(-1, inf)`` if there are no candidates), from the
     bounds of :func:`_sum_bounds`: only the candidates whose lower bound does not exceed the least upper bound
-    can be it; they are evaluated exactly (:func:`_exact_sums`), unless there is one and its sum is not asked
-    for (``value`` False: the sum returned is then ``inf``)."""
+    can be it; they are evaluated exactly (:func:`_exact_sums`), unless there is one, certainly finite, and its
+    sum is not asked for (``value`` False: the sum returned is then ``inf``)."""
     top = np.inf
     for q in range(cand.shape[0]):
         if hi[q] < top:
@@ -688,7 +688,7 @@ def _least(F0, F1, ev, cand, lo, hi, exact, work, value):
     for q in range(cand.shape[0]):
         sel[n] = q
         n += not (lo[q] > top)
-    if n == 1 and not value:
+    if n == 1 and not value and hi[sel[0]] < np.inf:
         return sel[0], np.inf
     _exact_sums(F0, F1, ev, cand, sel[:n], lo, hi, exact, work)
     best, least = -1, np.inf
@@ -712,9 +712,9 @@ def _inlier_fit(F0, F1, ev, px, py, norm, best, normal, inlier, work):
         a, b = fx - F0[j], fy - F1[j]
         d2[j] = a * a + b * b
         w[j] = 1.0 / max(norm[j], 1e-12)
-    m = 0.0
+    m = np.inf
     for j in range(K):  # least[e]: the least d2 over event e's samples
-        m = d2[j] if j == 0 or ev[j] != ev[j - 1] else min(m, d2[j])
+        m = min(np.inf if j == 0 or ev[j] != ev[j - 1] else m, d2[j])
         least[ev[j]] = m
     for e in range(ev[K - 1] + 1):  # 1.0: an inlier event
         least[e] = np.sqrt(least[e]) <= radius
