@@ -195,3 +195,16 @@ def test_canvas_observation_is_the_recent_observation_of_the_tap_window_in_the_c
         assert torch.allclose(out[i:i + 1], ref, atol=2e-6), (out[i:i + 1] - ref).abs().max()
     with pytest.raises(ValueError, match="box"):
         canvas_observation(surface, last, box[:2], N, t_now)
+
+
+def test_rows_update_only_their_elements():
+    """forward(x, y, b, rows=) applies a share's events (b counted from its start) to those rows only."""
+    gen = torch.Generator().manual_seed(8)
+    x, y, b = torch.randint(0, 12, (200,), generator=gen), torch.randint(0, 10, (200,), generator=gen), \
+        torch.randint(0, 3, (200,), generator=gen)
+    whole, part = EROS(10, 12, batch_size=3), EROS(10, 12, batch_size=3)
+    whole(x, y, b)
+    mine = b >= 1
+    out = part(x[mine], y[mine], b[mine] - 1, rows=slice(1, 3))
+    assert out.shape == (2, 10, 12) and torch.equal(part.surface[1:], whole.surface[1:])
+    assert (part.surface[0] == 0).all()

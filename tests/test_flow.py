@@ -398,3 +398,24 @@ def test_bad_inputs():
         m(torch.tensor([1]), torch.tensor([10]), torch.tensor([1]), torch.tensor([1]))
     with pytest.raises(ValueError, match="sae"):
         triplet_samples(torch.zeros(1, 1, 5, 5), torch.tensor([1]), torch.tensor([1]), torch.tensor([1]), None)
+
+
+def test_rows_update_only_their_elements_as_the_whole_batch_would():
+    """forward(..., rows=) on a share of the batch (b counted from its start) gives that share's flow field and
+    SAE rows exactly as the whole-batch call, and leaves the other rows alone (threads update disjoint rows)."""
+    B, H, W = 3, 60, 90
+    edges = [edge_events(H, W, n, 400.0, 20_000) for n in ((1, 0), (0, 1), (1, 1))]  # one edge per element
+    x, y, t = (torch.from_numpy(np.concatenate([e[i] for e in edges])).long() for i in range(3))
+    b = torch.cat([torch.full((len(e[0]),), i) for i, e in enumerate(edges)])
+    p = torch.zeros_like(x)
+    whole, part = (TripletFlow(H, W, batch_size=B, block=30, min_samples=20) for _ in range(2))
+    vectors = 0
+    for k in range(0, 20_000, 2000):  # ten packets, so later ones match against the history
+        sel = (t >= k) & (t < k + 2000)
+        ref = whole(x[sel], y[sel], t[sel], p[sel], b[sel])
+        mine = sel & (b >= 1)
+        out = part(x[mine], y[mine], t[mine], p[mine], b[mine] - 1, rows=slice(1, 3))
+        for got, want in zip(out, ref):
+            assert torch.equal(torch.nan_to_num(got), torch.nan_to_num(want[1:]))
+        vectors += int(out.valid.sum())
+    assert vectors > 0 and torch.equal(part.sae[1:], whole.sae[1:]) and (part.sae[0] == NEVER).all()

@@ -68,6 +68,22 @@ def test_worker_threads_do_not_change_the_poses(seq):
     assert not torch.equal(ref[0], ref[2])
     for workers in (2, 3):
         assert torch.equal(poses(workers), ref)
+
+    # packets interleaved in time across the elements (not grouped by element, as track packs them)
+    def interleaved(workers):
+        tracker = EventPoseTracker(CAM, seq.mesh, batch_size=3, workers=workers)
+        tracker.reset(start)
+        out = []
+        for k in range(10):
+            ev = seq.events.slice_time(int(seq.gt_t_us[0]) + 2000 * k, int(seq.gt_t_us[0]) + 2000 * (k + 1))
+            order = torch.sort(ev.t.repeat(3), stable=True).indices
+            b = torch.arange(3).repeat_interleave(len(ev))[order]
+            x, y, t, p = (f.long().repeat(3)[order] for f in (ev.x, ev.y, ev.t, ev.p))
+            out.append(tracker(x, y, t, p, b))
+        tracker.close()
+        return torch.stack(out)
+
+    assert torch.equal(interleaved(2), interleaved(1))
     with pytest.raises(ValueError, match="workers"):
         EventPoseTracker(CAM, seq.mesh, workers=0)
 

@@ -112,8 +112,8 @@ class EventPoseTracker(nn.Module):
         meshes: one mesh for all, or a list of ``B`` meshes: paths, built-in / YCB names or trimesh objects.
         config: :class:`~torchevtrack.config.TrackerConfig` (default: the paper's settings).
         batch_size: ``B`` when one mesh is given for several sequences (default 1).
-        workers: threads that run the batch's renders and template corrections, each on its own share of the
-            elements (the compiled kernels release the GIL, so they run on as many cores); default
+        workers: threads that run the batch's EROS, flow, renders and template corrections, each on its own share
+            of the elements (the compiled kernels release the GIL, so they run on as many cores); default
             ``min(B, usable cores)``, 1 runs everything in the calling thread. Results do not depend on it.
         on_lost: re-initialisation callback of the loss detector (needs ``config.loss.enabled``):
             ``on_lost(batch_indices (K,) int64, t_us (K,) int64) -> poses (K, 7) or None``, called with
@@ -312,9 +312,15 @@ class EventPoseTracker(nn.Module):
         cfg = self.config
         B = self.batch_size
         clock = _StageClock()
-        self.eros(x, y, b)
-        clock.lap("eros")
-        flow = self.flow(x, y, t, p, b)
+        if self._pool is None:
+            self.eros(x, y, b)
+            clock.lap("eros")
+            flow = self.flow(x, y, t, p, b)
+        else:  # each worker takes the events of its share of the batch
+            share = dict(zip((rows.start for rows in self._shares), self._share_events(x, y, t, p, b)))
+            self._map(lambda rows: self.eros(*share[rows.start][:2], share[rows.start][4], rows=rows))
+            clock.lap("eros")
+            flow = _cat(self._map(lambda rows: self.flow(*share[rows.start], rows=rows)))
         clock.lap("flow")
 
         if cfg.velocity.source == "flow":
@@ -567,6 +573,18 @@ class EventPoseTracker(nn.Module):
         parts = self._map(share)
         self._model = _cat([m for m, _ in parts])
         return _cat([c for _, c in parts])
+
+    def _share_events(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor,
+                      b: torch.Tensor | None) -> list[tuple[torch.Tensor, ...]]:
+        """The packed events ``(x, y, t, p, b)`` of each worker's share, ``b`` counted from the share's first
+        element (views of the packet when it is ordered by element, as :meth:`track` packs it)."""
+        b = torch.zeros_like(x) if b is None else b.long()
+        if b.numel() < 2 or bool((b[1:] >= b[:-1]).all()):
+            cuts = torch.searchsorted(b, torch.tensor([rows.start for rows in self._shares] + [self.batch_size]))
+            picks = [slice(i, j) for i, j in zip(cuts[:-1].tolist(), cuts[1:].tolist())]
+        else:
+            picks = [(b >= rows.start) & (b < rows.stop) for rows in self._shares]
+        return [(x[k], y[k], t[k], p[k], b[k] - rows.start) for k, rows in zip(picks, self._shares)]
 
     def _map(self, fn: Callable[[slice], _T]) -> list[_T]:
         """``fn`` of each worker's share of the batch (rows), in the worker threads."""

@@ -345,7 +345,9 @@ class EROS(nn.Module):
         surface: ``(B, H, W)`` float32 in ``[0, 1]``, initially 0.
 
     Call ``forward(x, y, b=None)`` with a packet of events (time order within each batch element); it
-    updates ``surface`` and returns it (the buffer itself, not a copy).
+    updates ``surface`` and returns it (the buffer itself, not a copy). ``forward(x, y, b, rows=slice)`` takes the
+    events of the batch elements ``rows`` only (``b`` counted from ``rows.start``) and returns their rows: threads
+    may update disjoint rows at once.
     """
 
     surface: torch.Tensor
@@ -365,8 +367,10 @@ class EROS(nn.Module):
         """Per-event decay factor ``decay ** (1 / kernel_size)``."""
         return self.decay ** (1.0 / self.kernel_size)
 
-    def forward(self, x: torch.Tensor, y: torch.Tensor, b: torch.Tensor | None = None) -> torch.Tensor:
-        return eros_update_(self.surface, x, y, b, self.kernel_size, self.decay)
+    def forward(self, x: torch.Tensor, y: torch.Tensor, b: torch.Tensor | None = None,
+                rows: slice | None = None) -> torch.Tensor:
+        surface = self.surface if rows is None else self.surface[rows]
+        return eros_update_(surface, x, y, b, self.kernel_size, self.decay)
 
     def observation(self) -> torch.Tensor:
         """3x3 median blur of the current surface, ``(B, H, W)``."""

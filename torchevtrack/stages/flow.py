@@ -829,7 +829,9 @@ class TripletFlow(nn.Module):
             ``per_polarity`` else 1.
 
     ``forward(x, y, t, p, b=None) -> FlowField`` uses only the packet's triplets (matched against the SAE
-    history) and then leaves the SAE updated with the packet.
+    history) and then leaves the SAE updated with the packet. With ``rows=slice`` the packet holds the events of
+    the batch elements ``rows`` only (``b`` counted from ``rows.start``) and the flow field is theirs: threads may
+    update disjoint rows at once.
     """
 
     sae: torch.Tensor
@@ -886,8 +888,8 @@ class TripletFlow(nn.Module):
             self.sae_padded.masked_fill_(batch_mask(mask, self.sae_padded.shape[0])[:, None, None, None], NEVER)
 
     def forward(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor | None = None,
-                b: torch.Tensor | None = None) -> FlowField:
-        sae = self.sae_padded
+                b: torch.Tensor | None = None, rows: slice | None = None) -> FlowField:
+        sae = self.sae_padded if rows is None else self.sae_padded[rows]
         B, C = sae.shape[:2]
         G = self.gy * self.gx
         xn, yn, tn, pn, bn, batched = _event_arrays(C, x, y, t, p, b)
