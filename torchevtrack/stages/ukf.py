@@ -249,6 +249,35 @@ def _nb_rot_error(X, s, q, out, k):
 
 
 @numba.njit(cache=True, nogil=True)
+def _nb_weighted_mean(X, w, start, out):
+    """``out[i] = sum_s w[s] X[s, start + i]`` over the sigma points ``s`` in order (one chain per ``i``)."""
+    out[:] = 0.0
+    for s in range(X.shape[0]):
+        for i in range(out.shape[0]):
+            out[i] += w[s] * X[s, start + i]
+
+
+@numba.njit(cache=True, nogil=True)
+def _nb_weighted_outer(A, Bm, w, out):
+    """``out[i, j] = sum_s (A[s, i] w[s]) Bm[s, j]`` over the sigma points ``s`` in order: a weighted
+    (cross-)covariance of deviations."""
+    out[:] = 0.0
+    for s in range(A.shape[0]):
+        for i in range(out.shape[0]):
+            dw = A[s, i] * w[s]
+            for j in range(out.shape[1]):
+                out[i, j] += dw * Bm[s, j]
+
+
+@numba.njit(cache=True, nogil=True)
+def _nb_symmetrise(M, out):
+    """``out = (M + M^T) / 2``."""
+    for i in range(M.shape[0]):
+        for j in range(M.shape[1]):
+            out[i, j] = 0.5 * (M[i, j] + M[j, i])
+
+
+@numba.njit(cache=True, nogil=True)
 def _ukf_predict_kernel(x, P, T, q, q_diag, twist, has_twist, Wm, Wc, spread, x_out, P_out):
     """:func:`ukf_predict` (with the known twist of :meth:`PoseUKF.predict`) of every filter. The outputs are
     written once all filters are done (they may alias the inputs); returns -1, or the failing filter."""
@@ -274,28 +303,17 @@ def _ukf_predict_kernel(x, P, T, q, q_diag, twist, has_twist, Wm, Wc, spread, x_
             e0, e1, e2, e3 = _nb_quat_exp(X[s, 3] * Tb, X[s, 4] * Tb, X[s, 5] * Tb)
             q0, q1, q2, q3 = _nb_quat_mul(e0, e1, e2, e3, X[s, 9], X[s, 10], X[s, 11], X[s, 12])
             X[s, 9], X[s, 10], X[s, 11], X[s, 12] = _nb_quat_canonical(q0, q1, q2, q3)
-        acc = np.zeros(9)  # every sum below runs over s in order 0..24 (s outermost: independent chains)
-        for s in range(25):
-            for i in range(9):
-                acc[i] += Wm[s] * X[s, i]
-        xn[b, :9] = acc
+        _nb_weighted_mean(X, Wm, 0, xn[b, :9])
         _nb_quat_mean(X, Wm, xn[b, 9:13])
         for s in range(25):
             for i in range(9):
                 D[s, i] = X[s, i] - xn[b, i]
             _nb_rot_error(X, s, xn[b, 9:13], D[s], 9)
-        Pm[:] = 0.0
-        for s in range(25):
-            for i in range(12):
-                dw = D[s, i] * Wc[s]
-                for j in range(12):
-                    Pm[i, j] += dw * D[s, j]
+        _nb_weighted_outer(D, D, Wc, Pm)
         for i in range(12):
             for j in range(12):
                 Pm[i, j] += ((q[0, i] if i == j else 0.0) if q_diag else q[i, j]) * Tb
-        for i in range(12):
-            for j in range(12):
-                Pn[b, i, j] = 0.5 * (Pm[i, j] + Pm[j, i])
+        _nb_symmetrise(Pm, Pn[b])
     x_out[:] = xn
     P_out[:] = Pn
     return -1
@@ -310,7 +328,7 @@ def _ukf_update_kernel(x, P, z, R, r_diag, Wm, Wc, spread, x_out, P_out):
     X = np.empty((25, 13))
     DZ, DX = np.empty((25, 6)), np.empty((25, 12))
     zp, zq = np.empty(3), np.empty(4)
-    S, Pzx, Kt = np.empty((6, 6)), np.empty((6, 12)), np.empty((6, 12))
+    S, Pzx, Pxz, Kt = np.empty((6, 6)), np.empty((6, 12)), np.empty((12, 6)), np.empty((6, 12))
     KS = np.empty((12, 6))
     nu, dx = np.empty(6), np.empty(12)
     xn, Pn = np.empty((B, 13)), np.empty((B, 12, 12))
@@ -318,10 +336,7 @@ def _ukf_update_kernel(x, P, z, R, r_diag, Wm, Wc, spread, x_out, P_out):
     for b in range(B):
         if not _nb_sigma_points(x[b], P[b], spread, X, Sc, L):
             return b
-        zp[:] = 0.0  # every sum below runs over s in order 0..24 (s outermost: independent chains)
-        for s in range(25):
-            for i in range(3):
-                zp[i] += Wm[s] * X[s, 6 + i]
+        _nb_weighted_mean(X, Wm, 6, zp)
         _nb_quat_mean(X, Wm, zq)
         for s in range(25):
             for i in range(3):
@@ -330,17 +345,9 @@ def _ukf_update_kernel(x, P, z, R, r_diag, Wm, Wc, spread, x_out, P_out):
             for i in range(9):
                 DX[s, i] = X[s, i] - x[b, i]
             _nb_rot_error(X, s, x[b, 9:13], DX[s], 9)
-        S[:] = 0.0
-        Pzx[:] = 0.0
-        for s in range(25):
-            for i in range(6):
-                dw = DZ[s, i] * Wc[s]
-                for j in range(6):
-                    S[i, j] += dw * DZ[s, j]
-            for j in range(12):  # Pxz^T
-                dw = DX[s, j] * Wc[s]
-                for i in range(6):
-                    Pzx[i, j] += dw * DZ[s, i]
+        _nb_weighted_outer(DZ, DZ, Wc, S)
+        _nb_weighted_outer(DX, DZ, Wc, Pxz)
+        Pzx[:] = Pxz.T
         for i in range(6):
             for j in range(6):
                 S[i, j] += (R[0, i] if i == j else 0.0) if r_diag else R[i, j]
@@ -368,9 +375,7 @@ def _ukf_update_kernel(x, P, z, R, r_diag, Wm, Wc, spread, x_out, P_out):
                 for k in range(6):
                     m += KS[i, k] * Kt[k, j]
                 Pm[i, j] = P[b, i, j] - m
-        for i in range(12):
-            for j in range(12):
-                Pn[b, i, j] = 0.5 * (Pm[i, j] + Pm[j, i])
+        _nb_symmetrise(Pm, Pn[b])
     x_out[:] = xn
     P_out[:] = Pn
     return -1
