@@ -234,9 +234,8 @@ class EventPoseTracker(nn.Module):
         self.register_buffer("_symmetry_axis", torch.stack([self._sym_axes[i] for i in self._renderer_of]),
                              persistent=False)  # (B, 3) object frame, zero: none
         self._symmetric = bool(self._symmetry_axis.any())
-        self.register_buffer("_min_depth", torch.tensor([self._radius[i] + 0.01 for i in self._renderer_of],
-                                                        dtype=torch.float64), persistent=False)
         self._radius_of = torch.tensor([self._radius[i] for i in self._renderer_of], dtype=torch.float64)  # (B,)
+        self.register_buffer("_min_depth", self._radius_of + 0.01, persistent=False)
 
     # -- state -------------------------------------------------------------------------------
     def reset(self, initial_pose: torch.Tensor, twist: torch.Tensor | None = None,
@@ -317,10 +316,10 @@ class EventPoseTracker(nn.Module):
             clock.lap("eros")
             flow = self.flow(x, y, t, p, b)
         else:  # each worker takes the events of its share of the batch
-            share = dict(zip((rows.start for rows in self._shares), self._share_events(x, y, t, p, b)))
-            self._map(lambda rows: self.eros(*share[rows.start][:2], share[rows.start][4], rows=rows))
+            events = self._share_events(x, y, t, p, b)
+            self._map(lambda rows, ev: self.eros(ev[0], ev[1], ev[4], rows=rows), events)
             clock.lap("eros")
-            flow = _cat(self._map(lambda rows: self.flow(*share[rows.start], rows=rows)))
+            flow = _cat(self._map(lambda rows, ev: self.flow(*ev, rows=rows), events))
         clock.lap("flow")
 
         if cfg.velocity.source == "flow":
@@ -586,11 +585,12 @@ class EventPoseTracker(nn.Module):
             picks = [(b >= rows.start) & (b < rows.stop) for rows in self._shares]
         return [(x[k], y[k], t[k], p[k], b[k] - rows.start) for k, rows in zip(picks, self._shares)]
 
-    def _map(self, fn: Callable[[slice], _T]) -> list[_T]:
-        """``fn`` of each worker's share of the batch (rows), in the worker threads."""
+    def _map(self, fn: Callable[..., _T], *per_share: list) -> list[_T]:
+        """``fn(rows, *args)`` of each worker's share of the batch (``rows``) and its items of ``per_share``, in the
+        worker threads."""
         if self._pool is None:
-            return [fn(slice(None))]
-        return list(self._pool.map(fn, self._shares))
+            return [fn(slice(None), *(a[0] for a in per_share))]
+        return list(self._pool.map(fn, self._shares, *per_share))
 
     def _observation(self, box: torch.Tensor, t_now: torch.Tensor, rows: slice = slice(None)) -> torch.Tensor:
         """Median-blurred EROS of the batch ``rows`` under their template's canvas ``box`` ``(K, 3)``, in the canvas:
