@@ -66,7 +66,6 @@ __all__ = [
     "feedback_update",
     "kf_predict",
     "kf_update",
-    "laplacian_weights",
     "sample_depth",
 ]
 
@@ -104,17 +103,6 @@ def kf_predict(
     if x.shape[-1:] != (6,) or P.shape != x.shape + (6,):
         raise ValueError(f"expected x (B, 6) and P (B, 6, 6), got {tuple(x.shape)} and {tuple(P.shape)}")
     return rho * x, rho * rho * P + Q.to(P)
-
-
-def laplacian_weights(residual: torch.Tensor, valid: torch.Tensor, r_px: float, k: float = 1.0) -> torch.Tensor:
-    """Robust weights ``exp(-max(r - m, 0) / (k * max(1.4826 m, r_px)))``, ``m`` the median valid residual.
-
-    Shape: ``(B, G), (B, G) bool, float -> (B, G)`` (residuals in px); invalid entries get weight 0.
-    """
-    med = torch.nanmedian(torch.where(valid, residual, torch.nan), dim=-1, keepdim=True).values
-    med = torch.nan_to_num(med, nan=0.0)
-    w = torch.exp(-(residual - med).clamp_min(0) / (k * (_MAD * med).clamp_min(r_px)))
-    return torch.where(valid, w, torch.zeros_like(w))
 
 
 def shift_twist(twist: torch.Tensor, point: torch.Tensor) -> torch.Tensor:
