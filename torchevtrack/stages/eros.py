@@ -197,9 +197,7 @@ def recent_observation(surface: torch.Tensor, last_us: torch.Tensor, origin: tor
     """
     B, H, W = surface.shape
     h, w = size
-    if last_us.shape[0] != B or last_us.shape[2:] != (H, W) or last_us.dtype != torch.int64:
-        raise ValueError(f"last_us must be an int64 ({B}, C, {H}, {W}) time surface, got {last_us.dtype} "
-                         f"{tuple(last_us.shape)}")
+    _check_time_surface(last_us, B, H, W)
     o = origin.long()
     if o.shape != (B, 2) or not (h > 0 and w > 0) or bool(((o < 0) | (o + torch.tensor([w, h]) > torch.tensor([W, H]))).any()):
         raise ValueError(f"windows of size {(h, w)} at origins {o.tolist()} must lie inside the {H}x{W} surface")
@@ -225,15 +223,19 @@ def canvas_observation(surface: torch.Tensor, last_us: torch.Tensor, box: torch.
     Shape: returns ``(B, N, N)`` float32.
     """
     B, H, W = surface.shape
-    if last_us.shape[0] != B or last_us.shape[2:] != (H, W) or last_us.dtype != torch.int64:
-        raise ValueError(f"last_us must be an int64 ({B}, C, {H}, {W}) time surface, got {last_us.dtype} "
-                         f"{tuple(last_us.shape)}")
+    _check_time_surface(last_us, B, H, W)
     if box.shape != (B, 3):
         raise ValueError(f"box must have shape ({B}, 3) [cu, cv, side], got {tuple(box.shape)}")
     out = torch.empty(B, canvas, canvas, dtype=torch.float32)
     _canvas_kernel(surface.detach().numpy(), last_us.detach().numpy(), box.double().contiguous().numpy(),
                    t_now_us.long().contiguous().numpy(), int(max_age_us), float(recency_us), out.numpy())
     return out
+
+
+def _check_time_surface(last_us: torch.Tensor, B: int, H: int, W: int) -> None:
+    if last_us.shape[0] != B or last_us.shape[2:] != (H, W) or last_us.dtype != torch.int64:
+        raise ValueError(f"last_us must be an int64 ({B}, C, {H}, {W}) time surface, got {last_us.dtype} "
+                         f"{tuple(last_us.shape)}")
 
 
 @numba.njit(cache=True, nogil=True)
