@@ -743,67 +743,131 @@ def _pixel_motion(e0, e2, Ar, A2, d0, d1, d2):
     return -P0, -P1, -P2, P1 * d2 - P2 * d1, P2 * d0 - P0 * d2, P0 * d1 - P1 * d0
 
 
+# Pixels per block of :func:`_quadratic_terms`: its scratch (39 rows of _BLOCK float64) stays in the L1 cache.
+_BLOCK = 64
+
+
+@numba.njit(cache=True, nogil=True)
+def _tap_rows(c, r, w, d, dd):
+    """One row of spline taps (``c[r]``, ``c[r + _BLOCK]``, ... :func:`_quadratic_terms`) contracted with the
+    weights ``w``, ``d``, ``dd`` along ``u``: three numbers."""
+    B = _BLOCK
+    k0, k1, k2, k3 = c[r], c[r + B], c[r + 2 * B], c[r + 3 * B]
+    return (k0 * w[0] + k1 * w[1] + k2 * w[2] + k3 * w[3], k0 * d[0] + k1 * d[1] + k2 * d[2] + k3 * d[3],
+            k0 * dd[0] + k1 * dd[1] + k2 * dd[2] + k3 * dd[3])
+
+
+@numba.njit(cache=True, nogil=True)
+def _observed_points(Z, K, obs):
+    """The observed canvas pixels of one element (``|O| >= _MIN_OBSERVATION``, ``obs`` ``(N * N,)``) in raster
+    order: their observation ``o`` ``(n,)`` and the point ``X`` ``(3, n)`` (metres) back-projected with the
+    render's depth ``Z`` ``(N, N)`` into the frame of the pose being scored (independent of that pose)."""
+    N = Z.shape[0]
+    fx, fy, cx, cy = K[0], K[1], K[2], K[3]
+    n = 0
+    for q in range(N * N):
+        n += abs(obs[q]) >= _MIN_OBSERVATION
+    o = np.empty(n)
+    X = np.empty((3, n))
+    n = 0
+    for v in range(N):
+        for u in range(N):
+            z = Z[v, u]
+            if abs(obs[v * N + u]) >= _MIN_OBSERVATION:
+                o[n] = obs[v * N + u]
+                X[0, n], X[1, n], X[2, n] = z * (u - cx) / fx, z * (v - cy) / fy, z
+                n += 1
+    return o, X
+
+
 @numba.njit(cache=True, nogil=True, fastmath=True)
-def _quadratic_terms(coef, Z, K, render_pose, pose, obs):
+def _quadratic_terms(coef, K, render_pose, pose, o, X):
     """Taylor terms ``(s0, g (6,), M (6, 6))`` of one element's warped-template score around ``pose``.
 
-    ``coef``: ``(N + 6, N + 6)`` spline coefficients zero-padded by 3 pixels (:attr:`TemplateModel.coef`).
-    For every canvas pixel ``q`` with an observation ``|O| >= _MIN_OBSERVATION`` (``obs`` ``(N * N,)``): its object point
-    ``X`` at ``pose`` (back-projected with the render's depth ``Z(q)``, as the warp does), the point
+    ``coef``: ``(N + 6, N + 6)`` spline coefficients zero-padded by 3 pixels (:attr:`TemplateModel.coef`);
+    ``o``, ``X``: the observed pixels (:func:`_observed_points`). For every observed pixel: the point
     ``Y = A X + b`` in the render's frame and its canvas pixel ``p``, the cubic B-spline of the render
     template at ``p`` (value, gradient and Hessian from the 4 x 4 coefficients ``coef`` around ``p``), and
     ``G = dp / d delta``: a step ``delta = [dt, phi]`` of the centre moves the sampled point by
     ``-dt - phi x (X - t)`` in the centre's frame. Sums ``O T`` into ``s0``, ``-O G^T grad T`` into ``g``
     and ``O G^T (Hess T) G`` into ``M`` (module docstring, item 6).
+
+    The pixels go in blocks of ``_BLOCK``, each pass over a block a loop the compiler vectorises (except the
+    gather of the taps), with per-pixel values in rows of the flat scratch ``c`` (row ``r``, pixel ``i`` at
+    ``c[r * _BLOCK + i]``; constant offsets let the compiler see that rows do not overlap): 0-5 the row
+    ``G_u``, 6-11 ``G_v``, 12 ``O`` (0 off the canvas), 13-14 the spline fractions, 15-16 the first taps,
+    17-32 the 4 x 4 taps, 33-38 ``O`` times ``T, T_u, T_v, T_uu, T_uv, T_vv``.
     """
     N = coef.shape[0] - 6
+    B = _BLOCK
     fx, fy, cx, cy = K[0], K[1], K[2], K[3]
     A = _rotation(render_pose[3:]) @ _rotation(pose[3:]).T  # centre frame -> render frame
-    t = pose[:3]
-    off = render_pose[:3] - A @ t
+    off = render_pose[:3] - A @ pose[:3]
+    # scalars and tuples: loop-invariant values the compiler can keep in registers
+    A0, A1, A2 = (A[0, 0], A[0, 1], A[0, 2]), (A[1, 0], A[1, 1], A[1, 2]), (A[2, 0], A[2, 1], A[2, 2])
+    off0, off1, off2, t0, t1, t2 = off[0], off[1], off[2], pose[0], pose[1], pose[2]
     s0 = 0.0
     g = np.zeros(6)
     M = np.zeros((6, 6))
-    for v in range(N):
-        for u in range(N):
-            o = obs[v * N + u]
-            if abs(o) < _MIN_OBSERVATION:
-                continue
-            z = Z[v, u]
-            X0, X1, X2 = z * (u - cx) / fx, z * (v - cy) / fy, z
-            Y0 = A[0, 0] * X0 + A[0, 1] * X1 + A[0, 2] * X2 + off[0]
-            Y1 = A[1, 0] * X0 + A[1, 1] * X1 + A[1, 2] * X2 + off[1]
-            iz = 1.0 / max(A[2, 0] * X0 + A[2, 1] * X1 + A[2, 2] * X2 + off[2], 1e-9)
+    c = np.empty(39 * B)
+    for p0 in range(0, o.shape[0], B):
+        nb = min(B, o.shape[0] - p0)
+        for i in range(nb):
+            X0, X1, X2 = X[0, p0 + i], X[1, p0 + i], X[2, p0 + i]
+            Y0 = A0[0] * X0 + A0[1] * X1 + A0[2] * X2 + off0
+            Y1 = A1[0] * X0 + A1[1] * X1 + A1[2] * X2 + off1
+            iz = 1.0 / max(A2[0] * X0 + A2[1] * X1 + A2[2] * X2 + off2, 1e-9)
             pu, pv = fx * Y0 * iz + cx, fy * Y1 * iz + cy
-            # the render template's spline at p (coef is zero-padded by 3: taps iu - 1 .. iu + 2 at iu + 2 .. iu + 5)
+            # coef is zero-padded by 3: the taps iu - 1 .. iu + 2 of p are at iu + 2 .. iu + 5
             iu, iv = math.floor(pu), math.floor(pv)
-            if iu < -2 or iu > N or iv < -2 or iv > N:
-                continue  # every tap outside the canvas
-            wu, du, ddu = _bspline_weights(pu - iu)
-            wv, dv, ddv = _bspline_weights(pv - iv)
-            T = Tu = Tv = Tuu = Tuv = Tvv = 0.0
-            for j in range(4):
-                a0 = a1 = a2 = 0.0
-                for i in range(4):
-                    k = coef[iv + 2 + j, iu + 2 + i]
-                    a0 += k * wu[i]
-                    a1 += k * du[i]
-                    a2 += k * ddu[i]
-                T += a0 * wv[j]
-                Tu += a1 * wv[j]
-                Tuu += a2 * wv[j]
-                Tv += a0 * dv[j]
-                Tuv += a1 * dv[j]
-                Tvv += a0 * ddv[j]
+            c[12 * B + i] = o[p0 + i] if iu >= -2 and iu <= N and iv >= -2 and iv <= N else 0.0  # else no tap inside
+            iu, iv = min(max(iu, -2.0), N), min(max(iv, -2.0), N)
+            c[13 * B + i], c[14 * B + i], c[15 * B + i], c[16 * B + i] = pu - iu, pv - iv, iu + 2, iv + 2
             # G = dp/dY A [-I, [X - t]x], row by row
-            Gu = _pixel_motion(fx * iz, -fx * Y0 * iz * iz, A[0], A[2], X0 - t[0], X1 - t[1], X2 - t[2])
-            Gv = _pixel_motion(fy * iz, -fy * Y1 * iz * iz, A[1], A[2], X0 - t[0], X1 - t[1], X2 - t[2])
-            s0 += o * T
-            for k in range(6):
-                g[k] -= o * (Tu * Gu[k] + Tv * Gv[k])
-                hu, hv = o * (Tuu * Gu[k] + Tuv * Gv[k]), o * (Tuv * Gu[k] + Tvv * Gv[k])
-                for m in range(k, 6):
-                    M[k, m] += hu * Gu[m] + hv * Gv[m]
+            d0, d1, d2 = X0 - t0, X1 - t1, X2 - t2
+            c[i], c[B + i], c[2 * B + i], c[3 * B + i], c[4 * B + i], c[5 * B + i] = _pixel_motion(
+                fx * iz, -fx * Y0 * iz * iz, A0, A2, d0, d1, d2)
+            c[6 * B + i], c[7 * B + i], c[8 * B + i], c[9 * B + i], c[10 * B + i], c[11 * B + i] = _pixel_motion(
+                fy * iz, -fy * Y1 * iz * iz, A1, A2, d0, d1, d2)
+        for i in range(nb):
+            iu, iv = int(c[15 * B + i]), int(c[16 * B + i])
+            for j in range(4):
+                for k in range(4):
+                    c[(17 + 4 * j + k) * B + i] = coef[iv + j, iu + k]
+        for i in range(nb):
+            wu, du, ddu = _bspline_weights(c[13 * B + i])
+            wv, dv, ddv = _bspline_weights(c[14 * B + i])
+            a0, a1, a2 = _tap_rows(c, 17 * B + i, wu, du, ddu)
+            b0, b1, b2 = _tap_rows(c, 21 * B + i, wu, du, ddu)
+            e0, e1, e2 = _tap_rows(c, 25 * B + i, wu, du, ddu)
+            h0, h1, h2 = _tap_rows(c, 29 * B + i, wu, du, ddu)
+            w = c[12 * B + i]
+            c[33 * B + i] = w * (a0 * wv[0] + b0 * wv[1] + e0 * wv[2] + h0 * wv[3])
+            c[34 * B + i] = w * (a1 * wv[0] + b1 * wv[1] + e1 * wv[2] + h1 * wv[3])
+            c[35 * B + i] = w * (a0 * dv[0] + b0 * dv[1] + e0 * dv[2] + h0 * dv[3])
+            c[36 * B + i] = w * (a2 * wv[0] + b2 * wv[1] + e2 * wv[2] + h2 * wv[3])
+            c[37 * B + i] = w * (a1 * dv[0] + b1 * dv[1] + e1 * dv[2] + h1 * dv[3])
+            c[38 * B + i] = w * (a0 * ddv[0] + b0 * ddv[1] + e0 * ddv[2] + h0 * ddv[3])
+        acc = 0.0
+        for i in range(nb):
+            acc += c[33 * B + i]
+        s0 += acc
+        for k in range(6):  # g[k] and row k of M, whose lower part is dropped
+            gk = m0 = m1 = m2 = m3 = m4 = m5 = 0.0
+            for i in range(nb):
+                Gu, Gv = c[k * B + i], c[(6 + k) * B + i]
+                gk += c[34 * B + i] * Gu + c[35 * B + i] * Gv
+                hu, hv = c[36 * B + i] * Gu + c[37 * B + i] * Gv, c[37 * B + i] * Gu + c[38 * B + i] * Gv
+                m0 += hu * c[i] + hv * c[6 * B + i]
+                m1 += hu * c[B + i] + hv * c[7 * B + i]
+                m2 += hu * c[2 * B + i] + hv * c[8 * B + i]
+                m3 += hu * c[3 * B + i] + hv * c[9 * B + i]
+                m4 += hu * c[4 * B + i] + hv * c[10 * B + i]
+                m5 += hu * c[5 * B + i] + hv * c[11 * B + i]
+            g[k] -= gk
+            row = (m0, m1, m2, m3, m4, m5)
+            for m in range(k, 6):
+                M[k, m] += row[m]
     for k in range(6):
         for m in range(k + 1, 6):
             M[m, k] = M[k, m]
@@ -814,7 +878,8 @@ def _quadratic_terms(coef, Z, K, render_pose, pose, obs):
 def _quadratic_kernel(coef, Z, K, render_pose, pose, obs, s0, g, M):
     """:func:`_quadratic_terms` of every batch element into ``s0`` ``(B,)``, ``g`` ``(B, 6)``, ``M`` ``(B, 6, 6)``."""
     for b in range(coef.shape[0]):
-        s0[b], g[b], M[b] = _quadratic_terms(coef[b], Z[b], K[b], render_pose[b], pose[b], obs[b])
+        o, X = _observed_points(Z[b], K[b], obs[b])
+        s0[b], g[b], M[b] = _quadratic_terms(coef[b], K[b], render_pose[b], pose[b], o, X)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -846,8 +911,9 @@ def _newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta,
                          dtheta, dtheta, dtheta])
         cur = pose[b].copy()
         moved = 0
+        o, X = _observed_points(Z[b], K[b], obs[b])
         for it in range(iterations):
-            s0, g, M = _quadratic_terms(coef[b], Z[b], K[b], render_pose[b], cur, obs[b])
+            s0, g, M = _quadratic_terms(coef[b], K[b], render_pose[b], cur, o, X)
             un = unit.copy()
             un[:2] *= cur[2] / pose[b, 2]
             if it == 0:
