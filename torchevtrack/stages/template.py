@@ -257,22 +257,31 @@ def _extent_kernel(depth, origin, cx, cy, gain, out):
         out[b] = _extent(depth[b], origin[b, 0], origin[b, 1], cx, cy, gain)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=True)
 def _extent(depth, u0, v0, cx, cy, gain):
     """:func:`_object_extent` of one window ``(h, w)`` at ``(u0, v0)``: a 6-tuple."""
     h, w = depth.shape
     umin, umax, vmin, vmax, total, n = w, -1, h, -1, 0.0, 0
     for v in range(h):
-        for u in range(w):
-            z = depth[v, u]
+        row = depth[v]
+        lo, hi = 0, w - 1  # the row's first and last object pixel
+        while lo < w and not row[lo] > 0:
+            lo += 1
+        if lo == w:
+            continue
+        while not row[hi] > 0:
+            hi -= 1
+        umin, umax, vmin, vmax = min(umin, lo), max(umax, hi), min(vmin, v), v
+        dv = v + v0 - cy
+        for u in range(lo, hi + 1):
+            z = row[u]
             if z > 0:
-                umin, umax, vmin, vmax, n = min(umin, u), max(umax, u), min(vmin, v), max(vmax, v), n + 1
-                if gain:
-                    du, dv = u + u0 - cx, v + v0 - cy
-                    total += math.sqrt(du * du + dv * dv) / z
+                du = u + u0 - cx
+                n += 1
+                total += math.sqrt(du * du + dv * dv) / z
     if n == 0:
         umin = umax = vmin = vmax = 0
-    return float(umin), float(umax), float(vmin), float(vmax), total, float(n)
+    return float(umin), float(umax), float(vmin), float(vmax), total if gain else 0.0, float(n)
 
 
 def canvas_intrinsics(box: torch.Tensor, camera: Camera, canvas: int) -> torch.Tensor:
@@ -461,25 +470,38 @@ def _fill_kernel(depth, fallback, r):
 
 @numba.njit(cache=True, nogil=True)
 def _fill(depth, fallback, r):
-    """:func:`_fill_depth` of one image ``(h, w)`` in place, with float64 integral images of the object depths
-    and counts."""
+    """:func:`_fill_depth` of one image ``(h, w)`` in place, from float64 box sums of the object depths and counts
+    (running sums over the rows, then prefix sums along them)."""
     h, w = depth.shape
-    S = np.zeros((h + 1, w + 1))
-    C = np.zeros((h + 1, w + 1))
+    S, C = np.zeros((h, w + 1)), np.zeros((h, w + 1))  # column 0 stays 0
+    s, c = np.zeros(w), np.zeros(w)  # sums over the rows [v - r, v + r]
+    for v in range(-r, h):
+        if v + r < h:
+            row = depth[v + r]
+            for u in range(w):
+                z = row[u]
+                s[u] += z if z > 0 else 0.0
+                c[u] += 1.0 if z > 0 else 0.0
+        if v - r - 1 >= 0:
+            row = depth[v - r - 1]
+            for u in range(w):
+                z = row[u]
+                s[u] -= z if z > 0 else 0.0
+                c[u] -= 1.0 if z > 0 else 0.0
+        if v >= 0:
+            S[v, 1:] = s
+            C[v, 1:] = c
+    for u in range(1, w + 1):  # independent across rows
+        for v in range(h):
+            S[v, u] += S[v, u - 1]
+            C[v, u] += C[v, u - 1]
     for v in range(h):
-        for u in range(w):
-            z = depth[v, u]
-            inside = z > 0
-            S[v + 1, u + 1] = S[v, u + 1] + S[v + 1, u] - S[v, u] + (z if inside else 0.0)
-            C[v + 1, u + 1] = C[v, u + 1] + C[v + 1, u] - C[v, u] + (1.0 if inside else 0.0)
-    for v in range(h):
-        v0, v1 = max(v - r, 0), min(v + r + 1, h)
         for u in range(w):
             if depth[v, u] > 0:
                 continue
             u0, u1 = max(u - r, 0), min(u + r + 1, w)
-            n = C[v1, u1] - C[v0, u1] - C[v1, u0] + C[v0, u0]
-            depth[v, u] = (S[v1, u1] - S[v0, u1] - S[v1, u0] + S[v0, u0]) / n if n > 0.5 else fallback
+            n = C[v, u1] - C[v, u0]
+            depth[v, u] = (S[v, u1] - S[v, u0]) / n if n > 0.5 else fallback
 
 
 # Cubic B-spline interpolation for the warp (module docstring, item 4): exact at the samples and
@@ -1073,38 +1095,58 @@ class TemplateModel(NamedTuple):
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
-def _blur_columns(x, k):
-    """``out[v, u] = sum_i k[i] x[v + i - r, u]`` (zero outside, ``r = len(k) // 2``), row by row, in ``x``'s dtype."""
-    n, m = x.shape
-    r = len(k) // 2
-    out = np.zeros((n, m), dtype=x.dtype)
-    for v in range(n):
-        row = out[v]
-        for i in range(max(0, r - v), min(len(k), n + r - v)):
-            src, w = x[v + i - r], k[i]
-            for u in range(m):
-                row[u] += w * src[u]
-    return out
+def _taps_pass(src, k, step, dst):
+    """``dst[q] = sum_i k[i] src[q + i step]`` (flat arrays), the taps added in order (up to four per pass)."""
+    L, n4 = len(dst), (len(k) - 1) // 4 * 4
+    a, w = src[:L], k[0]
+    for q in range(L):
+        dst[q] = w * a[q]
+    for i in range(1, n4 + 1, 4):
+        a, b = src[i * step:i * step + L], src[(i + 1) * step:(i + 1) * step + L]
+        c, d = src[(i + 2) * step:(i + 2) * step + L], src[(i + 3) * step:(i + 3) * step + L]
+        w0, w1, w2, w3 = k[i], k[i + 1], k[i + 2], k[i + 3]
+        for q in range(L):
+            dst[q] = dst[q] + w0 * a[q] + w1 * b[q] + w2 * c[q] + w3 * d[q]
+    for i in range(n4 + 1, len(k)):
+        a, w = src[i * step:i * step + L], k[i]
+        for q in range(L):
+            dst[q] += w * a[q]
 
 
 @numba.njit(cache=True, nogil=True)
-def _blur(x, k):
-    """Separable blur of an image by the 1-D kernel ``k`` along both axes, zero outside."""
-    return _blur_columns(_blur_columns(x, k).T.copy(), k).T
+def _blur(x, k, tmp, out):
+    """Blur by the 1-D kernel ``k`` along both axes, zero outside: ``x`` is the ``(n, m)`` image zero-padded by
+    ``p >= len(k) // 2`` on each side, ``tmp`` and ``out`` are ``(n, m + 2p)``; ``out[:, p:p + m]`` is the blur."""
+    n, W = tmp.shape
+    p, r = (x.shape[0] - n) // 2, len(k) // 2
+    xf, t = x.reshape(-1), tmp.reshape(-1)
+    _taps_pass(xf[(p - r) * W:], k, W, t)  # along the columns
+    _taps_pass(t[p - r:], k, 1, out.reshape(-1)[p:n * W - p])  # along the rows (the pads keep rows apart)
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
-def _sobel_max(x, E):
-    """``E = max(E, |Sobel x|^2)`` (unnormalised Sobel, replicated border)."""
+def _sobel2(a, b, c, u0, u, u1):
+    """``|Sobel|^2`` (unnormalised) at column ``u`` of rows ``a, b, c`` with neighbour columns ``u0, u1``."""
+    gu = (a[u1] - a[u0]) + 2 * (b[u1] - b[u0]) + (c[u1] - c[u0])
+    gv = (c[u0] - a[u0]) + 2 * (c[u] - a[u]) + (c[u1] - a[u1])
+    return gu * gu + gv * gv
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True)
+def _edges(x, y, scale, E):
+    """``E[p:p + N, p:p + M] = min(sqrt(max(|Sobel x|^2, |Sobel y|^2)) * scale, 1)`` (replicated border, the
+    squares rounded to float32) with ``p`` the padding of ``E``."""
     N, M = x.shape
+    p = (E.shape[0] - N) // 2
+    one = np.float32(1.0)
     for v in range(N):
         v0, v1 = max(v - 1, 0), min(v + 1, N - 1)
-        a, b, c = x[v0], x[v], x[v1]
-        for u in range(M):
-            u0, u1 = max(u - 1, 0), min(u + 1, M - 1)
-            gu = (a[u1] - a[u0]) + 2 * (b[u1] - b[u0]) + (c[u1] - c[u0])
-            gv = (c[u0] - a[u0]) + 2 * (c[u] - a[u]) + (c[u1] - a[u1])
-            E[v, u] = max(E[v, u], gu * gu + gv * gv)
+        xa, xb, xc, ya, yb, yc, e = x[v0], x[v], x[v1], y[v0], y[v], y[v1], E[v + p, p:]
+        for u in range(M - 2):  # the interior, with u + 1 the pixel
+            e[u + 1] = min(np.sqrt(np.float32(max(_sobel2(xa, xb, xc, u, u + 1, u + 2), _sobel2(ya, yb, yc, u, u + 1, u + 2)))) * scale,
+                           one)
+        for u, u0, u1 in ((0, 0, 1), (M - 1, M - 2, M - 1)):
+            e[u] = min(np.sqrt(np.float32(max(_sobel2(xa, xb, xc, u0, u, u1), _sobel2(ya, yb, yc, u0, u, u1)))) * scale, one)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -1121,8 +1163,14 @@ def _model_kernel(depth, gray, origin, z_fallback, cam, margin, use_gray, use_ma
     B, h, w = depth.shape
     N = T.shape[-1]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
-    # the canvas images and filters in float32 (twice the SIMD width; the template is float32)
-    mask, shade, E = np.empty((N, N), np.float32), np.empty((N, N), np.float32), np.empty((N, N), np.float32)
+    # the canvas images and filters in float32 (twice the SIMD width; the template is float32); p: zero padding of
+    # the images that are blurred
+    p = max(len(g1), len(g2), len(pre)) // 2
+    W = N + 2 * p
+    mask, shade = np.empty((N, N), np.float32), np.empty((N, N), np.float32)
+    E, Tp = np.zeros((W, W), np.float32), np.zeros((W, W), np.float32)
+    tmp, B1, B2 = np.empty((N, W), np.float32), np.empty((N, W), np.float32), np.empty((N, W), np.float32)
+    scale = np.float32(edge_scale)
     for b in range(B):
         ou, ov = origin[b, 0], origin[b, 1]
         umin, umax, vmin, vmax, total, n = _extent(depth[b], ou, ov, cx, cy, True)
@@ -1142,57 +1190,89 @@ def _model_kernel(depth, gray, origin, z_fallback, cam, margin, use_gray, use_ma
                 points[b, k, 0], points[b, k, 1], points[b, k, 2] = (j - K[b, 2]) / K[b, 0] * z, (i - K[b, 3]) / K[b, 1] * z, z
                 valid[b, k] = z > 0
                 k += 1
-        E[:] = 0.0
-        if use_gray:
-            _sobel_max(shade, E)
-        if use_mask:
-            _sobel_max(mask, E)
-        E = np.minimum(np.sqrt(E) * np.float32(edge_scale), np.float32(1.0))
-        D = _blur(E, g1) - _blur(E, g2)  # Difference of Gaussians
-        Tb = np.minimum(np.maximum(D * np.float32(0.5 / max(np.abs(D).max(), 1e-12)), np.float32(-0.5)),
-                        np.float32(0.5))
-        T[b] = Tb
-        coef[b, 3:N + 3, 3:N + 3] = _blur(Tb, pre)  # the B-spline coefficients
+        _edges(shade if use_gray else mask, mask if use_mask else shade, scale, E)
+        _blur(E, g1, tmp, B1)
+        _blur(E, g2, tmp, B2)  # Difference of Gaussians B1 - B2
+        _dog_template(B1, B2, T[b], Tp)
+        _blur(Tp, pre, tmp, B1)
+        coef[b, 3:N + 3, 3:N + 3] = B1[:, p:p + N]  # the B-spline coefficients
         _fill(Z[b], z_fallback[b], fill_radius)
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True)
+def _dog_template(B1, B2, T, Tp):
+    """``T = clip(D * 0.5 / max|D|, -0.5, 0.5)`` of the Difference of Gaussians ``D = B1 - B2`` (into ``B1``), also
+    into ``Tp`` (``T`` zero-padded by ``p``); ``B1``, ``B2`` are :func:`_blur` outputs ``(N, N + 2p)``."""
+    N = T.shape[0]
+    p = (Tp.shape[0] - N) // 2
+    peak = np.float32(0.0)
+    for v in range(N):
+        d, e = B1[v, p:p + N], B2[v, p:p + N]
+        for u in range(N):
+            d[u] -= e[u]
+            peak = max(peak, abs(d[u]))
+    s = np.float32(0.5 / max(peak, 1e-12))
+    for v in range(N):
+        d, t, tp = B1[v, p:p + N], T[v], Tp[v + p, p:p + N]
+        for u in range(N):
+            t[u] = tp[u] = min(max(d[u] * s, np.float32(-0.5)), np.float32(0.5))
+
+
+@numba.njit(cache=True, nogil=True)
+def _taps(c, step, N, n):
+    """Bilinear taps along one axis of the ``N`` canvas pixels centred at ``c`` (``step`` apart) in ``[0, n)``:
+    indices clamped into it and weights, zero for taps outside."""
+    i0, i1, a0, a1 = np.empty(N, np.int64), np.empty(N, np.int64), np.empty(N), np.empty(N)
+    for j in range(N):
+        x = c + (j + 0.5 - N / 2) * step
+        k = math.floor(x)
+        f = x - k
+        i0[j], i1[j] = min(max(k, 0), n - 1), min(max(k + 1, 0), n - 1)
+        a0[j], a1[j] = (1 - f) if 0 <= k < n else 0.0, f if -1 <= k < n - 1 else 0.0
+    return i0, i1, a0, a1
+
+
+@numba.njit(cache=True, nogil=True)
+def _resample_row(depth, gray, y, c0, c1, a0, a1, use_gray, out):
+    """Row ``y`` of the window resampled along ``u`` (taps from :func:`_taps`): ``out[0]`` object depth times
+    object weight, ``out[1]`` object weight, ``out[2]`` grey (zeros outside the window or without grey)."""
+    out[:] = 0.0
+    if y < 0 or y >= depth.shape[0]:
+        return
+    zr, gr = depth[y], gray[y]
+    for j in range(out.shape[1]):
+        z0, z1 = zr[c0[j]], zr[c1[j]]
+        m0, m1 = a0[j] if z0 > 0 else 0.0, a1[j] if z1 > 0 else 0.0
+        out[0, j], out[1, j] = m0 * z0 + m1 * z1, m0 + m1
+        if use_gray:
+            out[2, j] = a0[j] * gr[c0[j]] + a1[j] * gr[c1[j]]
 
 
 @numba.njit(cache=True, nogil=True)
 def _resample(depth, gray, cu, cv, step, use_gray, c_depth, c_mask, c_gray):
     """:func:`to_canvas` of one window (box centre ``(cu, cv)`` in window pixels, ``step`` window pixels per canvas
-    pixel): the object depth (depth-weighted over the object taps only), the mask and, if ``use_gray``, the grey."""
-    h, w = depth.shape
+    pixel): the object depth (depth-weighted over the object taps only), the mask and, if ``use_gray``, the grey.
+    Bilinear as two linear passes: along the rows, then between the two rows a canvas row falls between."""
     N = c_depth.shape[0]
-    cols, fus = np.empty(N, dtype=np.int64), np.empty(N)
-    for j in range(N):
-        u = cu + (j + 0.5 - N / 2) * step
-        cols[j] = math.floor(u)
-        fus[j] = u - cols[j]
-    for i in range(N):  # bilinear, zero outside the window
+    c0, c1, a0, a1 = _taps(cu, step, N, depth.shape[1])
+    lo, hi = np.empty((3, N)), np.empty((3, N))  # window rows y and y + 1, resampled along u
+    y_lo = 0
+    for i in range(N):
         v = cv + (i + 0.5 - N / 2) * step
-        v0 = math.floor(v)
-        fv = v - v0
+        y = math.floor(v)
+        fv = v - y
+        if i == 0 or y != y_lo:
+            if i > 0 and y == y_lo + 1:
+                lo, hi = hi, lo
+            else:
+                _resample_row(depth, gray, y, c0, c1, a0, a1, use_gray, lo)
+            _resample_row(depth, gray, y + 1, c0, c1, a0, a1, use_gray, hi)
+            y_lo = y
         for j in range(N):
-            u0, fu = cols[j], fus[j]
-            sd = sm = sg = 0.0
-            for dv in range(2):
-                y = v0 + dv
-                if y < 0 or y >= h:
-                    continue
-                wv = fv if dv else 1 - fv
-                for du in range(2):
-                    x = u0 + du
-                    if x < 0 or x >= w:
-                        continue
-                    wgt = wv * (fu if du else 1 - fu)
-                    z = depth[y, x]
-                    if z > 0:
-                        sd += wgt * z
-                        sm += wgt
-                    if use_gray:
-                        sg += wgt * gray[y, x]
+            sd, sm = (1 - fv) * lo[0, j] + fv * hi[0, j], (1 - fv) * lo[1, j] + fv * hi[1, j]
             c_mask[i, j] = sm
             c_depth[i, j] = sd / sm if sm > 1e-6 else 0.0
-            c_gray[i, j] = sg
+            c_gray[i, j] = (1 - fv) * lo[2, j] + fv * hi[2, j]
 
 
 @functools.lru_cache(maxsize=8)
