@@ -470,10 +470,11 @@ def _fill_kernel(depth, fallback, r):
 
 @numba.njit(cache=True, nogil=True)
 def _fill(depth, fallback, r):
-    """:func:`_fill_depth` of one image ``(h, w)`` in place, from float64 box sums of the object depths and counts
-    (running sums over the rows, then prefix sums along them)."""
+    """:func:`_fill_depth` of one image ``(h, w)`` in place, from float64 box sums of the object depths and counts:
+    running sums over ``2 r + 1`` rows, then prefix sums along the rows (zero-padded by ``r``, so the window
+    of pixel ``u`` is ``P[u + 2 r + 1] - P[u]``)."""
     h, w = depth.shape
-    S, C = np.zeros((h, w + 1)), np.zeros((h, w + 1))  # column 0 stays 0
+    S, C = np.zeros((h, w + 2 * r + 1)), np.zeros((h, w + 2 * r + 1))
     s, c = np.zeros(w), np.zeros(w)  # sums over the rows [v - r, v + r]
     for v in range(-r, h):
         if v + r < h:
@@ -489,19 +490,18 @@ def _fill(depth, fallback, r):
                 s[u] -= z if z > 0 else 0.0
                 c[u] -= 1.0 if z > 0 else 0.0
         if v >= 0:
-            S[v, 1:] = s
-            C[v, 1:] = c
-    for u in range(1, w + 1):  # independent across rows
+            S[v, r + 1:r + 1 + w] = s
+            C[v, r + 1:r + 1 + w] = c
+    for u in range(1, w + 2 * r + 1):  # independent across rows
         for v in range(h):
             S[v, u] += S[v, u - 1]
             C[v, u] += C[v, u - 1]
     for v in range(h):
+        row, S0, S1, C0, C1 = depth[v], S[v], S[v, 2 * r + 1:], C[v], C[v, 2 * r + 1:]
         for u in range(w):
-            if depth[v, u] > 0:
-                continue
-            u0, u1 = max(u - r, 0), min(u + r + 1, w)
-            n = C[v, u1] - C[v, u0]
-            depth[v, u] = (S[v, u1] - S[v, u0]) / n if n > 0.5 else fallback
+            n = C1[u] - C0[u]
+            z = row[u]
+            row[u] = z if z > 0 else ((S1[u] - S0[u]) / n if n > 0.5 else fallback)
 
 
 # Cubic B-spline interpolation for the warp (module docstring, item 4): exact at the samples and
@@ -1233,46 +1233,37 @@ def _taps(c, step, N, n):
 
 
 @numba.njit(cache=True, nogil=True)
-def _resample_row(depth, gray, y, c0, c1, a0, a1, use_gray, out):
-    """Row ``y`` of the window resampled along ``u`` (taps from :func:`_taps`): ``out[0]`` object depth times
-    object weight, ``out[1]`` object weight, ``out[2]`` grey (zeros outside the window or without grey)."""
-    out[:] = 0.0
-    if y < 0 or y >= depth.shape[0]:
-        return
-    zr, gr = depth[y], gray[y]
-    for j in range(out.shape[1]):
-        z0, z1 = zr[c0[j]], zr[c1[j]]
-        m0, m1 = a0[j] if z0 > 0 else 0.0, a1[j] if z1 > 0 else 0.0
-        out[0, j], out[1, j] = m0 * z0 + m1 * z1, m0 + m1
-        if use_gray:
-            out[2, j] = a0[j] * gr[c0[j]] + a1[j] * gr[c1[j]]
-
-
-@numba.njit(cache=True, nogil=True)
 def _resample(depth, gray, cu, cv, step, use_gray, c_depth, c_mask, c_gray):
     """:func:`to_canvas` of one window (box centre ``(cu, cv)`` in window pixels, ``step`` window pixels per canvas
     pixel): the object depth (depth-weighted over the object taps only), the mask and, if ``use_gray``, the grey.
-    Bilinear as two linear passes: along the rows, then between the two rows a canvas row falls between."""
+    Bilinear as two linear passes per canvas row: between two window rows, then along the row."""
+    h, w = depth.shape
     N = c_depth.shape[0]
-    c0, c1, a0, a1 = _taps(cu, step, N, depth.shape[1])
-    lo, hi = np.empty((3, N)), np.empty((3, N))  # window rows y and y + 1, resampled along u
-    y_lo = 0
+    c0, c1, a0, a1 = _taps(cu, step, N, w)
+    r0, r1, b0, b1 = _taps(cv, step, N, h)
+    lo, hi = c0[0], c1[N - 1] + 1  # the window columns the canvas samples
+    c0 -= lo
+    c1 -= lo
+    V = np.zeros((3, hi - lo))  # object depth times object weight, object weight, grey of one canvas row
+    vd, vm, vg = V[0], V[1], V[2]
+    sd, sm = np.empty(N), np.empty(N)
     for i in range(N):
-        v = cv + (i + 0.5 - N / 2) * step
-        y = math.floor(v)
-        fv = v - y
-        if i == 0 or y != y_lo:
-            if i > 0 and y == y_lo + 1:
-                lo, hi = hi, lo
-            else:
-                _resample_row(depth, gray, y, c0, c1, a0, a1, use_gray, lo)
-            _resample_row(depth, gray, y + 1, c0, c1, a0, a1, use_gray, hi)
-            y_lo = y
-        for j in range(N):
-            sd, sm = (1 - fv) * lo[0, j] + fv * hi[0, j], (1 - fv) * lo[1, j] + fv * hi[1, j]
-            c_mask[i, j] = sm
-            c_depth[i, j] = sd / sm if sm > 1e-6 else 0.0
-            c_gray[i, j] = (1 - fv) * lo[2, j] + fv * hi[2, j]
+        ws, wt = b0[i], b1[i]
+        zs, zt = depth[r0[i], lo:hi], depth[r1[i], lo:hi]
+        for u in range(hi - lo):
+            z0, z1 = zs[u], zt[u]
+            m0, m1 = ws if z0 > 0 else 0.0, wt if z1 > 0 else 0.0
+            vd[u], vm[u] = m0 * z0 + m1 * z1, m0 + m1
+        if use_gray:
+            gs, gt = gray[r0[i], lo:hi], gray[r1[i], lo:hi]
+            for u in range(hi - lo):
+                vg[u] = ws * gs[u] + wt * gt[u]
+        for j in range(N):  # gathers
+            sd[j], sm[j] = a0[j] * vd[c0[j]] + a1[j] * vd[c1[j]], a0[j] * vm[c0[j]] + a1[j] * vm[c1[j]]
+            c_gray[i, j] = a0[j] * vg[c0[j]] + a1[j] * vg[c1[j]]
+        for j in range(N):  # vectorised
+            c_mask[i, j] = sm[j]
+            c_depth[i, j] = sd[j] / sm[j] if sm[j] > 1e-6 else 0.0
 
 
 @functools.lru_cache(maxsize=8)
