@@ -1205,13 +1205,13 @@ def _dog_template(B1, B2, T, Tp):
     into ``Tp`` (``T`` zero-padded by ``p``); ``B1``, ``B2`` are :func:`_blur` outputs ``(N, N + 2p)``."""
     N = T.shape[0]
     p = (Tp.shape[0] - N) // 2
-    peak = np.float32(0.0)
+    peak = np.zeros(N, np.float32)  # of each column: an element-wise max vectorises, a max reduction does not
     for v in range(N):
         d, e = B1[v, p:p + N], B2[v, p:p + N]
         for u in range(N):
             d[u] -= e[u]
-            peak = max(peak, abs(d[u]))
-    s = np.float32(0.5 / max(peak, 1e-12))
+            peak[u] = max(peak[u], abs(d[u]))
+    s = np.float32(0.5 / max(peak.max(), 1e-12))
     for v in range(N):
         d, t, tp = B1[v, p:p + N], T[v], Tp[v + p, p:p + N]
         for u in range(N):
