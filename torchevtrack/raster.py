@@ -130,23 +130,19 @@ def _render_kernel(vertices, faces, planes, albedo, normals, poses, fx, fy, cx, 
                    background, depth, gray):
     """Rasterise pose ``b`` into ``depth[b]`` and, unless ``gray`` has no pixels, shade it into ``gray[b]``."""
     B, H, W = depth.shape
-    hom = np.empty((vertices.shape[0], 3))
-    uv = np.empty((vertices.shape[0], 2))
-    front = np.empty(faces.shape[0], dtype=np.uint32)
+    proj = np.empty(5 * vertices.shape[0])
+    front, seen = np.empty(faces.shape[0], dtype=np.int64), np.empty(faces.shape[0], dtype=np.bool_)
     box, edges = np.empty((_CHUNK, 7), dtype=np.int64), np.empty((_CHUNK, 10))
     size = max(H * W, _FLUSH)  # _draw's queue never holds more
     wins, weights = np.empty((size, 2), dtype=np.int32), np.empty((size, 2), dtype=np.float32)
     for b in range(B):
         R, t = _nb_quat_to_matrix(poses[b, 3], poses[b, 4], poses[b, 5], poses[b, 6]), poses[b, :3]
-        _project(vertices, R, t, fx, fy, cx, cy, znear, hom, uv)
+        _project(vertices.reshape(-1), R, t, fx, fy, cx, cy, znear, proj)
         # the camera centre in the object frame, -R^T t, and the faces it sees the front of
         c0 = -(R[0, 0] * t[0] + R[1, 0] * t[1] + R[2, 0] * t[2])
         c1 = -(R[0, 1] * t[0] + R[1, 1] * t[1] + R[2, 1] * t[2])
         c2 = -(R[0, 2] * t[0] + R[1, 2] * t[1] + R[2, 2] * t[2])
-        n = 0
-        for f in range(faces.shape[0]):  # branch-free compaction
-            front[n] = f
-            n += planes[0, f] * c0 + planes[1, f] * c1 + planes[2, f] * c2 > planes[3, f]
+        n = _front_faces(planes[0], planes[1], planes[2], planes[3], c0, c1, c2, seen, front)
         depth[b] = 0.0
         gray[b] = background
         # n_cam . l = n_obj . (R^T l)
@@ -154,11 +150,11 @@ def _render_kernel(vertices, faces, planes, albedo, normals, poses, fx, fy, cx, 
                      R[0, 1] * light[0] + R[1, 1] * light[1] + R[2, 1] * light[2],
                      R[0, 2] * light[0] + R[1, 2] * light[1] + R[2, 2] * light[2])
         shading = (albedo, normals, light_obj, ambient, gray[b].reshape(-1))
-        _draw(hom, uv, faces, front[:n], znear, zfar, depth[b], shading, box, edges, wins, weights)
+        _draw(proj, faces, front[:n], znear, zfar, depth[b], shading, box, edges, wins, weights)
 
 
 @numba.njit(cache=True, nogil=True)
-def _draw(hom, uv, faces, front, znear, zfar, depth, shading, box, edges, wins, weights):
+def _draw(proj, faces, front, znear, zfar, depth, shading, box, edges, wins, weights):
     """Z-buffer pass of the faces ``front`` over an all-zero ``depth`` ``(h, w)``: for each pixel, the camera
     ``z`` (metres) of the nearest of them in ``[znear, zfar]`` and, unless the grey image (the last of the
     ``shading`` arguments of :func:`_shade`) has no pixels, its Lambert grey. Per chunk of ``_CHUNK`` faces:
@@ -168,7 +164,7 @@ def _draw(hom, uv, faces, front, znear, zfar, depth, shading, box, edges, wins, 
     depth = depth.reshape(-1)
     shaded = shading[-1].size != 0
     for start in range(0, len(front), _CHUNK):
-        k = _face_setups(hom, uv, faces, front[start:start + _CHUNK], znear, zfar, W, H, box, edges)
+        k = _face_setups(proj, faces, front[start:start + _CHUNK], znear, zfar, W, H, box, edges)
         m = 0
         for r in range(k):
             if m + (box[r, 1] - box[r, 0] + 1) * (box[r, 3] - box[r, 2] + 1) > _FLUSH:
@@ -181,50 +177,66 @@ def _draw(hom, uv, faces, front, znear, zfar, depth, shading, box, edges, wins, 
 
 
 @numba.njit(cache=True, nogil=True)
-def _project(vertices, R, t, fx, fy, cx, cy, znear, hom, uv):
-    """Fill ``hom`` ``(V, 3)`` with the homogeneous image points ``(fx X + cx Z, fy Y + cy Z, Z)`` of the vertices
-    moved by ``R, t``, and ``uv`` ``(V, 2)`` with their pixels (NaN for vertices nearer than ``znear``)."""
-    for i in range(vertices.shape[0]):
-        px, py, pz = vertices[i, 0], vertices[i, 1], vertices[i, 2]
-        X = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
-        Y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
-        Z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
-        hom[i, 0], hom[i, 1], hom[i, 2] = fx * X + cx * Z, fy * Y + cy * Z, Z
-        if Z >= znear:
-            uv[i, 0], uv[i, 1] = hom[i, 0] / Z, hom[i, 1] / Z
-        else:
-            uv[i, 0] = uv[i, 1] = np.nan
+def _front_faces(nx, ny, nz, offset, c0, c1, c2, seen, front):
+    """Write into ``front`` the faces whose plane ``(nx, ny, nz) . p = offset`` has the point ``(c0, c1, c2)``
+    strictly in front, in order; return their number (``seen`` is scratch)."""
+    for f in range(len(seen)):
+        seen[f] = nx[f] * c0 + ny[f] * c1 + nz[f] * c2 > offset[f]
+    n = 0
+    for f in range(len(seen)):  # branch-free compaction
+        front[n] = f
+        n += seen[f]
+    return n
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")  # no zero-division check: the loop vectorises
+def _project(vertices, R, t, fx, fy, cx, cy, znear, proj):
+    """Fill ``proj[5 i:5 i + 5]`` with the homogeneous image point ``(fx X + cx Z, fy Y + cy Z, Z)`` of vertex
+    ``i`` (``vertices`` flattened) moved by ``R, t``, and its pixel ``(u, v)`` (NaN if nearer than ``znear``)."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = (R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0],
+                                                   R[2, 1], R[2, 2])
+    t0, t1, t2 = t[0], t[1], t[2]
+    for i in range(len(vertices) // 3):
+        px, py, pz = vertices[3 * i], vertices[3 * i + 1], vertices[3 * i + 2]
+        X = r00 * px + r01 * py + r02 * pz + t0
+        Y = r10 * px + r11 * py + r12 * pz + t1
+        Z = r20 * px + r21 * py + r22 * pz + t2
+        x, y = fx * X + cx * Z, fy * Y + cy * Z
+        proj[5 * i], proj[5 * i + 1], proj[5 * i + 2] = x, y, Z
+        proj[5 * i + 3] = x / Z if Z >= znear else np.nan
+        proj[5 * i + 4] = y / Z if Z >= znear else np.nan
 
 
 @numba.njit(cache=True, nogil=True)
-def _cross(hom, a, b):
-    """Cross product of the homogeneous points ``a`` and ``b``: the edge function of the edge ``a -> b``,
-    whose value at pixel ``(x, y)`` is ``result . (x, y, 1)``."""
-    return (hom[a, 1] * hom[b, 2] - hom[a, 2] * hom[b, 1],
-            hom[a, 2] * hom[b, 0] - hom[a, 0] * hom[b, 2],
-            hom[a, 0] * hom[b, 1] - hom[a, 1] * hom[b, 0])
+def _cross(proj, a, b):
+    """Cross product of the homogeneous points ``a`` and ``b`` of ``proj``: the edge function of the edge
+    ``a -> b``, whose value at pixel ``(x, y)`` is ``result . (x, y, 1)``."""
+    xa, ya, za, xb, yb, zb = proj[5 * a], proj[5 * a + 1], proj[5 * a + 2], proj[5 * b], proj[5 * b + 1], \
+        proj[5 * b + 2]
+    return ya * zb - za * yb, za * xb - xa * zb, xa * yb - ya * xb
 
 
 @numba.njit(cache=True, nogil=True)
-def _near_clipped_box(hom, i0, i1, i2, znear):
+def _near_clipped_box(proj, i0, i1, i2, znear):
     """Pixel bounding box ``(umin, umax, vmin, vmax)`` of the part of a triangle at ``Z >= znear``."""
     umin = vmin = np.inf
     umax = vmax = -np.inf
     for a, b in ((i0, i1), (i1, i2), (i2, i0)):
-        za, zb = hom[a, 2], hom[b, 2]
+        xa, ya, za, xb, yb, zb = proj[5 * a], proj[5 * a + 1], proj[5 * a + 2], proj[5 * b], proj[5 * b + 1], \
+            proj[5 * b + 2]
         if za >= znear:  # a kept vertex
-            umin, umax = min(umin, hom[a, 0] / za), max(umax, hom[a, 0] / za)
-            vmin, vmax = min(vmin, hom[a, 1] / za), max(vmax, hom[a, 1] / za)
+            umin, umax = min(umin, xa / za), max(umax, xa / za)
+            vmin, vmax = min(vmin, ya / za), max(vmax, ya / za)
         if (za - znear) * (zb - znear) < 0.0:  # the edge crosses the near plane: there, Z = znear
             s = (znear - za) / (zb - za)
-            u = (hom[a, 0] + s * (hom[b, 0] - hom[a, 0])) / znear
-            v = (hom[a, 1] + s * (hom[b, 1] - hom[a, 1])) / znear
+            u = (xa + s * (xb - xa)) / znear
+            v = (ya + s * (yb - ya)) / znear
             umin, umax, vmin, vmax = min(umin, u), max(umax, u), min(vmin, v), max(vmax, v)
     return umin, umax, vmin, vmax
 
 
 @numba.njit(cache=True, nogil=True)
-def _face_setups(hom, uv, faces, front, znear, zfar, W, H, box, edges):
+def _face_setups(proj, faces, front, znear, zfar, W, H, box, edges):
     """Records of the faces ``front`` whose pixel box in the ``W x H`` window is not empty: ``box[r]`` their box
     ``(xmin, xmax, ymin, ymax)`` and vertex indices, ``edges[r]`` their three edge functions and ``det``
     (< 0 for a front face); returns the number of records. Skips faces wholly nearer than ``znear`` or
@@ -232,21 +244,22 @@ def _face_setups(hom, uv, faces, front, znear, zfar, W, H, box, edges):
     k = 0
     for f in front:
         i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-        z0, z1, z2 = hom[i0, 2], hom[i1, 2], hom[i2, 2]
+        z0, z1, z2 = proj[5 * i0 + 2], proj[5 * i1 + 2], proj[5 * i2 + 2]
         if (z0 < znear and z1 < znear and z2 < znear) or (z0 > zfar and z1 > zfar and z2 > zfar):
             continue
         if z0 >= znear and z1 >= znear and z2 >= znear:
-            umin, umax = min(uv[i0, 0], uv[i1, 0], uv[i2, 0]), max(uv[i0, 0], uv[i1, 0], uv[i2, 0])
-            vmin, vmax = min(uv[i0, 1], uv[i1, 1], uv[i2, 1]), max(uv[i0, 1], uv[i1, 1], uv[i2, 1])
+            u0, u1, u2, v0, v1, v2 = proj[5 * i0 + 3], proj[5 * i1 + 3], proj[5 * i2 + 3], proj[5 * i0 + 4], \
+                proj[5 * i1 + 4], proj[5 * i2 + 4]
+            umin, umax, vmin, vmax = min(u0, u1, u2), max(u0, u1, u2), min(v0, v1, v2), max(v0, v1, v2)
         else:
-            umin, umax, vmin, vmax = _near_clipped_box(hom, i0, i1, i2, znear)
+            umin, umax, vmin, vmax = _near_clipped_box(proj, i0, i1, i2, znear)
         xmin, xmax = max(math.ceil(umin), 0), min(math.floor(umax), W - 1)
         ymin, ymax = max(math.ceil(vmin), 0), min(math.floor(vmax), H - 1)
         e = edges[k]
-        e[0], e[1], e[2] = _cross(hom, i1, i2)
-        e[3], e[4], e[5] = _cross(hom, i2, i0)
-        e[6], e[7], e[8] = _cross(hom, i0, i1)
-        e[9] = e[0] * hom[i0, 0] + e[1] * hom[i0, 1] + e[2] * hom[i0, 2]
+        e[0], e[1], e[2] = _cross(proj, i1, i2)
+        e[3], e[4], e[5] = _cross(proj, i2, i0)
+        e[6], e[7], e[8] = _cross(proj, i0, i1)
+        e[9] = e[0] * proj[5 * i0] + e[1] * proj[5 * i0 + 1] + e[2] * proj[5 * i0 + 2]
         box[k, 0], box[k, 1], box[k, 2], box[k, 3], box[k, 4], box[k, 5], box[k, 6] = xmin, xmax, ymin, ymax, i0, i1, i2
         k += (xmin <= xmax) & (ymin <= ymax) & (e[9] < 0.0)  # branch-free compaction
     return k
