@@ -1143,10 +1143,11 @@ def _edges(x, y, scale, E):
         v0, v1 = max(v - 1, 0), min(v + 1, N - 1)
         xa, xb, xc, ya, yb, yc, e = x[v0], x[v], x[v1], y[v0], y[v], y[v1], E[v + p, p:]
         for u in range(M - 2):  # the interior, with u + 1 the pixel
-            e[u + 1] = min(np.sqrt(np.float32(max(_sobel2(xa, xb, xc, u, u + 1, u + 2), _sobel2(ya, yb, yc, u, u + 1, u + 2)))) * scale,
-                           one)
+            g = np.float32(max(_sobel2(xa, xb, xc, u, u + 1, u + 2), _sobel2(ya, yb, yc, u, u + 1, u + 2)))
+            e[u + 1] = min(np.sqrt(g) * scale, one)
         for u, u0, u1 in ((0, 0, 1), (M - 1, M - 2, M - 1)):
-            e[u] = min(np.sqrt(np.float32(max(_sobel2(xa, xb, xc, u0, u, u1), _sobel2(ya, yb, yc, u0, u, u1)))) * scale, one)
+            g = np.float32(max(_sobel2(xa, xb, xc, u0, u, u1), _sobel2(ya, yb, yc, u0, u, u1)))
+            e[u] = min(np.sqrt(g) * scale, one)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -1258,10 +1259,10 @@ def _resample(depth, gray, cu, cv, step, use_gray, c_depth, c_mask, c_gray):
             gs, gt = gray[r0[i], lo:hi], gray[r1[i], lo:hi]
             for u in range(hi - lo):
                 vg[u] = ws * gs[u] + wt * gt[u]
-        for j in range(N):  # gathers
+        for j in range(N):  # along the row (gathers)
             sd[j], sm[j] = a0[j] * vd[c0[j]] + a1[j] * vd[c1[j]], a0[j] * vm[c0[j]] + a1[j] * vm[c1[j]]
             c_gray[i, j] = a0[j] * vg[c0[j]] + a1[j] * vg[c1[j]]
-        for j in range(N):  # vectorised
+        for j in range(N):  # a loop of its own, vectorised
             c_mask[i, j] = sm[j]
             c_depth[i, j] = sd[j] / sm[j] if sm[j] > 1e-6 else 0.0
 
