@@ -483,6 +483,11 @@ class EventPoseTracker(nn.Module):
         B = self.batch_size
         H, W = self.camera.height, self.camera.width
         win = self._windows(poses)
+        if B == 1:  # the own window is the common one: the render is the buffer
+            out = self._renderers[self._renderer_of[0]].render(poses, roi=tuple(win[0].tolist()), shaded=shaded)
+            self.depth = out.depth
+            self.origin.copy_(torch.from_numpy(win[:, :2]))
+            return _Render(out.depth, out.gray)
         w, h = int(win[:, 2].max()), int(win[:, 3].max())
         origin = np.stack((np.minimum(win[:, 0], W - w), np.minimum(win[:, 1], H - h)), -1)
         depth = torch.zeros(B, h, w)
