@@ -324,7 +324,7 @@ class EventPoseTracker(nn.Module):
 
         if cfg.velocity.source == "flow":
             self.velocity.predict()
-            valid = flow.valid & (flow.flow.norm(dim=-1) < cfg.flow.max_speed)
+            valid = flow.valid & _slower(flow.flow, cfg.flow.max_speed)
             depth = self._depth_at(flow.uv, valid)
             centre = self.pose[:, :3]
             upd = self.velocity.update(flow.uv, flow.flow, depth, valid, self.dt, centre=centre)
@@ -462,7 +462,7 @@ class EventPoseTracker(nn.Module):
             radius = self._radius_of
         win = render_window(poses, self.camera, radius, self.config.render.margin_px).numpy()
         w, h = np.minimum(win[:, 2], W), np.minimum(win[:, 3], H)
-        return np.stack((np.clip(win[:, 0], 0, W - w), np.clip(win[:, 1], 0, H - h), w, h), -1)
+        return np.stack((np.minimum(np.maximum(win[:, 0], 0), W - w), np.minimum(np.maximum(win[:, 1], 0), H - h), w, h), -1)
 
     def _render_into(self, i: int, pose: torch.Tensor, win: np.ndarray, origin: np.ndarray, depth: torch.Tensor,
                      gray: torch.Tensor | None) -> None:
@@ -483,6 +483,11 @@ class EventPoseTracker(nn.Module):
         B = self.batch_size
         H, W = self.camera.height, self.camera.width
         win = self._windows(poses)
+        if B == 1:  # the own window is the common one: the render is the buffer
+            out = self._renderers[self._renderer_of[0]].render(poses, roi=tuple(win[0].tolist()), shaded=shaded)
+            self.depth = out.depth
+            self.origin.copy_(torch.from_numpy(win[:, :2]))
+            return _Render(out.depth, out.gray)
         w, h = int(win[:, 2].max()), int(win[:, 3].max())
         origin = np.stack((np.minimum(win[:, 0], W - w), np.minimum(win[:, 1], H - h)), -1)
         depth = torch.zeros(B, h, w)
@@ -539,9 +544,12 @@ class EventPoseTracker(nn.Module):
     def _t_now(self, t: torch.Tensor, b: torch.Tensor | None) -> torch.Tensor:
         """Latest event time per element in this window (int64 us; the previous one if the window is empty)."""
         if t.numel():
-            latest = torch.full((self.batch_size,), torch.iinfo(torch.int64).min, dtype=torch.int64)
-            latest.scatter_reduce_(0, b if b is not None else torch.zeros_like(t), t, "amax")
-            self.t_last.copy_(torch.maximum(self.t_last, latest))
+            if b is None:
+                self.t_last.clamp_(min=int(t.max()))
+            else:
+                latest = torch.full((self.batch_size,), torch.iinfo(torch.int64).min, dtype=torch.int64)
+                latest.scatter_reduce_(0, b, t, "amax")
+                self.t_last.copy_(torch.maximum(self.t_last, latest))
         return self.t_last
 
     @staticmethod
@@ -611,6 +619,12 @@ class EventPoseTracker(nn.Module):
         (0 for the others): :func:`~torchevtrack.stages.velocity.sample_depth` over a sparse neighbourhood of
         radius ``block / 4`` (flow lies on edges, where the pixel may fall just off the silhouette)."""
         return sample_depth(self.depth, self.origin, uv, valid, max(self.config.flow.block // 4, 2))
+
+
+def _slower(flow: torch.Tensor, max_speed: float) -> torch.Tensor:
+    """``(B, G)`` bool: the flow vectors ``(B, G, 2)`` (px/s) slower than ``max_speed`` (numpy: a few hundred numbers)."""
+    f = flow.detach().numpy()
+    return torch.from_numpy(np.sqrt(f[..., 0] * f[..., 0] + f[..., 1] * f[..., 1]) < max_speed)
 
 
 @dataclass

@@ -23,6 +23,7 @@ Example:
 
 from __future__ import annotations
 
+import functools
 import math
 
 import kornia
@@ -203,7 +204,8 @@ def recent_observation(surface: torch.Tensor, last_us: torch.Tensor, origin: tor
         raise ValueError(f"windows of size {(h, w)} at origins {o.tolist()} must lie inside the {H}x{W} surface")
     out = torch.empty(B, h, w, dtype=torch.float32)
     _recent_kernel(surface.detach().numpy(), last_us.detach().numpy(), o.contiguous().numpy(),  # views: no copies
-                   t_now_us.long().contiguous().numpy(), int(max_age_us), float(recency_us), out.numpy())
+                   t_now_us.long().contiguous().numpy(), int(max_age_us), float(recency_us),
+                   _decay_table(float(recency_us), int(max_age_us)), out.numpy())
     return out
 
 
@@ -228,7 +230,8 @@ def canvas_observation(surface: torch.Tensor, last_us: torch.Tensor, box: torch.
         raise ValueError(f"box must have shape ({B}, 3) [cu, cv, side], got {tuple(box.shape)}")
     out = torch.empty(B, canvas, canvas, dtype=torch.float32)
     _canvas_kernel(surface.detach().numpy(), last_us.detach().numpy(), box.double().contiguous().numpy(),
-                   t_now_us.long().contiguous().numpy(), int(max_age_us), float(recency_us), out.numpy())
+                   t_now_us.long().contiguous().numpy(), int(max_age_us), float(recency_us),
+                   _decay_table(float(recency_us), int(max_age_us)), out.numpy())
     return out
 
 
@@ -238,15 +241,42 @@ def _check_time_surface(last_us: torch.Tensor, B: int, H: int, W: int) -> None:
                          f"{tuple(last_us.shape)}")
 
 
+@functools.lru_cache(maxsize=8)
+def _decay_table(tau: float, max_age: int) -> np.ndarray:
+    """The age weights :func:`_decay` of the ages ``0 .. n - 1`` us (cached, read-only), ``n`` the ages that can
+    carry weight (below ``max_age``, if positive) up to ``16 tau`` and at most ``_DECAY_TABLE`` entries; empty
+    for ``tau <= 0`` (no weights)."""
+    n = 0 if tau <= 0 else min(max_age if max_age > 0 else math.ceil(16 * tau), _DECAY_TABLE)
+    table = _decay_fill(np.float32(1.0 / tau) if tau > 0 else np.float32(0.0), np.empty(n, dtype=np.float32))
+    table.flags.writeable = False
+    return table
+
+
+_DECAY_TABLE = 1 << 16  # 256 KiB
+
+
 @numba.njit(cache=True, nogil=True)
-def _recent_kernel(surface, last, origin, t_now, max_age, tau, out):
+def _decay_fill(inv_tau, out):
+    for a in range(len(out)):
+        out[a] = _decay(a, inv_tau)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _decay(age, inv_tau):
+    """Weight ``exp(-age / tau)`` of an event ``age`` us old (float32; ``inv_tau = 1 / tau`` float32)."""
+    return np.float32(math.exp(-np.float32(age) * inv_tau))
+
+
+@numba.njit(cache=True, nogil=True)
+def _recent_kernel(surface, last, origin, t_now, max_age, tau, decay, out):
     """:func:`recent_observation` into ``out`` ``(B, h, w)``."""
     for b in range(out.shape[0]):
-        _recent_window(surface[b], last[b], origin[b, 0], origin[b, 1], t_now[b], max_age, tau, out[b])
+        _recent_window(surface[b], last[b], origin[b, 0], origin[b, 1], t_now[b], max_age, tau, decay, out[b])
 
 
 @numba.njit(cache=True, nogil=True)
-def _canvas_kernel(surface, last, box, t_now, max_age, tau, out):
+def _canvas_kernel(surface, last, box, t_now, max_age, tau, decay, out):
     """:func:`canvas_observation` into ``out`` ``(B, N, N)``."""
     B, N = out.shape[0], out.shape[1]
     H, W = surface.shape[1], surface.shape[2]
@@ -259,40 +289,52 @@ def _canvas_kernel(surface, last, box, t_now, max_age, tau, out):
         if u1 <= u0 or v1 <= v0:
             continue
         win = np.empty((v1 - v0, u1 - u0), dtype=np.float32)
-        _recent_window(surface[b], last[b], u0, v0, t_now[b], max_age, tau, win)
+        _recent_window(surface[b], last[b], u0, v0, t_now[b], max_age, tau, decay, win)
         _bilinear(win, box[b, 0] - u0, box[b, 1] - v0, step, out[b])
 
 
 @numba.njit(cache=True, nogil=True)
 def _bilinear(img, cu, cv, step, out):
     """``out[i, j]`` = ``img`` at ``(cu + (j + 0.5 - N / 2) step, cv + (i + 0.5 - N / 2) step)``, bilinear, zero
-    outside ``img``."""
+    outside ``img``. The taps of every column and row are found once (:func:`_taps`); a tap outside ``img`` reads
+    a pixel inside with weight 0 (``img >= 0``, so it adds ``+0.0``: the sum is that of the inside taps alone)."""
     h, w = img.shape
     N = out.shape[0]
+    xs, wu = _taps(cu, step, N, w)
+    ys, wv = _taps(cv, step, N, h)
     for i in range(N):
-        v = cv + (i + 0.5 - N / 2) * step
-        y0 = math.floor(v)
-        fv = v - y0
+        ya, yb, wa, wb = ys[i, 0], ys[i, 1], wv[i, 0], wv[i, 1]
         for j in range(N):
-            u = cu + (j + 0.5 - N / 2) * step
-            x0 = math.floor(u)
-            fu = u - x0
+            xa, xb = xs[j, 0], xs[j, 1]
             acc = 0.0
-            for dy in range(2):
-                y = y0 + dy
-                if 0 <= y < h:
-                    wv = fv if dy else 1.0 - fv
-                    for dx in range(2):
-                        x = x0 + dx
-                        if 0 <= x < w:
-                            acc += wv * (fu if dx else 1.0 - fu) * img[y, x]
+            acc += wa * wu[j, 0] * img[ya, xa]
+            acc += wa * wu[j, 1] * img[ya, xb]
+            acc += wb * wu[j, 0] * img[yb, xa]
+            acc += wb * wu[j, 1] * img[yb, xb]
             out[i, j] = acc
 
 
 @numba.njit(cache=True, nogil=True)
-def _recent_window(surface, last, u0, v0, t_now, max_age, tau, out):
+def _taps(c, step, N, n):
+    """The two bilinear taps of the samples ``c + (i + 0.5 - N / 2) step``, ``i < N``, along an axis of ``n``
+    pixels: indices ``(N, 2)`` clamped into ``[0, n)`` and weights ``(N, 2)``, 0 for a tap outside."""
+    idx, wgt = np.empty((N, 2), dtype=np.int64), np.empty((N, 2))
+    for i in range(N):
+        x = c + (i + 0.5 - N / 2) * step
+        x0 = math.floor(x)
+        f = x - x0
+        for d in range(2):
+            inside = 0 <= x0 + d < n
+            idx[i, d] = min(max(x0 + d, 0), n - 1)
+            wgt[i, d] = (f if d else 1.0 - f) if inside else 0.0
+    return idx, wgt
+
+
+@numba.njit(cache=True, nogil=True)
+def _recent_window(surface, last, u0, v0, t_now, max_age, tau, decay, out):
     """The age-weighted, 3x3-median observation of one element's window at ``(u0, v0)`` into ``out`` ``(h, w)``
-    (:func:`recent_observation`); ``surface`` ``(H, W)``, ``last`` ``(C, H, W)``."""
+    (:func:`recent_observation`); ``surface`` ``(H, W)``, ``last`` ``(C, H, W)``, ``decay`` the weights of the
+    first ages (:func:`_decay_table`)."""
     h, w = out.shape
     C = last.shape[0]
     buf = np.empty((h + 2, w + 2), dtype=np.float32)  # the weighted window, mirror-padded by one pixel
@@ -311,7 +353,8 @@ def _recent_window(surface, last, u0, v0, t_now, max_age, tau, out):
                 if max_age > 0 and age >= max_age:
                     s = np.float32(0.0)
                 elif tau > 0:
-                    s = s * np.float32(math.exp(-np.float32(max(age, 0)) * inv_tau))
+                    age = max(age, 0)
+                    s = s * (decay[age] if age < len(decay) else _decay(age, inv_tau))
             buf[y + 1, x + 1] = s
     # mirror border (edge not repeated); a window with a one-pixel side repeats its edges instead
     m = 1 if min(h, w) > 1 else 0
