@@ -99,6 +99,26 @@ def test_empty_windows_keep_a_valid_pose():
     torch.testing.assert_close(pose[0], pose0, atol=1e-6, rtol=0)  # float32 templates
 
 
+def test_updates_run_without_autograd_but_return_ordinary_tensors(seq):
+    # the update runs in inference mode (also in the worker threads); what it returns, and the state a caller may
+    # touch afterwards (a reset of one element between updates), stay usable outside it
+    tracker = EventPoseTracker(CAM, seq.mesh, batch_size=2, workers=2)
+    start = seq.gt_poses[0].expand(2, 7).clone()
+    tracker.reset(start)
+    t0 = int(seq.gt_t_us[0])
+    for k in range(3):
+        ev = seq.events.slice_time(t0 + 2000 * k, t0 + 2000 * (k + 1))
+        x, y, t, p = (f.long().repeat(2) for f in (ev.x, ev.y, ev.t, ev.p))
+        pose = tracker(x, y, t, p, torch.arange(2).repeat_interleave(len(ev)))
+        if k == 1:
+            tracker.reset(start, mask=torch.tensor([False, True]))
+    tracker.close()
+    assert not pose.is_inference() and pose.shape == (2, 7)
+    delta = torch.zeros(2, 7, dtype=pose.dtype, requires_grad=True)
+    (pose + delta).sum().backward()  # usable in a differentiable computation
+    assert torch.equal(delta.grad, torch.ones_like(pose))
+
+
 @pytest.mark.parametrize("bad, match", [
     ([0.0, 0.0, 0.4, 2.0, 0.0, 0.0, 0.0], "unit"),
     ([0.0, 0.0, -0.4, 1.0, 0.0, 0.0, 0.0], "behind"),

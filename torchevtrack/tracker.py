@@ -238,6 +238,7 @@ class EventPoseTracker(nn.Module):
         self.register_buffer("_min_depth", self._radius_of + 0.01, persistent=False)
 
     # -- state -------------------------------------------------------------------------------
+    @torch.inference_mode()
     def reset(self, initial_pose: torch.Tensor, twist: torch.Tensor | None = None,
               mask: torch.Tensor | None = None) -> None:
         """Restart every element at ``initial_pose`` ``(B, 7)`` or ``(7,)`` (validated), optional twist ``(B, 6)``.
@@ -307,7 +308,17 @@ class EventPoseTracker(nn.Module):
             b: ``(N,)`` batch index (None: all batch element 0). Time order within each batch element.
             t_us: time stamp of this update (int or ``(B,)`` int64 us, the window end), given to the loss
                 detector and ``on_lost``; default: the latest event time seen per element.
+
+        The update runs in ``torch.inference_mode`` (no autograd bookkeeping on its many small tensor
+        operations); the returned poses are ordinary tensors.
         """
+        with torch.inference_mode():
+            self._update(x, y, t, p, b, t_us)
+        return self.pose.clone()
+
+    def _update(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor, b: torch.Tensor | None,
+                t_us: int | torch.Tensor | None) -> None:
+        """One update (:meth:`forward`): the new poses go to :attr:`pose`."""
         cfg = self.config
         B = self.batch_size
         clock = _StageClock()
@@ -394,7 +405,6 @@ class EventPoseTracker(nn.Module):
                 self.loss.lost_at_us.copy_(lost_at)  # the first loss stays on record
             clock.lap("loss")
         self.stage_ms = clock.ms
-        return self.pose.clone()
 
     @property
     def lost(self) -> torch.Tensor | None:
@@ -598,7 +608,13 @@ class EventPoseTracker(nn.Module):
         worker threads."""
         if self._pool is None:
             return [fn(slice(None), *(a[0] for a in per_share))]
-        return list(self._pool.map(fn, self._shares, *per_share))
+        inference = torch.is_inference_mode_enabled()  # a thread-local mode: the workers take the caller's
+
+        def run(*args):
+            with torch.inference_mode(inference):
+                return fn(*args)
+
+        return list(self._pool.map(run, self._shares, *per_share))
 
     def _observation(self, box: torch.Tensor, t_now: torch.Tensor, rows: slice = slice(None)) -> torch.Tensor:
         """Median-blurred EROS of the batch ``rows`` under their template's canvas ``box`` ``(K, 3)``, in the canvas:
