@@ -130,8 +130,9 @@ class Recorder(EventPoseTracker):
         self.count = torch.zeros(self.batch_size, dtype=torch.float64)
 
     def forward(self, x, y, t, p, b=None, t_us=None):
-        assert x.dtype == y.dtype == t.dtype == p.dtype == torch.long
-        b = torch.zeros_like(x) if b is None else b  # one element's events come without a batch index
+        # the streams' own types (EventStream: int16 pixels, int64 us, int8 polarity), no int64 copies
+        assert (x.dtype, y.dtype, t.dtype, p.dtype) == (torch.int16, torch.int16, torch.int64, torch.int8)
+        b = torch.zeros_like(t) if b is None else b  # one element's events come without a batch index
         self.windows.append([list(zip(*(v[b == i].tolist() for v in (x, y, t, p)))) for i in range(self.batch_size)])
         self.count += torch.bincount(b, minlength=self.batch_size)
         pose = torch.zeros(self.batch_size, 7, dtype=torch.float64)

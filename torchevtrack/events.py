@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Iterator
 
+import numba
 import numpy as np
 import torch
 
@@ -123,24 +124,21 @@ class EventStream:
             raise TypeError(f"timestamps must be int64 microseconds, got {self.t.dtype}")
         if n == 0:
             return self
-        if int(self.t[0]) < 0:
+        no_limit = 1 << 62
+        kind, i = _first_invalid(self.x.numpy(), self.y.numpy(), self.t.numpy(),
+                                 no_limit if width is None else width, no_limit if height is None else height)
+        if kind == 1:
             raise ValueError(f"negative timestamp {int(self.t[0])} us at event 0")
-        bad = torch.nonzero(self.t[1:] < self.t[:-1])
-        if bad.numel():
-            i = int(bad[0]) + 1
+        if kind == 2:
             raise ValueError(
                 f"timestamps are not sorted: event {i} at t={int(self.t[i])} us follows t={int(self.t[i - 1])} us"
             )
-        for name, size in (("x", width), ("y", height)):
-            f = getattr(self, name)
-            lo = int(f.min())
-            hi = int(f.max())
-            if lo < 0 or (size is not None and hi >= size):
-                i = int(torch.nonzero((f < 0) | (f >= (size if size is not None else 1 << 30)))[0])
-                raise ValueError(
-                    f"pixel out of bounds: event {i} has {name}={int(f[i])}"
-                    + (f", sensor {name}-size is {size}" if size is not None else "")
-                )
+        if kind:
+            name, size = ("x", width) if kind == 3 else ("y", height)
+            raise ValueError(
+                f"pixel out of bounds: event {i} has {name}={int(getattr(self, name)[i])}"
+                + (f", sensor {name}-size is {size}" if size is not None else "")
+            )
         return self
 
     def slice_time(self, t0: int, t1: int) -> "EventStream":
@@ -171,6 +169,32 @@ class EventStream:
     def event_rate(self) -> float:
         """Mean events per second."""
         return len(self) / self.duration_s if self.duration_s > 0 else 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _first_invalid(x, y, t, width, height):
+    """The first problem of non-empty events, in :meth:`EventStream.validate`'s order of checks, as ``(kind,
+    index)``: 1 a negative first time, 2 time going back at ``index``, 3 / 4 the first ``x`` / ``y`` outside
+    ``[0, width)`` / ``[0, height)``; ``(0, 0)`` if none. One pass for the time, one for the pixels."""
+    if t[0] < 0:
+        return 1, 0
+    for i in range(1, t.shape[0]):
+        if t[i] < t[i - 1]:
+            return 2, i
+    i = _first_outside(x, width)
+    if i >= 0:
+        return 3, i
+    i = _first_outside(y, height)
+    return (4, i) if i >= 0 else (0, 0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _first_outside(f, size):
+    """Index of the first value of ``f`` outside ``[0, size)``, or -1."""
+    for i in range(f.shape[0]):
+        if f[i] < 0 or f[i] >= size:
+            return i
+    return -1
 
 
 def _fits16(a) -> bool:

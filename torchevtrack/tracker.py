@@ -668,11 +668,12 @@ def _per_stream(value, default: list[int], name: str) -> list[int]:
 
 
 def _pack(parts: Sequence[EventStream]):
-    """Concatenate per-element windows into packed tensors with a batch index (``None`` for one element)."""
+    """Concatenate per-element windows into packed tensors with a batch index (``None`` for one element), in the
+    streams' own integer types (the kernels take them as they are: no int64 copies)."""
     if len(parts) == 1:
         q = parts[0]
-        return q.x.long(), q.y.long(), q.t.long(), q.p.long(), None
+        return q.x, q.y, q.t, q.p, None
     sizes = torch.tensor([len(q) for q in parts])
     b = torch.repeat_interleave(torch.arange(len(parts)), sizes)
-    cat = lambda f: torch.cat([getattr(q, f) for q in parts]).long()  # noqa: E731
+    cat = lambda f: torch.cat([getattr(q, f) for q in parts])  # noqa: E731
     return cat("x"), cat("y"), cat("t"), cat("p"), b
