@@ -472,7 +472,8 @@ class EventPoseTracker(nn.Module):
             radius = self._radius_of
         win = render_window(poses, self.camera, radius, self.config.render.margin_px).numpy()
         w, h = np.minimum(win[:, 2], W), np.minimum(win[:, 3], H)
-        return np.stack((np.minimum(np.maximum(win[:, 0], 0), W - w), np.minimum(np.maximum(win[:, 1], 0), H - h), w, h), -1)
+        u0, v0 = np.minimum(np.maximum(win[:, 0], 0), W - w), np.minimum(np.maximum(win[:, 1], 0), H - h)
+        return np.stack((u0, v0, w, h), -1)
 
     def _render_into(self, i: int, pose: torch.Tensor, win: np.ndarray, origin: np.ndarray, depth: torch.Tensor,
                      gray: torch.Tensor | None) -> None:
@@ -638,7 +639,8 @@ class EventPoseTracker(nn.Module):
 
 
 def _slower(flow: torch.Tensor, max_speed: float) -> torch.Tensor:
-    """``(B, G)`` bool: the flow vectors ``(B, G, 2)`` (px/s) slower than ``max_speed`` (numpy: a few hundred numbers)."""
+    """``(B, G)`` bool: the flow vectors ``(B, G, 2)`` (px/s) slower than ``max_speed`` (numpy: a few hundred
+    numbers)."""
     f = flow.detach().numpy()
     return torch.from_numpy(np.sqrt(f[..., 0] * f[..., 0] + f[..., 1] * f[..., 1]) < max_speed)
 
