@@ -1,0 +1,93 @@
+"""Where an update's time goes: each compiled kernel, timed inside the running tracker, and the glue around them.
+
+Wraps the tracker's numba kernels with wall-clock timers, tracks a benchmark sequence offline and prints the
+microseconds per update of every kernel, their sum and the rest of ``forward`` (Python and tensor glue). The
+kernels run with the caches the rest of the update leaves them (slower than in isolation, where
+``tools/bench_template.py`` and ``tools/bench_raster.py`` time them).
+
+    python tools/profile_update.py data/bench/mustard_fast --duration 0.5 --batch 1
+
+With ``--batch B`` the sequence is tracked ``B`` times in one batch (``--workers`` threads; the kernel times are
+then summed over the workers, so kernels + glue can exceed ``forward``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import importlib
+import time
+from pathlib import Path
+
+import torch
+
+from torchevtrack.config import TrackerConfig
+from torchevtrack.synth.sequence import Sequence
+from torchevtrack.tracker import EventPoseTracker
+
+KERNELS = {
+    "torchevtrack.stages.eros": ["_eros_kernel", "_canvas_kernel"],
+    "torchevtrack.stages.flow": ["_flow_packet"],
+    "torchevtrack.stages.velocity": ["_kf_predict_kernel", "_kf_update_kernel", "_sample_depth_kernel"],
+    "torchevtrack.stages.propagate": ["_propagate_kernel", "_twist_between_kernel"],
+    "torchevtrack.raster": ["_render_kernel"],
+    "torchevtrack.stages.template": ["_model_kernel", "_newton_kernel"],
+    "torchevtrack.stages.ukf": ["_ukf_predict_kernel", "_ukf_update_kernel"],
+}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("seqdir", type=Path)
+    ap.add_argument("--duration", type=float, default=0.5, help="seconds tracked per pass (default 0.5)")
+    ap.add_argument("--batch", type=int, default=1, help="copies of the sequence in one batch (default 1)")
+    ap.add_argument("--workers", type=int, default=None, help="worker threads (default: the tracker's)")
+    ap.add_argument("--passes", type=int, default=3, help="timed passes after one warm-up pass (default 3)")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+
+    times: dict[str, float] = collections.defaultdict(float)
+    for module, names in KERNELS.items():
+        m = importlib.import_module(module)
+        for name in names:
+            def timed(*a, _f=getattr(m, name), _name=name):
+                t = time.perf_counter()
+                out = _f(*a)
+                times[_name] += time.perf_counter() - t
+                return out
+            setattr(m, name, timed)
+
+    seq = Sequence.load(args.seqdir)
+    t0 = int(seq.gt_t_us[0])
+    t1 = min(int(seq.gt_t_us[-1]), t0 + round(args.duration * 1e6))
+    tracker = EventPoseTracker(seq.camera, seq.mesh, TrackerConfig(), batch_size=args.batch, workers=args.workers)
+    forward = tracker.forward
+
+    def timed_forward(*a, **k):
+        t = time.perf_counter()
+        out = forward(*a, **k)
+        times["forward"] += time.perf_counter() - t
+        return out
+
+    tracker.forward = timed_forward
+    rows = []
+    for _ in range(args.passes + 1):
+        times.clear()
+        _, poses = tracker.track([seq.events] * args.batch, seq.gt_poses[0], t_start_us=t0, t_end_us=t1,
+                                 progress=False)
+        n = poses.shape[1]
+        rows.append({k: v / n * 1e6 for k, v in times.items()})
+    tracker.close()
+    best = min(rows[1:], key=lambda r: r["forward"])  # the pass least disturbed by the machine
+    kernels = {k: v for k, v in best.items() if k != "forward"}
+    print(f"{args.seqdir.name}, B = {args.batch}, {n} updates per pass; us per update (fastest of {args.passes} "
+          "passes):")
+    for k, v in sorted(kernels.items(), key=lambda kv: -kv[1]):
+        print(f"  {k:24s} {v:8.1f}")
+    total = sum(kernels.values())
+    print(f"  {'kernels':24s} {total:8.1f}\n  {'glue (forward - kernels)':24s} {best['forward'] - total:8.1f}\n"
+          f"  {'forward':24s} {best['forward']:8.1f}")
+
+
+if __name__ == "__main__":
+    main()
