@@ -1,7 +1,12 @@
-"""The pipeline stages (see the README's pipeline table) and what they share: batch-element selection."""
+"""The pipeline stages (see the README's pipeline table) and what they share: batch-element selection and the
+bilinear taps of the template canvas (sampled by the template stage and by the EROS observation)."""
 
 from __future__ import annotations
 
+import math
+
+import numba
+import numpy as np
 import torch
 
 __all__ = ["batch_mask"]
@@ -31,3 +36,20 @@ def batch_mask(mask: torch.Tensor | None, batch_size: int) -> torch.Tensor:
     if mask.numel() and (int(mask.min()) < 0 or int(mask.max()) >= batch_size):
         raise ValueError(f"mask indices must be in [0, {batch_size}), got {mask.tolist()}")
     return torch.zeros(batch_size, dtype=torch.bool).index_fill_(0, mask.long(), True)
+
+
+@numba.njit(cache=True, nogil=True)
+def canvas_taps(c, step, N, n):
+    """Bilinear taps along one axis of the ``N`` canvas pixels centred at ``c + (j + 0.5 - N / 2) step`` in an
+    axis of ``n`` pixels: the two indices, clamped into ``[0, n)``, and their weights, 0 for a tap outside.
+
+    Shape: returns ``i0, i1`` ``(N,)`` int64 and ``a0, a1`` ``(N,)`` float64.
+    """
+    i0, i1, a0, a1 = np.empty(N, np.int64), np.empty(N, np.int64), np.empty(N), np.empty(N)
+    for j in range(N):
+        x = c + (j + 0.5 - N / 2) * step
+        k = math.floor(x)
+        f = x - k
+        i0[j], i1[j] = min(max(k, 0), n - 1), min(max(k + 1, 0), n - 1)
+        a0[j], a1[j] = (1 - f) if 0 <= k < n else 0.0, f if -1 <= k < n - 1 else 0.0
+    return i0, i1, a0, a1

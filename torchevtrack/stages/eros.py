@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from torchevtrack.stages import batch_mask
+from torchevtrack.stages import batch_mask, canvas_taps
 
 __all__ = ["EROS", "canvas_observation", "eros_update", "eros_update_", "observation", "prepare_events",
            "recent_observation"]
@@ -296,38 +296,23 @@ def _canvas_kernel(surface, last, box, t_now, max_age, tau, decay, out):
 @numba.njit(cache=True, nogil=True)
 def _bilinear(img, cu, cv, step, out):
     """``out[i, j]`` = ``img`` at ``(cu + (j + 0.5 - N / 2) step, cv + (i + 0.5 - N / 2) step)``, bilinear, zero
-    outside ``img``. The taps of every column and row are found once (:func:`_taps`); a tap outside ``img`` reads
-    a pixel inside with weight 0 (``img >= 0``, so it adds ``+0.0``: the sum is that of the inside taps alone)."""
+    outside ``img``. The taps of every column and row are found once (:func:`~torchevtrack.stages.canvas_taps`); a
+    tap outside ``img`` reads a pixel inside with weight 0 (``img >= 0``, so it adds ``+0.0``: the sum is that of
+    the inside taps alone)."""
     h, w = img.shape
     N = out.shape[0]
-    xs, wu = _taps(cu, step, N, w)
-    ys, wv = _taps(cv, step, N, h)
+    x0, x1, wu0, wu1 = canvas_taps(cu, step, N, w)
+    y0, y1, wv0, wv1 = canvas_taps(cv, step, N, h)
     for i in range(N):
-        ya, yb, wa, wb = ys[i, 0], ys[i, 1], wv[i, 0], wv[i, 1]
+        ya, yb, wa, wb = y0[i], y1[i], wv0[i], wv1[i]
         for j in range(N):
-            xa, xb = xs[j, 0], xs[j, 1]
+            xa, xb = x0[j], x1[j]
             acc = 0.0
-            acc += wa * wu[j, 0] * img[ya, xa]
-            acc += wa * wu[j, 1] * img[ya, xb]
-            acc += wb * wu[j, 0] * img[yb, xa]
-            acc += wb * wu[j, 1] * img[yb, xb]
+            acc += wa * wu0[j] * img[ya, xa]
+            acc += wa * wu1[j] * img[ya, xb]
+            acc += wb * wu0[j] * img[yb, xa]
+            acc += wb * wu1[j] * img[yb, xb]
             out[i, j] = acc
-
-
-@numba.njit(cache=True, nogil=True)
-def _taps(c, step, N, n):
-    """The two bilinear taps of the samples ``c + (i + 0.5 - N / 2) step``, ``i < N``, along an axis of ``n``
-    pixels: indices ``(N, 2)`` clamped into ``[0, n)`` and weights ``(N, 2)``, 0 for a tap outside."""
-    idx, wgt = np.empty((N, 2), dtype=np.int64), np.empty((N, 2))
-    for i in range(N):
-        x = c + (i + 0.5 - N / 2) * step
-        x0 = math.floor(x)
-        f = x - x0
-        for d in range(2):
-            inside = 0 <= x0 + d < n
-            idx[i, d] = min(max(x0 + d, 0), n - 1)
-            wgt[i, d] = (f if d else 1.0 - f) if inside else 0.0
-    return idx, wgt
 
 
 @numba.njit(cache=True, nogil=True)

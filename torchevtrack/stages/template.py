@@ -114,6 +114,7 @@ from torch import nn
 from torchevtrack.camera import Camera
 from torchevtrack.geometry import (_nb_quat_canonical, _nb_quat_exp, _nb_quat_mul, _nb_quat_to_matrix, quat_canonical,
                                   quat_conj, quat_exp, quat_log, quat_mul, quat_rotate, quat_to_matrix)
+from torchevtrack.stages import canvas_taps
 
 __all__ = [
     "AXES",
@@ -1220,28 +1221,14 @@ def _dog_template(B1, B2, T, Tp):
 
 
 @numba.njit(cache=True, nogil=True)
-def _taps(c, step, N, n):
-    """Bilinear taps along one axis of the ``N`` canvas pixels centred at ``c`` (``step`` apart) in ``[0, n)``:
-    indices clamped into it and weights, zero for taps outside."""
-    i0, i1, a0, a1 = np.empty(N, np.int64), np.empty(N, np.int64), np.empty(N), np.empty(N)
-    for j in range(N):
-        x = c + (j + 0.5 - N / 2) * step
-        k = math.floor(x)
-        f = x - k
-        i0[j], i1[j] = min(max(k, 0), n - 1), min(max(k + 1, 0), n - 1)
-        a0[j], a1[j] = (1 - f) if 0 <= k < n else 0.0, f if -1 <= k < n - 1 else 0.0
-    return i0, i1, a0, a1
-
-
-@numba.njit(cache=True, nogil=True)
 def _resample(depth, gray, cu, cv, step, use_gray, c_depth, c_mask, c_gray):
     """:func:`to_canvas` of one window (box centre ``(cu, cv)`` in window pixels, ``step`` window pixels per canvas
     pixel): the object depth (depth-weighted over the object taps only), the mask and, if ``use_gray``, the grey.
     Bilinear as two linear passes per canvas row: between two window rows, then along the row."""
     h, w = depth.shape
     N = c_depth.shape[0]
-    c0, c1, a0, a1 = _taps(cu, step, N, w)
-    r0, r1, b0, b1 = _taps(cv, step, N, h)
+    c0, c1, a0, a1 = canvas_taps(cu, step, N, w)
+    r0, r1, b0, b1 = canvas_taps(cv, step, N, h)
     lo, hi = c0[0], c1[N - 1] + 1  # the window columns the canvas samples
     c0 -= lo
     c1 -= lo
