@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
@@ -101,7 +101,7 @@ class Camera:
 
     def crop(self, u0: int, v0: int, width: int, height: int) -> "Camera":
         """Camera seeing only the window whose top-left pixel is ``(u0, v0)``."""
-        return replace(self, width=width, height=height, cx=self.cx - u0, cy=self.cy - v0)
+        return Camera(width, height, self.fx, self.fy, self.cx - u0, self.cy - v0, self.distortion)
 
     def scale(self, s: float) -> "Camera":
         """Camera of an image resized by ``s`` (pixel centres kept consistent)."""

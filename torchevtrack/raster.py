@@ -360,7 +360,7 @@ class RasterRenderer:
         ``shaded=False`` for depth only)."""
         if self._mesh is None:
             raise RuntimeError("renderer is closed")
-        poses = _unit_poses(poses).numpy()
+        poses = _unit_poses(poses)
         cam = self.camera if roi is None else self.camera.crop(*_check_roi(roi))
         depth, gray = rasterise(self._mesh, poses, cam, znear=self.znear, zfar=self.zfar, background=self.background,
                                 shaded=shaded)

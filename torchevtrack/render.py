@@ -440,11 +440,11 @@ def _check_renderer_args(mesh: trimesh.Trimesh, camera: Camera, znear: float, zf
 
 def _pose_matrices(poses: torch.Tensor) -> np.ndarray:
     """Validated ``(B, 4, 4)`` float64 object-to-camera (OpenCV) transforms."""
-    return pose_to_matrix(_unit_poses(poses)).numpy()
+    return pose_to_matrix(torch.from_numpy(_unit_poses(poses))).numpy()
 
 
-def _unit_poses(poses: torch.Tensor) -> torch.Tensor:
-    """Validated ``(B, 7)`` float64 CPU poses with their quaternions normalised (numpy: a render's few numbers)."""
+def _unit_poses(poses: torch.Tensor) -> np.ndarray:
+    """Validated ``(B, 7)`` float64 poses with their quaternions normalised (numpy: a render's few numbers)."""
     poses = torch.as_tensor(poses)
     if poses.ndim == 1:
         poses = poses[None]
@@ -452,15 +452,14 @@ def _unit_poses(poses: torch.Tensor) -> torch.Tensor:
         raise ValueError(f"poses must have shape (B, 7) or (7,) [tx, ty, tz, qw, qx, qy, qz], got {tuple(poses.shape)}")
     if not poses.is_floating_point():
         raise TypeError(f"poses must be a floating-point tensor, got {poses.dtype}")
-    p = poses.detach().to("cpu", torch.float64).numpy()
+    p = np.array(poses.detach().cpu().numpy(), dtype=np.float64)  # a copy
     if not np.isfinite(p).all():
         raise ValueError("poses contain NaN or infinite values")
     norm = np.sqrt(np.einsum("bi,bi->b", p[:, 3:], p[:, 3:]))
     if (np.abs(norm - 1) > 1e-3).any():
         raise ValueError(f"pose quaternions must be unit norm, got |q| = {norm.tolist()}")
-    out = p.copy()
-    out[:, 3:] /= norm[:, None]
-    return torch.from_numpy(out)
+    p[:, 3:] /= norm[:, None]
+    return p
 
 
 def _check_roi(roi) -> tuple[int, int, int, int]:

@@ -58,9 +58,9 @@ from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
 from torchevtrack.render import make_renderer
 from torchevtrack.stages import batch_mask
 from torchevtrack.stages.eros import EROS, canvas_observation
-from torchevtrack.stages.flow import TripletFlow
+from torchevtrack.stages.flow import FlowField, TripletFlow
 from torchevtrack.stages.propagate import propagate, twist_between
-from torchevtrack.stages.template import Correction, TemplateCorrector, TemplateModel, render_window
+from torchevtrack.stages.template import Correction, TemplateCorrector, TemplateModel, window_of
 from torchevtrack.stages.ukf import PoseUKF
 from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, sample_depth, shift_twist
 
@@ -335,13 +335,14 @@ class EventPoseTracker(nn.Module):
 
         if cfg.velocity.source == "flow":
             self.velocity.predict()
-            valid = flow.valid & _slower(flow.flow, cfg.flow.max_speed)
+            valid = _slower(flow, cfg.flow.max_speed)
             depth = self._depth_at(flow.uv, valid)
             centre = self.pose[:, :3]
             upd = self.velocity.update(flow.uv, flow.flow, depth, valid, self.dt, centre=centre)
-            twist_c = self.velocity.x + self.feedback.b if self.feedback is not None else self.velocity.x
-            twist = shift_twist(twist_c, -centre)  # [c_dot, w] -> [v, w]
-            n_vectors = (upd.weights > 0).sum(-1)
+            twist_c = self.velocity.x.numpy() + self.feedback.b.numpy() if self.feedback is not None \
+                else self.velocity.x
+            twist = shift_twist(torch.as_tensor(twist_c), torch.from_numpy(-centre.numpy()))  # [c_dot, w] -> [v, w]
+            n_vectors = torch.from_numpy(np.count_nonzero(upd.weights.numpy() > 0, axis=-1))
         elif cfg.velocity.source == "poses":
             twist = twist_between(self.prev_pose, self.pose, self.dt)
             n_vectors = torch.zeros(B, dtype=torch.long)
@@ -362,13 +363,14 @@ class EventPoseTracker(nn.Module):
         if not reuse:
             render = self._render(predicted, shaded=cfg.template.enabled)
         clock.lap("render")
-        n_events = torch.bincount(b, minlength=B) if b is not None else torch.tensor([x.numel()] * B)
-        self.events_seen += n_events
+        n_events = np.bincount(b.numpy(), minlength=B) if b is not None else np.full(B, x.numel())
+        seen = self.events_seen.numpy()
+        seen += n_events
         if cfg.template.enabled:
             corr = self._correct(predicted, pose32, None if reuse else render, self._t_now(t, b))  # float64 search
             # Until the EROS holds enough events, its edges are too sparse to correct against.
-            warm = (self.events_seen >= cfg.template.warmup_events)[:, None]
-            measured = torch.where(warm, corr.pose.double(), predicted)
+            warm = (seen >= cfg.template.warmup_events)[:, None]
+            measured = torch.from_numpy(np.where(warm, corr.pose.numpy(), predicted.numpy()))
             score = corr.score
             if self.feedback is not None:  # the correction's rate, as a twist about the predicted centre
                 rate = twist_between(predicted, measured, self.dt)
@@ -392,8 +394,8 @@ class EventPoseTracker(nn.Module):
                 self.ukf.x[bad, 6:13] = self.pose[bad]
         clock.lap("ukf")
         self.prev_pose.copy_(self.pose)
-        self.pose.copy_(torch.cat((out[:, :3], quat_canonical(out[:, 3:])), dim=-1))
-        self.quality = Quality(score.detach(), n_vectors.detach(), n_events, bad | rejected)
+        _canonical_into(self.pose.numpy(), out.numpy())
+        self.quality = Quality(score, n_vectors, torch.from_numpy(n_events), bad | rejected)
         if self.loss is not None:
             upd = self.loss(self.quality, self._t_now(t, b) if t_us is None else t_us)
             self.loss_update = upd
@@ -466,11 +468,10 @@ class EventPoseTracker(nn.Module):
     def _windows(self, poses: torch.Tensor, index: list[int] | None = None) -> np.ndarray:
         """Render windows ``(K, 4)`` ``(u0, v0, w, h)`` of the elements ``index`` (default all), clipped to the frame."""
         H, W = self.camera.height, self.camera.width
+        t, radius = poses.numpy()[:, :3], self._radius_of.numpy()
         if index is not None:
-            poses, radius = poses[index], self._radius_of[index]
-        else:
-            radius = self._radius_of
-        win = render_window(poses, self.camera, radius, self.config.render.margin_px).numpy()
+            t, radius = t[index], radius[index]
+        win = window_of(t, self.camera, radius, self.config.render.margin_px)
         w, h = np.minimum(win[:, 2], W), np.minimum(win[:, 3], H)
         u0, v0 = np.minimum(np.maximum(win[:, 0], 0), W - w), np.minimum(np.maximum(win[:, 1], 0), H - h)
         return np.stack((u0, v0, w, h), -1)
@@ -638,11 +639,21 @@ class EventPoseTracker(nn.Module):
         return sample_depth(self.depth, self.origin, uv, valid, max(self.config.flow.block // 4, 2))
 
 
-def _slower(flow: torch.Tensor, max_speed: float) -> torch.Tensor:
-    """``(B, G)`` bool: the flow vectors ``(B, G, 2)`` (px/s) slower than ``max_speed`` (numpy: a few hundred
-    numbers)."""
-    f = flow.detach().numpy()
-    return torch.from_numpy(np.sqrt(f[..., 0] * f[..., 0] + f[..., 1] * f[..., 1]) < max_speed)
+def _slower(flow: FlowField, max_speed: float) -> torch.Tensor:
+    """``(B, G)`` bool: the valid flow vectors slower than ``max_speed`` px/s (numpy: a few hundred numbers)."""
+    f = flow.flow.numpy()
+    return torch.from_numpy(flow.valid.numpy() & (np.sqrt(f[..., 0] * f[..., 0] + f[..., 1] * f[..., 1]) < max_speed))
+
+
+def _canonical_into(pose: np.ndarray, out: np.ndarray) -> None:
+    """``pose = out`` ``(B, 7)`` with the quaternion made canonical: :func:`~torchevtrack.geometry.quat_canonical`
+    in numpy, bit for bit (the same sequential sum of four squares)."""
+    q = out[:, 3:]
+    norm = np.maximum(np.sqrt(((q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1]) + q[:, 2] * q[:, 2]) + q[:, 3] * q[:, 3]),
+                      1e-12)
+    pose[:, :3] = out[:, :3]
+    np.divide(q, norm[:, None], out=pose[:, 3:])
+    np.negative(pose[:, 3:], out=pose[:, 3:], where=pose[:, 3:4] < 0)
 
 
 @dataclass

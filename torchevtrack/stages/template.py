@@ -123,6 +123,7 @@ __all__ = [
     "RULES",
     "Correction",
     "render_window",
+    "window_of",
     "canvas_box",
     "canvas_intrinsics",
     "to_canvas",
@@ -197,14 +198,22 @@ def render_window(pose: torch.Tensor, camera: Camera, radius: float | torch.Tens
         radius = radius.detach().double().numpy()
     elif not radius > 0:
         raise ValueError(f"radius must be positive (metres), got {radius}")
-    t = pose[:, :3].detach().double().numpy()  # numpy: a dozen operations on a few numbers
+    return torch.from_numpy(window_of(pose[:, :3].detach().double().numpy(), camera, radius, margin_px))
+
+
+def window_of(t: np.ndarray, camera: Camera, radius: float | np.ndarray, margin_px: int) -> np.ndarray:
+    """:func:`render_window` of the object positions ``t`` ``(B, 3)`` (metres, ``z > 0``), unchecked (numpy: a dozen
+    operations on a few numbers).
+
+    Shape: ``(B, 3), (), () or (B,) -> (B, 4)`` int64.
+    """
     z = np.maximum(t[:, 2], radius * 1.05)
     f = np.array([camera.fx, camera.fy])
     centre = f * t[:, :2] / t[:, 2:] + np.array([camera.cx, camera.cy])
     half = f * (radius / (z - radius))[:, None] + margin_px
     lo = np.floor(centre - half)
     size = np.ceil(centre + half) - lo + 1
-    return torch.from_numpy(np.concatenate((lo, size), -1).astype(np.int64))
+    return np.concatenate((lo, size), -1).astype(np.int64)
 
 
 def canvas_box(depth: torch.Tensor, origin, margin_px: float = 20.0) -> torch.Tensor:
