@@ -52,7 +52,7 @@ from tqdm.auto import tqdm
 from torchevtrack.camera import Camera
 from torchevtrack.config import TrackerConfig
 from torchevtrack.events import EventStream
-from torchevtrack.geometry import check_pose, quat_canonical, quat_rotate
+from torchevtrack.geometry import check_pose, quat_rotate
 from torchevtrack.loss import LossDetector, LossUpdate, OnLost
 from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
 from torchevtrack.render import make_renderer
