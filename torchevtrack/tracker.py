@@ -9,7 +9,8 @@ sequences and runs, in the paper's order:
 3. :func:`~torchevtrack.stages.propagate.propagate` moves the pose with the twist for one period (the
    filter's twist, plus with ``velocity.feedback_gain > 0`` the
    :class:`~torchevtrack.stages.velocity.CorrectionFeedback` on the axes the flow hardly observes: depth
-   rate, pitch and yaw);
+   rate, pitch and yaw); steps 2 and 3 run as one compiled call of those stages' kernels,
+   :func:`~torchevtrack.stages.motion.motion_step`;
 4. the mesh is rendered once, in a window around the propagated pose;
 5. :class:`~torchevtrack.stages.template.TemplateCorrector` scores hypotheses warped from that render
    against the EROS observation (optionally weighted toward its newest events, ``eros.recency_us``)
@@ -58,11 +59,12 @@ from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
 from torchevtrack.render import make_renderer
 from torchevtrack.stages import batch_mask
 from torchevtrack.stages.eros import EROS, canvas_observation
-from torchevtrack.stages.flow import FlowField, TripletFlow
+from torchevtrack.stages.flow import TripletFlow
+from torchevtrack.stages.motion import motion_step
 from torchevtrack.stages.propagate import propagate, twist_between
 from torchevtrack.stages.template import Correction, TemplateCorrector, TemplateModel, window_of
 from torchevtrack.stages.ukf import PoseUKF
-from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, sample_depth, shift_twist
+from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, shift_twist
 
 if TYPE_CHECKING:
     from torchevtrack.raster import RasterRenderer
@@ -333,29 +335,13 @@ class EventPoseTracker(nn.Module):
             flow = _cat(self._map(lambda rows, ev: self.flow(*ev, rows=rows), events))
         clock.lap("flow")
 
-        if cfg.velocity.source == "flow":
-            self.velocity.predict()
-            valid = _slower(flow, cfg.flow.max_speed)
-            depth = self._depth_at(flow.uv, valid)
-            centre = self.pose[:, :3]
-            upd = self.velocity.update(flow.uv, flow.flow, depth, valid, self.dt, centre=centre)
-            twist_c = self.velocity.x.numpy() + self.feedback.b.numpy() if self.feedback is not None \
-                else self.velocity.x
-            twist = shift_twist(torch.as_tensor(twist_c), torch.from_numpy(-centre.numpy()))  # [c_dot, w] -> [v, w]
-            n_vectors = torch.from_numpy(np.count_nonzero(upd.weights.numpy() > 0, axis=-1))
-        elif cfg.velocity.source == "poses":
-            twist = twist_between(self.prev_pose, self.pose, self.dt)
-            n_vectors = torch.zeros(B, dtype=torch.long)
-        else:
-            twist = torch.zeros(B, 6, dtype=torch.float64)
-            n_vectors = torch.zeros(B, dtype=torch.long)
-        predicted = propagate(self.pose, twist, self.dt)
         # A pose that is not finite or puts the object (nearly) behind the camera is not a pose: such a
         # prediction or output is replaced by the last pose (zero motion) rather than used or emitted.
-        rejected = self._invalid(predicted)
-        if bool(rejected.any()):
-            predicted = torch.where(rejected[:, None], self.pose, predicted)
-            twist = torch.where(rejected[:, None], torch.zeros_like(twist), twist)
+        predicted, twist, n_vectors, rejected = motion_step(
+            cfg.velocity.source, self.pose, self.prev_pose, self.dt, self._min_depth, kf=self.velocity, flow=flow,
+            max_speed=cfg.flow.max_speed, depth=self.depth, origin=self.origin,
+            radius=max(cfg.flow.block // 4, 2),  # flow lies on edges: the pixel may fall just off the silhouette
+            feedback=None if self.feedback is None else self.feedback.b)
         clock.lap("velocity")
 
         pose32 = predicted.float()
@@ -631,18 +617,6 @@ class EventPoseTracker(nn.Module):
         e = self.config.eros
         return canvas_observation(self.eros.surface[rows], self.flow.sae[rows], box, self.config.template.canvas,
                                   t_now[rows], e.max_age_us, e.recency_us)
-
-    def _depth_at(self, uv: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-        """Depth ``(B, G)`` at the ``valid`` ``(B, G)`` flow pixels ``uv`` ``(B, G, 2)`` from the last render
-        (0 for the others): :func:`~torchevtrack.stages.velocity.sample_depth` over a sparse neighbourhood of
-        radius ``block / 4`` (flow lies on edges, where the pixel may fall just off the silhouette)."""
-        return sample_depth(self.depth, self.origin, uv, valid, max(self.config.flow.block // 4, 2))
-
-
-def _slower(flow: FlowField, max_speed: float) -> torch.Tensor:
-    """``(B, G)`` bool: the valid flow vectors slower than ``max_speed`` px/s (numpy: a few hundred numbers)."""
-    f = flow.flow.numpy()
-    return torch.from_numpy(flow.valid.numpy() & (np.sqrt(f[..., 0] * f[..., 0] + f[..., 1] * f[..., 1]) < max_speed))
 
 
 def _canonical_into(pose: np.ndarray, out: np.ndarray) -> None:
