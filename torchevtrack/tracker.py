@@ -16,7 +16,8 @@ sequences and runs, in the paper's order:
    against the EROS observation (optionally weighted toward its newest events, ``eros.recency_us``)
    and moves the pose to the best (the paper's argmax of 13, or a Newton step over all six axes:
    ``template.rule``); the correction's rate feeds the feedback of step 3, if on;
-6. :class:`~torchevtrack.stages.ukf.PoseUKF` smooths the corrected pose into the output;
+6. :class:`~torchevtrack.stages.ukf.PoseUKF` smooths the corrected pose into the output (with the correction
+   feedback's update and the output checks, one compiled call: :func:`~torchevtrack.stages.output.output_step`);
 7. optionally (``config.loss.enabled``) a :class:`~torchevtrack.loss.LossDetector` judges the update's
    :class:`Quality` and declares elements lost; an ``on_lost`` callback may give them new poses, and
    those elements (only) restart there.
@@ -61,7 +62,8 @@ from torchevtrack.stages import batch_mask
 from torchevtrack.stages.eros import EROS, canvas_observation
 from torchevtrack.stages.flow import TripletFlow
 from torchevtrack.stages.motion import motion_step
-from torchevtrack.stages.propagate import propagate, twist_between
+from torchevtrack.stages.output import output_step
+from torchevtrack.stages.propagate import propagate
 from torchevtrack.stages.template import Correction, TemplateCorrector, TemplateModel, window_of
 from torchevtrack.stages.ukf import PoseUKF
 from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, shift_twist
@@ -128,7 +130,8 @@ class EventPoseTracker(nn.Module):
         depth: ``(B, h, w)`` float32 depth of the last render window; ``origin``: ``(B, 2)`` its top-left pixel.
 
     After each update, ``quality`` holds its :class:`Quality` and ``stage_ms`` the milliseconds spent in
-    each stage (eros, flow, velocity, render, correction, ukf; and loss with a detector). With
+    each stage (eros, flow, velocity, render, correction, ukf; and loss with a detector; ukf includes the
+    correction feedback's update, which runs with it). With
     ``config.loss.enabled``, ``loss`` is the :class:`~torchevtrack.loss.LossDetector` (its buffers:
     confidence, lost, lost_at_us, ...), ``loss_update`` the :class:`~torchevtrack.loss.LossUpdate` of
     the last update and ``lost`` its ``(B,)`` flags; without it all three are ``None``.
@@ -358,29 +361,18 @@ class EventPoseTracker(nn.Module):
             warm = (seen >= cfg.template.warmup_events)[:, None]
             measured = torch.from_numpy(np.where(warm, corr.pose.numpy(), predicted.numpy()))
             score = corr.score
-            if self.feedback is not None:  # the correction's rate, as a twist about the predicted centre
-                rate = twist_between(predicted, measured, self.dt)
-                # the objects' symmetry axes in the camera frame (zero stays zero; none: no rotation needed)
-                axis = quat_rotate(measured[:, 3:], self._symmetry_axis) if self._symmetric else None
-                self.feedback(shift_twist(rate, predicted[:, :3]), axis)
         else:
             measured, score = predicted, torch.full((B,), float("nan"))
         clock.lap("correction")
 
-        if cfg.ukf.enabled:
-            self.ukf.predict(self.dt, twist)
-            self.ukf.update(measured)
-            out = self.ukf.pose
-        else:
-            out = measured
-        bad = self._invalid(out)
-        if bool(bad.any()):
-            out = torch.where(bad[:, None], self.pose, out)
-            if cfg.ukf.enabled:
-                self.ukf.x[bad, 6:13] = self.pose[bad]
+        # the objects' symmetry axes in the camera frame, for the feedback (zero stays zero; none: no rotation)
+        axis = quat_rotate(measured[:, 3:], self._symmetry_axis) if self.feedback is not None and self._symmetric \
+            else None
+        out, bad = output_step(self.pose, predicted, measured, twist, self.dt, self._min_depth,
+                               ukf=self.ukf if cfg.ukf.enabled else None, feedback=self.feedback, symmetry_axis=axis)
         clock.lap("ukf")
         self.prev_pose.copy_(self.pose)
-        _canonical_into(self.pose.numpy(), out.numpy())
+        self.pose.copy_(out)
         self.quality = Quality(score, n_vectors, torch.from_numpy(n_events), bad | rejected)
         if self.loss is not None:
             upd = self.loss(self.quality, self._t_now(t, b) if t_us is None else t_us)
@@ -617,17 +609,6 @@ class EventPoseTracker(nn.Module):
         e = self.config.eros
         return canvas_observation(self.eros.surface[rows], self.flow.sae[rows], box, self.config.template.canvas,
                                   t_now[rows], e.max_age_us, e.recency_us)
-
-
-def _canonical_into(pose: np.ndarray, out: np.ndarray) -> None:
-    """``pose = out`` ``(B, 7)`` with the quaternion made canonical: :func:`~torchevtrack.geometry.quat_canonical`
-    in numpy, bit for bit (the same sequential sum of four squares)."""
-    q = out[:, 3:]
-    norm = np.maximum(np.sqrt(((q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1]) + q[:, 2] * q[:, 2]) + q[:, 3] * q[:, 3]),
-                      1e-12)
-    pose[:, :3] = out[:, :3]
-    np.divide(q, norm[:, None], out=pose[:, 3:])
-    np.negative(pose[:, 3:], out=pose[:, 3:], where=pose[:, 3:4] < 0)
 
 
 @dataclass
