@@ -150,11 +150,17 @@ def _motion_kernel(source, pose, prev_pose, dt, min_depth, x, P, rho, Q, uv, flo
         twist[:] = 0.0
     _propagate_kernel(pose, twist, dt, predicted)
     for b in range(B):
-        ok = predicted[b, 2] > min_depth[b]
-        for j in range(7):
-            ok = ok and np.isfinite(predicted[b, j])
-        rejected[b] = not ok
-        if not ok:
+        rejected[b] = not _valid_pose(predicted[b], min_depth[b])
+        if rejected[b]:
             predicted[b] = pose[b]
             twist[b] = 0.0
     return -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _valid_pose(pose, min_depth):
+    """A pose ``(7,)`` is valid: finite, with the object centre farther than ``min_depth`` (metres)."""
+    ok = pose[2] > min_depth
+    for j in range(7):
+        ok = ok and np.isfinite(pose[j])
+    return ok

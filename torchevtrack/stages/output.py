@@ -25,6 +25,7 @@ import numba
 import numpy as np
 import torch
 
+from torchevtrack.stages.motion import _valid_pose
 from torchevtrack.stages.propagate import _twist_between_kernel
 from torchevtrack.stages.ukf import PoseUKF, _cov_arg, _ukf_predict_kernel, _ukf_update_kernel, _weights_np
 from torchevtrack.stages.velocity import CorrectionFeedback, _feedback_kernel, _shift_twist_kernel
@@ -118,11 +119,8 @@ def _output_kernel(pose, predicted, measured, twist, dt, min_depth, has_feedback
     else:
         out[:] = measured
     for i in range(B):
-        ok = out[i, 2] > min_depth[i]
-        for j in range(7):
-            ok = ok and np.isfinite(out[i, j])
-        rejected[i] = not ok
-        if not ok:
+        rejected[i] = not _valid_pose(out[i], min_depth[i])
+        if rejected[i]:
             out[i] = pose[i]
             if has_ukf:
                 x[i, 6:13] = pose[i]
