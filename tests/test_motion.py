@@ -7,7 +7,7 @@ import torch
 from torchevtrack.camera import Camera
 from torchevtrack.geometry import quat_exp, quat_mul
 from torchevtrack.stages.flow import FlowField
-from torchevtrack.stages.motion import motion_step
+from torchevtrack.stages.motion import invalid_poses, motion_step
 from torchevtrack.stages.propagate import propagate, twist_between
 from torchevtrack.stages.velocity import VelocityKF, sample_depth, shift_twist
 
@@ -114,3 +114,21 @@ def test_bad_arguments_are_clear_errors():
         motion_step("flow", pose, prev, DT, min_depth, flow=fields)
     with pytest.raises(ValueError, match="float64"):
         motion_step("none", pose.float(), prev, DT, min_depth)
+    with pytest.raises(ValueError, match="B=3"):  # a filter of another batch size: refused, not read out of bounds
+        motion_step("flow", pose, prev, DT, min_depth, kf=VelocityKF(CAM, batch_size=2), flow=fields, depth=depth,
+                    origin=origin)
+    with pytest.raises(ValueError, match="B=3"):
+        motion_step("flow", pose, prev, DT, min_depth, kf=kf, flow=fields, depth=depth, origin=origin[:2])
+
+
+def test_invalid_poses_is_the_rule():
+    """Not finite anywhere, or the centre at or nearer than min_depth (numpy oracle)."""
+    pose = _poses(torch.Generator().manual_seed(1)).repeat(2, 1)
+    pose[1, 4] = float("nan")
+    pose[2, 2] = 0.1  # exactly min_depth: rejected
+    pose[3, 0] = float("inf")
+    pose[4, 2] = -0.5
+    min_depth = torch.full((6,), 0.1, dtype=F64)
+    p = pose.numpy()
+    want = ~np.isfinite(p).all(-1) | (p[:, 2] <= min_depth.numpy())
+    assert invalid_poses(pose, min_depth).tolist() == want.tolist() == [False, True, True, True, True, False]

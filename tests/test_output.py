@@ -84,6 +84,10 @@ def test_bad_arguments_are_clear_errors():
         output_step(pose, predicted, measured, twist[:, :3], DT, min_depth)
     with pytest.raises(ValueError, match="symmetry_axis"):
         output_step(pose, predicted, measured, twist, DT, min_depth, feedback=feedback, symmetry_axis=axis[:2])
+    with pytest.raises(ValueError, match="B=3"):
+        output_step(pose, predicted, measured, twist, DT, min_depth, ukf=PoseUKF(2))
+    with pytest.raises(ValueError, match="B=3"):
+        output_step(pose, predicted, measured, twist, DT, min_depth, feedback=CorrectionFeedback(batch_size=4))
     ukf.P[1] = -torch.eye(12, dtype=F64)
     with pytest.raises(torch.linalg.LinAlgError, match="ukf_predict.*filter 1"):
         output_step(pose, predicted, measured, twist, DT, min_depth, ukf=ukf)

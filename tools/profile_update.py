@@ -28,13 +28,10 @@ from torchevtrack.tracker import EventPoseTracker
 KERNELS = {
     "torchevtrack.stages.eros": ["_eros_kernel", "_canvas_kernel"],
     "torchevtrack.stages.flow": ["_flow_packet"],
-    "torchevtrack.stages.velocity": ["_kf_predict_kernel", "_kf_update_kernel", "_sample_depth_kernel"],
-    "torchevtrack.stages.propagate": ["_propagate_kernel", "_twist_between_kernel"],
     "torchevtrack.stages.motion": ["_motion_kernel"],
     "torchevtrack.stages.output": ["_output_kernel"],
     "torchevtrack.raster": ["_render_kernel"],
     "torchevtrack.stages.template": ["_model_kernel", "_newton_kernel"],
-    "torchevtrack.stages.ukf": ["_ukf_predict_kernel", "_ukf_update_kernel"],
 }
 
 

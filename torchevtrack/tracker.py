@@ -61,7 +61,7 @@ from torchevtrack.render import make_renderer
 from torchevtrack.stages import batch_mask
 from torchevtrack.stages.eros import EROS, canvas_observation
 from torchevtrack.stages.flow import TripletFlow
-from torchevtrack.stages.motion import motion_step
+from torchevtrack.stages.motion import invalid_poses, motion_step
 from torchevtrack.stages.output import output_step
 from torchevtrack.stages.propagate import propagate
 from torchevtrack.stages.template import Correction, TemplateCorrector, TemplateModel, window_of
@@ -275,7 +275,7 @@ class EventPoseTracker(nn.Module):
         pose = torch.where(m[:, None], pose, self.pose)
         pose[m] = check_pose(pose[m], "initial_pose")
         twist = torch.where(m[:, None], twist.double(), 0.0)
-        if bool((self._invalid(pose) & m).any()):
+        if bool((invalid_poses(pose, self._min_depth) & m).any()):
             raise ValueError("initial_pose puts the object centre closer to the camera than the object's radius")
         self.eros.reset(m)
         self.flow.reset(m)
@@ -547,11 +547,6 @@ class EventPoseTracker(nn.Module):
         """The correction feedback runs (it needs the flow twist and the corrections; only it uses symmetry axes)."""
         v = cfg.velocity
         return v.source == "flow" and cfg.template.enabled and v.feedback_gain > 0
-
-    def _invalid(self, pose: torch.Tensor) -> torch.Tensor:
-        """``(B,)`` bool: non-finite poses and poses with the object centre closer than its radius."""
-        p = pose.detach().numpy()  # numpy: two small tensors per update, without torch's dispatch
-        return torch.from_numpy(~np.isfinite(p).all(-1) | (p[:, 2] <= self._min_depth.numpy()))
 
     def _correct(self, predicted: torch.Tensor, pose32: torch.Tensor, render: "_Render | None",
                  t_now: torch.Tensor) -> Correction:

@@ -35,7 +35,7 @@ from torchevtrack.stages.velocity import (
     _shift_twist_kernel,
 )
 
-__all__ = ["Motion", "motion_step", "SOURCES"]
+__all__ = ["Motion", "invalid_poses", "motion_step", "SOURCES"]
 
 SOURCES = ("flow", "poses", "none")
 
@@ -90,6 +90,12 @@ def motion_step(source: str, pose: torch.Tensor, prev_pose: torch.Tensor, dt: fl
     if by_flow and (kf is None or flow is None or depth is None or origin is None):
         raise ValueError("source='flow' needs kf, flow, depth and origin")
     G = flow.valid.shape[1] if by_flow else 0
+    if by_flow and (kf.batch_size != B or flow.valid.shape != (B, G) or flow.valid.dtype != torch.bool
+                    or flow.uv.shape != (B, G, 2) or flow.flow.shape != (B, G, 2) or depth.ndim != 3
+                    or depth.shape[0] != B or origin.shape != (B, 2) or origin.dtype != torch.int64
+                    or (feedback is not None and feedback.shape != (B, 6))):
+        raise ValueError(f"expected for B={B}: a filter of B, flow uv and flow (B, G, 2) with a bool valid (B, G), "
+                         "depth (B, h, w), int64 origin (B, 2) and feedback (B, 6)")
     predicted, twist = np.empty((B, 7)), np.empty((B, 6))
     n_vectors, rejected = np.zeros(B, dtype=np.int64), np.empty(B, dtype=np.bool_)
     dts = np.full(B, float(dt))
@@ -108,6 +114,23 @@ def motion_step(source: str, pose: torch.Tensor, prev_pose: torch.Tensor, dt: fl
         _motion_kernel(SOURCES.index(source), pose.numpy(), prev_pose.numpy(), dts, min_depth.numpy(), *_NO_FLOW,
                        predicted, twist, n_vectors, rejected)
     return Motion(*(torch.from_numpy(a) for a in (predicted, twist, n_vectors, rejected)))
+
+
+def invalid_poses(pose: torch.Tensor, min_depth: torch.Tensor) -> torch.Tensor:
+    """The poses :func:`motion_step` (and :func:`~torchevtrack.stages.output.output_step`) reject: not finite, or
+    the object centre at or nearer than ``min_depth`` (m).
+
+    Shape: ``(B, 7), (B,) -> (B,)`` bool.
+    """
+    out = np.empty(pose.shape[0], dtype=np.bool_)
+    _invalid_kernel(pose.detach().double().numpy(), min_depth.detach().double().numpy(), out)
+    return torch.from_numpy(out)
+
+
+@numba.njit(cache=True, nogil=True)
+def _invalid_kernel(pose, min_depth, out):
+    for b in range(pose.shape[0]):
+        out[b] = not _valid_pose(pose[b], min_depth[b])
 
 
 _NO_FEEDBACK = np.zeros((1, 6))

@@ -70,6 +70,8 @@ def output_step(pose: torch.Tensor, predicted: torch.Tensor, measured: torch.Ten
             raise ValueError(f"{name} must be a float64 ({B}, {n}) tensor, got {v.dtype} {tuple(v.shape)}")
     if min_depth.shape != (B,):
         raise ValueError(f"min_depth must have shape ({B},), got {tuple(min_depth.shape)}")
+    if (ukf is not None and ukf.batch_size != B) or (feedback is not None and feedback.b.shape != (B, 6)):
+        raise ValueError(f"the UKF and the feedback must have B={B} elements")
     if symmetry_axis is not None and symmetry_axis.shape != (B, 3):
         raise ValueError(f"symmetry_axis must have shape ({B}, 3), got {tuple(symmetry_axis.shape)}")
     fb = feedback is not None

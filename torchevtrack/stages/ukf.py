@@ -382,7 +382,6 @@ def _ukf_update_kernel(x, P, z, R, r_diag, Wm, Wc, spread, x_out, P_out):
 
 
 @functools.lru_cache(maxsize=16)
-@functools.lru_cache(maxsize=16)
 def _weights_np(alpha: float, beta: float, kappa: float) -> tuple[np.ndarray, np.ndarray, float]:
     """:func:`merwe_weights` of the tangent space as read-only numpy arrays (cached: a filter's are fixed)."""
     Wm, Wc, spread = merwe_weights(N_TANGENT, alpha, beta, kappa)
