@@ -177,13 +177,22 @@ def test_render_reuse_skips_renders_only_within_the_threshold(seq):
     assert len(frozen_calls) == 1
 
 
-def test_observation_drops_old_pixels_and_weighs_recent_ones(seq):
-    """The tracker's observation against a per-pixel reference: EROS, zero where the last event is
-    ``max_age_us`` old or older, times ``exp(-age / recency_us)``, then the 3x3 median over the window under
-    the canvas box, resampled into the canvas."""
+def test_observation_drops_old_pixels_and_weighs_recent_ones(seq, monkeypatch):
+    """The observation the tracker corrected against, captured from its kernel, against a per-pixel reference:
+    EROS, zero where the last event is ``max_age_us`` old or older, times ``exp(-age / recency_us)``, then the
+    3x3 median over the window under the canvas box, resampled into the canvas."""
+    from torchevtrack.stages import correction
     from torchevtrack.stages.eros import observation
     from torchevtrack.stages.template import to_canvas
 
+    seen = []
+    kernel = correction._canvas_kernel
+
+    def capture(*args):
+        kernel(*args)
+        seen.append(torch.from_numpy(args[-1].copy()))
+
+    monkeypatch.setattr(correction, "_canvas_kernel", capture)
     cfg = TrackerConfig().replace(eros={"max_age_us": 4000, "recency_us": 1500.0})
     tracker = EventPoseTracker(CAM, seq.mesh, cfg)
     tracker.reset(seq.gt_poses[0])
@@ -203,7 +212,8 @@ def test_observation_drops_old_pixels_and_weighs_recent_ones(seq):
             age = int(t_now[0]) - int(sae[v, u])
             if age < 4000:
                 ref[v - v0, u - u0] = float(tracker.eros.surface[0, v, u]) * math.exp(-age / 1500.0)
-    got = tracker._observation(box, t_now)
+    assert len(seen) == 1
+    got = seen[0]
     want = to_canvas(observation(ref[None]), box, N, (u0, v0))
     torch.testing.assert_close(got, want, atol=1e-6, rtol=1e-5)
     assert float(ref.gt(0).float().mean()) > 0.005  # the window holds recent edges

@@ -26,12 +26,12 @@ from torchevtrack.synth.sequence import Sequence
 from torchevtrack.tracker import EventPoseTracker
 
 KERNELS = {
-    "torchevtrack.stages.eros": ["_eros_kernel", "_canvas_kernel"],
+    "torchevtrack.stages.eros": ["_eros_kernel"],
     "torchevtrack.stages.flow": ["_flow_packet"],
     "torchevtrack.stages.motion": ["_motion_kernel"],
     "torchevtrack.stages.output": ["_output_kernel"],
     "torchevtrack.raster": ["_render_kernel"],
-    "torchevtrack.stages.template": ["_model_kernel", "_newton_kernel"],
+    "torchevtrack.stages.correction": ["_model_kernel", "_canvas_kernel", "_newton_kernel"],
 }
 
 

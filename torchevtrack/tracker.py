@@ -59,7 +59,8 @@ from torchevtrack.loss import LossDetector, LossUpdate, OnLost
 from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
 from torchevtrack.render import make_renderer
 from torchevtrack.stages import batch_mask
-from torchevtrack.stages.eros import EROS, canvas_observation
+from torchevtrack.stages.correction import CorrectionStep, correction_step
+from torchevtrack.stages.eros import EROS
 from torchevtrack.stages.flow import TripletFlow
 from torchevtrack.stages.motion import invalid_poses, motion_step
 from torchevtrack.stages.output import output_step
@@ -552,19 +553,21 @@ class EventPoseTracker(nn.Module):
                  t_now: torch.Tensor) -> Correction:
         """Template correction of the ``predicted`` poses with a new template model of ``render`` (made at ``pose32``),
         or the last model when ``render`` is ``None``; each worker corrects its share of the batch."""
-        def share(rows: slice) -> tuple[TemplateModel, Correction]:
-            if render is None:
-                model = TemplateModel(*(f[rows] for f in self._model))
-            else:
-                model = self.corrector.template_model(pose32[rows], render.depth[rows],
-                                                      None if render.gray is None else render.gray[rows],
-                                                      self.origin[rows])
-            obs = self._observation(model.box, t_now, rows)
-            return model, self.corrector.correct_canvas(model, predicted[rows], obs)
+        o, e = self.corrector.options, self.config.eros
+
+        def share(rows: slice) -> CorrectionStep:
+            return correction_step(
+                pose32[rows], predicted[rows], None if render is None else render.depth[rows],
+                None if render is None or render.gray is None else render.gray[rows], self.origin[rows],
+                self.eros.surface[rows], self.flow.sae[rows], t_now[rows], self.camera,
+                model=TemplateModel(*(f[rows] for f in self._model)) if render is None else None,
+                canvas=o["canvas"], margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"],
+                dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"], rule=o["rule"], iterations=o["iterations"],
+                max_age_us=e.max_age_us, recency_us=e.recency_us)
 
         parts = self._map(share)
-        self._model = _cat([m for m, _ in parts])
-        return _cat([c for _, c in parts])
+        self._model = _cat([p.model for p in parts])
+        return _cat([p.correction for p in parts])
 
     def _share_events(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor,
                       b: torch.Tensor | None) -> list[tuple[torch.Tensor, ...]]:
@@ -590,20 +593,6 @@ class EventPoseTracker(nn.Module):
                 return fn(*args)
 
         return list(self._pool.map(run, self._shares, *per_share))
-
-    def _observation(self, box: torch.Tensor, t_now: torch.Tensor, rows: slice = slice(None)) -> torch.Tensor:
-        """Median-blurred EROS of the batch ``rows`` under their template's canvas ``box`` ``(K, 3)``, in the canvas:
-        ``(K, N, N)``.
-
-        EROS only decays where new events arrive, so edges the object left stay at full strength until
-        something else fires there. With ``eros.max_age_us > 0`` pixels whose last event (timestamp
-        surface of the flow stage) is that old or older are cleared from the observation; with
-        ``eros.recency_us > 0`` every pixel is weighed by ``exp(-age / recency_us)``, which moves the
-        observation's edges toward where the object is now (the correction lags less behind the motion).
-        """
-        e = self.config.eros
-        return canvas_observation(self.eros.surface[rows], self.flow.sae[rows], box, self.config.template.canvas,
-                                  t_now[rows], e.max_age_us, e.recency_us)
 
 
 @dataclass

@@ -1,0 +1,136 @@
+"""Step 5 of an update without the glue between its kernels: template model, observation, Newton search.
+
+The tracker's correction used to be three stage calls, each with its own checks, tensor conversions and float64
+copies: :func:`~torchevtrack.stages.template.template_model` of the render,
+:func:`~torchevtrack.stages.eros.canvas_observation` of the EROS under the model's canvas box, and
+:func:`~torchevtrack.stages.template.newton_search` from the predicted poses. :func:`correction_step` runs the same
+kernels on numpy buffers, so its numbers are those of the stage calls bit for bit (``tests/test_correction.py``
+checks it against them). It also tells when it has read the surfaces (``on_observed``): from then on the next
+window's events may update them while the search runs (the tracker's pipeline, see
+:class:`~torchevtrack.tracker.EventPoseTracker`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, NamedTuple
+
+import numpy as np
+import torch
+
+from torchevtrack.camera import Camera
+from torchevtrack.stages.eros import _canvas_kernel, _check_time_surface, _decay_table
+from torchevtrack.stages.template import (NUM_HYPOTHESES, Correction, TemplateModel, _model_filters, _model_kernel,
+                                          _newton_kernel, correct_canvas)
+
+__all__ = ["CorrectionStep", "correction_step"]
+
+_DAMPING, _MAX_STEP = 0.5, 1.0  # newton_search's defaults
+
+
+class CorrectionStep(NamedTuple):
+    """Result of :func:`correction_step`: the template ``model`` of the render (or the one given) and the
+    ``correction`` of the predicted poses, as :func:`~torchevtrack.stages.template.newton_search` returns it."""
+
+    model: TemplateModel
+    correction: Correction
+
+
+def correction_step(
+    render_pose: torch.Tensor,
+    predicted: torch.Tensor,
+    depth: torch.Tensor | None,
+    gray: torch.Tensor | None,
+    origin: torch.Tensor,
+    surface: torch.Tensor,
+    last_us: torch.Tensor,
+    t_now_us: torch.Tensor,
+    camera: Camera,
+    *,
+    model: TemplateModel | None = None,
+    canvas: int = 128,
+    margin_px: float = 20.0,
+    edge_clip: float = 0.1,
+    silhouette: bool = True,
+    dp_px: float = 1.0,
+    dtheta_deg: float = 0.5,
+    rule: str = "newton",
+    iterations: int = 1,
+    max_age_us: int = 0,
+    recency_us: float = 0.0,
+    on_observed: Callable[[], object] | None = None,
+) -> CorrectionStep:
+    """Correct the ``predicted`` poses against the EROS with the template of a render (see the module docstring).
+
+    Args:
+        render_pose: ``(B, 7)`` float32 pose the render was made at; predicted: ``(B, 7)`` float64 start poses.
+        depth, gray: ``(B, h, w)`` float32 render of the window at ``origin`` ``(B, 2)`` int64 (gray ``None``:
+            silhouette only), or ``depth=None`` with a ``model`` of an earlier render to reuse.
+        surface: ``(B, H, W)`` EROS; last_us: ``(B, C, H, W)`` int64 time surface; t_now_us: ``(B,)`` int64 us.
+        camera: the frame camera.
+        canvas, margin_px, edge_clip, silhouette: as for :func:`~torchevtrack.stages.template.template_model`.
+        dp_px, dtheta_deg, rule, iterations: as for :func:`~torchevtrack.stages.template.correct_canvas` (the
+            ``"newton"`` rule runs :func:`~torchevtrack.stages.template.newton_search`'s kernel directly).
+        max_age_us, recency_us: as for :func:`~torchevtrack.stages.eros.canvas_observation`.
+        on_observed: called (no arguments) once the observation is made: ``surface`` and ``last_us`` are not read
+            after that.
+
+    Shape: returns the model (``N = canvas``) and a ``Correction`` of ``B`` poses.
+    """
+    B = predicted.shape[0]
+    if predicted.shape != (B, 7) or predicted.dtype != torch.float64:
+        raise ValueError(f"predicted must be a float64 (B, 7) tensor, got {predicted.dtype} {tuple(predicted.shape)}")
+    if surface.ndim != 3 or surface.shape[0] != B or t_now_us.shape != (B,):
+        raise ValueError(f"surface (B, H, W) and t_now_us (B,) must have B = {B} rows, got {tuple(surface.shape)} "
+                         f"and {tuple(t_now_us.shape)}")
+    _check_time_surface(last_us, B, *surface.shape[1:])
+    if model is None:
+        model = _model(render_pose, depth, gray, origin, camera, canvas, margin_px, edge_clip, silhouette)
+    elif model.coef.shape[0] != B:
+        raise ValueError(f"model must have B = {B} elements, got {model.coef.shape[0]}")
+    N = model.depth.shape[-1]
+    obs = np.empty((B, N, N), dtype=np.float32)
+    _canvas_kernel(surface.numpy(), last_us.numpy(), model.box.numpy().astype(np.float64),
+                   t_now_us.numpy().astype(np.int64, copy=False), int(max_age_us), float(recency_us),
+                   _decay_table(float(recency_us), int(max_age_us)), obs)
+    if on_observed is not None:
+        on_observed()
+    if rule != "newton":
+        return CorrectionStep(model, correct_canvas(model, predicted, torch.from_numpy(obs), camera, dp_px=dp_px,
+                                                    dtheta_deg=dtheta_deg, rule=rule, iterations=iterations))
+    pose = np.empty((B, 7))
+    score, scores, moved = np.empty(B), np.empty((B, NUM_HYPOTHESES)), np.empty(B, dtype=np.int64)
+    _newton_kernel(model.coef.numpy(), model.depth.numpy(), model.K.numpy().astype(np.float64),
+                   model.render_pose.numpy(), predicted.numpy(), obs.reshape(B, N * N),
+                   model.gain.numpy().astype(np.float64), camera.fx, camera.fy, float(dp_px), math.radians(dtheta_deg),
+                   iterations, _DAMPING, _MAX_STEP, pose, score, scores, moved)
+    dt = model.depth.numpy().dtype
+    scores = torch.from_numpy(scores.astype(dt))
+    return CorrectionStep(model, Correction(torch.from_numpy(pose), torch.from_numpy(score.astype(dt)), scores,
+                                            scores.argmax(1), torch.zeros(B, NUM_HYPOTHESES, dtype=torch.bool),
+                                            torch.from_numpy(moved)))
+
+
+def _model(render_pose, depth, gray, origin, camera, N, margin_px, edge_clip, silhouette) -> TemplateModel:
+    """:func:`~torchevtrack.stages.template.template_model` of a float32 render, on numpy buffers."""
+    if depth is None or depth.ndim != 3 or depth.dtype != torch.float32 or (gray is not None and gray.shape != depth.shape):
+        raise ValueError("depth (and gray) must be float32 (B, h, w) renders, or pass the model to reuse")
+    B = depth.shape[0]
+    if render_pose.shape != (B, 7) or origin.shape != (B, 2):
+        raise ValueError(f"render_pose (B, 7) and origin (B, 2) must have B = {B} rows, got "
+                         f"{tuple(render_pose.shape)} and {tuple(origin.shape)}")
+    if gray is None and not silhouette:
+        raise ValueError("without a grey render the template needs silhouette=True")
+    f32 = np.float32
+    step = max(1, N // 16)  # as template_model
+    P = len(range(step // 2, N, step)) ** 2
+    box, K, gain = np.empty((B, 3), f32), np.empty((B, 4), f32), np.empty(B, f32)
+    T, Z, coef = np.empty((B, N, N), f32), np.empty((B, N, N), f32), np.zeros((B, N + 6, N + 6), f32)
+    points, valid = np.empty((B, P, 3), f32), np.empty((B, P), dtype=np.bool_)
+    pose = render_pose.numpy().astype(np.float64)
+    _model_kernel(depth.numpy(), (depth if gray is None else gray).numpy(), origin.numpy().astype(np.float64),
+                  np.ascontiguousarray(pose[:, 2]), np.array([camera.fx, camera.fy, camera.cx, camera.cy]),
+                  float(margin_px), gray is not None, silhouette, 0.125 / edge_clip, *_model_filters(N), step, step,
+                  box, K, gain, T, coef, Z, points, valid)
+    pose = torch.from_numpy(pose)
+    return TemplateModel(pose, pose, *(torch.from_numpy(a) for a in (box, K, gain, T, Z, coef, points, valid)))
