@@ -129,7 +129,7 @@ class Recorder(EventPoseTracker):
         self.windows = []
         self.count = torch.zeros(self.batch_size, dtype=torch.float64)
 
-    def forward(self, x, y, t, p, b=None, t_us=None):
+    def forward(self, x, y, t, p, b=None, t_us=None, next_window=None):
         # the streams' own types (EventStream: int16 pixels, int64 us, int8 polarity), no int64 copies
         assert (x.dtype, y.dtype, t.dtype, p.dtype) == (torch.int16, torch.int16, torch.int64, torch.int8)
         b = torch.zeros_like(t) if b is None else b  # one element's events come without a batch index
@@ -138,6 +138,9 @@ class Recorder(EventPoseTracker):
         pose = torch.zeros(self.batch_size, 7, dtype=torch.float64)
         pose[:, 0] = self.count
         return pose
+
+    def _drop_ahead(self) -> None:  # nothing is taken in ahead
+        pass
 
 
 def _reference_windows(events: list[list[tuple]], t0: int, P: int, n: int):
@@ -252,3 +255,22 @@ def test_bad_input_is_rejected():
         online.flush(6000.5)
     with pytest.raises(TypeError, match="EventPoseTracker"):
         OnlineTracker(object())
+
+
+def test_pushes_of_several_windows_run_the_pipeline_with_the_serial_poses(seq):
+    """A push that completes several windows lets the tracker take each next one in ahead: same poses."""
+    t0 = _t0(seq)
+    ev = seq.events.slice_time(t0, t0 + 30_000)
+    out = {}
+    for pipeline in (False, True):
+        tracker = EventPoseTracker(CAM, seq.mesh, workers=1, pipeline=pipeline)
+        online = OnlineTracker(tracker)
+        online.start(seq.gt_poses[0], t0)
+        got = []
+        for a in range(t0, t0 + 30_000, 7000):  # 3-4 windows per push
+            got += online.push(ev.slice_time(a, a + 7000))
+        got += online.flush(t0 + 30_000)
+        tracker.close()
+        out[pipeline] = _collect(got)
+        assert tracker._ahead is None and len(online.stage_ms) == 15
+    assert torch.equal(out[True][0], out[False][0]) and torch.equal(out[True][1], out[False][1])

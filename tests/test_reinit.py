@@ -383,3 +383,32 @@ def test_track_and_online_report_loss_flags(seq):
     assert torch.equal(tracker.pose[0], pose0[0]) and int(tracker.events_seen[1]) == 0
     assert not bool(tracker.loss.lost[1]) and int(tracker.events_seen[0]) > 0
     tracker.close()
+
+
+@pytest.mark.parametrize("batch", [1, 2])
+def test_a_restart_with_the_next_window_taken_in_ahead_gives_the_serial_poses(seq, batch):
+    """The pipeline takes window k + 1 into the EROS and the flow while update k searches; when update k restarts
+    an element (on_lost), that element's surfaces are cleared and take window k + 1 in again, as if serial."""
+    cfg = TrackerConfig().replace(loss={"enabled": True}, template={"rule": "argmax", "iterations": 1},
+                                  eros={"recency_us": 0.0})
+    rate = len(seq.events.slice_time(0, CUT_US)) / CUT_US
+    noise = _noise(CUT_US, int(seq.gt_t_us[-1]), rate, 0)
+    N = 90
+    streams = [seq.events, noise] if batch == 2 else [noise]  # the last element loses its object at CUT_US
+    windows = [_pack([_window(seq.events if P_US * k < CUT_US else s, k) for s in streams]) for k in range(N)]
+    out = {}
+    for pipeline in (False, True):
+        calls = []
+
+        def on_lost(index, t_us):
+            calls.append((index.tolist(), t_us.tolist()))
+            return interpolate_poses(seq.gt_t_us, seq.gt_poses, t_us)
+
+        tracker = EventPoseTracker(CAM, [seq.mesh] * batch, cfg, on_lost=on_lost, workers=1, pipeline=pipeline)
+        tracker.reset(seq.gt_poses[0])
+        out[pipeline] = torch.stack([tracker(*windows[k], t_us=P_US * (k + 1),
+                                             next_window=windows[k + 1] if k + 1 < N else None) for k in range(N)])
+        tracker.close()
+        out[pipeline, "calls"] = calls
+    assert out[True, "calls"] == out[False, "calls"] and out[True, "calls"]  # restarts happened, the same ones
+    assert torch.equal(out[True], out[False])

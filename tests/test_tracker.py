@@ -256,3 +256,71 @@ def test_feedback_ignores_turns_about_a_symmetry_axis():
     b = tracker.feedback(tilt, axes)
     assert torch.allclose(b[:, 3], torch.full((2,), 0.2, dtype=torch.float64))
     tracker.close()
+
+
+# -- the pipeline: the next window's intake during an update's search -------------------------------
+def _counting_intake(monkeypatch):
+    """Count the windows the tracker takes in ahead (its calls of intake_step)."""
+    import torchevtrack.tracker as tracker_module
+
+    calls = []
+    intake = tracker_module.intake_step
+
+    def counted(*args, **kw):
+        calls.append(1)
+        return intake(*args, **kw)
+
+    monkeypatch.setattr(tracker_module, "intake_step", counted)
+    return calls
+
+
+@pytest.mark.parametrize("ablation", ["full", "velocity_only", "correction_only"])
+def test_the_pipeline_gives_the_poses_of_the_serial_update(seq, ablation, monkeypatch):
+    """Bit for bit, one stream and a batch on one worker; every window but the first is taken in ahead."""
+    calls = _counting_intake(monkeypatch)
+    cfg = TrackerConfig().replace(**ABLATIONS[ablation])
+    t0, t1 = int(seq.gt_t_us[0]), int(seq.gt_t_us[0]) + 40_000
+    for batch in (1, 2):
+        out = {}
+        for pipeline in (False, True):
+            tracker = EventPoseTracker(CAM, [seq.mesh] * batch, cfg, workers=1, pipeline=pipeline)
+            calls.clear()
+            out[pipeline] = tracker.track([seq.events] * batch, seq.gt_poses[0], t_start_us=t0, t_end_us=t1,
+                                          progress=False)[1]
+            tracker.close()
+            assert len(calls) == (out[pipeline].shape[1] - 1 if pipeline else 0)
+        assert torch.equal(out[True], out[False])
+
+
+def test_pipeline_options_and_a_window_that_was_not_taken_in(seq, monkeypatch):
+    with pytest.raises(ValueError, match="workers=1"):
+        EventPoseTracker(CAM, [seq.mesh] * 2, workers=2, pipeline=True)
+    assert EventPoseTracker(CAM, [seq.mesh] * 2, workers=2)._intake is None  # the workers use the cores
+    tracker = EventPoseTracker(CAM, seq.mesh, workers=1, pipeline=True)
+    tracker.reset(seq.gt_poses[0])
+    w = [seq.events.slice_time(int(seq.gt_t_us[0]) + k * 2000, int(seq.gt_t_us[0]) + (k + 1) * 2000)
+         for k in range(3)]
+    win = [(e.x, e.y, e.t, e.p, None) for e in w]
+    tracker(*win[0], next_window=win[1])
+    with pytest.raises(RuntimeError, match="taken in ahead"):
+        tracker(*win[2])
+    # A track that stops early (here: an error in an update) leaves nothing taken in ahead behind.
+    import torchevtrack.tracker as tracker_module
+
+    step = tracker_module.output_step
+
+    def failing(*args, **kw):
+        failing.n += 1
+        if failing.n == 3:
+            raise FloatingPointError("stop")
+        return step(*args, **kw)
+
+    failing.n = 0
+    monkeypatch.setattr(tracker_module, "output_step", failing)
+    with pytest.raises(FloatingPointError):
+        tracker.track(seq.events, seq.gt_poses[0], progress=False)
+    assert tracker._ahead is None
+    monkeypatch.setattr(tracker_module, "output_step", step)
+    tracker.reset(seq.gt_poses[0])
+    assert tracker(*win[0]).shape == (1, 7)
+    tracker.close()

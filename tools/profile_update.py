@@ -8,7 +8,9 @@ kernels run with the caches the rest of the update leaves them (slower than in i
     python tools/profile_update.py data/bench/mustard_fast --duration 0.5 --batch 1
 
 With ``--batch B`` the sequence is tracked ``B`` times in one batch (``--workers`` threads; the kernel times are
-then summed over the workers, so kernels + glue can exceed ``forward``).
+then summed over the workers, so kernels + glue can exceed ``forward``). With one worker the tracker's pipeline
+takes each next window in (``_intake_kernel``: EROS and flow) on a thread of its own during the search, so that
+kernel overlaps ``forward``; ``--no-pipeline`` runs it inside (``_eros_kernel``, ``_flow_packet``).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from torchevtrack.tracker import EventPoseTracker
 KERNELS = {
     "torchevtrack.stages.eros": ["_eros_kernel"],
     "torchevtrack.stages.flow": ["_flow_packet"],
+    "torchevtrack.stages.intake": ["_intake_kernel"],
     "torchevtrack.stages.motion": ["_motion_kernel"],
     "torchevtrack.stages.output": ["_output_kernel"],
     "torchevtrack.raster": ["_render_kernel"],
@@ -41,6 +44,7 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=0.5, help="seconds tracked per pass (default 0.5)")
     ap.add_argument("--batch", type=int, default=1, help="copies of the sequence in one batch (default 1)")
     ap.add_argument("--workers", type=int, default=None, help="worker threads (default: the tracker's)")
+    ap.add_argument("--no-pipeline", action="store_true", help="take each window in during its own update")
     ap.add_argument("--passes", type=int, default=3, help="timed passes after one warm-up pass (default 3)")
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -59,7 +63,8 @@ def main() -> None:
     seq = Sequence.load(args.seqdir)
     t0 = int(seq.gt_t_us[0])
     t1 = min(int(seq.gt_t_us[-1]), t0 + round(args.duration * 1e6))
-    tracker = EventPoseTracker(seq.camera, seq.mesh, TrackerConfig(), batch_size=args.batch, workers=args.workers)
+    tracker = EventPoseTracker(seq.camera, seq.mesh, TrackerConfig(), batch_size=args.batch, workers=args.workers,
+                               pipeline=False if args.no_pipeline else None)
     forward = tracker.forward
 
     def timed_forward(*a, **k):

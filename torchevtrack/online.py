@@ -185,13 +185,17 @@ class OnlineTracker:
         ends = t0 + (self._done + 1 + torch.arange(n, dtype=torch.int64)) * P
         buffers = [EventStream.concat(chunks) for chunks in self._pending]
         cuts = [[0] + torch.searchsorted(s.t, ends).tolist() for s in buffers]
+        windows = [_pack([s[c[k]:c[k + 1]] for s, c in zip(buffers, cuts)]) for k in range(n)]
         out = []
-        for k in range(n):
-            x, y, t, p, bi = _pack([s[c[k]:c[k + 1]] for s, c in zip(buffers, cuts)])
-            out.append((int(ends[k]), self.tracker(x, y, t, p, bi, t_us=int(ends[k]))))
-            self.stage_ms.append(dict(self.tracker.stage_ms))
-            if self.tracker.lost is not None:
-                self.lost.append(self.tracker.lost.clone())
+        try:
+            for k in range(n):  # the tracker's pipeline takes in the window after it meanwhile
+                ahead = windows[k + 1] if k + 1 < n else None
+                out.append((int(ends[k]), self.tracker(*windows[k], t_us=int(ends[k]), next_window=ahead)))
+                self.stage_ms.append(dict(self.tracker.stage_ms))
+                if self.tracker.lost is not None:
+                    self.lost.append(self.tracker.lost.clone())
+        finally:
+            self.tracker._drop_ahead()
         # Copy the remainders: a view would keep the whole pushed chunk alive.
         self._pending = [[_copy(s[c[-1]:])] if c[-1] < len(s) else [] for s, c in zip(buffers, cuts)]
         self._done += n

@@ -3,7 +3,9 @@
 One update consumes the events of one window (``1 / rate_hz``, 2 ms by default) for each of ``B``
 sequences and runs, in the paper's order:
 
-1. :class:`~torchevtrack.stages.eros.EROS` and :class:`~torchevtrack.stages.flow.TripletFlow` take the events;
+1. :class:`~torchevtrack.stages.eros.EROS` and :class:`~torchevtrack.stages.flow.TripletFlow` take the events (with
+   the pipeline, when the window is known one update ahead, on a thread of their own during the previous
+   update's step 5: :func:`~torchevtrack.stages.intake.intake_step`);
 2. :class:`~torchevtrack.stages.velocity.VelocityKF` fuses the block flows, with depth sampled from the
    last render (the mesh at the previous pose: no depth sensor);
 3. :func:`~torchevtrack.stages.propagate.propagate` moves the pose with the twist for one period (the
@@ -40,7 +42,7 @@ from __future__ import annotations
 
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Sequence, TypeVar
@@ -61,7 +63,8 @@ from torchevtrack.render import make_renderer
 from torchevtrack.stages import batch_mask
 from torchevtrack.stages.correction import CorrectionStep, correction_step
 from torchevtrack.stages.eros import EROS
-from torchevtrack.stages.flow import TripletFlow
+from torchevtrack.stages.flow import FlowField, TripletFlow
+from torchevtrack.stages.intake import intake_step
 from torchevtrack.stages.motion import invalid_poses, motion_step
 from torchevtrack.stages.output import output_step
 from torchevtrack.stages.propagate import propagate
@@ -120,6 +123,11 @@ class EventPoseTracker(nn.Module):
         workers: threads that run the batch's EROS, flow, renders and template corrections, each on its own share
             of the elements (the compiled kernels release the GIL, so they run on as many cores); default
             ``min(B, usable cores)``, 1 runs everything in the calling thread. Results do not depend on it.
+        pipeline: with one worker, let a thread of its own take the next window's events into the EROS and the
+            flow (:func:`~torchevtrack.stages.intake.intake_step`) while an update searches, whenever that
+            window is known: in :meth:`track`, and in :class:`~torchevtrack.online.OnlineTracker` when a push
+            completes several windows. Default: on with one worker and two or more usable cores. Results do not
+            depend on it; with it, the ``eros`` and ``flow`` of ``stage_ms`` are the wait for that thread.
         on_lost: re-initialisation callback of the loss detector (needs ``config.loss.enabled``):
             ``on_lost(batch_indices (K,) int64, t_us (K,) int64) -> poses (K, 7) or None``, called with
             the elements declared lost in an update; the elements it returns poses for restart there
@@ -152,6 +160,7 @@ class EventPoseTracker(nn.Module):
         batch_size: int | None = None,
         on_lost: OnLost | None = None,
         workers: int | None = None,
+        pipeline: bool | None = None,
     ) -> None:
         super().__init__()
         cfg = config or TrackerConfig()
@@ -165,8 +174,9 @@ class EventPoseTracker(nn.Module):
         if not meshes:
             raise ValueError("at least one mesh is needed")
         B = len(meshes)
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
         if workers is None:
-            workers = min(B, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+            workers = min(B, cores)
         elif isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
             raise ValueError(f"workers must be a positive int or None, got {workers!r}")
         self.camera, self.config, self.batch_size = camera, cfg, B
@@ -174,6 +184,12 @@ class EventPoseTracker(nn.Module):
         n = min(workers, B)
         self._shares = [slice(i * B // n, (i + 1) * B // n) for i in range(n)]
         self._pool = ThreadPoolExecutor(n, thread_name_prefix="torchevtrack") if n > 1 else None
+        if pipeline is None:
+            pipeline = self._pool is None and cores > 1
+        elif pipeline and self._pool is not None:
+            raise ValueError("pipeline needs workers=1: the worker threads already share the batch")
+        self._intake = ThreadPoolExecutor(1, thread_name_prefix="torchevtrack-intake") if pipeline else None
+        self._ahead: _Ahead | None = None  # the next window, taken in on the intake thread
         self.period_us = cfg.period_us
         self.dt = self.period_us * 1e-6
 
@@ -278,8 +294,14 @@ class EventPoseTracker(nn.Module):
         twist = torch.where(m[:, None], twist.double(), 0.0)
         if bool((invalid_poses(pose, self._min_depth) & m).any()):
             raise ValueError("initial_pose puts the object centre closer to the camera than the object's radius")
+        if self._ahead is not None:  # the intake thread is done with the surfaces before they are cleared
+            self._ahead.flow.result()
+            if mask is None:  # a fresh start: that window is not coming
+                self._ahead = None
         self.eros.reset(m)
         self.flow.reset(m)
+        if self._ahead is not None:
+            self._retake_ahead(m)
         self.velocity.reset(shift_twist(twist, pose[:, :3]), m)  # about the centre
         self.ukf.reset(pose, twist, m)
         self.pose.copy_(pose)
@@ -301,12 +323,14 @@ class EventPoseTracker(nn.Module):
         """Release the renderers' GL contexts and the worker threads."""
         for r in self._renderers:
             r.close()
-        if self._pool is not None:
-            self._pool.shutdown()
+        for pool in (self._pool, self._intake):
+            if pool is not None:
+                pool.shutdown()
 
     # -- one update --------------------------------------------------------------------------
     def forward(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor,
-                b: torch.Tensor | None = None, t_us: int | torch.Tensor | None = None) -> torch.Tensor:
+                b: torch.Tensor | None = None, t_us: int | torch.Tensor | None = None, *,
+                next_window: tuple | None = None) -> torch.Tensor:
         """Consume one window of packed events and return the new poses ``(B, 7)`` float64.
 
         Args:
@@ -314,21 +338,28 @@ class EventPoseTracker(nn.Module):
             b: ``(N,)`` batch index (None: all batch element 0). Time order within each batch element.
             t_us: time stamp of this update (int or ``(B,)`` int64 us, the window end), given to the loss
                 detector and ``on_lost``; default: the latest event time seen per element.
+            next_window: the next window's ``(x, y, t, p, b)``, if it is already known. With the pipeline on, its
+                events go into the EROS and the flow while this update searches, and the next call must be for
+                exactly these tensors (else RuntimeError); without the pipeline it is ignored.
 
         The update runs in ``torch.inference_mode`` (no autograd bookkeeping on its many small tensor
         operations); the returned poses are ordinary tensors.
         """
         with torch.inference_mode():
-            self._update(x, y, t, p, b, t_us)
+            self._update(x, y, t, p, b, t_us, next_window if self._intake is not None else None)
         return self.pose.clone()
 
     def _update(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor, b: torch.Tensor | None,
-                t_us: int | torch.Tensor | None) -> None:
+                t_us: int | torch.Tensor | None, ahead: tuple | None) -> None:
         """One update (:meth:`forward`): the new poses go to :attr:`pose`."""
         cfg = self.config
         B = self.batch_size
         clock = _StageClock()
-        if self._pool is None:
+        launch = None if ahead is None else lambda: self._launch(ahead)  # once this update has read the surfaces
+        if self._ahead is not None:  # this window went in on the intake thread during the last update
+            clock.lap("eros")
+            flow = self._take_ahead(x)
+        elif self._pool is None:
             self.eros(x, y, b)
             clock.lap("eros")
             flow = self.flow(x, y, t, p, b)
@@ -346,6 +377,8 @@ class EventPoseTracker(nn.Module):
             max_speed=cfg.flow.max_speed, depth=self.depth, origin=self.origin,
             radius=max(cfg.flow.block // 4, 2),  # flow lies on edges: the pixel may fall just off the silhouette
             feedback=None if self.feedback is None else self.feedback.b)
+        if launch is not None and not cfg.template.enabled:  # nothing reads the surfaces after the flow
+            launch()
         clock.lap("velocity")
 
         pose32 = predicted.float()
@@ -357,7 +390,7 @@ class EventPoseTracker(nn.Module):
         seen = self.events_seen.numpy()
         seen += n_events
         if cfg.template.enabled:
-            corr = self._correct(predicted, pose32, None if reuse else render, self._t_now(t, b))  # float64 search
+            corr = self._correct(predicted, pose32, None if reuse else render, self._t_now(t, b), launch)
             # Until the EROS holds enough events, its edges are too sparse to correct against.
             warm = (seen >= cfg.template.warmup_events)[:, None]
             measured = torch.from_numpy(np.where(warm, corr.pose.numpy(), predicted.numpy()))
@@ -435,12 +468,18 @@ class EventPoseTracker(nn.Module):
         times = torch.stack([st + k[1:] for st in starts])
         poses = torch.empty(B, n, 7, dtype=torch.float64)
         lost = torch.zeros(B, n, dtype=torch.bool)
-        for i in tqdm(range(n), desc="tracking", unit="update", disable=not progress, leave=False):
-            parts = [s[int(bd[i]): int(bd[i + 1])] for s, bd in zip(streams, bounds)]
-            x, y, t, p, b = _pack(parts)
-            poses[:, i] = self(x, y, t, p, b, t_us=times[:, i])
-            if return_lost:
-                lost[:, i] = self.lost
+        def window(i: int) -> tuple | None:
+            return _pack([s[int(bd[i]): int(bd[i + 1])] for s, bd in zip(streams, bounds)]) if i < n else None
+
+        ahead = window(0)
+        try:
+            for i in tqdm(range(n), desc="tracking", unit="update", disable=not progress, leave=False):
+                current, ahead = ahead, window(i + 1)
+                poses[:, i] = self(*current, t_us=times[:, i], next_window=ahead)
+                if return_lost:
+                    lost[:, i] = self.lost
+        finally:
+            self._drop_ahead()
         return (times, poses, lost) if return_lost else (times, poses)
 
     # -- internals ---------------------------------------------------------------------------
@@ -550,9 +589,10 @@ class EventPoseTracker(nn.Module):
         return v.source == "flow" and cfg.template.enabled and v.feedback_gain > 0
 
     def _correct(self, predicted: torch.Tensor, pose32: torch.Tensor, render: "_Render | None",
-                 t_now: torch.Tensor) -> Correction:
+                 t_now: torch.Tensor, on_observed: Callable[[], object] | None = None) -> Correction:
         """Template correction of the ``predicted`` poses with a new template model of ``render`` (made at ``pose32``),
-        or the last model when ``render`` is ``None``; each worker corrects its share of the batch."""
+        or the last model when ``render`` is ``None``; each worker corrects its share of the batch. ``on_observed``
+        (only without workers) is called once the EROS and the time surface have been read."""
         o, e = self.corrector.options, self.config.eros
 
         def share(rows: slice) -> CorrectionStep:
@@ -563,11 +603,42 @@ class EventPoseTracker(nn.Module):
                 model=TemplateModel(*(f[rows] for f in self._model)) if render is None else None,
                 canvas=o["canvas"], margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"],
                 dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"], rule=o["rule"], iterations=o["iterations"],
-                max_age_us=e.max_age_us, recency_us=e.recency_us)
+                max_age_us=e.max_age_us, recency_us=e.recency_us, on_observed=on_observed)
 
         parts = self._map(share)
         self._model = _cat([p.model for p in parts])
         return _cat([p.correction for p in parts])
+
+    def _launch(self, window: tuple) -> None:
+        """Take the packed ``window`` into the EROS and the flow on the intake thread (:meth:`_take_ahead` waits)."""
+        self._ahead = _Ahead(self._intake.submit(intake_step, self.eros, self.flow, *window), window)
+
+    def _take_ahead(self, x: torch.Tensor) -> FlowField:
+        """The flow of the window the intake thread took in, once it is done; ``x`` is that window's."""
+        ahead, self._ahead = self._ahead, None
+        flow = ahead.flow.result()
+        if ahead.window[0] is not x:
+            raise RuntimeError("the update is not for the window taken in ahead (an interrupted track or push?)")
+        return flow
+
+    def _drop_ahead(self) -> None:
+        """Forget a window taken in ahead whose update will not come (the loop ended early): wait for the thread."""
+        if self._ahead is not None:
+            self._ahead.flow.result()
+            self._ahead = None
+
+    def _retake_ahead(self, m: torch.Tensor) -> None:
+        """After a reset of the elements ``m`` ``(B,)`` bool: take their events of the window already taken in
+        ahead into their cleared EROS and flow again (the others keep theirs), as if the reset came first."""
+        x, y, t, p, b = self._ahead.window
+        parts = list(self._ahead.flow.result())
+        for i in m.nonzero()[:, 0].tolist():
+            k = slice(None) if b is None else b == i
+            redo = intake_step(self.eros, self.flow, x[k], y[k], t[k], p[k], None if b is None else b[k] - i,
+                               rows=slice(i, i + 1))
+            for field, row in zip(parts, redo):
+                field[i] = row[0]
+        self._ahead = _Ahead(_resolved(FlowField(*parts)), self._ahead.window)
 
     def _share_events(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor,
                       b: torch.Tensor | None) -> list[tuple[torch.Tensor, ...]]:
@@ -593,6 +664,19 @@ class EventPoseTracker(nn.Module):
                 return fn(*args)
 
         return list(self._pool.map(run, self._shares, *per_share))
+
+
+@dataclass
+class _Ahead:
+    """A window ``(x, y, t, p, b)`` taken into the EROS and the flow ahead of its update, and its flow field."""
+    flow: Future
+    window: tuple
+
+
+def _resolved(value) -> Future:
+    f = Future()
+    f.set_result(value)
+    return f
 
 
 @dataclass

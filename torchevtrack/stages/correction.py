@@ -5,8 +5,9 @@ copies: :func:`~torchevtrack.stages.template.template_model` of the render,
 :func:`~torchevtrack.stages.eros.canvas_observation` of the EROS under the model's canvas box, and
 :func:`~torchevtrack.stages.template.newton_search` from the predicted poses. :func:`correction_step` runs the same
 kernels on numpy buffers, so its numbers are those of the stage calls bit for bit (``tests/test_correction.py``
-checks it against them). It also tells when it has read the surfaces (``on_observed``): from then on the next
-window's events may update them while the search runs (the tracker's pipeline, see
+checks it against them). The order: the canvas box from the render's extent, the observation under it, then the
+rest of the template model and the search. Once the observation is made it tells (``on_observed``): from then on
+the next window's events may update the surfaces while the model and the search run (the tracker's pipeline, see
 :class:`~torchevtrack.tracker.EventPoseTracker`).
 """
 
@@ -20,8 +21,8 @@ import torch
 
 from torchevtrack.camera import Camera
 from torchevtrack.stages.eros import _canvas_kernel, _check_time_surface, _decay_table
-from torchevtrack.stages.template import (NUM_HYPOTHESES, Correction, TemplateModel, _model_filters, _model_kernel,
-                                          _newton_kernel, correct_canvas)
+from torchevtrack.stages.template import (NUM_HYPOTHESES, Correction, TemplateModel, _box_kernel, _model_filters,
+                                          _model_kernel, _newton_kernel, correct_canvas)
 
 __all__ = ["CorrectionStep", "correction_step"]
 
@@ -84,17 +85,20 @@ def correction_step(
         raise ValueError(f"surface (B, H, W) and t_now_us (B,) must have B = {B} rows, got {tuple(surface.shape)} "
                          f"and {tuple(t_now_us.shape)}")
     _check_time_surface(last_us, B, *surface.shape[1:])
-    if model is None:
-        model = _model(render_pose, depth, gray, origin, camera, canvas, margin_px, edge_clip, silhouette)
+    if model is None:  # the canvas box first: the observation needs only that, the rest of the model can wait
+        box, gain = _canvas_box(render_pose, depth, gray, origin, camera, margin_px, silhouette)
+        N, observed_box = canvas, box.astype(np.float32).astype(np.float64)  # as the model's box (float32) gives it
     elif model.coef.shape[0] != B:
         raise ValueError(f"model must have B = {B} elements, got {model.coef.shape[0]}")
-    N = model.depth.shape[-1]
+    else:
+        N, observed_box = model.depth.shape[-1], model.box.numpy().astype(np.float64)
     obs = np.empty((B, N, N), dtype=np.float32)
-    _canvas_kernel(surface.numpy(), last_us.numpy(), model.box.numpy().astype(np.float64),
-                   t_now_us.numpy().astype(np.int64, copy=False), int(max_age_us), float(recency_us),
-                   _decay_table(float(recency_us), int(max_age_us)), obs)
+    _canvas_kernel(surface.numpy(), last_us.numpy(), observed_box, t_now_us.numpy().astype(np.int64, copy=False),
+                   int(max_age_us), float(recency_us), _decay_table(float(recency_us), int(max_age_us)), obs)
     if on_observed is not None:
         on_observed()
+    if model is None:
+        model = _model(render_pose, depth, gray, origin, camera, box, gain, N, edge_clip, silhouette)
     if rule != "newton":
         return CorrectionStep(model, correct_canvas(model, predicted, torch.from_numpy(obs), camera, dp_px=dp_px,
                                                     dtheta_deg=dtheta_deg, rule=rule, iterations=iterations))
@@ -111,8 +115,9 @@ def correction_step(
                                             torch.from_numpy(moved)))
 
 
-def _model(render_pose, depth, gray, origin, camera, N, margin_px, edge_clip, silhouette) -> TemplateModel:
-    """:func:`~torchevtrack.stages.template.template_model` of a float32 render, on numpy buffers."""
+def _canvas_box(render_pose, depth, gray, origin, camera, margin_px, silhouette) -> tuple[np.ndarray, np.ndarray]:
+    """The canvas box ``(B, 3)`` float64 and the gain ``(B,)`` float32 of a float32 render
+    (:func:`~torchevtrack.stages.template._box_kernel`)."""
     if depth is None or depth.ndim != 3 or depth.dtype != torch.float32 or (gray is not None and gray.shape != depth.shape):
         raise ValueError("depth (and gray) must be float32 (B, h, w) renders, or pass the model to reuse")
     B = depth.shape[0]
@@ -121,16 +126,27 @@ def _model(render_pose, depth, gray, origin, camera, N, margin_px, edge_clip, si
                          f"{tuple(render_pose.shape)} and {tuple(origin.shape)}")
     if gray is None and not silhouette:
         raise ValueError("without a grey render the template needs silhouette=True")
-    f32 = np.float32
+    box, gain = np.empty((B, 3)), np.empty(B, dtype=np.float32)
+    _box_kernel(depth.numpy(), origin.numpy().astype(np.float64), _intrinsics(camera), float(margin_px), box, gain)
+    return box, gain
+
+
+def _model(render_pose, depth, gray, origin, camera, box64, gain, N, edge_clip, silhouette) -> TemplateModel:
+    """:func:`~torchevtrack.stages.template.template_model` of a float32 render in its canvas box (:func:`_canvas_box`),
+    on numpy buffers."""
+    B, f32 = depth.shape[0], np.float32
     step = max(1, N // 16)  # as template_model
     P = len(range(step // 2, N, step)) ** 2
-    box, K, gain = np.empty((B, 3), f32), np.empty((B, 4), f32), np.empty(B, f32)
+    box, K = np.empty((B, 3), f32), np.empty((B, 4), f32)
     T, Z, coef = np.empty((B, N, N), f32), np.empty((B, N, N), f32), np.zeros((B, N + 6, N + 6), f32)
     points, valid = np.empty((B, P, 3), f32), np.empty((B, P), dtype=np.bool_)
     pose = render_pose.numpy().astype(np.float64)
-    _model_kernel(depth.numpy(), (depth if gray is None else gray).numpy(), origin.numpy().astype(np.float64),
-                  np.ascontiguousarray(pose[:, 2]), np.array([camera.fx, camera.fy, camera.cx, camera.cy]),
-                  float(margin_px), gray is not None, silhouette, 0.125 / edge_clip, *_model_filters(N), step, step,
-                  box, K, gain, T, coef, Z, points, valid)
+    _model_kernel(depth.numpy(), (depth if gray is None else gray).numpy(), origin.numpy().astype(np.float64), box64,
+                  _intrinsics(camera), np.ascontiguousarray(pose[:, 2]), gray is not None, silhouette,
+                  0.125 / edge_clip, *_model_filters(N), step, step, box, K, T, coef, Z, points, valid)
     pose = torch.from_numpy(pose)
     return TemplateModel(pose, pose, *(torch.from_numpy(a) for a in (box, K, gain, T, Z, coef, points, valid)))
+
+
+def _intrinsics(camera: Camera) -> np.ndarray:
+    return np.array([camera.fx, camera.fy, camera.cx, camera.cy])

@@ -1161,17 +1161,35 @@ def _edges(x, y, scale, E):
 
 
 @numba.njit(cache=True, nogil=True)
-def _model_kernel(depth, gray, origin, z_fallback, cam, margin, use_gray, use_mask, edge_scale, g1, g2, pre, fill_radius,
-                  point_step, box, K, gain, T, coef, Z, points, valid):
-    """:func:`template_model` of each window ``depth`` / ``gray`` ``(B, h, w)`` at ``origin``, in one pass per element.
-
-    The object's extent gives the canvas ``box`` (:func:`canvas_box`), its intrinsics ``K``
-    (:func:`canvas_intrinsics`) and the ``gain`` (:func:`radial_gain`); the window resampled into the box
-    (:func:`prepare_canvas`) gives the template (Sobel edges, DoG, scale and clip: the template of
-    :func:`hypothesis_templates`), its B-spline coefficients ``coef`` (zero-padded by 3), the object points of every
-    ``point_step``-th canvas pixel and the background-filled depth ``Z`` (:func:`_fill_depth`).
-    """
+def _box_kernel(depth, origin, cam, margin, box, gain):
+    """The first part of :func:`template_model`: the object's extent in each window ``depth`` ``(B, h, w)`` at
+    ``origin`` gives the canvas ``box`` ``(B, 3)`` float64 (:func:`canvas_box`) and the ``gain``
+    (:func:`radial_gain`); :func:`_model_kernel` makes the rest in that box."""
     B, h, w = depth.shape
+    cx, cy = cam[2], cam[3]
+    for b in range(B):
+        ou, ov = origin[b, 0], origin[b, 1]
+        umin, umax, vmin, vmax, total, n = _extent(depth[b], ou, ov, cx, cy, True)
+        if n == 0:
+            box[b, 0], box[b, 1], box[b, 2] = (w - 1) / 2.0 + ou, (h - 1) / 2.0 + ov, float(max(h, w))
+        else:
+            box[b, 0], box[b, 1] = (umin + umax) / 2 + ou, (vmin + vmax) / 2 + ov
+            box[b, 2] = max(umax - umin, vmax - vmin) + 1 + 2 * margin
+        gain[b] = total / max(n, 1.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _model_kernel(depth, gray, origin, box64, cam, z_fallback, use_gray, use_mask, edge_scale, g1, g2, pre, fill_radius,
+                  point_step, box, K, T, coef, Z, points, valid):
+    """:func:`template_model` of each window ``depth`` / ``gray`` ``(B, h, w)`` at ``origin`` in its canvas box
+    ``box64`` (:func:`_box_kernel`), in one pass per element.
+
+    The box (also into ``box``, in its dtype) gives the canvas intrinsics ``K`` (:func:`canvas_intrinsics`); the
+    window resampled into the box (:func:`prepare_canvas`) gives the template (Sobel edges, DoG, scale and clip: the
+    template of :func:`hypothesis_templates`), its B-spline coefficients ``coef`` (zero-padded by 3), the object points
+    of every ``point_step``-th canvas pixel and the background-filled depth ``Z`` (:func:`_fill_depth`).
+    """
+    B = depth.shape[0]
     N = T.shape[-1]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     # the canvas images and filters in float32 (twice the SIMD width; the template is float32); p: zero padding of
@@ -1184,15 +1202,10 @@ def _model_kernel(depth, gray, origin, z_fallback, cam, margin, use_gray, use_ma
     scale = np.float32(edge_scale)
     for b in range(B):
         ou, ov = origin[b, 0], origin[b, 1]
-        umin, umax, vmin, vmax, total, n = _extent(depth[b], ou, ov, cx, cy, True)
-        if n == 0:
-            cu, cv, side = (w - 1) / 2.0 + ou, (h - 1) / 2.0 + ov, float(max(h, w))
-        else:
-            cu, cv, side = (umin + umax) / 2 + ou, (vmin + vmax) / 2 + ov, max(umax - umin, vmax - vmin) + 1 + 2 * margin
+        cu, cv, side = box64[b, 0], box64[b, 1], box64[b, 2]
         box[b, 0], box[b, 1], box[b, 2] = cu, cv, side
         step, half = side / N, N / 2.0 - 0.5
         K[b, 0], K[b, 1], K[b, 2], K[b, 3] = fx / step, fy / step, (cx - cu) / step + half, (cy - cv) / step + half
-        gain[b] = total / max(n, 1.0)
         _resample(depth[b], gray[b], cu - ou, cv - ov, step, use_gray, Z[b], mask, shade)
         k = 0
         for i in range(point_step // 2, N, point_step):
@@ -1300,11 +1313,14 @@ def template_model(
     coef = torch.zeros(B, N + 6, N + 6, dtype=dt)
     points, valid = torch.empty(B, P, 3, dtype=dt), torch.empty(B, P, dtype=torch.bool)
     pose = pose.double()
-    _model_kernel(depth.detach().numpy(), (depth if gray is None else gray.to(dt)).detach().numpy(),
-                  _origin(origin, B, torch.float64).contiguous().numpy(), pose[:, 2].contiguous().numpy(),
-                  np.array([camera.fx, camera.fy, camera.cx, camera.cy]), float(margin_px), gray is not None,
-                  silhouette, 0.125 / edge_clip, *_model_filters(N), max(1, N // 16), step, box.numpy(), K.numpy(),
-                  gain.numpy(), T.numpy(), coef.numpy(), Z.numpy(), points.numpy(), valid.numpy())
+    d, o, cam = depth.detach().numpy(), _origin(origin, B, torch.float64).contiguous().numpy(), \
+        np.array([camera.fx, camera.fy, camera.cx, camera.cy])
+    box64 = np.empty((B, 3))
+    _box_kernel(d, o, cam, float(margin_px), box64, gain.numpy())
+    _model_kernel(d, (depth if gray is None else gray.to(dt)).detach().numpy(), o, box64, cam,
+                  pose[:, 2].contiguous().numpy(), gray is not None, silhouette, 0.125 / edge_clip, *_model_filters(N),
+                  max(1, N // 16), step, box.numpy(), K.numpy(), T.numpy(), coef.numpy(), Z.numpy(), points.numpy(),
+                  valid.numpy())
     return TemplateModel(pose=pose, render_pose=pose, box=box, K=K, gain=gain, render_template=T, depth=Z, coef=coef,
                          points=points, valid=valid)
 

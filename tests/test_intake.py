@@ -1,0 +1,78 @@
+"""intake_step against its oracle: the EROS stage and then the flow stage, bit for bit."""
+
+import pytest
+import torch
+
+from torchevtrack.stages.eros import EROS
+from torchevtrack.stages.flow import TripletFlow
+from torchevtrack.stages.intake import intake_step
+
+H, W, B = 60, 80, 3
+
+
+def _stages(B=B, smooth=False):
+    """Two polarity channels: the flow checks the polarities too."""
+    return EROS(H, W, batch_size=B), TripletFlow(H, W, batch_size=B, block=20, min_samples=5, per_polarity=True,
+                                                 smooth=smooth)
+
+
+def _window(seed, t0, n=3000, B=B):
+    """Events of edges sweeping each element at its own speed, with noise, packed by element."""
+    gen = torch.Generator().manual_seed(seed)
+    b = torch.randint(0, B, (n,), generator=gen).sort().values
+    t = t0 + torch.randint(0, 2000, (n,), generator=gen)
+    speed = 0.01 + 0.01 * b  # px / us
+    x = ((t - t0) * speed + torch.randint(0, 3, (n,), generator=gen) + 10).long().clamp(0, W - 1)
+    y = torch.randint(0, H, (n,), generator=gen)
+    order = torch.argsort(b * 10_000_000 + t)
+    p = torch.randint(0, 2, (n,), generator=gen)
+    return x[order].int(), y[order].short(), t[order], p[order], b
+
+
+@pytest.mark.parametrize("smooth", [False, True])
+def test_intake_step_is_the_eros_then_the_flow_bit_for_bit(smooth):
+    eros, flow = _stages(smooth=smooth)
+    ref_eros, ref_flow = _stages(smooth=smooth)
+    for k in range(3):  # later windows see the surfaces the earlier ones left
+        x, y, t, p, b = _window(k, 10_000 + 2000 * k)
+        got = intake_step(eros, flow, x, y, t, p, b)
+        ref_eros(x, y, b)
+        want = ref_flow(x, y, t, p, b)
+        for a, c in zip(got, want):
+            assert a.dtype == c.dtype and torch.equal(a, c)
+        assert torch.equal(eros.surface, ref_eros.surface) and torch.equal(flow.sae_padded, ref_flow.sae_padded)
+    assert int(want.valid.sum()) > 0 and float(eros.surface.max()) > 0  # the comparison covers real work
+
+
+def test_rows_and_one_element_without_a_batch_index():
+    eros, flow = _stages()
+    ref_eros, ref_flow = _stages()
+    x, y, t, p, b = _window(1, 5000)
+    keep = b == 1
+    got = intake_step(eros, flow, x[keep], y[keep], t[keep], p[keep], b[keep] - 1, rows=slice(1, 2))
+    ref_eros(x[keep], y[keep], b[keep] - 1, rows=slice(1, 2))
+    want = ref_flow(x[keep], y[keep], t[keep], p[keep], b[keep] - 1, rows=slice(1, 2))
+    assert all(torch.equal(a, c) for a, c in zip(got, want))
+    assert torch.equal(eros.surface, ref_eros.surface) and torch.equal(flow.sae_padded, ref_flow.sae_padded)
+    one_eros, one_flow = _stages(B=1)
+    ref_eros, ref_flow = _stages(B=1)
+    got = intake_step(one_eros, one_flow, x[keep], y[keep], t[keep], p[keep])
+    ref_eros(x[keep], y[keep])
+    want = ref_flow(x[keep], y[keep], t[keep], p[keep])
+    assert all(torch.equal(a, c) for a, c in zip(got, want))
+    assert torch.equal(one_eros.surface, ref_eros.surface)
+
+
+def test_bad_events_raise_the_stages_errors_and_write_nothing():
+    eros, flow = _stages()
+    x, y, t, p, b = _window(2, 5000)
+    before = eros.surface.clone(), flow.sae_padded.clone()
+    for bad, match in (((x.clone().fill_(W), y, t, p, b), "x"), ((x, y, t, p.clone().fill_(2), b), "p must"),
+                       ((x, y, t, p, b.clone().fill_(B)), "b")):
+        with pytest.raises(ValueError, match=match):
+            intake_step(eros, flow, *bad)
+        assert torch.equal(eros.surface, before[0]) and torch.equal(flow.sae_padded, before[1])
+    with pytest.raises(TypeError):
+        intake_step(eros, flow, x.float(), y, t, p, b)
+    with pytest.raises(ValueError, match="same elements"):
+        intake_step(EROS(H, W, batch_size=2), flow, x, y, t, p, b)

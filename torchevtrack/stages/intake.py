@@ -1,0 +1,59 @@
+"""Steps 1-2 of an update in one compiled call: a window's events into the EROS, the time surface and the flow.
+
+The two stages only read their own state and the events, so their order does not matter: :func:`intake_step`
+runs the flow's kernel (which checks every event before it writes) and then the EROS kernel, inside one call
+that releases the GIL. The tracker's pipeline thread runs it for the next window while the main thread searches
+(:class:`~torchevtrack.tracker.EventPoseTracker`); one call keeps that thread from waiting for the GIL between
+the two stages. Its numbers are those of the two stage calls bit for bit (``tests/test_intake.py``).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+
+from torchevtrack.stages.eros import EROS, _check_fields, _eros_kernel, prepare_events
+from torchevtrack.stages.flow import FlowField, TripletFlow, _event_arrays, _flow_packet, _range_error, _smooth
+
+__all__ = ["intake_step"]
+
+
+def intake_step(eros: EROS, flow: TripletFlow, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor,
+                p: torch.Tensor | None = None, b: torch.Tensor | None = None, rows: slice | None = None) -> FlowField:
+    """``eros(x, y, b, rows)`` and then ``flow(x, y, t, p, b, rows)``: the arguments, result and errors of the two
+    stages' ``forward`` (packed events: ``(N,)`` integer pixels ``x, y``, int64 microseconds ``t``, polarity
+    ``p``, batch index ``b`` counted from the first of ``rows``), in one compiled call."""
+    surface = eros.surface if rows is None else eros.surface[rows]
+    sae = flow.sae_padded if rows is None else flow.sae_padded[rows]
+    B, C = sae.shape[:2]
+    if surface.shape[0] != B:
+        raise ValueError(f"the EROS and the flow must hold the same elements, got {surface.shape[0]} and {B}")
+    G = flow.gy * flow.gx
+    _check_fields(x, y, b)
+    xn, yn, tn, pn, bn, batched = _event_arrays(C, x, y, t, p, b)
+    out, uv = np.zeros((B, G, 2), dtype=np.float32), np.empty((B, G, 2), dtype=np.float32)
+    valid, count = np.empty((B, G), dtype=np.bool_), np.empty((B, G), dtype=np.int64)
+    s = surface.numpy()
+    ok = _intake_kernel(s, s.dtype.type(eros.decay ** (1.0 / eros.kernel_size)), eros.kernel_size // 2, sae.numpy(),
+                        xn, yn, tn, pn, bn, C, batched, flow._dirs, flow.pad, flow.dt_max_us, flow.tol, flow.chunk,
+                        flow._block_x, flow._block_y, G, flow.min_samples, flow.max_candidates, flow.tie_tol,
+                        flow.estimate == "normal", flow.inlier, flow._centres, out, uv, valid, count)
+    if not ok:
+        prepare_events(x, y, b, *surface.shape[1:], B)  # the EROS stage's range error
+        _range_error(tuple(sae.shape[:2]) + (flow.height, flow.width), x, y, t, p, b)
+    out, uv = torch.from_numpy(out), torch.from_numpy(uv)
+    if flow.smooth:
+        out, uv = _smooth(out, uv, torch.from_numpy(valid), flow.gy, flow.gx)
+    return FlowField(uv, out, torch.from_numpy(valid), torch.from_numpy(count))
+
+
+@numba.njit(cache=True, nogil=True)
+def _intake_kernel(surface, lam, r, sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, chunk, block_x, block_y,
+                   G, min_samples, max_candidates, tie_tol, normal, inlier, fill, out, uv, valid, count):
+    """:func:`_flow_packet`, then :func:`_eros_kernel` if every event was in range (False: nothing written)."""
+    ok = _flow_packet(sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, chunk, block_x, block_y, G,
+                      min_samples, max_candidates, tie_tol, normal, inlier, fill, out, uv, valid, count)
+    if ok and x.shape[0]:
+        ok = _eros_kernel(surface, x, y, b, batched, r, lam)
+    return ok
