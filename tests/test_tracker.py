@@ -295,7 +295,7 @@ def test_the_pipeline_gives_the_poses_of_the_serial_update(seq, ablation, monkey
 def test_pipeline_options_and_a_window_that_was_not_taken_in(seq, monkeypatch):
     with pytest.raises(ValueError, match="workers=1"):
         EventPoseTracker(CAM, [seq.mesh] * 2, workers=2, pipeline=True)
-    assert EventPoseTracker(CAM, [seq.mesh] * 2, workers=2)._intake is None  # the workers use the cores
+    assert not EventPoseTracker(CAM, [seq.mesh] * 2, workers=2)._pipeline  # the workers use the cores
     tracker = EventPoseTracker(CAM, seq.mesh, workers=1, pipeline=True)
     tracker.reset(seq.gt_poses[0])
     w = [seq.events.slice_time(int(seq.gt_t_us[0]) + k * 2000, int(seq.gt_t_us[0]) + (k + 1) * 2000)

@@ -188,7 +188,8 @@ class EventPoseTracker(nn.Module):
             pipeline = self._pool is None and cores > 1
         elif pipeline and self._pool is not None:
             raise ValueError("pipeline needs workers=1: the worker threads already share the batch")
-        self._intake = ThreadPoolExecutor(1, thread_name_prefix="torchevtrack-intake") if pipeline else None
+        self._pipeline = bool(pipeline)
+        self._intake: ThreadPoolExecutor | None = None  # the pipeline's thread, made when first needed
         self._ahead: _Ahead | None = None  # the next window, taken in on the intake thread
         self.period_us = cfg.period_us
         self.dt = self.period_us * 1e-6
@@ -326,6 +327,7 @@ class EventPoseTracker(nn.Module):
         for pool in (self._pool, self._intake):
             if pool is not None:
                 pool.shutdown()
+        self._intake = None
 
     # -- one update --------------------------------------------------------------------------
     def forward(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor,
@@ -339,14 +341,15 @@ class EventPoseTracker(nn.Module):
             t_us: time stamp of this update (int or ``(B,)`` int64 us, the window end), given to the loss
                 detector and ``on_lost``; default: the latest event time seen per element.
             next_window: the next window's ``(x, y, t, p, b)``, if it is already known. With the pipeline on, its
-                events go into the EROS and the flow while this update searches, and the next call must be for
-                exactly these tensors (else RuntimeError); without the pipeline it is ignored.
+                events go into the EROS and the flow while this update searches (until the next call, those two
+                stages' state belongs to the intake thread), and the next call must be for exactly these tensors
+                (else RuntimeError); without the pipeline it is ignored.
 
         The update runs in ``torch.inference_mode`` (no autograd bookkeeping on its many small tensor
         operations); the returned poses are ordinary tensors.
         """
         with torch.inference_mode():
-            self._update(x, y, t, p, b, t_us, next_window if self._intake is not None else None)
+            self._update(x, y, t, p, b, t_us, next_window if self._pipeline else None)
         return self.pose.clone()
 
     def _update(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor, b: torch.Tensor | None,
@@ -611,6 +614,8 @@ class EventPoseTracker(nn.Module):
 
     def _launch(self, window: tuple) -> None:
         """Take the packed ``window`` into the EROS and the flow on the intake thread (:meth:`_take_ahead` waits)."""
+        if self._intake is None:
+            self._intake = ThreadPoolExecutor(1, thread_name_prefix="torchevtrack-intake")
         self._ahead = _Ahead(self._intake.submit(intake_step, self.eros, self.flow, *window), window)
 
     def _take_ahead(self, x: torch.Tensor) -> FlowField:
