@@ -47,6 +47,7 @@ def test_bench_json(seqdir, capsys):
     assert b["updates_per_s"] == pytest.approx(2 * 10 / b["wall_s"])
     m = r["machine"]
     assert m["torch_threads"] == 1 and m["torch"] == torch.__version__ and m["cpu_count"] >= 1
+    assert r["offline"]["pipeline"] == (m["cpus_available"] > 1)  # one sequence on two cores: pipelined
 
 
 def test_bench_summary_and_ablation(seqdir, capsys):
