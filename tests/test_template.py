@@ -339,6 +339,23 @@ def test_render_window_takes_one_radius_per_pose():
     with pytest.raises(ValueError, match="radius"):
         tm.render_window(poses, CAM, torch.tensor([0.05, 0.0, 0.03]))
 
+def test_window_of_is_the_projected_sphere_and_clips_into_the_frame():
+    """Against the formula per pose and axis: the square ``floor(c - h) .. ceil(c + h)`` around the projected centre
+    ``c`` with half-size ``h = f r / (max(z, 1.05 r) - r) + margin``; clipped: cut to the frame, then moved in."""
+    gen = np.random.default_rng(0)
+    t = np.c_[gen.normal(0, 0.4, (200, 2)), gen.uniform(0.03, 1.5, 200)]
+    radius = gen.uniform(0.01, 0.3, 200)
+    got, clipped = tm.window_of(t, CAM, radius, 24), tm.window_of(t, CAM, radius, 24, clip=True)
+    for b in range(200):
+        z = max(t[b, 2], 1.05 * radius[b])
+        for a, (f, c, n) in enumerate(((CAM.fx, CAM.cx, CAM.width), (CAM.fy, CAM.cy, CAM.height))):
+            centre, half = f * t[b, a] / t[b, 2] + c, f * radius[b] / (z - radius[b]) + 24
+            lo, size = math.floor(centre - half), math.ceil(centre + half) - math.floor(centre - half) + 1
+            assert (got[b, a], got[b, 2 + a]) == (lo, size)
+            assert clipped[b, 2 + a] == min(size, n) and clipped[b, a] == min(max(lo, 0), n - min(size, n))
+    assert (clipped[:, 2] < got[:, 2]).any() and (clipped[:, 0] != got[:, 0]).any()  # both clips happened
+
+
 def test_to_canvas_samples_the_box_at_its_scale():
     img = torch.arange(40 * 60, dtype=torch.float64).reshape(1, 40, 60)  # value = 60 v + u: linear
     box = torch.tensor([[30.0, 20.0, 16.0]], dtype=torch.float64)

@@ -488,14 +488,10 @@ class EventPoseTracker(nn.Module):
     # -- internals ---------------------------------------------------------------------------
     def _windows(self, poses: torch.Tensor, index: list[int] | None = None) -> np.ndarray:
         """Render windows ``(K, 4)`` ``(u0, v0, w, h)`` of the elements ``index`` (default all), clipped to the frame."""
-        H, W = self.camera.height, self.camera.width
         t, radius = poses.numpy()[:, :3], self._radius_of.numpy()
         if index is not None:
             t, radius = t[index], radius[index]
-        win = window_of(t, self.camera, radius, self.config.render.margin_px)
-        w, h = np.minimum(win[:, 2], W), np.minimum(win[:, 3], H)
-        u0, v0 = np.minimum(np.maximum(win[:, 0], 0), W - w), np.minimum(np.maximum(win[:, 1], 0), H - h)
-        return np.stack((u0, v0, w, h), -1)
+        return window_of(t, self.camera, radius, self.config.render.margin_px, clip=True)
 
     def _render_into(self, i: int, pose: torch.Tensor, win: np.ndarray, origin: np.ndarray, depth: torch.Tensor,
                      gray: torch.Tensor | None) -> None:
