@@ -471,6 +471,7 @@ class EventPoseTracker(nn.Module):
         times = torch.stack([st + k[1:] for st in starts])
         poses = torch.empty(B, n, 7, dtype=torch.float64)
         lost = torch.zeros(B, n, dtype=torch.bool)
+
         def window(i: int) -> tuple | None:
             return _pack([s[int(bd[i]): int(bd[i + 1])] for s, bd in zip(streams, bounds)]) if i < n else None
 
