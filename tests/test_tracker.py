@@ -159,8 +159,8 @@ def test_render_reuse_skips_renders_only_within_the_threshold(seq):
         tracker = EventPoseTracker(CAM, seq.mesh, TrackerConfig().replace(render={"reuse_px": reuse_px}))
         renderer = tracker._renderers[0]
         calls = []
-        render = renderer.render
-        renderer.render = lambda *a, **k: calls.append(k["shaded"]) or render(*a, **k)
+        render = renderer.render_unit  # the tracker's path to the compiled rasteriser
+        renderer.render_unit = lambda poses, camera, shaded=True: calls.append(shaded) or render(poses, camera, shaded)
         times, poses = tracker.track(seq.events, seq.gt_poses[0], t_start_us=int(seq.gt_t_us[0]),
                                      t_end_us=int(seq.gt_t_us[-1]), progress=False)
         tracker.close()
@@ -323,4 +323,16 @@ def test_pipeline_options_and_a_window_that_was_not_taken_in(seq, monkeypatch):
     monkeypatch.setattr(tracker_module, "output_step", step)
     tracker.reset(seq.gt_poses[0])
     assert tracker(*win[0]).shape == (1, 7)
+    tracker.close()
+
+
+def test_the_tracker_renders_what_the_renderer_renders(seq):
+    """One stream renders through the rasteriser's unchecked numpy entry (render_unit): bit for bit
+    RasterRenderer.render of the same pose and window."""
+    tracker = EventPoseTracker(CAM, seq.mesh)
+    pose = seq.gt_poses[:1].clone()
+    pose[:, 3:] *= 1.0004  # not quite unit: both normalise it the same way
+    tracker.reset(pose)
+    want = tracker._renderers[0].render(pose, roi=tuple(tracker._windows(pose)[0].tolist()), shaded=False)
+    assert torch.equal(tracker.depth, want.depth) and float(want.depth.max()) > 0
     tracker.close()

@@ -360,8 +360,13 @@ class RasterRenderer:
         ``shaded=False`` for depth only)."""
         if self._mesh is None:
             raise RuntimeError("renderer is closed")
-        poses = _unit_poses(poses)
         cam = self.camera if roi is None else self.camera.crop(*_check_roi(roi))
-        depth, gray = rasterise(self._mesh, poses, cam, znear=self.znear, zfar=self.zfar, background=self.background,
-                                shaded=shaded)
+        depth, gray = self.render_unit(_unit_poses(poses), cam, shaded)
         return Render(depth=torch.from_numpy(depth), gray=None if gray is None else torch.from_numpy(gray), camera=cam)
+
+    def render_unit(self, poses: np.ndarray, camera: Camera, shaded: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        """:meth:`render` unchecked, in numpy: unit poses ``(B, 7)`` float64, ``camera`` this renderer's camera or a
+        crop of it; returns depth and grey (or ``None``) ``(B, h, w)`` float32 (for a caller whose poses are valid,
+        such as the tracker)."""
+        return rasterise(self._mesh, poses, camera, znear=self.znear, zfar=self.zfar, background=self.background,
+                         shaded=shaded)

@@ -455,11 +455,16 @@ def _unit_poses(poses: torch.Tensor) -> np.ndarray:
     p = np.array(poses.detach().cpu().numpy(), dtype=np.float64)  # a copy
     if not np.isfinite(p).all():
         raise ValueError("poses contain NaN or infinite values")
-    norm = np.sqrt(np.einsum("bi,bi->b", p[:, 3:], p[:, 3:]))
+    norm = _quaternion_norms(p)
     if (np.abs(norm - 1) > 1e-3).any():
         raise ValueError(f"pose quaternions must be unit norm, got |q| = {norm.tolist()}")
     p[:, 3:] /= norm[:, None]
     return p
+
+
+def _quaternion_norms(p: np.ndarray) -> np.ndarray:
+    """``|q|`` of each pose ``(B, 7)`` (the one rule by which renders normalise their poses)."""
+    return np.sqrt(np.einsum("bi,bi->b", p[:, 3:], p[:, 3:]))
 
 
 def _check_roi(roi) -> tuple[int, int, int, int]:

@@ -59,7 +59,8 @@ from torchevtrack.events import EventStream
 from torchevtrack.geometry import check_pose, quat_rotate
 from torchevtrack.loss import LossDetector, LossUpdate, OnLost
 from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
-from torchevtrack.render import make_renderer
+from torchevtrack.raster import RasterRenderer
+from torchevtrack.render import _quaternion_norms, make_renderer
 from torchevtrack.stages import batch_mask
 from torchevtrack.stages.correction import CorrectionStep, correction_step
 from torchevtrack.stages.eros import EROS
@@ -73,7 +74,6 @@ from torchevtrack.stages.ukf import PoseUKF
 from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, shift_twist
 
 if TYPE_CHECKING:
-    from torchevtrack.raster import RasterRenderer
     from torchevtrack.render import Renderer
 
 __all__ = ["EventPoseTracker", "Quality"]
@@ -408,9 +408,10 @@ class EventPoseTracker(nn.Module):
         out, bad = output_step(self.pose, predicted, measured, twist, self.dt, self._min_depth,
                                ukf=self.ukf if cfg.ukf.enabled else None, feedback=self.feedback, symmetry_axis=axis)
         clock.lap("ukf")
-        self.prev_pose.copy_(self.pose)
-        self.pose.copy_(out)
-        self.quality = Quality(score, n_vectors, torch.from_numpy(n_events), bad | rejected)
+        pose = self.pose.numpy()
+        self.prev_pose.numpy()[:] = pose
+        pose[:] = out.numpy()
+        self.quality = Quality(score, n_vectors, torch.from_numpy(n_events), torch.from_numpy(bad.numpy() | rejected.numpy()))
         if self.loss is not None:
             upd = self.loss(self.quality, self._t_now(t, b) if t_us is None else t_us)
             self.loss_update = upd
@@ -514,10 +515,18 @@ class EventPoseTracker(nn.Module):
         H, W = self.camera.height, self.camera.width
         win = self._windows(poses)
         if B == 1:  # the own window is the common one: the render is the buffer
-            out = self._renderers[self._renderer_of[0]].render(poses, roi=tuple(win[0].tolist()), shaded=shaded)
-            self.depth = out.depth
-            self.origin.copy_(torch.from_numpy(win[:, :2]))
-            return _Render(out.depth, out.gray)
+            renderer = self._renderers[self._renderer_of[0]]
+            if isinstance(renderer, RasterRenderer):  # numpy: the poses are valid (motion_step), normalise them only
+                p = poses.numpy().copy()
+                p[:, 3:] /= _quaternion_norms(p)[:, None]
+                depth, gray = renderer.render_unit(p, self.camera.crop(*win[0].tolist()), shaded)
+                depth, gray = torch.from_numpy(depth), None if gray is None else torch.from_numpy(gray)
+            else:
+                out = renderer.render(poses, roi=tuple(win[0].tolist()), shaded=shaded)
+                depth, gray = out.depth, out.gray
+            self.depth = depth
+            self.origin.numpy()[:] = win[:, :2]
+            return _Render(depth, gray)
         w, h = int(win[:, 2].max()), int(win[:, 3].max())
         origin = np.stack((np.minimum(win[:, 0], W - w), np.minimum(win[:, 1], H - h)), -1)
         depth = torch.zeros(B, h, w)
@@ -574,12 +583,11 @@ class EventPoseTracker(nn.Module):
     def _t_now(self, t: torch.Tensor, b: torch.Tensor | None) -> torch.Tensor:
         """Latest event time per element in this window (int64 us; the previous one if the window is empty)."""
         if t.numel():
+            last = self.t_last.numpy()  # numpy: a few numbers, without torch's dispatch
             if b is None:
-                self.t_last.clamp_(min=int(t.max()))
+                np.maximum(last, t.numpy().max(), out=last)
             else:
-                latest = torch.full((self.batch_size,), torch.iinfo(torch.int64).min, dtype=torch.int64)
-                latest.scatter_reduce_(0, b, t, "amax")
-                self.t_last.copy_(torch.maximum(self.t_last, latest))
+                np.maximum.at(last, b.numpy(), t.numpy())
         return self.t_last
 
     @staticmethod
@@ -596,11 +604,14 @@ class EventPoseTracker(nn.Module):
         o, e = self.corrector.options, self.config.eros
 
         def share(rows: slice) -> CorrectionStep:
+            def cut(v):  # the share's rows (all: as they are)
+                return v if v is None or rows == _ALL else v[rows]
+
             return correction_step(
-                pose32[rows], predicted[rows], None if render is None else render.depth[rows],
-                None if render is None or render.gray is None else render.gray[rows], self.origin[rows],
-                self.eros.surface[rows], self.flow.sae[rows], t_now[rows], self.camera,
-                model=TemplateModel(*(f[rows] for f in self._model)) if render is None else None,
+                cut(pose32), cut(predicted), None if render is None else cut(render.depth),
+                None if render is None else cut(render.gray), cut(self.origin), cut(self.eros.surface),
+                cut(self.flow.sae), cut(t_now), self.camera,
+                model=TemplateModel(*(cut(f) for f in self._model)) if render is None else None,
                 canvas=o["canvas"], margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"],
                 dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"], rule=o["rule"], iterations=o["iterations"],
                 max_age_us=e.max_age_us, recency_us=e.recency_us, on_observed=on_observed)
@@ -688,6 +699,7 @@ class _Render:
 
 
 _T = TypeVar("_T")
+_ALL = slice(None)  # every row: the share of a single worker
 
 
 def _cat(parts: list[_T]) -> _T:

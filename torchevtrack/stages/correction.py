@@ -109,10 +109,11 @@ def correction_step(
                    model.gain.numpy().astype(np.float64), camera.fx, camera.fy, float(dp_px), math.radians(dtheta_deg),
                    iterations, _DAMPING, _MAX_STEP, pose, score, scores, moved)
     dt = model.depth.numpy().dtype
-    scores = torch.from_numpy(scores.astype(dt))
-    return CorrectionStep(model, Correction(torch.from_numpy(pose), torch.from_numpy(score.astype(dt)), scores,
-                                            scores.argmax(1), torch.zeros(B, NUM_HYPOTHESES, dtype=torch.bool),
-                                            torch.from_numpy(moved)))
+    scores = scores.astype(dt)  # numpy: a few numbers, without torch's dispatch (argmax: the first of ties, as torch)
+    return CorrectionStep(model, Correction(
+        torch.from_numpy(pose), torch.from_numpy(score.astype(dt)), torch.from_numpy(scores),
+        torch.from_numpy(scores.argmax(1)), torch.from_numpy(np.zeros((B, NUM_HYPOTHESES), dtype=np.bool_)),
+        torch.from_numpy(moved)))
 
 
 def _canvas_box(render_pose, depth, gray, origin, camera, margin_px, silhouette) -> tuple[np.ndarray, np.ndarray]:
