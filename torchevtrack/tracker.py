@@ -350,7 +350,7 @@ class EventPoseTracker(nn.Module):
         """
         with torch.inference_mode():
             self._update(x, y, t, p, b, t_us, next_window if self._pipeline else None)
-        return self.pose.clone()
+        return torch.from_numpy(self.pose.numpy().copy())
 
     def _update(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor, b: torch.Tensor | None,
                 t_us: int | torch.Tensor | None, ahead: tuple | None) -> None:
