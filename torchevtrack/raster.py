@@ -364,7 +364,8 @@ class RasterRenderer:
         depth, gray = self.render_unit(_unit_poses(poses), cam, shaded)
         return Render(depth=torch.from_numpy(depth), gray=None if gray is None else torch.from_numpy(gray), camera=cam)
 
-    def render_unit(self, poses: np.ndarray, camera: Camera, shaded: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    def render_unit(self, poses: np.ndarray, camera: Camera,
+                    shaded: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """:meth:`render` unchecked, in numpy: unit poses ``(B, 7)`` float64, ``camera`` this renderer's camera or a
         crop of it; returns depth and grey (or ``None``) ``(B, h, w)`` float32 (for a caller whose poses are valid,
         such as the tracker)."""

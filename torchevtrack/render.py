@@ -455,16 +455,18 @@ def _unit_poses(poses: torch.Tensor) -> np.ndarray:
     p = np.array(poses.detach().cpu().numpy(), dtype=np.float64)  # a copy
     if not np.isfinite(p).all():
         raise ValueError("poses contain NaN or infinite values")
-    norm = _quaternion_norms(p)
+    norm = _normalise_quaternions(p)
     if (np.abs(norm - 1) > 1e-3).any():
         raise ValueError(f"pose quaternions must be unit norm, got |q| = {norm.tolist()}")
-    p[:, 3:] /= norm[:, None]
     return p
 
 
-def _quaternion_norms(p: np.ndarray) -> np.ndarray:
-    """``|q|`` of each pose ``(B, 7)`` (the one rule by which renders normalise their poses)."""
-    return np.sqrt(np.einsum("bi,bi->b", p[:, 3:], p[:, 3:]))
+def _normalise_quaternions(p: np.ndarray) -> np.ndarray:
+    """Divide the quaternions of poses ``(B, 7)`` by their norms, in place, and return those norms ``(B,)`` (the
+    one rule by which renders normalise their poses)."""
+    norm = np.sqrt(np.einsum("bi,bi->b", p[:, 3:], p[:, 3:]))
+    p[:, 3:] /= norm[:, None]
+    return norm
 
 
 def _check_roi(roi) -> tuple[int, int, int, int]:

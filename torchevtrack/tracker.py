@@ -60,7 +60,7 @@ from torchevtrack.geometry import check_pose, quat_rotate
 from torchevtrack.loss import LossDetector, LossUpdate, OnLost
 from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
 from torchevtrack.raster import RasterRenderer
-from torchevtrack.render import _quaternion_norms, make_renderer
+from torchevtrack.render import _normalise_quaternions, make_renderer
 from torchevtrack.stages import batch_mask
 from torchevtrack.stages.correction import CorrectionStep, correction_step
 from torchevtrack.stages.eros import EROS
@@ -411,7 +411,8 @@ class EventPoseTracker(nn.Module):
         pose = self.pose.numpy()
         self.prev_pose.numpy()[:] = pose
         pose[:] = out.numpy()
-        self.quality = Quality(score, n_vectors, torch.from_numpy(n_events), torch.from_numpy(bad.numpy() | rejected.numpy()))
+        self.quality = Quality(score, n_vectors, torch.from_numpy(n_events),
+                               torch.from_numpy(bad.numpy() | rejected.numpy()))
         if self.loss is not None:
             upd = self.loss(self.quality, self._t_now(t, b) if t_us is None else t_us)
             self.loss_update = upd
@@ -518,7 +519,7 @@ class EventPoseTracker(nn.Module):
             renderer = self._renderers[self._renderer_of[0]]
             if isinstance(renderer, RasterRenderer):  # numpy: the poses are valid (motion_step), normalise them only
                 p = poses.numpy().copy()
-                p[:, 3:] /= _quaternion_norms(p)[:, None]
+                _normalise_quaternions(p)
                 depth, gray = renderer.render_unit(p, self.camera.crop(*win[0].tolist()), shaded)
                 depth, gray = torch.from_numpy(depth), None if gray is None else torch.from_numpy(gray)
             else:

@@ -21,8 +21,8 @@ import torch
 
 from torchevtrack.camera import Camera
 from torchevtrack.stages.eros import _canvas_kernel, _check_time_surface, _decay_table
-from torchevtrack.stages.template import (NUM_HYPOTHESES, Correction, TemplateModel, _box_kernel, _model_filters,
-                                          _model_kernel, _newton_kernel, correct_canvas)
+from torchevtrack.stages.template import (NUM_HYPOTHESES, Correction, TemplateModel, _camera_array, _model_in_box,
+                                          _newton_kernel, _render_box, correct_canvas)
 
 __all__ = ["CorrectionStep", "correction_step"]
 
@@ -86,7 +86,9 @@ def correction_step(
                          f"and {tuple(t_now_us.shape)}")
     _check_time_surface(last_us, B, *surface.shape[1:])
     if model is None:  # the canvas box first: the observation needs only that, the rest of the model can wait
-        box, gain = _canvas_box(render_pose, depth, gray, origin, camera, margin_px, silhouette)
+        _check_render(render_pose, depth, gray, origin, silhouette)
+        origin64, cam = origin.numpy().astype(np.float64), _camera_array(camera)
+        box, gain = _render_box(depth.numpy(), origin64, cam, margin_px)
         N, observed_box = canvas, box.astype(np.float32).astype(np.float64)  # as the model's box (float32) gives it
     elif model.coef.shape[0] != B:
         raise ValueError(f"model must have B = {B} elements, got {model.coef.shape[0]}")
@@ -98,7 +100,9 @@ def correction_step(
     if on_observed is not None:
         on_observed()
     if model is None:
-        model = _model(render_pose, depth, gray, origin, camera, box, gain, N, edge_clip, silhouette)
+        model = _model_in_box(render_pose.numpy().astype(np.float64), depth.numpy(),
+                              (depth if gray is None else gray).numpy(), gray is not None, origin64, cam, box, gain, N,
+                              edge_clip, silhouette)
     if rule != "newton":
         return CorrectionStep(model, correct_canvas(model, predicted, torch.from_numpy(obs), camera, dp_px=dp_px,
                                                     dtheta_deg=dtheta_deg, rule=rule, iterations=iterations))
@@ -116,10 +120,10 @@ def correction_step(
         torch.from_numpy(moved)))
 
 
-def _canvas_box(render_pose, depth, gray, origin, camera, margin_px, silhouette) -> tuple[np.ndarray, np.ndarray]:
-    """The canvas box ``(B, 3)`` float64 and the gain ``(B,)`` float32 of a float32 render
-    (:func:`~torchevtrack.stages.template._box_kernel`)."""
-    if depth is None or depth.ndim != 3 or depth.dtype != torch.float32 or (gray is not None and gray.shape != depth.shape):
+def _check_render(render_pose, depth, gray, origin, silhouette) -> None:
+    """The render of :func:`correction_step`: float32 ``(B, h, w)`` with its pose and window origin."""
+    if depth is None or depth.ndim != 3 or depth.dtype != torch.float32 \
+            or (gray is not None and gray.shape != depth.shape):
         raise ValueError("depth (and gray) must be float32 (B, h, w) renders, or pass the model to reuse")
     B = depth.shape[0]
     if render_pose.shape != (B, 7) or origin.shape != (B, 2):
@@ -127,27 +131,3 @@ def _canvas_box(render_pose, depth, gray, origin, camera, margin_px, silhouette)
                          f"{tuple(render_pose.shape)} and {tuple(origin.shape)}")
     if gray is None and not silhouette:
         raise ValueError("without a grey render the template needs silhouette=True")
-    box, gain = np.empty((B, 3)), np.empty(B, dtype=np.float32)
-    _box_kernel(depth.numpy(), origin.numpy().astype(np.float64), _intrinsics(camera), float(margin_px), box, gain)
-    return box, gain
-
-
-def _model(render_pose, depth, gray, origin, camera, box64, gain, N, edge_clip, silhouette) -> TemplateModel:
-    """:func:`~torchevtrack.stages.template.template_model` of a float32 render in its canvas box (:func:`_canvas_box`),
-    on numpy buffers."""
-    B, f32 = depth.shape[0], np.float32
-    step = max(1, N // 16)  # as template_model
-    P = len(range(step // 2, N, step)) ** 2
-    box, K = np.empty((B, 3), f32), np.empty((B, 4), f32)
-    T, Z, coef = np.empty((B, N, N), f32), np.empty((B, N, N), f32), np.zeros((B, N + 6, N + 6), f32)
-    points, valid = np.empty((B, P, 3), f32), np.empty((B, P), dtype=np.bool_)
-    pose = render_pose.numpy().astype(np.float64)
-    _model_kernel(depth.numpy(), (depth if gray is None else gray).numpy(), origin.numpy().astype(np.float64), box64,
-                  _intrinsics(camera), np.ascontiguousarray(pose[:, 2]), gray is not None, silhouette,
-                  0.125 / edge_clip, *_model_filters(N), step, step, box, K, T, coef, Z, points, valid)
-    pose = torch.from_numpy(pose)
-    return TemplateModel(pose, pose, *(torch.from_numpy(a) for a in (box, K, gain, T, Z, coef, points, valid)))
-
-
-def _intrinsics(camera: Camera) -> np.ndarray:
-    return np.array([camera.fx, camera.fy, camera.cx, camera.cy])

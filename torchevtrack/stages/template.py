@@ -1320,24 +1320,43 @@ def template_model(
     if not edge_clip > 0:
         raise ValueError(f"edge_clip must be positive, got {edge_clip}")
     depth = _check_images(depth, "depth")
-    B, N, dt = pose.shape[0], canvas, depth.dtype
+    B, dt = pose.shape[0], depth.dtype
+    d, o, cam = depth.detach().numpy(), _origin(origin, B, torch.float64).contiguous().numpy(), _camera_array(camera)
+    box, gain = _render_box(d, o, cam, margin_px)
+    return _model_in_box(pose.detach().double().numpy(), d, (depth if gray is None else gray.to(dt)).detach().numpy(),
+                         gray is not None, o, cam, box, gain, canvas, edge_clip, silhouette)
+
+
+def _camera_array(camera: Camera) -> np.ndarray:
+    """``[fx, fy, cx, cy]`` float64, as the compiled template kernels take a camera."""
+    return np.array([camera.fx, camera.fy, camera.cx, camera.cy])
+
+
+def _render_box(depth: np.ndarray, origin: np.ndarray, cam: np.ndarray,
+                margin_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The first part of :func:`template_model` (:func:`_box_kernel`): the canvas box ``(B, 3)`` float64 and the gain
+    ``(B,)`` in the render's dtype, of renders ``depth`` ``(B, h, w)`` at ``origin`` ``(B, 2)`` float64."""
+    box, gain = np.empty((len(depth), 3)), np.empty(len(depth), dtype=depth.dtype)
+    _box_kernel(depth, origin, cam, float(margin_px), box, gain)
+    return box, gain
+
+
+def _model_in_box(pose: np.ndarray, depth: np.ndarray, shade: np.ndarray, use_gray: bool, origin: np.ndarray,
+                  cam: np.ndarray, box64: np.ndarray, gain: np.ndarray, N: int, edge_clip: float,
+                  silhouette: bool) -> TemplateModel:
+    """The rest of :func:`template_model` in the canvas box of :func:`_render_box` (:func:`_model_kernel`), on numpy
+    buffers in the render's dtype; ``pose`` ``(B, 7)`` float64 is the render's, ``shade`` the grey render (or the
+    depth when ``use_gray`` is false)."""
+    B, dt = len(depth), depth.dtype
     step = max(1, N // 16)  # object points for shift_px: every step-th canvas pixel
     P = len(range(step // 2, N, step)) ** 2
-    box, K, gain = torch.empty(B, 3, dtype=dt), torch.empty(B, 4, dtype=dt), torch.empty(B, dtype=dt)
-    T, Z = torch.empty(B, N, N, dtype=dt), torch.empty(B, N, N, dtype=dt)
-    coef = torch.zeros(B, N + 6, N + 6, dtype=dt)
-    points, valid = torch.empty(B, P, 3, dtype=dt), torch.empty(B, P, dtype=torch.bool)
-    pose = pose.double()
-    d, o, cam = depth.detach().numpy(), _origin(origin, B, torch.float64).contiguous().numpy(), \
-        np.array([camera.fx, camera.fy, camera.cx, camera.cy])
-    box64 = np.empty((B, 3))
-    _box_kernel(d, o, cam, float(margin_px), box64, gain.numpy())
-    _model_kernel(d, (depth if gray is None else gray.to(dt)).detach().numpy(), o, box64, cam,
-                  pose[:, 2].contiguous().numpy(), gray is not None, silhouette, 0.125 / edge_clip, *_model_filters(N),
-                  max(1, N // 16), step, box.numpy(), K.numpy(), T.numpy(), coef.numpy(), Z.numpy(), points.numpy(),
-                  valid.numpy())
-    return TemplateModel(pose=pose, render_pose=pose, box=box, K=K, gain=gain, render_template=T, depth=Z, coef=coef,
-                         points=points, valid=valid)
+    box, K = np.empty((B, 3), dt), np.empty((B, 4), dt)
+    T, Z, coef = np.empty((B, N, N), dt), np.empty((B, N, N), dt), np.zeros((B, N + 6, N + 6), dt)
+    points, valid = np.empty((B, P, 3), dt), np.empty((B, P), dtype=np.bool_)
+    _model_kernel(depth, shade, origin, box64, cam, np.ascontiguousarray(pose[:, 2]), use_gray, silhouette,
+                  0.125 / edge_clip, *_model_filters(N), step, step, box, K, T, coef, Z, points, valid)
+    pose = torch.from_numpy(pose)
+    return TemplateModel(pose, pose, *(torch.from_numpy(a) for a in (box, K, gain, T, Z, coef, points, valid)))
 
 
 def select(
