@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import os
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Sequence, TypeVar
@@ -638,7 +638,7 @@ class EventPoseTracker(nn.Module):
     def _drop_ahead(self) -> None:
         """Forget a window taken in ahead whose update will not come (the loop ended early): wait for the thread."""
         if self._ahead is not None:
-            self._ahead.flow.result()
+            wait([self._ahead.flow])  # not .result(): in a finally, its error would hide the one that stopped the loop
             self._ahead = None
 
     def _retake_ahead(self, m: torch.Tensor) -> None:
