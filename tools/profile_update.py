@@ -34,7 +34,8 @@ KERNELS = {
     "torchevtrack.stages.motion": ["_motion_kernel"],
     "torchevtrack.stages.output": ["_output_kernel"],
     "torchevtrack.raster": ["_render_kernel"],
-    "torchevtrack.stages.correction": ["_box_kernel", "_model_kernel", "_canvas_kernel", "_newton_kernel"],
+    "torchevtrack.stages.template": ["_box_kernel", "_model_kernel"],
+    "torchevtrack.stages.correction": ["_canvas_kernel", "_newton_kernel"],
 }
 
 
