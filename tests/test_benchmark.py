@@ -2,6 +2,7 @@
 
 import copy
 import json
+import math
 import re
 import shutil
 
@@ -13,11 +14,12 @@ import torch
 from torchevtrack.benchmark import METHOD_NAMES, mesh_points, run_benchmark, table_markdown
 from torchevtrack.camera import Camera
 from torchevtrack.cli import main
-from torchevtrack.config import TrackerConfig
+from torchevtrack.config import ABLATIONS, TrackerConfig
 from torchevtrack.io.poses import read_tum
 from torchevtrack.metrics import evaluate
 from torchevtrack.synth.generate import generate_sequence
 from torchevtrack.synth.sequence import Sequence
+from torchevtrack.tracker import EventPoseTracker
 from torchevtrack.viz import GT_COLOUR, PRED_COLOUR, overlay_frames
 
 CAM = Camera(160, 120, 125.6, 125.6, 79.5, 59.5)
@@ -276,3 +278,57 @@ def test_table_lists_the_rotation_error_modulo_symmetry_for_symmetric_objects(ru
     assert rows[0] == ["Method", "tomato_fast"]
     got = {r[0]: r[1] for r in rows[2:]}
     assert got == {METHOD_NAMES["correction_only"]: "2.50(0.25)", METHOD_NAMES["full"]: "1.50(0.25)†"}
+
+
+def test_trials_start_from_perturbed_poses_and_report_their_spread(bench, tmp_path):
+    res = run_benchmark(bench, tmp_path, methods=["velocity_only", "correction_only"], duration_s=0.01,
+                        init_noise=(3.0, 2.0), trials=2, seed=5, overlays=False, progress=False)
+    noise = res["init_noise"]
+    assert (noise["translation_mm"], noise["rotation_deg"], noise["trials"], noise["seed"]) == (3.0, 2.0, 2, 5)
+    for k in range(2):
+        for name in SEQS:
+            gt0 = Sequence.load(bench / name).gt_poses[0].double()
+            start = torch.tensor(noise["start_poses"][k][name], dtype=torch.float64)
+            assert abs(float((start[:3] - gt0[:3]).norm()) - 0.003) < 1e-6
+            dot = float((start[3:] * gt0[3:]).sum().abs().clamp(max=1.0))
+            assert abs(math.degrees(2 * math.acos(dot)) - 2.0) < 1e-3
+    assert noise["start_poses"][0] != noise["start_poses"][1]
+    # oracle: the tracker itself, one batch from the first trial's start poses (the benchmark's sequence order)
+    seqs = [Sequence.load(bench / name) for name in sorted(SEQS)]
+    cfg = TrackerConfig().replace(**ABLATIONS["velocity_only"], loss={"enabled": True})
+    tracker = EventPoseTracker(CAM, [str(bench / name / "mesh.ply") for name in sorted(SEQS)], cfg)
+    t0 = [int(s.gt_t_us[0]) for s in seqs]
+    _, poses = tracker.track([s.events for s in seqs],
+                             torch.tensor([noise["start_poses"][0][name] for name in sorted(SEQS)]),
+                             t_start_us=t0, t_end_us=[t + 10_000 for t in t0], progress=False)
+    for i, name in enumerate(sorted(SEQS)):
+        _, written = read_tum(tmp_path / "poses" / "velocity_only" / f"{name}.txt")
+        torch.testing.assert_close(written, poses[i].double(), atol=1e-6, rtol=0)
+    for method in ("velocity_only", "correction_only"):
+        for name in SEQS:
+            trials = res["trials"][method][name]
+            assert len(trials) == 2
+            assert trials[0]["rmse_t_cm"] == res["results"][method][name]["metrics"]["rmse_t_cm"]
+            s = Sequence.load(bench / name)
+            t_us, p = read_tum(tmp_path / "poses" / method / "trial1" / f"{name}.txt")
+            m = evaluate(t_us, p, s.gt_t_us, s.gt_poses, mesh_points=_independent_points(s.mesh))
+            assert trials[1]["rmse_t_cm"] == pytest.approx(m["rmse_t_cm"], abs=1e-9)
+            assert trials[1]["adds_auc"] == pytest.approx(m["adds_auc"], abs=1e-9)
+            assert trials[1]["failed"] == m["failed"]
+    rows = _table(table_markdown(res), "## Start poses perturbed by 3 mm and 2 deg: 2 trials (seed 5)")
+    assert rows[0][-4:] == ["Mean e_p (cm)", "Mean e_r (deg)", "ADD-S AUC (%)", "failed runs"]
+    ours = next(r for r in rows if r[0] == METHOD_NAMES["velocity_only"])
+    per_trial = [np.mean([res["trials"]["velocity_only"][c][k]["rmse_t_cm"] for c in SEQS]) for k in range(2)]
+    assert ours[-4] == f"{np.mean(per_trial):.2f} ± {np.std(per_trial):.2f}"
+
+
+def test_trial_arguments_are_checked(bench, tmp_path, capsys):
+    with pytest.raises(ValueError, match="needs init_noise"):
+        run_benchmark(bench, tmp_path, trials=2)
+    with pytest.raises(ValueError, match="init_noise"):
+        run_benchmark(bench, tmp_path, init_noise=(-1.0, 0.0))
+    with pytest.raises(ValueError, match="trials"):
+        run_benchmark(bench, tmp_path, init_noise=(1.0, 1.0), trials=0)
+    with pytest.raises(SystemExit) as exit_:
+        main(["benchmark", str(bench), "--out", str(tmp_path), "--init-noise", "1"])
+    assert exit_.value.code == 2 and "MM,DEG" in capsys.readouterr().err

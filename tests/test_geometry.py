@@ -146,3 +146,24 @@ def test_check_pose_rejects_bad_poses():
         g.check_pose(torch.tensor([0, 0, -0.5, 1.0, 0, 0, 0]))
     with pytest.raises(ValueError, match="shape"):
         g.check_pose(torch.zeros(6))
+
+
+def test_perturb_pose_moves_and_turns_by_exactly_the_given_amounts():
+    rot = Rotation.random(64, random_state=3)
+    q = torch.from_numpy(rot.as_quat()[:, [3, 0, 1, 2]])
+    pose = torch.cat((torch.rand(64, 3, dtype=torch.float64), q), -1)
+    out = g.perturb_pose(pose, 0.002, math.radians(1.5), torch.Generator().manual_seed(7))
+    shift = (out[:, :3] - pose[:, :3]).norm(dim=-1)
+    torch.testing.assert_close(shift, torch.full((64,), 0.002, dtype=torch.float64))
+    turned = Rotation.from_quat(out[:, [4, 5, 6, 3]].numpy()) * rot.inv()  # the left factor exp(angle * axis)
+    np.testing.assert_allclose(turned.magnitude(), math.radians(1.5), rtol=0, atol=1e-9)
+    assert (out[:, 3] >= 0).all()
+    # the draws are random directions: one generator state gives one draw, another a different one
+    again = g.perturb_pose(pose, 0.002, math.radians(1.5), torch.Generator().manual_seed(7))
+    other = g.perturb_pose(pose, 0.002, math.radians(1.5), torch.Generator().manual_seed(8))
+    assert torch.equal(out, again) and not torch.allclose(out, other)
+    directions = (out[:, :3] - pose[:, :3]) / 0.002
+    assert directions.mean(0).norm() < 0.35  # not all one way (|mean| of 64 uniform unit vectors: ~0.07)
+    assert g.perturb_pose(pose[0].float(), 0.0, 0.0).dtype == torch.float32
+    with pytest.raises(ValueError, match="finite and >= 0"):
+        g.perturb_pose(pose, -0.001, 0.0)

@@ -10,7 +10,8 @@ starting at its own first ground-truth pose and time). It writes into ``out_dir`
                               timing; the config, torchevtrack / torch versions, machine and date
     table.md                  Table I of the paper (e_p(sigma) cm / e_r(sigma) deg), ADD-S AUC, tracking
                               loss, speed
-    poses/<method>/<seq>.txt  tracked poses, TUM (the file that was scored)
+    poses/<method>/<seq>.txt  tracked poses, TUM (the file that was scored); with trials, the first trial's,
+                              and poses/<method>/trial<k>/<seq>.txt the others'
     plots/<seq>.png           translation / rotation error against time, all methods on the same axes
     overlays/<seq>_<k>.png    tracked (green) and ground-truth (magenta) contours over EROS, 3 instants
     overlays/<seq>.gif        the same over the first second, 50 ms steps
@@ -18,6 +19,13 @@ starting at its own first ground-truth pose and time). It writes into ``out_dir`
 Metrics are those of :func:`torchevtrack.metrics.evaluate`: RMSE and population sigma of the
 translation (cm) and rotation (deg) errors, ADD and ADD-S AUC on 0..10 cm (model points: at most 1000
 mesh vertices, an evenly spaced subsample), and the EDOPT failure rule.
+
+Start-pose robustness: with ``init_noise=(mm, deg)`` every sequence starts from its first ground-truth pose
+moved by exactly ``mm`` millimetres along a random direction and turned by exactly ``deg`` degrees about a random
+axis (:func:`torchevtrack.geometry.perturb_pose`), and ``trials`` such draws run per method (the same start poses
+for every method). The tracker is deterministic but chaotic where it nearly fails: a start pose 10 um off can
+change a sequence's error by centimetres, so one run is one draw. ``results[method][sequence]`` and the files
+hold the first trial; ``trials[method][sequence]`` the metrics of every trial, and ``table.md`` their spread.
 
 Tracking loss: every run carries the tracker's :class:`~torchevtrack.loss.LossDetector` (the config's
 ``loss`` parameters, switched on whatever ``loss.enabled`` says; it only reports, no pose changes). Per
@@ -36,6 +44,7 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import json
+import math
 import os
 import platform
 import time
@@ -50,6 +59,7 @@ from tqdm.auto import tqdm
 import torchevtrack
 from torchevtrack.camera import Camera
 from torchevtrack.config import ABLATIONS, TrackerConfig
+from torchevtrack.geometry import perturb_pose
 from torchevtrack.io.poses import read_tum, write_tum
 from torchevtrack.loss import compare_with_ground_truth
 from torchevtrack.mesh import hidden_symmetry_axis
@@ -174,15 +184,48 @@ def _check_methods(methods) -> list[str]:
     return methods
 
 
-def _track(items: list[_Item], camera: Camera, cfg: TrackerConfig, progress: bool):
-    """Track ``items`` as one batch; per item its own ``(t_us (n_i,), poses (n_i, 7), lost (n_i,))`` and the
-    timing (the loss detector runs, passively, whatever the config says)."""
+def _start_poses(items: list[_Item], init_noise: tuple[float, float] | None, trials: int,
+                 seed: int) -> list[dict[str, torch.Tensor]]:
+    """Per trial, each item's start pose: its first ground-truth pose, perturbed by ``init_noise`` (mm, deg)
+    with the generator seeded ``seed + trial`` (items in order)."""
+    starts = []
+    for k in range(trials):
+        g = torch.Generator().manual_seed(seed + k)
+        starts.append({it.name: it.seq.gt_poses[0] if init_noise is None else
+                       perturb_pose(it.seq.gt_poses[0], init_noise[0] / 1e3, math.radians(init_noise[1]), g)
+                       for it in items})
+    return starts
+
+
+def _check_trials(init_noise, trials, seed) -> tuple[float, float] | None:
+    if init_noise is not None:
+        mm, deg = (float(v) for v in init_noise)
+        if not (math.isfinite(mm) and math.isfinite(deg) and mm >= 0 and deg >= 0):
+            raise ValueError(f"init_noise must be (mm, deg), finite and >= 0, got {init_noise!r}")
+        init_noise = (mm, deg)
+    if isinstance(trials, bool) or not isinstance(trials, int) or trials < 1:
+        raise ValueError(f"trials must be an integer >= 1, got {trials!r}")
+    if trials > 1 and init_noise is None:
+        raise ValueError("trials > 1 needs init_noise: without it every trial tracks the same start poses")
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ValueError(f"seed must be an integer, got {seed!r}")
+    return init_noise
+
+
+def _trial_metrics(m: dict) -> dict:
+    keys = ("rmse_t_cm", "rmse_r_deg", "adds_auc", "failed", "rmse_r_sym_deg", "failed_sym")
+    return {k: m[k] for k in keys if k in m}
+
+
+def _track(items: list[_Item], camera: Camera, cfg: TrackerConfig, progress: bool, starts: dict[str, torch.Tensor]):
+    """Track ``items`` as one batch from their ``starts``; per item its own ``(t_us (n_i,), poses (n_i, 7),
+    lost (n_i,))`` and the timing (the loss detector runs, passively, whatever the config says)."""
     setup = time.perf_counter()
     tracker = EventPoseTracker(camera, [str(it.path / "mesh.ply") for it in items], cfg.replace(loss={"enabled": True}))
     start = time.perf_counter()
     try:
         times, poses, lost = tracker.track([it.seq.events for it in items],
-                                           torch.stack([it.seq.gt_poses[0] for it in items]),
+                                           torch.stack([starts[it.name] for it in items]),
                                            t_start_us=[it.t_start_us for it in items],
                                            t_end_us=[it.t_end_us for it in items], progress=progress,
                                            return_lost=True)
@@ -228,6 +271,9 @@ def run_benchmark(
     batch: bool = True,
     overlays: bool = True,
     progress: bool = True,
+    init_noise: tuple[float, float] | None = None,
+    trials: int = 1,
+    seed: int = 0,
 ) -> dict:
     """Run the ablation benchmark and write its report (see the module docstring for the files).
 
@@ -242,14 +288,21 @@ def run_benchmark(
             float32 rounding; only the timing differs.
         overlays: write the overlay PNGs and GIFs (for ``"full"``, else the first method).
         progress: tqdm bars over methods and updates.
+        init_noise: ``(mm, deg)``: start every sequence from its first ground-truth pose moved and turned by
+            exactly this much in random directions (module docstring); ``None``: from that pose.
+        trials: draws of the start poses per method (``> 1`` needs ``init_noise``); seed: the first draw's
+            generator seed (trial ``k`` uses ``seed + k``).
 
     Returns:
         The dict written to ``results.json``: ``results[method][sequence]`` holds ``metrics`` (the
         :func:`~torchevtrack.metrics.evaluate` dict), ``loss`` (the
         :func:`~torchevtrack.loss.compare_with_ground_truth` dict), ``timing`` and ``pose_file``; ``runs[method]``
-        the batched runs; ``sequences``, ``config``, ``machine``, versions, date.
+        the batched runs; ``sequences``, ``config``, ``machine``, versions, date. With ``init_noise``, also
+        ``init_noise`` (with each trial's ``start_poses``) and ``trials[method][sequence]``: per trial the RMSEs,
+        ADD-S AUC and failure flags.
     """
     methods = _check_methods(methods)
+    init_noise = _check_trials(init_noise, trials, seed)
     if duration_s is not None and not duration_s > 0:
         raise ValueError(f"duration_s must be positive seconds or None, got {duration_s!r}")
     if isinstance(config, (str, Path)):
@@ -286,6 +339,11 @@ def run_benchmark(
         "runs": {},
         "results": {},
     }
+    starts = _start_poses(items, init_noise, trials, seed)
+    if init_noise is not None:
+        res["init_noise"] = {"translation_mm": init_noise[0], "rotation_deg": init_noise[1], "trials": trials,
+                             "seed": seed, "start_poses": [{k: v.tolist() for k, v in s.items()} for s in starts]}
+        res["trials"] = {}
     curves: dict[str, dict[str, tuple]] = {it.name: {} for it in items}
     tracked: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
     overlay_method = "full" if "full" in methods else methods[0]
@@ -294,16 +352,21 @@ def run_benchmark(
         cfg = base.replace(**ABLATIONS[method])
         res["runs"][method] = []
         res["results"][method] = {}
-        for group in batches:
-            trajs, run = _track(group, group[0].seq.camera, cfg, progress)
+        for k, group in [(k, g) for k in range(trials) for g in batches]:
+            trajs, run = _track(group, group[0].seq.camera, cfg, progress, starts[k])
             res["runs"][method].append(run)
             for it, (t_us, poses, lost) in zip(group, trajs):
-                rel = Path("poses") / method / f"{it.name}.txt"
+                rel = Path("poses") / method / ("" if k == 0 else f"trial{k}") / f"{it.name}.txt"
                 (out / rel).parent.mkdir(parents=True, exist_ok=True)
                 write_tum(out / rel, t_us, poses)
                 t_us, poses = read_tum(out / rel)  # score exactly what was written
                 gt_t, gt = it.seq.gt_t_us, it.seq.gt_poses
                 metrics = evaluate(t_us, poses, gt_t, gt, mesh_points=it.points, symmetry_axis=it.symmetry_axis)
+                if init_noise is not None:
+                    res["trials"].setdefault(method, {}).setdefault(it.name, [None] * trials)[k] = \
+                        _trial_metrics(metrics)
+                if k > 0:  # the first trial gives the tables, plots and overlays
+                    continue
                 loss = compare_with_ground_truth(t_us, lost, poses, gt_t, gt)
                 timing = {key: run[key] for key in ("batch_size", "wall_s", "updates_per_s")}
                 timing["updates"] = int(t_us.numel())
@@ -459,6 +522,9 @@ def table_markdown(results: dict) -> str:
         cells.append(f"{100 * float(np.mean(have)):.2f}" if have else "–")
         lines.append(_row(cells))
 
+    if results.get("trials"):
+        lines += _trials_table(results, cols)
+
     if all("loss" in r for m in rows for r in per_method[m].values()):
         lines += ["", "## Tracking loss: declared / failed (s)", ""]
         lines.append(_row(["Method"] + cols + ["detected", "missed", "false alarms"]))
@@ -498,6 +564,41 @@ def table_markdown(results: dict) -> str:
         lines.append("updates/s: batched tracker steps per second (each step updates every sequence of the batch); "
                      "real-time factor: tracked seconds per wall-clock second.")
     return "\n".join(lines) + "\n"
+
+
+def _trials_table(results: dict, cols: list[str]) -> list[str]:
+    """The spread over the trials of perturbed start poses: per sequence the mean and standard deviation (over the
+    trials) of e_p and the failed trials; then the means over the sequences, as mean and standard deviation over
+    the trials."""
+    noise, per_method = results["init_noise"], results["trials"]
+    K = noise["trials"]
+    lines = ["", f"## Start poses perturbed by {noise['translation_mm']:g} mm and {noise['rotation_deg']:g} deg: "
+             f"{K} trials (seed {noise['seed']})", ""]
+    lines.append(_row(["Method"] + cols + ["Mean e_p (cm)", "Mean e_r (deg)", "ADD-S AUC (%)", "failed runs"]))
+    lines.append(_row(["---"] * (len(cols) + 5)))
+    for m in _row_order(per_method):
+        runs = per_method[m]
+        cells = [METHOD_NAMES.get(m, m)]
+        for c in cols:
+            if c not in runs:
+                cells.append("–")
+                continue
+            failed = sum(bool(x["failed"]) for x in runs[c])
+            cells.append(_spread([x["rmse_t_cm"] for x in runs[c]]) + (f" ({failed}/{K}†)" if failed else ""))
+        have = [runs[c] for c in cols if c in runs]
+        means = {key: [np.mean([seq[k][key] for seq in have]) for k in range(K)]
+                 for key in ("rmse_t_cm", "rmse_r_deg", "adds_auc")}
+        cells += [_spread(means["rmse_t_cm"]), _spread(means["rmse_r_deg"]), _spread(means["adds_auc"], 100.0),
+                  f"{sum(bool(x['failed']) for seq in have for x in seq)}/{K * len(have)}"]
+        lines.append(_row(cells))
+    lines.append("")
+    lines.append("Per sequence: e_p RMSE (cm), mean ± standard deviation over the trials, († failed trials, EDOPT "
+                 "rule). Means: over the sequences per trial, then mean ± standard deviation over the trials.")
+    return lines
+
+
+def _spread(values, scale: float = 1.0) -> str:
+    return f"{np.mean(values) * scale:.2f} ± {np.std(values) * scale:.2f}"
 
 
 def _cell(vals) -> str:

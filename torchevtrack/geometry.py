@@ -47,6 +47,7 @@ __all__ = [
     "pose_inverse",
     "transform_points",
     "interpolate_poses",
+    "perturb_pose",
     "check_pose",
 ]
 
@@ -220,6 +221,37 @@ def interpolate_poses(times: torch.Tensor, poses: torch.Tensor, query: torch.Ten
     t = poses[i0, :3] + (poses[i1, :3] - poses[i0, :3]) * tau[:, None]
     q = quat_slerp(poses[i0, 3:], poses[i1, 3:], tau)
     return torch.cat((t, quat_canonical(q)), dim=-1)
+
+
+def perturb_pose(pose: torch.Tensor, translation_m: float, rotation_rad: float,
+                 generator: torch.Generator | None = None) -> torch.Tensor:
+    """``pose`` shifted by exactly ``translation_m`` along a uniformly random direction and turned by exactly
+    ``rotation_rad`` about a uniformly random axis through the object origin (``q' = exp(angle * axis) (x) q``,
+    the axis in camera coordinates): the start-pose error of a robustness test.
+
+    One independent draw per pose, from ``generator`` (float64 normals: direction first, then axis).
+    Shape: ``(..., 7) -> (..., 7)`` in the dtype of ``pose``.
+
+    Example:
+        >>> import torch
+        >>> pose = torch.tensor([0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0])
+        >>> moved = perturb_pose(pose, 0.002, 0.01, torch.Generator().manual_seed(0))
+        >>> round(float((moved[:3] - pose[:3]).norm()), 6)
+        0.002
+    """
+    if not (math.isfinite(translation_m) and translation_m >= 0 and math.isfinite(rotation_rad)
+            and rotation_rad >= 0):
+        raise ValueError(f"translation_m and rotation_rad must be finite and >= 0, got {translation_m!r}, "
+                         f"{rotation_rad!r}")
+    shape = (*pose.shape[:-1], 3)
+    direction = torch.randn(shape, generator=generator, dtype=torch.float64)
+    axis = torch.randn(shape, generator=generator, dtype=torch.float64)
+    direction /= torch.linalg.vector_norm(direction, dim=-1, keepdim=True)
+    axis /= torch.linalg.vector_norm(axis, dim=-1, keepdim=True)
+    p = pose.double()
+    t = p[..., :3] + translation_m * direction
+    q = quat_canonical(quat_mul(quat_exp(rotation_rad * axis), p[..., 3:]))
+    return torch.cat((t, q), -1).to(pose.dtype)
 
 
 def check_pose(pose: torch.Tensor, name: str = "pose", atol: float = 1e-3) -> torch.Tensor:

@@ -17,6 +17,14 @@ def _names(text: str) -> list[str]:
     return names
 
 
+def _noise(text: str) -> tuple[float, float]:
+    try:
+        mm, deg = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected MM,DEG (two numbers), got {text!r}") from None
+    return mm, deg
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "benchmark",
@@ -35,6 +43,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-overlays", action="store_true", help="skip the overlay PNGs and GIFs")
     p.add_argument("--no-batch", action="store_true", help="one run per sequence instead of one batch")
     p.add_argument("--threads", type=int, help="torch threads (default: torch's choice)")
+    p.add_argument("--init-noise", type=_noise, metavar="MM,DEG",
+                   help="start each sequence MM millimetres and DEG degrees off its first ground-truth pose, in random "
+                   "directions (a robustness test; see --trials)")
+    p.add_argument("--trials", type=int, default=1,
+                   help="draws of the perturbed start poses per method (default 1; > 1 needs --init-noise)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the first draw (trial k: SEED + k; default 0)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
@@ -46,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     res = run_benchmark(args.benchdir, args.out, methods=args.methods, only=args.only, duration_s=args.duration,
                         config=args.config, batch=not args.no_batch, overlays=not args.no_overlays,
-                        progress=not args.quiet)
+                        progress=not args.quiet, init_noise=args.init_noise, trials=args.trials, seed=args.seed)
     print(table_markdown(res), end="")
     print(f"\nwritten: {args.out / 'results.json'}, {args.out / 'table.md'}")
     return 0
