@@ -9,6 +9,8 @@ from torchevtrack.camera import Camera
 from torchevtrack.config import ABLATIONS, TrackerConfig
 from torchevtrack.events import EventStream
 from torchevtrack.metrics import evaluate
+from torchevtrack.online import OnlineTracker
+from torchevtrack.stages.propagate import propagate
 from torchevtrack.synth.generate import generate_sequence
 from torchevtrack.tracker import EventPoseTracker
 
@@ -156,7 +158,7 @@ def test_invalid_updates_keep_the_last_pose():
 
 def test_render_reuse_skips_renders_only_within_the_threshold(seq):
     def tracked(reuse_px):
-        tracker = EventPoseTracker(CAM, seq.mesh, TrackerConfig().replace(render={"reuse_px": reuse_px}))
+        tracker = EventPoseTracker(CAM, seq.mesh, TrackerConfig().replace(render={"reuse_px": reuse_px, "ahead": False}))
         renderer = tracker._renderers[0]
         calls = []
         render = renderer.render_unit  # the tracker's path to the compiled rasteriser
@@ -324,6 +326,78 @@ def test_pipeline_options_and_a_window_that_was_not_taken_in(seq, monkeypatch):
     tracker.reset(seq.gt_poses[0])
     assert tracker(*win[0]).shape == (1, 7)
     tracker.close()
+
+
+# -- render.ahead: the template rendered where the previous update predicted --------------------------
+def _recording(monkeypatch):
+    """Record each update's prediction and twist (motion_step) and the pose its template was rendered at."""
+    import torchevtrack.tracker as tracker_module
+
+    rec = {"motion": [], "render_pose": []}
+    motion, correction = tracker_module.motion_step, tracker_module.correction_step
+
+    def motion_recorded(*args, **kw):
+        out = motion(*args, **kw)
+        rec["motion"].append((out.predicted.clone(), out.twist.clone()))
+        return out
+
+    def correction_recorded(render_pose, *args, **kw):
+        rec["render_pose"].append(render_pose.clone())
+        return correction(render_pose, *args, **kw)
+
+    monkeypatch.setattr(tracker_module, "motion_step", motion_recorded)
+    monkeypatch.setattr(tracker_module, "correction_step", correction_recorded)
+    return rec
+
+
+@pytest.mark.parametrize("batch", [1, 2])
+def test_render_ahead_renders_where_the_last_update_predicted(seq, batch, monkeypatch):
+    rec = _recording(monkeypatch)
+    cfg = TrackerConfig().replace(render={"ahead": True})
+    tracker = EventPoseTracker(CAM, [seq.mesh] * batch, cfg, workers=1, pipeline=False)
+    t0 = int(seq.gt_t_us[0])
+    tracker.track([seq.events] * batch, seq.gt_poses[0], t_start_us=t0, t_end_us=t0 + 20_000, progress=False)
+    tracker.close()
+    (first, _), renders = rec["motion"][0], rec["render_pose"]
+    assert len(renders) == 10 and torch.equal(renders[0], first.float())  # nothing predicted before the first
+    for (pred, twist), render_pose in zip(rec["motion"], renders[1:]):
+        assert torch.equal(render_pose, propagate(pred, twist, 0.002).float())
+    # the search still starts from the new prediction, which the corrections move off the rendered pose
+    assert any(not torch.equal(r, p.float()) for r, (p, _) in zip(renders[1:], rec["motion"][1:]))
+
+
+def test_render_ahead_made_on_the_intake_thread_gives_the_serial_poses(seq, monkeypatch):
+    """With the pipeline the next update's render is made on the intake thread during this update, also across
+    online pushes that complete one window each, and a reset drops it: bit for bit the serial poses."""
+    import torchevtrack.tracker as tracker_module
+
+    made = []
+    render_soon = tracker_module.EventPoseTracker._render_soon
+    monkeypatch.setattr(tracker_module.EventPoseTracker, "_render_soon",
+                        lambda self, *a: made.append(1) or render_soon(self, *a))
+    cfg = TrackerConfig().replace(render={"ahead": True})
+    t0 = int(seq.gt_t_us[0])
+    restart = seq.gt_poses[20].clone()
+    out = {}
+    for pipeline in (False, True):
+        tracker = EventPoseTracker(CAM, seq.mesh, cfg, workers=1, pipeline=pipeline)
+        online = OnlineTracker(tracker)
+        online.start(seq.gt_poses[0], t0)
+        got = []
+        for a in range(t0, t0 + 40_000, 2000):  # one window per push: nothing to take in ahead, a render to make
+            got += online.push(seq.events.slice_time(a, a + 2000))
+            if a == t0 + 20_000:  # a restart moves the pose: the render made for the old one must not be used
+                tracker.reset(restart)
+        out[pipeline] = torch.stack([p for _, p in got])
+        assert len(made) == (19 if pipeline else 0)
+        made.clear()
+        tracker.close()
+    assert torch.equal(out[True], out[False])
+
+
+def test_render_ahead_excludes_render_reuse():
+    with pytest.raises(ValueError, match="needs render.ahead: false"):
+        TrackerConfig().replace(render={"ahead": True, "reuse_px": 0.5})
 
 
 def test_the_tracker_renders_what_the_renderer_renders(seq):

@@ -102,6 +102,10 @@ class RenderConfig:
     decimate: int | None = None  # faces of the hot-path mesh (None = full mesh)
     margin_px: int = 24  # region rendered around the projected object
     reuse_px: float = 0.0  # > 0: keep the last render (and its template) while no object point moved this many pixels
+    # Render each update's template at the pose the previous update predicted for it (its prediction moved on by
+    # its twist for one period) instead of at the new prediction; the Newton search starts at the new prediction
+    # all the same. With the pipeline, that render then runs on the intake thread during the previous update.
+    ahead: bool = True
     backend: str = "raster"  # "raster" (compiled CPU z-buffer, 3-5x faster on the tracker's windows) or "pyrender" (OpenGL)
 
 
@@ -147,6 +151,8 @@ class TrackerConfig:
             raise ValueError(f"template.rule must be one of {RULES}, got {self.template.rule!r}")
         if self.render.backend not in BACKENDS:
             raise ValueError(f"render.backend must be one of {BACKENDS}, got {self.render.backend!r}")
+        if self.render.ahead and self.render.reuse_px > 0:
+            raise ValueError("render.reuse_px > 0 needs render.ahead: false (each chooses where to render)")
 
     @property
     def period_us(self) -> int:

@@ -13,9 +13,11 @@ sequences and runs, in the paper's order:
    :class:`~torchevtrack.stages.velocity.CorrectionFeedback` on the axes the flow hardly observes: depth
    rate, pitch and yaw); steps 2 and 3 run as one compiled call of those stages' kernels,
    :func:`~torchevtrack.stages.motion.motion_step`;
-4. the mesh is rendered once, in a window around the propagated pose;
-5. :class:`~torchevtrack.stages.template.TemplateCorrector` scores hypotheses warped from that render
-   against the EROS observation (optionally weighted toward its newest events, ``eros.recency_us``)
+4. the mesh is rendered once, in a window around the propagated pose; by default (``render.ahead``) around
+   the pose the previous update predicted for this one (its propagated pose moved on by its twist), so that
+   with the pipeline the render is made on the pipeline's thread during the previous update's step 5;
+5. :class:`~torchevtrack.stages.template.TemplateCorrector` scores hypotheses around the propagated pose,
+   warped from that render, against the EROS observation (optionally weighted toward its newest events, ``eros.recency_us``)
    and moves the pose to the best (the paper's argmax of 13, or a Newton step over all six axes:
    ``template.rule``); the correction's rate feeds the feedback of step 3, if on;
 6. :class:`~torchevtrack.stages.ukf.PoseUKF` smooths the corrected pose into the output (with the correction
@@ -126,8 +128,10 @@ class EventPoseTracker(nn.Module):
         pipeline: with one worker, let a thread of its own take the next window's events into the EROS and the
             flow (:func:`~torchevtrack.stages.intake.intake_step`) while an update searches, whenever that
             window is known: in :meth:`track`, and in :class:`~torchevtrack.online.OnlineTracker` when a push
-            completes several windows. Default: on with one worker and two or more usable cores. Results do not
-            depend on it; with it, the ``eros`` and ``flow`` of ``stage_ms`` are the wait for that thread.
+            completes several windows; and (``render.ahead``, one sequence, compiled rasteriser) make the next
+            update's render meanwhile, at every update. Default: on with one worker and two or more usable cores.
+            Results do not depend on it; with it, the ``eros``, ``flow`` and ``render`` of ``stage_ms`` are
+            the waits for that thread.
         on_lost: re-initialisation callback of the loss detector (needs ``config.loss.enabled``):
             ``on_lost(batch_indices (K,) int64, t_us (K,) int64) -> poses (K, 7) or None``, called with
             the elements declared lost in an update; the elements it returns poses for restart there
@@ -191,6 +195,7 @@ class EventPoseTracker(nn.Module):
         self._pipeline = bool(pipeline)
         self._intake: ThreadPoolExecutor | None = None  # the pipeline's thread, made when first needed
         self._ahead: _Ahead | None = None  # the next window, taken in on the intake thread
+        self._rendering: Future | None = None  # render.ahead: the next update's render, on the intake thread
         self.period_us = cfg.period_us
         self.dt = self.period_us * 1e-6
 
@@ -259,6 +264,9 @@ class EventPoseTracker(nn.Module):
         self._symmetric = bool(self._symmetry_axis.any())
         self._radius_of = torch.tensor([self._radius[i] for i in self._renderer_of], dtype=torch.float64)  # (B,)
         self.register_buffer("_min_depth", self._radius_of + 0.01, persistent=False)
+        # render.ahead: where the next update renders (the last prediction moved on by its twist), when valid
+        self.register_buffer("_render_next", torch.zeros(B, 7, dtype=f64), persistent=False)
+        self.register_buffer("_render_next_ok", torch.zeros(B, dtype=torch.bool), persistent=False)
 
     # -- state -------------------------------------------------------------------------------
     @torch.inference_mode()
@@ -295,6 +303,8 @@ class EventPoseTracker(nn.Module):
         twist = torch.where(m[:, None], twist.double(), 0.0)
         if bool((invalid_poses(pose, self._min_depth) & m).any()):
             raise ValueError("initial_pose puts the object centre closer to the camera than the object's radius")
+        self._drop_render()
+        self._render_next_ok.masked_fill_(m, False)
         if self._ahead is not None:  # the intake thread is done with the surfaces before they are cleared
             self._ahead.flow.result()
             if mask is None:  # a fresh start: that window is not coming
@@ -384,10 +394,13 @@ class EventPoseTracker(nn.Module):
             launch()
         clock.lap("velocity")
 
-        pose32 = predicted.float()
+        render_pose = self._render_pose_ahead(predicted, twist) if cfg.render.ahead else predicted
+        pose32 = render_pose.float()
         reuse = cfg.template.enabled and self._reusable(pose32)
         if not reuse:
-            render = self._render(predicted, shaded=cfg.template.enabled)
+            render = self._render(render_pose, shaded=cfg.template.enabled)
+            if self._pipeline and cfg.render.ahead and bool(self._render_next_ok.all()):
+                self._render_soon(self._render_next.numpy().copy(), cfg.template.enabled)
         clock.lap("render")
         n_events = np.bincount(b.numpy(), minlength=B) if b is not None else np.full(B, x.numel())
         seen = self.events_seen.numpy()
@@ -514,20 +527,21 @@ class EventPoseTracker(nn.Module):
         elements from changing each other's renders. Keeps the depth and the windows' common ``origin``."""
         B = self.batch_size
         H, W = self.camera.height, self.camera.width
-        win = self._windows(poses)
         if B == 1:  # the own window is the common one: the render is the buffer
             renderer = self._renderers[self._renderer_of[0]]
-            if isinstance(renderer, RasterRenderer):  # numpy: the poses are valid (motion_step), normalise them only
-                p = poses.numpy().copy()
-                _normalise_quaternions(p)
-                depth, gray = renderer.render_unit(p, self.camera.crop(*win[0].tolist()), shaded)
-                depth, gray = torch.from_numpy(depth), None if gray is None else torch.from_numpy(gray)
+            if self._rendering is not None:  # made ahead, at these poses (render.ahead)
+                depth, gray, win = self._rendering.result()
+                self._rendering = None
+            elif isinstance(renderer, RasterRenderer):
+                depth, gray, win = self._render_unit(poses.numpy(), shaded)
             else:
+                win = self._windows(poses)
                 out = renderer.render(poses, roi=tuple(win[0].tolist()), shaded=shaded)
                 depth, gray = out.depth, out.gray
             self.depth = depth
             self.origin.numpy()[:] = win[:, :2]
             return _Render(depth, gray)
+        win = self._windows(poses)
         w, h = int(win[:, 2].max()), int(win[:, 3].max())
         origin = np.stack((np.minimum(win[:, 0], W - w), np.minimum(win[:, 1], H - h)), -1)
         depth = torch.zeros(B, h, w)
@@ -546,6 +560,35 @@ class EventPoseTracker(nn.Module):
         self.depth = depth
         self.origin.copy_(torch.from_numpy(origin))
         return _Render(depth, gray)
+
+    def _render_unit(self, poses: np.ndarray, shaded: bool) -> tuple[torch.Tensor, torch.Tensor | None, np.ndarray]:
+        """The render of one element with the compiled rasteriser, in its window: ``poses`` ``(1, 7)`` float64 are
+        valid (motion_step), so they are only normalised. Returns depth, gray and the window ``(1, 4)``."""
+        win = window_of(poses[:, :3], self.camera, self._radius_of.numpy(), self.config.render.margin_px, clip=True)
+        p = poses.copy()
+        _normalise_quaternions(p)
+        depth, gray = self._renderers[self._renderer_of[0]].render_unit(p, self.camera.crop(*win[0].tolist()), shaded)
+        return torch.from_numpy(depth), None if gray is None else torch.from_numpy(gray), win
+
+    def _render_pose_ahead(self, predicted: torch.Tensor, twist: torch.Tensor) -> torch.Tensor:
+        """render.ahead: the poses to render at now (where the last update's prediction, moved on by its twist,
+        was valid; else ``predicted``), and the next update's, from ``predicted`` and ``twist``."""
+        now = np.where(self._render_next_ok.numpy()[:, None], self._render_next.numpy(), predicted.numpy())
+        ahead = propagate(predicted, twist, self.dt)
+        self._render_next.copy_(ahead)
+        self._render_next_ok.copy_(~invalid_poses(ahead, self._min_depth))
+        return torch.from_numpy(now)
+
+    def _render_soon(self, poses: np.ndarray, shaded: bool) -> None:
+        """Make the next update's render at ``poses`` on the intake thread (one element, compiled rasteriser)."""
+        if self.batch_size == 1 and isinstance(self._renderers[0], RasterRenderer):
+            self._rendering = self._intake_thread().submit(self._render_unit, poses, shaded)
+
+    def _drop_render(self) -> None:
+        """Forget a render made ahead (a reset moved the poses): wait for the thread."""
+        if self._rendering is not None:
+            wait([self._rendering])
+            self._rendering = None
 
     def _render_depth(self, poses: torch.Tensor, mask: torch.Tensor) -> None:
         """Render the depth of the ``mask`` elements at ``poses`` ``(B, 7)`` into the depth buffer.
@@ -621,11 +664,15 @@ class EventPoseTracker(nn.Module):
         self._model = _cat([p.model for p in parts])
         return _cat([p.correction for p in parts])
 
-    def _launch(self, window: tuple) -> None:
-        """Take the packed ``window`` into the EROS and the flow on the intake thread (:meth:`_take_ahead` waits)."""
+    def _intake_thread(self) -> ThreadPoolExecutor:
+        """The pipeline's thread, made on first use."""
         if self._intake is None:
             self._intake = ThreadPoolExecutor(1, thread_name_prefix="torchevtrack-intake")
-        self._ahead = _Ahead(self._intake.submit(intake_step, self.eros, self.flow, *window), window)
+        return self._intake
+
+    def _launch(self, window: tuple) -> None:
+        """Take the packed ``window`` into the EROS and the flow on the intake thread (:meth:`_take_ahead` waits)."""
+        self._ahead = _Ahead(self._intake_thread().submit(intake_step, self.eros, self.flow, *window), window)
 
     def _take_ahead(self, x: torch.Tensor) -> FlowField:
         """The flow of the window the intake thread took in, once it is done; ``x`` is that window's."""
@@ -636,7 +683,8 @@ class EventPoseTracker(nn.Module):
         return flow
 
     def _drop_ahead(self) -> None:
-        """Forget a window taken in ahead whose update will not come (the loop ended early): wait for the thread."""
+        """Forget a window taken in ahead whose update will not come (the loop ended early): wait for the thread. (A
+        render made ahead stays: it depends on the poses only, and the next update still renders there.)"""
         if self._ahead is not None:
             wait([self._ahead.flow])  # not .result(): in a finally, its error would hide the one that stopped the loop
             self._ahead = None
