@@ -47,7 +47,7 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Sequence, TypeVar
+from typing import TYPE_CHECKING, Callable, NamedTuple, Sequence, TypeVar
 
 import numpy as np
 import torch
@@ -68,10 +68,11 @@ from torchevtrack.stages.correction import CorrectionStep, correction_step
 from torchevtrack.stages.eros import EROS
 from torchevtrack.stages.flow import FlowField, TripletFlow
 from torchevtrack.stages.intake import intake_step
-from torchevtrack.stages.motion import invalid_poses, motion_step
+from torchevtrack.stages.motion import _invalid_kernel, invalid_poses, motion_step
 from torchevtrack.stages.output import output_step
-from torchevtrack.stages.propagate import propagate
-from torchevtrack.stages.template import Correction, TemplateCorrector, TemplateModel, window_of
+from torchevtrack.stages.propagate import _propagate_kernel, propagate
+from torchevtrack.stages.template import (Correction, TemplateCorrector, TemplateModel, _camera_array, _model_in_box,
+                                          _render_box, window_of)
 from torchevtrack.stages.ukf import PoseUKF
 from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, shift_twist
 
@@ -396,17 +397,21 @@ class EventPoseTracker(nn.Module):
 
         render_pose = self._render_pose_ahead(predicted, twist) if cfg.render.ahead else predicted
         pose32 = render_pose.float()
-        reuse = cfg.template.enabled and self._reusable(pose32)
-        if not reuse:
+        render = None  # None: the correction uses self._model (the last render's, or one made with this render)
+        if not (cfg.template.enabled and self._reusable(pose32)):
             render = self._render(render_pose, shaded=cfg.template.enabled)
-            if self._pipeline and cfg.render.ahead and bool(self._render_next_ok.all()):
-                self._render_soon(self._render_next.numpy().copy(), cfg.template.enabled)
+            if render.model is not None:
+                self._model, render = render.model, None
+            if self._pipeline and cfg.render.ahead and self._render_next_ok.numpy().all():
+                # the template model too, unless the thread will take the next window in (it would then wait)
+                self._render_soon(self._render_next.numpy().copy(), cfg.template.enabled,
+                                  model=cfg.template.enabled and ahead is None)
         clock.lap("render")
         n_events = np.bincount(b.numpy(), minlength=B) if b is not None else np.full(B, x.numel())
         seen = self.events_seen.numpy()
         seen += n_events
         if cfg.template.enabled:
-            corr = self._correct(predicted, pose32, None if reuse else render, self._t_now(t, b), launch)
+            corr = self._correct(predicted, pose32, render, self._t_now(t, b), launch)
             # Until the EROS holds enough events, its edges are too sparse to correct against.
             warm = (seen >= cfg.template.warmup_events)[:, None]
             measured = torch.from_numpy(np.where(warm, corr.pose.numpy(), predicted.numpy()))
@@ -529,10 +534,12 @@ class EventPoseTracker(nn.Module):
         H, W = self.camera.height, self.camera.width
         if B == 1:  # the own window is the common one: the render is the buffer
             renderer = self._renderers[self._renderer_of[0]]
-            if self._rendering is not None:  # made ahead, at these poses (render.ahead)
-                depth, gray, win = self._rendering.result()
-                self._rendering = None
-            elif isinstance(renderer, RasterRenderer):
+            if self._rendering is not None:  # made ahead, at these poses, with its template model (render.ahead)
+                made, self._rendering = self._rendering.result(), None
+                self.depth = made.depth
+                self.origin.numpy()[:] = made.window[:, :2]
+                return _Render(made.depth, made.gray, made.model)
+            if isinstance(renderer, RasterRenderer):
                 depth, gray, win = self._render_unit(poses.numpy(), shaded)
             else:
                 win = self._windows(poses)
@@ -572,17 +579,33 @@ class EventPoseTracker(nn.Module):
 
     def _render_pose_ahead(self, predicted: torch.Tensor, twist: torch.Tensor) -> torch.Tensor:
         """render.ahead: the poses to render at now (where the last update's prediction, moved on by its twist,
-        was valid; else ``predicted``), and the next update's, from ``predicted`` and ``twist``."""
-        now = np.where(self._render_next_ok.numpy()[:, None], self._render_next.numpy(), predicted.numpy())
-        ahead = propagate(predicted, twist, self.dt)
-        self._render_next.copy_(ahead)
-        self._render_next_ok.copy_(~invalid_poses(ahead, self._min_depth))
+        was valid; else ``predicted``), and the next update's (:func:`propagate`, :func:`invalid_poses` of
+        ``predicted`` and ``twist``, their kernels on the buffers)."""
+        ahead, ok = self._render_next.numpy(), self._render_next_ok.numpy()
+        now = np.where(ok[:, None], ahead, predicted.numpy())
+        _propagate_kernel(predicted.numpy(), twist.numpy(), np.full(self.batch_size, self.dt), ahead)
+        _invalid_kernel(ahead, self._min_depth.numpy(), ok)
+        np.logical_not(ok, out=ok)
         return torch.from_numpy(now)
 
-    def _render_soon(self, poses: np.ndarray, shaded: bool) -> None:
-        """Make the next update's render at ``poses`` on the intake thread (one element, compiled rasteriser)."""
+    def _render_soon(self, poses: np.ndarray, shaded: bool, model: bool) -> None:
+        """Make the next update's render at ``poses`` and, with ``model``, its template model on the intake thread
+        (one element, compiled rasteriser)."""
         if self.batch_size == 1 and isinstance(self._renderers[0], RasterRenderer):
-            self._rendering = self._intake_thread().submit(self._render_unit, poses, shaded)
+            self._rendering = self._intake_thread().submit(self._render_with_model, poses, shaded, model)
+
+    def _render_with_model(self, poses: np.ndarray, shaded: bool, model: bool) -> "_Made":
+        """The render at ``poses`` ``(1, 7)`` and, with ``model``, the template model that
+        :func:`~torchevtrack.stages.correction.correction_step` would make of it (the same kernels and arguments)."""
+        depth, gray, win = self._render_unit(poses, shaded)
+        if not model:
+            return _Made(depth, gray, win, None)
+        o = self.corrector.options
+        origin, cam = win[:, :2].astype(np.float64), _camera_array(self.camera)
+        box, gain = _render_box(depth.numpy(), origin, cam, o["margin_px"])
+        model = _model_in_box(poses.astype(np.float32).astype(np.float64), depth.numpy(), gray.numpy(), True, origin,
+                              cam, box, gain, o["canvas"], o["edge_clip"], o["silhouette"])
+        return _Made(depth, gray, win, model)
 
     def _drop_render(self) -> None:
         """Forget a render made ahead (a reset moved the poses): wait for the thread."""
@@ -741,10 +764,19 @@ def _resolved(value) -> Future:
     return f
 
 
+class _Made(NamedTuple):
+    """A render made ahead on the intake thread: its images, window ``(1, 4)`` and template model."""
+    depth: torch.Tensor
+    gray: torch.Tensor | None
+    window: np.ndarray
+    model: TemplateModel | None
+
+
 @dataclass
 class _Render:
     depth: torch.Tensor
     gray: torch.Tensor | None
+    model: TemplateModel | None = None  # its template model, when made with it (render.ahead with the pipeline)
 
 
 _T = TypeVar("_T")
