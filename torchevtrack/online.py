@@ -45,6 +45,7 @@ import operator
 import time
 from typing import Sequence
 
+import numpy as np
 import torch
 
 from torchevtrack.camera import Camera
@@ -182,22 +183,24 @@ class OnlineTracker:
         n = min((r - t0) // P for r in self._received) - self._done
         if n <= 0:
             return []
-        ends = t0 + (self._done + 1 + torch.arange(n, dtype=torch.int64)) * P
-        buffers = [EventStream.concat(chunks) for chunks in self._pending]
-        cuts = [[0] + torch.searchsorted(s.t, ends).tolist() for s in buffers]
+        ends = [t0 + (self._done + 1 + k) * P for k in range(n)]
+        # one pushed chunk is the buffer itself (its remainder is copied below: a view would keep the chunk alive)
+        buffers = [chunks[0] if len(chunks) == 1 else EventStream.concat(chunks) for chunks in self._pending]
+        cuts = [[0] + np.searchsorted(s.t.numpy(), ends).tolist() for s in buffers]
         windows = [_pack([s[c[k]:c[k + 1]] for s, c in zip(buffers, cuts)]) for k in range(n)]
         out = []
         try:
             for k in range(n):  # the tracker's pipeline takes in the window after it meanwhile
                 ahead = windows[k + 1] if k + 1 < n else None
-                out.append((int(ends[k]), self.tracker(*windows[k], t_us=int(ends[k]), next_window=ahead)))
+                out.append((ends[k], self.tracker(*windows[k], t_us=ends[k], next_window=ahead)))
                 self.stage_ms.append(dict(self.tracker.stage_ms))
                 if self.tracker.lost is not None:
                     self.lost.append(self.tracker.lost.clone())
         finally:
             self.tracker._drop_ahead()
         # Copy the remainders: a view would keep the whole pushed chunk alive.
-        self._pending = [[_copy(s[c[-1]:])] if c[-1] < len(s) else [] for s, c in zip(buffers, cuts)]
+        self._pending = [[] if c[-1] == len(s) else [_copy(s[c[-1]:]) if len(chunks) == 1 else s[c[-1]:]]
+                         for s, c, chunks in zip(buffers, cuts, self._pending)]
         self._done += n
         latency = (time.perf_counter() - t_call) * 1e3
         self.latencies_ms.extend([latency] * n)
