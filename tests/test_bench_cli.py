@@ -7,6 +7,7 @@ import torch
 
 from torchevtrack.camera import Camera
 from torchevtrack.cli import main
+from torchevtrack.config import TrackerConfig
 from torchevtrack.synth.generate import generate_sequence
 
 CAM = Camera(160, 120, 125.6, 125.6, 79.5, 59.5)
@@ -48,6 +49,7 @@ def test_bench_json(seqdir, capsys):
     m = r["machine"]
     assert m["torch_threads"] == 1 and m["torch"] == torch.__version__ and m["cpu_count"] >= 1
     assert r["offline"]["pipeline"] == (m["cpus_available"] > 1)  # one sequence on two cores: pipelined
+    assert TrackerConfig.from_dict(r["config"]) == TrackerConfig()  # the tracker's settings, for the record
 
 
 def test_bench_summary_and_ablation(seqdir, capsys):

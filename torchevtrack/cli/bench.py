@@ -8,9 +8,12 @@ Three measurements in one run, each after a short untimed warm-up:
    (from the push that completes a window to its pose) and the mean milliseconds of each stage.
 2. **one sequence offline**: :meth:`~torchevtrack.tracker.EventPoseTracker.track` with ``B = 1`` (pipelined with
    two or more cores: each next window's EROS and flow run on a second thread during the search; the 1 ms pushes
-   of 1. complete one window at a time, so streaming has no next window to take in).
+   of 1. complete one window at a time, so streaming has no next window to take in, and that thread renders and
+   builds the next template instead, with ``render.ahead``).
 3. **batched** (``--batch B > 1``): ``B`` copies of the sequence in one batch. ``batched_speedup`` is
    ``B * (wall time of 2.) / (wall time of 3.)``: how much faster one batch is than ``B`` sequential runs.
+
+The JSON also records the tracker ``config`` and the ``machine``.
 """
 
 from __future__ import annotations
@@ -121,6 +124,7 @@ def bench(seq: Sequence, config: TrackerConfig, batch: int, duration_s: float | 
         "stage_ms": stage_ms,
         "update_ms": sum(stage_ms.values()),
         "offline": {"wall_s": offline_wall, "updates_per_s": n / offline_wall, "pipeline": pipeline},
+        "config": config.to_dict(),
         "batch": batch,
         "batched_speedup": None,
         "batched": None,
