@@ -396,6 +396,31 @@ def test_render_ahead_made_on_the_intake_thread_gives_the_serial_poses(seq, monk
     assert torch.equal(out[True], out[False])
 
 
+def test_a_failed_render_ahead_raises_in_the_update_that_needs_it_once(seq, monkeypatch):
+    import torchevtrack.tracker as tracker_module
+
+    make = tracker_module.EventPoseTracker._render_with_model
+
+    def failing_once(self, *a):
+        if not failing_once.failed:
+            failing_once.failed = True
+            raise MemoryError("no memory for the render")
+        return make(self, *a)
+
+    failing_once.failed = False
+    monkeypatch.setattr(tracker_module.EventPoseTracker, "_render_with_model", failing_once)
+    tracker = EventPoseTracker(CAM, seq.mesh, workers=1, pipeline=True)
+    tracker.reset(seq.gt_poses[0])
+    t0 = int(seq.gt_t_us[0])
+    w = [seq.events.slice_time(t0 + k * 2000, t0 + (k + 1) * 2000) for k in range(3)]
+    tracker(w[0].x, w[0].y, w[0].t, w[0].p)  # renders at once, and its successor's render on the thread, which fails
+    with pytest.raises(MemoryError, match="no memory"):
+        tracker(w[1].x, w[1].y, w[1].t, w[1].p)
+    assert tracker._rendering is None  # taken: the next update renders again rather than raise the same error
+    assert torch.isfinite(tracker(w[2].x, w[2].y, w[2].t, w[2].p)).all()
+    tracker.close()
+
+
 def test_render_ahead_excludes_render_reuse():
     with pytest.raises(ValueError, match="needs render.ahead: false"):
         TrackerConfig().replace(render={"ahead": True, "reuse_px": 0.5})

@@ -535,7 +535,8 @@ class EventPoseTracker(nn.Module):
         if B == 1:  # the own window is the common one: the render is the buffer
             renderer = self._renderers[self._renderer_of[0]]
             if self._rendering is not None:  # made ahead, at these poses, with its template model (render.ahead)
-                made, self._rendering = self._rendering.result(), None
+                rendering, self._rendering = self._rendering, None  # taken, even if it failed
+                made = rendering.result()
                 self.depth = made.depth
                 self.origin.numpy()[:] = made.window[:, :2]
                 return _Render(made.depth, made.gray, made.model)
