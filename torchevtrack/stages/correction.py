@@ -21,12 +21,10 @@ import torch
 
 from torchevtrack.camera import Camera
 from torchevtrack.stages.eros import _canvas_kernel, _check_time_surface, _decay_table
-from torchevtrack.stages.template import (NUM_HYPOTHESES, Correction, TemplateModel, _camera_array, _model_in_box,
-                                          _newton_kernel, _render_box, correct_canvas)
+from torchevtrack.stages.template import (NEWTON_DAMPING, NEWTON_MAX_STEP, NUM_HYPOTHESES, Correction, TemplateModel,
+                                          _camera_array, _model_in_box, _newton_kernel, _render_box, correct_canvas)
 
 __all__ = ["CorrectionStep", "correction_step"]
-
-_DAMPING, _MAX_STEP = 0.5, 1.0  # newton_search's defaults
 
 
 class CorrectionStep(NamedTuple):
@@ -111,7 +109,7 @@ def correction_step(
     _newton_kernel(model.coef.numpy(), model.depth.numpy(), model.K.numpy().astype(np.float64),
                    model.render_pose.numpy(), predicted.numpy(), obs.reshape(B, N * N),
                    model.gain.numpy().astype(np.float64), camera.fx, camera.fy, float(dp_px), math.radians(dtheta_deg),
-                   iterations, _DAMPING, _MAX_STEP, pose, score, scores, moved)
+                   iterations, NEWTON_DAMPING, NEWTON_MAX_STEP, pose, score, scores, moved)
     dt = model.depth.numpy().dtype
     scores = scores.astype(dt)  # numpy: a few numbers, without torch's dispatch (argmax: the first of ties, as torch)
     return CorrectionStep(model, Correction(

@@ -120,6 +120,8 @@ __all__ = [
     "AXES",
     "GROUPS",
     "NUM_HYPOTHESES",
+    "NEWTON_DAMPING",
+    "NEWTON_MAX_STEP",
     "RULES",
     "Correction",
     "render_window",
@@ -154,6 +156,7 @@ __all__ = [
 
 AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
 NUM_HYPOTHESES = 1 + 2 * len(AXES)
+NEWTON_DAMPING, NEWTON_MAX_STEP = 0.5, 1.0  # newton_step's damping and step clip (hypothesis steps per axis)
 # EDOPT's groups of axes whose image motions look alike, as axis indices into AXES.
 GROUPS = ((0, 4), (1, 3), (5,), (2,))
 RULES = ("argmax", "group", "newton")
@@ -1393,7 +1396,8 @@ def select(
     return torch.cat((t, quat_canonical(q)), -1), applied
 
 
-def newton_step(score_steps, unit: torch.Tensor, max_step: float = 1.0, damping: float = 0.5) -> torch.Tensor:
+def newton_step(score_steps, unit: torch.Tensor, max_step: float = NEWTON_MAX_STEP,
+                damping: float = NEWTON_DAMPING) -> torch.Tensor:
     """Damped Newton step of a score over the six axes, in units of the hypothesis steps.
 
     The score is fitted by a quadratic ``s0 + g . u + u^T H u / 2`` in step units ``u`` (``u_a = 1`` is
@@ -1644,8 +1648,8 @@ def correct_canvas(
 
 
 def newton_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, camera: Camera, *,
-                  dp_px: float = 1.0, dtheta_deg: float = 0.5, iterations: int = 1, damping: float = 0.5,
-                  max_step: float = 1.0) -> Correction:
+                  dp_px: float = 1.0, dtheta_deg: float = 0.5, iterations: int = 1,
+                  damping: float = NEWTON_DAMPING, max_step: float = NEWTON_MAX_STEP) -> Correction:
     """:func:`search` with ``rule="newton"`` on the model's exact quadratic, compiled in one call.
 
     The same search as ``search(pose, scorer, ...)`` with the scorer of :func:`correct_model` (the quadratic
