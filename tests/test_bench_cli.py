@@ -52,6 +52,23 @@ def test_bench_json(seqdir, capsys):
     assert TrackerConfig.from_dict(r["config"]) == TrackerConfig()  # the tracker's settings, for the record
 
 
+def test_bench_repeat_reports_medians_and_pooled_latencies(seqdir, capsys):
+    """--repeat 3: three streaming and three offline runs; the headline figures are their medians."""
+    _, d = seqdir
+    assert main(["bench", str(d), "--duration", "0.01", "--batch", "1", "--warmup", "1", "--repeat", "3",
+                 "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    runs = r["runs"]
+    assert r["repeat"] == 3 and all(len(v) == 3 for v in runs.values())
+    assert r["updates_per_s"] == pytest.approx(sorted(runs["updates_per_s"])[1])
+    assert r["updates_per_s"] == pytest.approx(r["n_updates"] / r["wall_s"])
+    assert r["offline"]["updates_per_s"] == pytest.approx(sorted(runs["offline_updates_per_s"])[1])
+    assert 0 < r["p50_ms"] <= r["p99_ms"] <= r["latency_max_ms"]
+    assert r["latency_max_ms"] >= max(runs["p99_ms"])  # the maximum over all the runs' updates
+    assert main(["bench", str(d), "--duration", "0.01", "--batch", "1", "--warmup", "0", "--repeat", "2"]) == 0
+    assert "medians of 2 runs" in capsys.readouterr().out
+
+
 def test_bench_summary_and_ablation(seqdir, capsys):
     _, d = seqdir
     assert main(["bench", str(d), "--duration", "0.01", "--batch", "1", "--warmup", "0",
@@ -64,6 +81,7 @@ def test_bench_summary_and_ablation(seqdir, capsys):
 
 @pytest.mark.parametrize("argv, message", [
     (["--batch", "0"], "--batch must be >= 1"),
+    (["--repeat", "0"], "--repeat must be >= 1"),
     (["--duration", "-1"], "--duration must be positive"),
     (["--duration", "0.001"], "shorter than one update period"),
 ])

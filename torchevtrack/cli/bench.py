@@ -13,6 +13,11 @@ Three measurements in one run, each after a short untimed warm-up:
 3. **batched** (``--batch B > 1``): ``B`` copies of the sequence in one batch. ``batched_speedup`` is
    ``B * (wall time of 2.) / (wall time of 3.)``: how much faster one batch is than ``B`` sequential runs.
 
+With ``--repeat R`` the streaming and the offline runs are made ``R`` times each, alternating, so that both see the
+same phases of a machine whose speed drifts: throughput and wall times are then the medians of the runs, the
+latency percentiles those of all their updates together, the stage milliseconds means over all updates, and
+``runs`` lists every run's figures. The batched case runs once and is compared with the median offline run.
+
 The JSON also records the tracker ``config`` and the ``machine``.
 """
 
@@ -53,12 +58,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     p.add_argument("--chunk-us", type=int, default=1000, help="events per streaming push, microseconds (default 1000)")
     p.add_argument("--warmup", type=int, default=10, help="untimed updates before each measurement (default 10)")
+    p.add_argument("--repeat", type=int, default=1,
+                   help="streaming and offline runs, alternating; medians are reported (default 1)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    for name in ("batch", "threads", "chunk_us"):
+    for name in ("batch", "threads", "chunk_us", "repeat"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     if args.warmup < 0:
@@ -70,15 +77,16 @@ def run(args: argparse.Namespace) -> int:
     cfg = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
     cfg = cfg.replace(**ABLATIONS[args.ablation])
     result = bench(seq, cfg, batch=args.batch, duration_s=args.duration, chunk_us=args.chunk_us,
-                   warmup=args.warmup)
+                   warmup=args.warmup, repeat=args.repeat)
     result = {"sequence": str(args.seqdir), "ablation": args.ablation, **result}
     print(json.dumps(result, indent=2) if args.json else summary(result))
     return 0
 
 
 def bench(seq: Sequence, config: TrackerConfig, batch: int, duration_s: float | None = None,
-          chunk_us: int = 1000, warmup: int = 10) -> dict:
-    """Run the three measurements (see the module docstring) and return the numbers as a JSON-ready dict."""
+          chunk_us: int = 1000, warmup: int = 10, repeat: int = 1) -> dict:
+    """Run the three measurements (see the module docstring; streaming and offline ``repeat`` times each, alternating)
+    and return the numbers as a JSON-ready dict."""
     P = config.period_us
     t0 = int(seq.gt_t_us[0])
     t_end = seq.events.t_end if duration_s is None else min(t0 + round(duration_s * 1e6), seq.events.t_end)
@@ -91,22 +99,27 @@ def bench(seq: Sequence, config: TrackerConfig, batch: int, duration_s: float | 
     warm_end = t0 + min(warmup, n) * P
 
     single = EventPoseTracker(seq.camera, seq.mesh, config)
+    walls, offline_walls, latencies, stages = [], [], [], []
     try:
         online = OnlineTracker(single)
-        if warmup:
+        for _ in range(repeat):
+            if warmup:
+                online.start(pose0, t0)
+                _stream(online, events.slice_time(t0, warm_end), t0, warm_end, chunk_us)
             online.start(pose0, t0)
-            _stream(online, events.slice_time(t0, warm_end), t0, warm_end, chunk_us)
-        online.start(pose0, t0)
-        start = time.perf_counter()
-        _stream(online, events, t0, t_end, chunk_us)
-        wall = time.perf_counter() - start
-        offline_wall = _timed_track(single, events, pose0, t0, t_end, warm_end, 1)
+            start = time.perf_counter()
+            _stream(online, events, t0, t_end, chunk_us)
+            walls.append(time.perf_counter() - start)
+            latencies.append(np.asarray(online.latencies_ms))  # one per update: n
+            stages += online.stage_ms
+            offline_walls.append(_timed_track(single, events, pose0, t0, t_end, warm_end, 1))
         pipeline = single._pipeline
     finally:
         single.close()
 
-    lat = np.asarray(online.latencies_ms)  # one per update: n
-    stage_ms = {s: float(np.mean([ms.get(s, 0.0) for ms in online.stage_ms])) for s in STAGES}
+    wall, offline_wall = float(np.median(walls)), float(np.median(offline_walls))
+    lat = np.concatenate(latencies)
+    stage_ms = {s: float(np.mean([ms.get(s, 0.0) for ms in stages])) for s in STAGES}
     tracked_s = n * P / 1e6
     out = {
         "duration_s": tracked_s,
@@ -124,6 +137,9 @@ def bench(seq: Sequence, config: TrackerConfig, batch: int, duration_s: float | 
         "stage_ms": stage_ms,
         "update_ms": sum(stage_ms.values()),
         "offline": {"wall_s": offline_wall, "updates_per_s": n / offline_wall, "pipeline": pipeline},
+        "repeat": repeat,
+        "runs": {"updates_per_s": [n / w for w in walls], "p99_ms": [float(np.percentile(v, 99)) for v in latencies],
+                 "offline_updates_per_s": [n / w for w in offline_walls]},
         "config": config.to_dict(),
         "batch": batch,
         "batched_speedup": None,
@@ -180,6 +196,12 @@ def summary(r: dict) -> str:
         f"offline, one sequence: {r['offline']['updates_per_s']:.1f} updates/s"
         + (" (pipelined: next window's intake during the search)" if r["offline"]["pipeline"] else ""),
     ]
+    if r["repeat"] > 1:
+        runs = r["runs"]
+        lines.append(f"medians of {r['repeat']} runs; updates/s streaming "
+                     f"{min(runs['updates_per_s']):.1f} - {max(runs['updates_per_s']):.1f}, offline "
+                     f"{min(runs['offline_updates_per_s']):.1f} - {max(runs['offline_updates_per_s']):.1f}; latencies "
+                     "over all runs")
     if r["batched"] is not None:
         b = r["batched"]
         lines.append(f"batch of {r['batch']}: {b['updates_per_s']:.1f} sequence-updates/s, "
