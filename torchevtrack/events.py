@@ -143,7 +143,7 @@ class EventStream:
 
     def slice_time(self, t0: int, t1: int) -> "EventStream":
         """Events with ``t0 <= t < t1`` (microseconds), as a view."""
-        i0, i1 = torch.searchsorted(self.t, torch.tensor([t0, t1], dtype=torch.int64)).tolist()
+        i0, i1 = np.searchsorted(self.t.numpy(), (t0, t1)).tolist()  # numpy: ~10x less call overhead than torch's
         return self[i0:i1]
 
     def windows(self, dt_us: int, t_start: int | None = None,

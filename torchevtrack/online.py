@@ -83,7 +83,7 @@ class OnlineTracker:
         self._t0: int | None = None
         self._done = 0  # windows emitted since start()
         self._received: list[int] = []  # per stream: every event before this time has been received
-        self._pending: list[list[EventStream]] = []
+        self._pending: list[list[tuple[np.ndarray, ...]]] = []  # per stream: (x, y, t, p) chunks of the open window
 
     @classmethod
     def build(cls, camera: Camera, meshes: MeshLike | Sequence[MeshLike], config: TrackerConfig | None = None,
@@ -121,7 +121,7 @@ class OnlineTracker:
     @property
     def buffered_events(self) -> int:
         """Events held for windows that are not complete yet (all streams)."""
-        return sum(len(c) for chunks in self._pending for c in chunks)
+        return sum(len(c[2]) for chunks in self._pending for c in chunks)
 
     # -- input -------------------------------------------------------------------------------
     def push(self, events, b=None) -> list[tuple[int, torch.Tensor]]:
@@ -145,18 +145,21 @@ class OnlineTracker:
         t_call = time.perf_counter()
         self._check_started()
         streams = self._split(events, b)
-        for i, s in enumerate(streams):
-            if len(s) and int(s.t[0]) < self._received[i]:
+        # numpy views: the buffering below is a few small array operations per push, cheaper in numpy than in torch
+        chunks = [(s.x.numpy(), s.y.numpy(), s.t.numpy(), s.p.numpy()) for s in streams]
+        for i, (_, _, t, _) in enumerate(chunks):
+            if len(t) and int(t[0]) < self._received[i]:
                 raise ValueError(
-                    f"events out of order: stream {i} got an event at t={int(s.t[0])} us, but events up to "
+                    f"events out of order: stream {i} got an event at t={int(t[0])} us, but events up to "
                     f"t={self._received[i]} us were already received (pushed or flushed)"
                 )
-        for i, s in enumerate(streams):
-            if len(s):
-                self._received[i] = int(s.t[-1])
-                first = int(torch.searchsorted(s.t, self._t0)) if int(s.t[0]) < self._t0 else 0
-                if first < len(s):
-                    self._pending[i].append(s[first:])
+        for i, c in enumerate(chunks):
+            t = c[2]
+            if len(t):
+                self._received[i] = int(t[-1])
+                first = int(np.searchsorted(t, self._t0)) if int(t[0]) < self._t0 else 0
+                if first < len(t):
+                    self._pending[i].append(tuple(f[first:] for f in c))
         return self._run(t_call)
 
     def flush(self, t_us: int) -> list[tuple[int, torch.Tensor]]:
@@ -185,9 +188,9 @@ class OnlineTracker:
             return []
         ends = [t0 + (self._done + 1 + k) * P for k in range(n)]
         # one pushed chunk is the buffer itself (its remainder is copied below: a view would keep the chunk alive)
-        buffers = [chunks[0] if len(chunks) == 1 else EventStream.concat(chunks) for chunks in self._pending]
-        cuts = [[0] + np.searchsorted(s.t.numpy(), ends).tolist() for s in buffers]
-        windows = [_pack([s[c[k]:c[k + 1]] for s, c in zip(buffers, cuts)]) for k in range(n)]
+        buffers = [_concat(chunks) for chunks in self._pending]
+        cuts = [[0] + np.searchsorted(s[2], ends).tolist() for s in buffers]
+        windows = [_pack([_window(s, c[k], c[k + 1]) for s, c in zip(buffers, cuts)]) for k in range(n)]
         out = []
         try:
             for k in range(n):  # the tracker's pipeline takes in the window after it meanwhile
@@ -199,7 +202,8 @@ class OnlineTracker:
         finally:
             self.tracker._drop_ahead()
         # Copy the remainders: a view would keep the whole pushed chunk alive.
-        self._pending = [[] if c[-1] == len(s) else [_copy(s[c[-1]:]) if len(chunks) == 1 else s[c[-1]:]]
+        self._pending = [[] if c[-1] == len(s[2]) else [tuple(f[c[-1]:].copy() if len(chunks) == 1 else f[c[-1]:]
+                                                              for f in s)]
                          for s, c, chunks in zip(buffers, cuts, self._pending)]
         self._done += n
         latency = (time.perf_counter() - t_call) * 1e3
@@ -250,5 +254,15 @@ def _as_time(value, name: str) -> int:
     return t
 
 
-def _copy(s: EventStream) -> EventStream:
-    return EventStream(s.x.clone(), s.y.clone(), s.t.clone(), s.p.clone())
+def _concat(chunks: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]:
+    """One stream's pending ``(x, y, t, p)`` chunks as one (the chunk itself if there is one)."""
+    if len(chunks) == 1:
+        return chunks[0]
+    if not chunks:
+        return tuple(np.zeros(0, dtype=d) for d in (np.int16, np.int16, np.int64, np.int8))
+    return tuple(np.concatenate(f) for f in zip(*chunks))
+
+
+def _window(fields: tuple[np.ndarray, ...], a: int, b: int) -> EventStream:
+    """Events ``a:b`` of ``(x, y, t, p)`` arrays as an EventStream of views."""
+    return EventStream(*(torch.from_numpy(f[a:b]) for f in fields))
