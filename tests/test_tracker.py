@@ -262,14 +262,18 @@ def test_feedback_ignores_turns_about_a_symmetry_axis():
 
 # -- the pipeline: the next window's intake during an update's search -------------------------------
 def _counting_intake(monkeypatch):
-    """Count the windows the tracker takes in ahead (its calls of intake_step)."""
+    """Count the windows the tracker takes in ahead (its calls of intake_step on the pipeline's thread; the serial
+    update calls it on the caller's)."""
+    import threading
+
     import torchevtrack.tracker as tracker_module
 
     calls = []
     intake = tracker_module.intake_step
 
     def counted(*args, **kw):
-        calls.append(1)
+        if threading.current_thread() is not threading.main_thread():
+            calls.append(1)
         return intake(*args, **kw)
 
     monkeypatch.setattr(tracker_module, "intake_step", counted)

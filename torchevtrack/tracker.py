@@ -68,9 +68,10 @@ from torchevtrack.stages.correction import CorrectionStep, correction_step
 from torchevtrack.stages.eros import EROS
 from torchevtrack.stages.flow import FlowField, TripletFlow
 from torchevtrack.stages.intake import intake_step
-from torchevtrack.stages.motion import _invalid_kernel, invalid_poses, motion_step
+from torchevtrack.stages import periods
+from torchevtrack.stages.motion import _render_ahead_kernel, invalid_poses, motion_step
 from torchevtrack.stages.output import output_step
-from torchevtrack.stages.propagate import _propagate_kernel, propagate
+from torchevtrack.stages.propagate import propagate
 from torchevtrack.stages.template import (Correction, TemplateCorrector, TemplateModel, _camera_array, _model_in_box,
                                           _render_box, window_of)
 from torchevtrack.stages.ukf import PoseUKF
@@ -145,7 +146,8 @@ class EventPoseTracker(nn.Module):
 
     After each update, ``quality`` holds its :class:`Quality` and ``stage_ms`` the milliseconds spent in
     each stage (eros, flow, velocity, render, correction, ukf; and loss with a detector; ukf includes the
-    correction feedback's update, which runs with it). With
+    correction feedback's update, which runs with it; with one worker the EROS and the flow run as one compiled
+    call, :func:`~torchevtrack.stages.intake.intake_step`, whose time counts as the flow's). With
     ``config.loss.enabled``, ``loss`` is the :class:`~torchevtrack.loss.LossDetector` (its buffers:
     confidence, lost, lost_at_us, ...), ``loss_update`` the :class:`~torchevtrack.loss.LossUpdate` of
     the last update and ``lost`` its ``(B,)`` flags; without it all three are ``None``.
@@ -373,10 +375,9 @@ class EventPoseTracker(nn.Module):
         if self._ahead is not None:  # this window went in on the intake thread during the last update
             clock.lap("eros")
             flow = self._take_ahead(x)
-        elif self._pool is None:
-            self.eros(x, y, b)
+        elif self._pool is None:  # both stages in one compiled call: its time counts as the flow's
             clock.lap("eros")
-            flow = self.flow(x, y, t, p, b)
+            flow = intake_step(self.eros, self.flow, x, y, t, p, b)
         else:  # each worker takes the events of its share of the batch
             events = self._share_events(x, y, t, p, b)
             self._map(lambda rows, ev: self.eros(ev[0], ev[1], ev[4], rows=rows), events)
@@ -395,8 +396,8 @@ class EventPoseTracker(nn.Module):
             launch()
         clock.lap("velocity")
 
-        render_pose = self._render_pose_ahead(predicted, twist) if cfg.render.ahead else predicted
-        pose32 = render_pose.float()
+        render_pose, pose32 = self._render_pose_ahead(predicted, twist) if cfg.render.ahead else \
+            (predicted, predicted.float())
         render = None  # None: the correction uses self._model (the last render's, or one made with this render)
         if not (cfg.template.enabled and self._reusable(pose32)):
             render = self._render(render_pose, shaded=cfg.template.enabled)
@@ -578,16 +579,15 @@ class EventPoseTracker(nn.Module):
         depth, gray = self._renderers[self._renderer_of[0]].render_unit(p, self.camera.crop(*win[0].tolist()), shaded)
         return torch.from_numpy(depth), None if gray is None else torch.from_numpy(gray), win
 
-    def _render_pose_ahead(self, predicted: torch.Tensor, twist: torch.Tensor) -> torch.Tensor:
+    def _render_pose_ahead(self, predicted: torch.Tensor, twist: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """render.ahead: the poses to render at now (where the last update's prediction, moved on by its twist,
-        was valid; else ``predicted``), and the next update's (:func:`propagate`, :func:`invalid_poses` of
-        ``predicted`` and ``twist``, their kernels on the buffers)."""
-        ahead, ok = self._render_next.numpy(), self._render_next_ok.numpy()
-        now = np.where(ok[:, None], ahead, predicted.numpy())
-        _propagate_kernel(predicted.numpy(), twist.numpy(), np.full(self.batch_size, self.dt), ahead)
-        _invalid_kernel(ahead, self._min_depth.numpy(), ok)
-        np.logical_not(ok, out=ok)
-        return torch.from_numpy(now)
+        was valid; else ``predicted``), float64 and float32, and the next update's in the buffers (:func:`propagate`
+        of ``predicted`` and ``twist``, and whether it is valid)."""
+        B = self.batch_size
+        now, now32 = np.empty((B, 7)), np.empty((B, 7), dtype=np.float32)
+        _render_ahead_kernel(predicted.numpy(), twist.numpy(), periods(B, self.dt), self._min_depth.numpy(),
+                             self._render_next.numpy(), self._render_next_ok.numpy(), now, now32)
+        return torch.from_numpy(now), torch.from_numpy(now32)
 
     def _render_soon(self, poses: np.ndarray, shaded: bool, model: bool) -> None:
         """Make the next update's render at ``poses`` and, with ``model``, its template model on the intake thread

@@ -3,6 +3,7 @@ bilinear taps of the template canvas (sampled by the template stage and by the E
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numba
@@ -36,6 +37,15 @@ def batch_mask(mask: torch.Tensor | None, batch_size: int) -> torch.Tensor:
     if mask.numel() and (int(mask.min()) < 0 or int(mask.max()) >= batch_size):
         raise ValueError(f"mask indices must be in [0, {batch_size}), got {mask.tolist()}")
     return torch.zeros(batch_size, dtype=torch.bool).index_fill_(0, mask.long(), True)
+
+
+@functools.lru_cache(maxsize=64)
+def periods(batch_size: int, dt: float) -> np.ndarray:
+    """The update period ``dt`` (seconds) of every element as a read-only float64 ``(B,)`` array, for the compiled
+    steps that take one per element (made once per ``(B, dt)``: an update needs it several times)."""
+    out = np.full(batch_size, float(dt))
+    out.flags.writeable = False
+    return out
 
 
 @numba.njit(cache=True, nogil=True)

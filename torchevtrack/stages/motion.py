@@ -25,6 +25,7 @@ import numba
 import numpy as np
 import torch
 
+from torchevtrack.stages import periods
 from torchevtrack.stages.flow import FlowField
 from torchevtrack.stages.propagate import _propagate_kernel, _twist_between_kernel
 from torchevtrack.stages.velocity import (
@@ -98,7 +99,7 @@ def motion_step(source: str, pose: torch.Tensor, prev_pose: torch.Tensor, dt: fl
                          "depth (B, h, w), int64 origin (B, 2) and feedback (B, 6)")
     predicted, twist = np.empty((B, 7)), np.empty((B, 6))
     n_vectors, rejected = np.zeros(B, dtype=np.int64), np.empty(B, dtype=np.bool_)
-    dts = np.full(B, float(dt))
+    dts = periods(B, float(dt))
     if by_flow:
         c = kf.camera
         fb = _NO_FEEDBACK if feedback is None else feedback.numpy()
@@ -125,6 +126,26 @@ def invalid_poses(pose: torch.Tensor, min_depth: torch.Tensor) -> torch.Tensor:
     out = np.empty(pose.shape[0], dtype=np.bool_)
     _invalid_kernel(pose.detach().double().numpy(), min_depth.detach().double().numpy(), out)
     return torch.from_numpy(out)
+
+
+@numba.njit(cache=True, nogil=True)
+def _render_ahead_kernel(predicted, twist, dt, min_depth, ahead, ahead_ok, now, now32):
+    """The tracker's ``render.ahead`` poses, row by row: ``now`` (float64 and ``now32`` float32) is ``ahead`` where
+    ``ahead_ok`` (the last update's poses for this one), else ``predicted``; then ``ahead`` becomes ``predicted``
+    moved on by ``twist`` for ``dt`` (:func:`~torchevtrack.stages.propagate.propagate`) and ``ahead_ok`` whether
+    that is a valid pose (the next update's).
+
+    Shape: ``predicted (B, 7)``, ``twist (B, 6)``, ``dt, min_depth (B,)``; ``ahead (B, 7)``, ``ahead_ok (B,)`` in and
+    out; ``now, now32 (B, 7)`` out.
+    """
+    for b in range(predicted.shape[0]):
+        src = ahead[b] if ahead_ok[b] else predicted[b]
+        for j in range(7):
+            now[b, j] = src[j]
+            now32[b, j] = np.float32(src[j])
+    _propagate_kernel(predicted, twist, dt, ahead)
+    for b in range(predicted.shape[0]):
+        ahead_ok[b] = _valid_pose(ahead[b], min_depth[b])
 
 
 @numba.njit(cache=True, nogil=True)

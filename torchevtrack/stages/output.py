@@ -25,6 +25,7 @@ import numba
 import numpy as np
 import torch
 
+from torchevtrack.stages import periods
 from torchevtrack.stages.motion import _valid_pose
 from torchevtrack.stages.propagate import _twist_between_kernel
 from torchevtrack.stages.ukf import PoseUKF, _cov_arg, _ukf_predict_kernel, _ukf_update_kernel, _weights_np
@@ -82,7 +83,7 @@ def output_step(pose: torch.Tensor, predicted: torch.Tensor, measured: torch.Ten
     else:
         Wm, Wc, spread, q, q_diag, r, r_diag, x, P = _NO_UKF
     out, rejected = np.empty((B, 7)), np.empty(B, dtype=np.bool_)
-    bad = _output_kernel(pose.numpy(), predicted.numpy(), measured.numpy(), twist.numpy(), np.full(B, float(dt)),
+    bad = _output_kernel(pose.numpy(), predicted.numpy(), measured.numpy(), twist.numpy(), periods(B, float(dt)),
                          min_depth.numpy(), fb, feedback.b.numpy() if fb else _NO_B,
                          _NO_AXIS if symmetry_axis is None else symmetry_axis.double().numpy(), symmetry_axis is not None,
                          feedback.gain if fb else 0.0, feedback.leak if fb else 0.0,
