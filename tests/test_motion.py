@@ -132,3 +132,29 @@ def test_invalid_poses_is_the_rule():
     p = pose.numpy()
     want = ~np.isfinite(p).all(-1) | (p[:, 2] <= min_depth.numpy())
     assert invalid_poses(pose, min_depth).tolist() == want.tolist() == [False, True, True, True, True, False]
+
+
+def test_render_ahead_kernel_swaps_in_the_last_prediction_and_propagates():
+    """now = the poses predicted last time where they were valid, else this prediction; the buffers then hold this
+    prediction moved on by its twist (propagate) and whether that is valid (invalid_poses)."""
+    from torchevtrack.stages import periods
+    from torchevtrack.stages.motion import _render_ahead_kernel
+
+    g = torch.Generator().manual_seed(3)
+    predicted = _poses(g)
+    B = predicted.shape[0]
+    twist = torch.randn(B, 6, generator=g, dtype=F64) * 0.5
+    twist[1, 2] = -1e6  # moves the centre behind the camera: not valid next time
+    ahead, ok = _poses(g), torch.tensor([True, False] * (B // 2) + [True] * (B % 2))
+    min_depth = torch.full((B,), 0.05, dtype=F64)
+    want_now = torch.where(ok[:, None], ahead, predicted)
+    want_next = propagate(predicted, twist, 0.002)
+    now, now32 = np.empty((B, 7)), np.empty((B, 7), dtype=np.float32)
+    ahead_np, ok_np = ahead.numpy().copy(), ok.numpy().copy()
+    _render_ahead_kernel(predicted.numpy(), twist.numpy(), periods(B, 0.002), min_depth.numpy(), ahead_np, ok_np,
+                         now, now32)
+    assert np.array_equal(now, want_now.numpy()) and np.array_equal(now32, want_now.float().numpy())
+    assert np.array_equal(ahead_np, want_next.numpy())
+    assert ok_np.tolist() == (~invalid_poses(want_next, min_depth)).tolist() and not ok_np[1]
+    dts = periods(B, 0.002)
+    assert dts is periods(B, 0.002) and not dts.flags.writeable and dts.tolist() == [0.002] * B
