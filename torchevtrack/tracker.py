@@ -515,16 +515,25 @@ class EventPoseTracker(nn.Module):
             t, radius = t[index], radius[index]
         return window_of(t, self.camera, radius, self.config.render.margin_px, clip=True)
 
-    def _render_into(self, i: int, pose: torch.Tensor, win: np.ndarray, origin: np.ndarray, depth: torch.Tensor,
-                     gray: torch.Tensor | None) -> None:
-        """Render element ``i`` at ``pose`` ``(1, 7)`` in its own window ``win`` and write it into row ``i`` of
-        the common-size buffers whose top-left pixel is ``origin`` ``(2,)`` (the own window lies inside)."""
+    def _render_into(self, i: int, pose: np.ndarray, win: np.ndarray, origin: np.ndarray, depth: np.ndarray,
+                     gray: np.ndarray | None) -> None:
+        """Render element ``i`` at the valid ``pose`` ``(1, 7)`` float64 in its own window ``win`` and write it into
+        row ``i`` of the common-size buffers whose top-left pixel is ``origin`` ``(2,)`` (the own window lies inside).
+        The compiled rasteriser takes its unchecked numpy entry, as :meth:`_render_unit` (the workers render in
+        parallel only inside its kernel: checks and tensor glue would hold the GIL)."""
         u, v, w, h = win.tolist()
         du, dv = u - int(origin[0]), v - int(origin[1])
-        out = self._renderers[self._renderer_of[i]].render(pose, roi=(u, v, w, h), shaded=gray is not None)
-        depth[i, dv:dv + h, du:du + w] = out.depth[0]
+        renderer = self._renderers[self._renderer_of[i]]
+        if isinstance(renderer, RasterRenderer):
+            p = pose.copy()
+            _normalise_quaternions(p)
+            d, g = renderer.render_unit(p, self.camera.crop(u, v, w, h), gray is not None)
+        else:
+            out = renderer.render(torch.from_numpy(pose), roi=(u, v, w, h), shaded=gray is not None)
+            d, g = out.depth.numpy(), None if gray is None else out.gray.numpy()
+        depth[i, dv:dv + h, du:du + w] = d[0]
         if gray is not None:
-            gray[i, dv:dv + h, du:du + w] = out.gray[0]
+            gray[i, dv:dv + h, du:du + w] = g[0]
 
     def _render(self, poses: torch.Tensor, shaded: bool):
         """Render each element in its own window around its pose, placed in buffers of one common size
@@ -556,11 +565,13 @@ class EventPoseTracker(nn.Module):
         depth = torch.zeros(B, h, w)
         gray = torch.empty(B, h, w) if shaded else None
 
+        poses_np, depth_np, gray_np = poses.numpy(), depth.numpy(), None if gray is None else gray.numpy()
+
         def share(rows: slice) -> None:
             for i in range(B)[rows]:
                 if shaded:
-                    gray[i] = self._renderers[self._renderer_of[i]].background
-                self._render_into(i, poses[i:i + 1], win[i], origin[i], depth, gray)
+                    gray_np[i] = self._renderers[self._renderer_of[i]].background
+                self._render_into(i, poses_np[i:i + 1], win[i], origin[i], depth_np, gray_np)
 
         if self._threaded_render:
             self._map(share)
@@ -638,7 +649,7 @@ class EventPoseTracker(nn.Module):
         for i, wi in zip(index, win):
             origin[i] = torch.tensor([min(wi[0], W - w), min(wi[1], H - h)])
             depth[i] = 0.0
-            self._render_into(i, poses[i:i + 1], wi, origin[i].numpy(), depth, None)
+            self._render_into(i, poses.numpy()[i:i + 1], wi, origin[i].numpy(), depth.numpy(), None)
         self.depth = depth
         self.origin.copy_(origin)
 
