@@ -146,8 +146,8 @@ class EventPoseTracker(nn.Module):
 
     After each update, ``quality`` holds its :class:`Quality` and ``stage_ms`` the milliseconds spent in
     each stage (eros, flow, velocity, render, correction, ukf; and loss with a detector; ukf includes the
-    correction feedback's update, which runs with it; with one worker the EROS and the flow run as one compiled
-    call, :func:`~torchevtrack.stages.intake.intake_step`, whose time counts as the flow's). With
+    correction feedback's update, which runs with it; the EROS and the flow run as one compiled call per worker,
+    :func:`~torchevtrack.stages.intake.intake_step`, whose time counts as the flow's). With
     ``config.loss.enabled``, ``loss`` is the :class:`~torchevtrack.loss.LossDetector` (its buffers:
     confidence, lost, lost_at_us, ...), ``loss_update`` the :class:`~torchevtrack.loss.LossUpdate` of
     the last update and ``lost`` its ``(B,)`` flags; without it all three are ``None``.
@@ -260,7 +260,8 @@ class EventPoseTracker(nn.Module):
         self.quality = Quality(torch.full((B,), float("nan")), torch.zeros(B, dtype=torch.long),
                                torch.zeros(B, dtype=torch.long), torch.zeros(B, dtype=torch.bool))
         self.stage_ms: dict[str, float] = {}
-        self._model: TemplateModel | None = None  # template of the last render (reused while render.reuse_px allows)
+        # template of the last render, one per worker's share (reused while render.reuse_px allows)
+        self._models: list[TemplateModel] | None = None
         # The object centre must stay farther than its bounding radius (plus the near plane).
         self.register_buffer("_symmetry_axis", torch.stack([self._sym_axes[i] for i in self._renderer_of]),
                              persistent=False)  # (B, 3) object frame, zero: none
@@ -331,7 +332,7 @@ class EventPoseTracker(nn.Module):
             self._render(pose, shaded=False)
         else:
             self._render_depth(pose, m)
-        self._model = None  # the template of the last render (see render.reuse_px)
+        self._models = None  # the template of the last render (see render.reuse_px)
 
     def close(self) -> None:
         """Release the renderers' GL contexts and the worker threads."""
@@ -380,9 +381,8 @@ class EventPoseTracker(nn.Module):
             flow = intake_step(self.eros, self.flow, x, y, t, p, b)
         else:  # each worker takes the events of its share of the batch
             events = self._share_events(x, y, t, p, b)
-            self._map(lambda rows, ev: self.eros(ev[0], ev[1], ev[4], rows=rows), events)
             clock.lap("eros")
-            flow = _cat(self._map(lambda rows, ev: self.flow(*ev, rows=rows), events))
+            flow = _cat(self._map(lambda rows, ev: intake_step(self.eros, self.flow, *ev, rows=rows), events))
         clock.lap("flow")
 
         # A pose that is not finite or puts the object (nearly) behind the camera is not a pose: such a
@@ -398,11 +398,11 @@ class EventPoseTracker(nn.Module):
 
         render_pose, pose32 = self._render_pose_ahead(predicted, twist) if cfg.render.ahead else \
             (predicted, predicted.float())
-        render = None  # None: the correction uses self._model (the last render's, or one made with this render)
+        render = None  # None: the correction uses self._models (the last render's, or one made with this render)
         if not (cfg.template.enabled and self._reusable(pose32)):
             render = self._render(render_pose, shaded=cfg.template.enabled)
             if render.model is not None:
-                self._model, render = render.model, None
+                self._models, render = [render.model], None
             if self._pipeline and cfg.render.ahead and self._render_next_ok.numpy().all():
                 # the template model too, unless the thread will take the next window in (it would then wait)
                 self._render_soon(self._render_next.numpy().copy(), cfg.template.enabled,
@@ -653,11 +653,16 @@ class EventPoseTracker(nn.Module):
         self.depth = depth
         self.origin.copy_(origin)
 
+    @property
+    def _model(self) -> TemplateModel | None:
+        """The template model of the last render, all ``B`` elements (the shares' concatenated)."""
+        return None if self._models is None else _cat(self._models)
+
     def _reusable(self, pose: torch.Tensor) -> bool:
         """The last render's template serves ``pose``: ``render.reuse_px > 0`` and no object point of that render
         moves that many pixels, for every batch element (the batch renders together)."""
         reuse = self.config.render.reuse_px
-        return self._model is not None and reuse > 0 and bool((self._model.shift_px(pose) < reuse).all())
+        return self._models is not None and reuse > 0 and bool((self._model.shift_px(pose) < reuse).all())
 
     def _t_now(self, t: torch.Tensor, b: torch.Tensor | None) -> torch.Tensor:
         """Latest event time per element in this window (int64 us; the previous one if the window is empty)."""
@@ -682,7 +687,7 @@ class EventPoseTracker(nn.Module):
         (only without workers) is called once the EROS and the time surface have been read."""
         o, e = self.corrector.options, self.config.eros
 
-        def share(rows: slice) -> CorrectionStep:
+        def share(rows: slice, model: TemplateModel | None) -> CorrectionStep:
             def cut(v):  # the share's rows (all: as they are)
                 return v if v is None or rows == _ALL else v[rows]
 
@@ -690,13 +695,13 @@ class EventPoseTracker(nn.Module):
                 cut(pose32), cut(predicted), None if render is None else cut(render.depth),
                 None if render is None else cut(render.gray), cut(self.origin), cut(self.eros.surface),
                 cut(self.flow.sae), cut(t_now), self.camera,
-                model=TemplateModel(*(cut(f) for f in self._model)) if render is None else None,
+                model=model if render is None else None,
                 canvas=o["canvas"], margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"],
                 dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"], rule=o["rule"], iterations=o["iterations"],
                 max_age_us=e.max_age_us, recency_us=e.recency_us, on_observed=on_observed)
 
-        parts = self._map(share)
-        self._model = _cat([p.model for p in parts])
+        parts = self._map(share, self._models if render is None else [None] * len(self._shares))
+        self._models = [p.model for p in parts]  # kept per share: each worker reads its own next time
         return _cat([p.correction for p in parts])
 
     def _intake_thread(self) -> ThreadPoolExecutor:
@@ -741,13 +746,13 @@ class EventPoseTracker(nn.Module):
                       b: torch.Tensor | None) -> list[tuple[torch.Tensor, ...]]:
         """The packed events ``(x, y, t, p, b)`` of each worker's share, ``b`` counted from the share's first
         element (views of the packet when it is ordered by element, as :meth:`track` packs it)."""
-        b = torch.zeros_like(x) if b is None else b.long()
-        if b.numel() < 2 or bool((b[1:] >= b[:-1]).all()):
-            cuts = torch.searchsorted(b, torch.tensor([rows.start for rows in self._shares] + [self.batch_size]))
-            picks = [slice(i, j) for i, j in zip(cuts[:-1].tolist(), cuts[1:].tolist())]
+        bn = np.zeros(x.shape[0], dtype=np.int64) if b is None else b.numpy().astype(np.int64, copy=False)  # numpy:
+        if bn.shape[0] < 2 or bool((bn[1:] >= bn[:-1]).all()):  # fewer and cheaper calls than torch on the packet
+            cuts = np.searchsorted(bn, [rows.start for rows in self._shares] + [self.batch_size]).tolist()
+            picks = [slice(i, j) for i, j in zip(cuts[:-1], cuts[1:])]
         else:
-            picks = [(b >= rows.start) & (b < rows.stop) for rows in self._shares]
-        return [(x[k], y[k], t[k], p[k], b[k] - rows.start) for k, rows in zip(picks, self._shares)]
+            picks = [torch.from_numpy((bn >= rows.start) & (bn < rows.stop)) for rows in self._shares]
+        return [(x[k], y[k], t[k], p[k], torch.from_numpy(bn[k] - rows.start)) for k, rows in zip(picks, self._shares)]
 
     def _map(self, fn: Callable[..., _T], *per_share: list) -> list[_T]:
         """``fn(rows, *args)`` of each worker's share of the batch (``rows``) and its items of ``per_share``, in the

@@ -5,8 +5,8 @@ Three measurements in one run, each after a short untimed warm-up:
 1. **streaming**: the events go through :class:`~torchevtrack.online.OnlineTracker` in pushes of
    ``--chunk-us`` of events (1 ms: what a sensor driver delivers), then a final flush. Gives updates/s,
    events/s, the real-time factor (tracked seconds / wall seconds), the per-update latency percentiles
-   (from the push that completes a window to its pose) and the mean milliseconds of each stage (one sequence
-   takes a window into the EROS and the flow in one compiled call: its time is the flow's, the EROS's is ~0).
+   (from the push that completes a window to its pose) and the mean milliseconds of each stage (a window goes
+   into the EROS and the flow in one compiled call: its time is the flow's, the EROS's is ~0).
 2. **one sequence offline**: :meth:`~torchevtrack.tracker.EventPoseTracker.track` with ``B = 1`` (pipelined with
    two or more cores: each next window's EROS and flow run on a second thread during the search; the 1 ms pushes
    of 1. complete one window at a time, so streaming has no next window to take in, and that thread renders and
