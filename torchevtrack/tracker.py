@@ -187,10 +187,11 @@ class EventPoseTracker(nn.Module):
         elif isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
             raise ValueError(f"workers must be a positive int or None, got {workers!r}")
         self.camera, self.config, self.batch_size = camera, cfg, B
-        # Contiguous shares of the batch, one per worker thread (the pool exists only with two or more).
+        # Contiguous shares of the batch, one per worker (the pool exists only with two or more).
         n = min(workers, B)
         self._shares = [slice(i * B // n, (i + 1) * B // n) for i in range(n)]
-        self._pool = ThreadPoolExecutor(n, thread_name_prefix="torchevtrack") if n > 1 else None
+        # the calling thread works the first share itself (_map): the pool's threads take the others
+        self._pool = ThreadPoolExecutor(n - 1, thread_name_prefix="torchevtrack") if n > 1 else None
         if pipeline is None:
             pipeline = self._pool is None and cores > 1
         elif pipeline and self._pool is not None:
@@ -755,8 +756,8 @@ class EventPoseTracker(nn.Module):
         return [(x[k], y[k], t[k], p[k], torch.from_numpy(bn[k] - rows.start)) for k, rows in zip(picks, self._shares)]
 
     def _map(self, fn: Callable[..., _T], *per_share: list) -> list[_T]:
-        """``fn(rows, *args)`` of each worker's share of the batch (``rows``) and its items of ``per_share``, in the
-        worker threads."""
+        """``fn(rows, *args)`` of each worker's share of the batch (``rows``) and its items of ``per_share``: the
+        first share on the calling thread, the others on the pool's threads meanwhile (one thread hand-over fewer)."""
         if self._pool is None:
             return [fn(slice(None), *(a[0] for a in per_share))]
         inference = torch.is_inference_mode_enabled()  # a thread-local mode: the workers take the caller's
@@ -765,7 +766,13 @@ class EventPoseTracker(nn.Module):
             with torch.inference_mode(inference):
                 return fn(*args)
 
-        return list(self._pool.map(run, self._shares, *per_share))
+        jobs = list(zip(self._shares, *per_share))
+        others = [self._pool.submit(run, *args) for args in jobs[1:]]
+        try:
+            first = fn(*jobs[0])
+        finally:
+            wait(others)  # also when the first share failed: the others still use the tracker's state
+        return [first] + [f.result() for f in others]
 
 
 @dataclass
