@@ -146,7 +146,7 @@ class OnlineTracker:
         self._check_started()
         streams = self._split(events, b)
         # numpy views: the buffering below is a few small array operations per push, cheaper in numpy than in torch
-        chunks = [(s.x.numpy(), s.y.numpy(), s.t.numpy(), s.p.numpy()) for s in streams]
+        chunks = [_arrays(s) for s in streams]
         for i, (_, _, t, _) in enumerate(chunks):
             if len(t) and int(t[0]) < self._received[i]:
                 raise ValueError(
@@ -259,8 +259,13 @@ def _concat(chunks: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]:
     if len(chunks) == 1:
         return chunks[0]
     if not chunks:
-        return tuple(np.zeros(0, dtype=d) for d in (np.int16, np.int16, np.int64, np.int8))
+        return _arrays(EventStream.empty())
     return tuple(np.concatenate(f) for f in zip(*chunks))
+
+
+def _arrays(s: EventStream) -> tuple[np.ndarray, ...]:
+    """The ``(x, y, t, p)`` of an EventStream as numpy views."""
+    return s.x.numpy(), s.y.numpy(), s.t.numpy(), s.p.numpy()
 
 
 def _window(fields: tuple[np.ndarray, ...], a: int, b: int) -> EventStream:

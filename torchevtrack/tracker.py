@@ -63,12 +63,11 @@ from torchevtrack.loss import LossDetector, LossUpdate, OnLost
 from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.render import _normalise_quaternions, make_renderer
-from torchevtrack.stages import batch_mask
+from torchevtrack.stages import batch_mask, periods
 from torchevtrack.stages.correction import CorrectionStep, correction_step
 from torchevtrack.stages.eros import EROS
 from torchevtrack.stages.flow import FlowField, TripletFlow
 from torchevtrack.stages.intake import intake_step
-from torchevtrack.stages import periods
 from torchevtrack.stages.motion import _render_ahead_kernel, invalid_poses, motion_step
 from torchevtrack.stages.output import output_step
 from torchevtrack.stages.propagate import propagate
@@ -520,15 +519,13 @@ class EventPoseTracker(nn.Module):
                      gray: np.ndarray | None) -> None:
         """Render element ``i`` at the valid ``pose`` ``(1, 7)`` float64 in its own window ``win`` and write it into
         row ``i`` of the common-size buffers whose top-left pixel is ``origin`` ``(2,)`` (the own window lies inside).
-        The compiled rasteriser takes its unchecked numpy entry, as :meth:`_render_unit` (the workers render in
-        parallel only inside its kernel: checks and tensor glue would hold the GIL)."""
+        The compiled rasteriser goes through :meth:`_raster` (the workers render in parallel only inside its kernel:
+        checks and tensor glue would hold the GIL)."""
         u, v, w, h = win.tolist()
         du, dv = u - int(origin[0]), v - int(origin[1])
         renderer = self._renderers[self._renderer_of[i]]
         if isinstance(renderer, RasterRenderer):
-            p = pose.copy()
-            _normalise_quaternions(p)
-            d, g = renderer.render_unit(p, self.camera.crop(u, v, w, h), gray is not None)
+            d, g = self._raster(i, pose, win, gray is not None)
         else:
             out = renderer.render(torch.from_numpy(pose), roi=(u, v, w, h), shaded=gray is not None)
             d, g = out.depth.numpy(), None if gray is None else out.gray.numpy()
@@ -586,10 +583,15 @@ class EventPoseTracker(nn.Module):
         """The render of one element with the compiled rasteriser, in its window: ``poses`` ``(1, 7)`` float64 are
         valid (motion_step), so they are only normalised. Returns depth, gray and the window ``(1, 4)``."""
         win = window_of(poses[:, :3], self.camera, self._radius_of.numpy(), self.config.render.margin_px, clip=True)
-        p = poses.copy()
-        _normalise_quaternions(p)
-        depth, gray = self._renderers[self._renderer_of[0]].render_unit(p, self.camera.crop(*win[0].tolist()), shaded)
+        depth, gray = self._raster(0, poses, win[0], shaded)
         return torch.from_numpy(depth), None if gray is None else torch.from_numpy(gray), win
+
+    def _raster(self, i: int, pose: np.ndarray, win: np.ndarray, shaded: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """Element ``i``'s compiled rasteriser at the valid ``pose`` ``(1, 7)`` float64 (only normalised) in the
+        window ``win`` ``(4,)``, through its unchecked numpy entry: depth and grey (or ``None``) ``(1, h, w)``."""
+        p = pose.copy()
+        _normalise_quaternions(p)
+        return self._renderers[self._renderer_of[i]].render_unit(p, self.camera.crop(*win.tolist()), shaded)
 
     def _render_pose_ahead(self, predicted: torch.Tensor, twist: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """render.ahead: the poses to render at now (where the last update's prediction, moved on by its twist,
