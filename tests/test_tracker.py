@@ -90,6 +90,30 @@ def test_worker_threads_do_not_change_the_poses(seq):
         EventPoseTracker(CAM, seq.mesh, workers=0)
 
 
+def test_the_bound_steps_follow_new_buffers(seq):
+    """The update's steps are bound to numpy views of the tracker's buffers. Buffers replaced by new tensors
+    mid-stream (``_apply``, as ``.to()`` does) are read and written from then on: the poses continue bit for bit
+    as those of an untouched tracker (a stale binding would update the old buffers and leave the new ones)."""
+    t0 = int(seq.gt_t_us[0])
+    windows = [seq.events.slice_time(t0 + k * 2000, t0 + (k + 1) * 2000) for k in range(25)]
+    poses = []
+    for replace in (False, True):
+        tracker = EventPoseTracker(CAM, seq.mesh, pipeline=False)
+        tracker.reset(seq.gt_poses[0])
+        out = []
+        for i, w in enumerate(windows):
+            if replace and i == 10:
+                old = tracker.eros.surface
+                tracker._apply(lambda t: t.clone())
+                assert tracker._bound is None and tracker.eros.surface is not old
+            out.append(tracker(w.x, w.y, w.t, w.p))
+        if replace:
+            assert not torch.equal(old, tracker.eros.surface)  # the new surface took the later events
+        poses.append(torch.stack(out))
+        tracker.close()
+    assert torch.equal(poses[0], poses[1])
+
+
 def test_a_failing_share_waits_for_the_others(seq):
     """The caller works the first share, the pool the others; an error in the first still lets them finish (they
     use the tracker's state) before it propagates."""
@@ -287,21 +311,21 @@ def test_feedback_ignores_turns_about_a_symmetry_axis():
 
 # -- the pipeline: the next window's intake during an update's search -------------------------------
 def _counting_intake(monkeypatch):
-    """Count the windows the tracker takes in ahead (its calls of intake_step on the pipeline's thread; the serial
-    update calls it on the caller's)."""
+    """Count the windows the tracker takes in ahead (its calls of the intake kernel on the pipeline's thread; the
+    serial update calls it on the caller's)."""
     import threading
 
-    import torchevtrack.tracker as tracker_module
+    import torchevtrack.stages.intake as intake_module
 
     calls = []
-    intake = tracker_module.intake_step
+    kernel = intake_module._intake_kernel
 
-    def counted(*args, **kw):
+    def counted(*args):
         if threading.current_thread() is not threading.main_thread():
             calls.append(1)
-        return intake(*args, **kw)
+        return kernel(*args)
 
-    monkeypatch.setattr(tracker_module, "intake_step", counted)
+    monkeypatch.setattr(intake_module, "_intake_kernel", counted)
     return calls
 
 
@@ -336,22 +360,22 @@ def test_pipeline_options_and_a_window_that_was_not_taken_in(seq, monkeypatch):
     with pytest.raises(RuntimeError, match="taken in ahead"):
         tracker(*win[2])
     # A track that stops early (here: an error in an update) leaves nothing taken in ahead behind.
-    import torchevtrack.tracker as tracker_module
+    import torchevtrack.stages.output as output_module
 
-    step = tracker_module.output_step
+    kernel = output_module._output_kernel
 
-    def failing(*args, **kw):
+    def failing(*args):
         failing.n += 1
         if failing.n == 3:
             raise FloatingPointError("stop")
-        return step(*args, **kw)
+        return kernel(*args)
 
     failing.n = 0
-    monkeypatch.setattr(tracker_module, "output_step", failing)
+    monkeypatch.setattr(output_module, "_output_kernel", failing)
     with pytest.raises(FloatingPointError):
         tracker.track(seq.events, seq.gt_poses[0], progress=False)
     assert tracker._ahead is None
-    monkeypatch.setattr(tracker_module, "output_step", step)
+    monkeypatch.setattr(output_module, "_output_kernel", kernel)
     tracker.reset(seq.gt_poses[0])
     assert tracker(*win[0]).shape == (1, 7)
     tracker.close()
@@ -359,23 +383,26 @@ def test_pipeline_options_and_a_window_that_was_not_taken_in(seq, monkeypatch):
 
 # -- render.ahead: the template rendered where the previous update predicted --------------------------
 def _recording(monkeypatch):
-    """Record each update's prediction and twist (motion_step) and the pose its template was rendered at."""
-    import torchevtrack.tracker as tracker_module
+    """Record each update's prediction and twist (the motion kernel's outputs) and the pose its template was
+    rendered at (the template model's, made in the correction)."""
+    import torchevtrack.stages.correction as correction_module
+    import torchevtrack.stages.motion as motion_module
 
     rec = {"motion": [], "render_pose": []}
-    motion, correction = tracker_module.motion_step, tracker_module.correction_step
+    motion, model = motion_module._motion_kernel, correction_module._model_in_box
 
-    def motion_recorded(*args, **kw):
-        out = motion(*args, **kw)
-        rec["motion"].append((out.predicted.clone(), out.twist.clone()))
+    def motion_recorded(*args):
+        out = motion(*args)
+        predicted, twist = args[-4:-2]
+        rec["motion"].append((torch.from_numpy(predicted.copy()), torch.from_numpy(twist.copy())))
         return out
 
-    def correction_recorded(render_pose, *args, **kw):
-        rec["render_pose"].append(render_pose.clone())
-        return correction(render_pose, *args, **kw)
+    def model_recorded(pose, *args):
+        rec["render_pose"].append(torch.from_numpy(pose).float())  # float64 of the float32 render pose
+        return model(pose, *args)
 
-    monkeypatch.setattr(tracker_module, "motion_step", motion_recorded)
-    monkeypatch.setattr(tracker_module, "correction_step", correction_recorded)
+    monkeypatch.setattr(motion_module, "_motion_kernel", motion_recorded)
+    monkeypatch.setattr(correction_module, "_model_in_box", model_recorded)
     return rec
 
 

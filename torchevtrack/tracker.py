@@ -64,12 +64,12 @@ from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.render import _normalise_quaternions, make_renderer
 from torchevtrack.stages import batch_mask, periods
-from torchevtrack.stages.correction import CorrectionStep, correction_step
+from torchevtrack.stages.correction import CorrectionStep, bind_correction
 from torchevtrack.stages.eros import EROS
 from torchevtrack.stages.flow import FlowField, TripletFlow
-from torchevtrack.stages.intake import intake_step
-from torchevtrack.stages.motion import _render_ahead_kernel, invalid_poses, motion_step
-from torchevtrack.stages.output import output_step
+from torchevtrack.stages.intake import bind_intake, intake_step
+from torchevtrack.stages.motion import _render_ahead_kernel, bind_motion, invalid_poses
+from torchevtrack.stages.output import bind_output
 from torchevtrack.stages.propagate import propagate
 from torchevtrack.stages.template import (Correction, TemplateCorrector, TemplateModel, _camera_array, _model_in_box,
                                           _render_box, window_of)
@@ -271,6 +271,7 @@ class EventPoseTracker(nn.Module):
         # render.ahead: where the next update renders (the last prediction moved on by its twist), when valid
         self.register_buffer("_render_next", torch.zeros(B, 7, dtype=f64), persistent=False)
         self.register_buffer("_render_next_ok", torch.zeros(B, dtype=torch.bool), persistent=False)
+        self._bound: _Bound | None = None  # the stages' compiled steps bound to these buffers (made on first use)
 
     # -- state -------------------------------------------------------------------------------
     @torch.inference_mode()
@@ -371,6 +372,7 @@ class EventPoseTracker(nn.Module):
         """One update (:meth:`forward`): the new poses go to :attr:`pose`."""
         cfg = self.config
         B = self.batch_size
+        run = self._bound or self._bind()
         clock = _StageClock()
         launch = None if ahead is None else lambda: self._launch(ahead)  # once this update has read the surfaces
         if self._ahead is not None:  # this window went in on the intake thread during the last update
@@ -378,60 +380,55 @@ class EventPoseTracker(nn.Module):
             flow = self._take_ahead(x)
         elif self._pool is None:  # both stages in one compiled call: its time counts as the flow's
             clock.lap("eros")
-            flow = intake_step(self.eros, self.flow, x, y, t, p, b)
+            flow = run.intake[0](x, y, t, p, b)
         else:  # each worker takes the events of its share of the batch
             events = self._share_events(x, y, t, p, b)
             clock.lap("eros")
-            flow = _cat(self._map(lambda rows, ev: intake_step(self.eros, self.flow, *ev, rows=rows), events))
+            flow = _cat(self._map(lambda rows, intake, ev: intake(*ev), run.intake, events))
         clock.lap("flow")
 
         # A pose that is not finite or puts the object (nearly) behind the camera is not a pose: such a
         # prediction or output is replaced by the last pose (zero motion) rather than used or emitted.
-        predicted, twist, n_vectors, rejected = motion_step(
-            cfg.velocity.source, self.pose, self.prev_pose, self.dt, self._min_depth, kf=self.velocity, flow=flow,
-            max_speed=cfg.flow.max_speed, depth=self.depth, origin=self.origin,
-            radius=max(cfg.flow.block // 4, 2),  # flow lies on edges: the pixel may fall just off the silhouette
-            feedback=None if self.feedback is None else self.feedback.b)
+        predicted, twist, n_vectors, rejected = \
+            run.motion(flow.uv.numpy(), flow.flow.numpy(), flow.valid.numpy(), self.depth.numpy(), run.origin) \
+            if cfg.velocity.source == "flow" else run.motion()
         if launch is not None and not cfg.template.enabled:  # nothing reads the surfaces after the flow
             launch()
         clock.lap("velocity")
 
         render_pose, pose32 = self._render_pose_ahead(predicted, twist) if cfg.render.ahead else \
-            (predicted, predicted.float())
+            (predicted, predicted.astype(np.float32))
         render = None  # None: the correction uses self._models (the last render's, or one made with this render)
         if not (cfg.template.enabled and self._reusable(pose32)):
-            render = self._render(render_pose, shaded=cfg.template.enabled)
+            render = self._render(torch.from_numpy(render_pose), shaded=cfg.template.enabled)
             if render.model is not None:
                 self._models, render = [render.model], None
-            if self._pipeline and cfg.render.ahead and self._render_next_ok.numpy().all():
+            if self._pipeline and cfg.render.ahead and run.render_next_ok.all():
                 # the template model too, unless the thread will take the next window in (it would then wait)
-                self._render_soon(self._render_next.numpy().copy(), cfg.template.enabled,
+                self._render_soon(run.render_next.copy(), cfg.template.enabled,
                                   model=cfg.template.enabled and ahead is None)
         clock.lap("render")
         n_events = np.bincount(b.numpy(), minlength=B) if b is not None else np.full(B, x.numel())
-        seen = self.events_seen.numpy()
-        seen += n_events
+        run.events_seen[:] += n_events
         if cfg.template.enabled:
-            corr = self._correct(predicted, pose32, render, self._t_now(t, b), launch)
+            corr = self._correct(predicted, pose32, render, self._t_now(t, b).numpy(), launch)
             # Until the EROS holds enough events, its edges are too sparse to correct against.
-            warm = (seen >= cfg.template.warmup_events)[:, None]
-            measured = torch.from_numpy(np.where(warm, corr.pose.numpy(), predicted.numpy()))
+            warm = (run.events_seen >= cfg.template.warmup_events)[:, None]
+            measured = np.where(warm, corr.pose.numpy(), predicted)
             score = corr.score
         else:
             measured, score = predicted, torch.full((B,), float("nan"))
         clock.lap("correction")
 
         # the objects' symmetry axes in the camera frame, for the feedback (zero stays zero; none: no rotation)
-        axis = quat_rotate(measured[:, 3:], self._symmetry_axis) if self.feedback is not None and self._symmetric \
-            else None
-        out, bad = output_step(self.pose, predicted, measured, twist, self.dt, self._min_depth,
-                               ukf=self.ukf if cfg.ukf.enabled else None, feedback=self.feedback, symmetry_axis=axis)
+        axis = quat_rotate(torch.from_numpy(measured[:, 3:]), self._symmetry_axis).numpy() \
+            if self.feedback is not None and self._symmetric else None
+        out, bad = run.output(predicted, measured, twist, axis)
         clock.lap("ukf")
-        pose = self.pose.numpy()
-        self.prev_pose.numpy()[:] = pose
-        pose[:] = out.numpy()
-        self.quality = Quality(score, n_vectors, torch.from_numpy(n_events),
-                               torch.from_numpy(bad.numpy() | rejected.numpy()))
+        run.prev_pose[:] = run.pose
+        run.pose[:] = out
+        self.quality = Quality(score, torch.from_numpy(n_vectors), torch.from_numpy(n_events),
+                               torch.from_numpy(bad | rejected))
         if self.loss is not None:
             upd = self.loss(self.quality, self._t_now(t, b) if t_us is None else t_us)
             self.loss_update = upd
@@ -593,15 +590,43 @@ class EventPoseTracker(nn.Module):
         _normalise_quaternions(p)
         return self._renderers[self._renderer_of[i]].render_unit(p, self.camera.crop(*win.tolist()), shaded)
 
-    def _render_pose_ahead(self, predicted: torch.Tensor, twist: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _bind(self) -> "_Bound":
+        """Bind each stage's compiled step to the buffers it reads and writes (numpy views: no checks or conversions
+        per update), per worker share where the workers run it."""
+        cfg, o, e = self.config, self.corrector.options, self.config.eros
+        shares = self._shares if self._pool is not None else [None]
+        fb = self.feedback
+        motion = bind_motion(cfg.velocity.source, self.pose.numpy(), self.prev_pose.numpy(), self.dt,
+                             self._min_depth.numpy(), kf=self.velocity, groups=self.flow.n_blocks,
+                             max_speed=cfg.flow.max_speed,
+                             radius=max(cfg.flow.block // 4, 2),  # flow lies on edges: the pixel may fall just off
+                             feedback=None if fb is None else fb.b.numpy())
+        correct = [bind_correction(self.eros.surface[_ALL if r is None else r].numpy(),
+                                   self.flow.sae[_ALL if r is None else r].numpy(), self.camera,
+                                   canvas=o["canvas"], margin_px=o["margin_px"], edge_clip=o["edge_clip"],
+                                   silhouette=o["silhouette"], dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"],
+                                   rule=o["rule"], iterations=o["iterations"], max_age_us=e.max_age_us,
+                                   recency_us=e.recency_us) for r in shares]
+        output = bind_output(self.pose.numpy(), self.dt, self._min_depth.numpy(),
+                             ukf=self.ukf if cfg.ukf.enabled else None, feedback=fb)
+        self._bound = _Bound([bind_intake(self.eros, self.flow, r) for r in shares], motion, correct, output,
+                             self.pose.numpy(), self.prev_pose.numpy(), self.origin.numpy(), self.events_seen.numpy(),
+                             self._min_depth.numpy(), self._render_next.numpy(), self._render_next_ok.numpy())
+        return self._bound
+
+    def _apply(self, fn, recurse=True):
+        self._bound = None  # the buffers may be new tensors: bind again
+        return super()._apply(fn, recurse)
+
+    def _render_pose_ahead(self, predicted: np.ndarray, twist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """render.ahead: the poses to render at now (where the last update's prediction, moved on by its twist,
         was valid; else ``predicted``), float64 and float32, and the next update's in the buffers (:func:`propagate`
         of ``predicted`` and ``twist``, and whether it is valid)."""
-        B = self.batch_size
+        B, run = self.batch_size, self._bound
         now, now32 = np.empty((B, 7)), np.empty((B, 7), dtype=np.float32)
-        _render_ahead_kernel(predicted.numpy(), twist.numpy(), periods(B, self.dt), self._min_depth.numpy(),
-                             self._render_next.numpy(), self._render_next_ok.numpy(), now, now32)
-        return torch.from_numpy(now), torch.from_numpy(now32)
+        _render_ahead_kernel(predicted, twist, periods(B, self.dt), run.min_depth, run.render_next, run.render_next_ok,
+                             now, now32)
+        return now, now32
 
     def _render_soon(self, poses: np.ndarray, shaded: bool, model: bool) -> None:
         """Make the next update's render at ``poses`` and, with ``model``, its template model on the intake thread
@@ -661,11 +686,12 @@ class EventPoseTracker(nn.Module):
         """The template model of the last render, all ``B`` elements (the shares' concatenated)."""
         return None if self._models is None else _cat(self._models)
 
-    def _reusable(self, pose: torch.Tensor) -> bool:
-        """The last render's template serves ``pose``: ``render.reuse_px > 0`` and no object point of that render
-        moves that many pixels, for every batch element (the batch renders together)."""
+    def _reusable(self, pose: np.ndarray) -> bool:
+        """The last render's template serves ``pose`` ``(B, 7)``: ``render.reuse_px > 0`` and no object point of that
+        render moves that many pixels, for every batch element (the batch renders together)."""
         reuse = self.config.render.reuse_px
-        return self._models is not None and reuse > 0 and bool((self._model.shift_px(pose) < reuse).all())
+        return self._models is not None and reuse > 0 and \
+            bool((self._model.shift_px(torch.from_numpy(pose)) < reuse).all())
 
     def _t_now(self, t: torch.Tensor, b: torch.Tensor | None) -> torch.Tensor:
         """Latest event time per element in this window (int64 us; the previous one if the window is empty)."""
@@ -683,27 +709,25 @@ class EventPoseTracker(nn.Module):
         v = cfg.velocity
         return v.source == "flow" and cfg.template.enabled and v.feedback_gain > 0
 
-    def _correct(self, predicted: torch.Tensor, pose32: torch.Tensor, render: "_Render | None",
-                 t_now: torch.Tensor, on_observed: Callable[[], object] | None = None) -> Correction:
+    def _correct(self, predicted: np.ndarray, pose32: np.ndarray, render: "_Render | None", t_now: np.ndarray,
+                 on_observed: Callable[[], object] | None = None) -> Correction:
         """Template correction of the ``predicted`` poses with a new template model of ``render`` (made at ``pose32``),
         or the last model when ``render`` is ``None``; each worker corrects its share of the batch. ``on_observed``
         (only without workers) is called once the EROS and the time surface have been read."""
-        o, e = self.corrector.options, self.config.eros
+        if render is None:
+            def share(rows: slice, correct: Callable[..., CorrectionStep], model: TemplateModel) -> CorrectionStep:
+                return correct(None, _cut(predicted, rows), None, None, None, _cut(t_now, rows), model=model,
+                               on_observed=on_observed)
 
-        def share(rows: slice, model: TemplateModel | None) -> CorrectionStep:
-            def cut(v):  # the share's rows (all: as they are)
-                return v if v is None or rows == _ALL else v[rows]
+            parts = self._map(share, self._bound.correct, self._models)
+        else:
+            depth, gray = render.depth.numpy(), None if render.gray is None else render.gray.numpy()
 
-            return correction_step(
-                cut(pose32), cut(predicted), None if render is None else cut(render.depth),
-                None if render is None else cut(render.gray), cut(self.origin), cut(self.eros.surface),
-                cut(self.flow.sae), cut(t_now), self.camera,
-                model=model if render is None else None,
-                canvas=o["canvas"], margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"],
-                dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"], rule=o["rule"], iterations=o["iterations"],
-                max_age_us=e.max_age_us, recency_us=e.recency_us, on_observed=on_observed)
+            def share(rows: slice, correct: Callable[..., CorrectionStep]) -> CorrectionStep:
+                return correct(_cut(pose32, rows), _cut(predicted, rows), _cut(depth, rows), _cut(gray, rows),
+                               _cut(self._bound.origin, rows), _cut(t_now, rows), on_observed=on_observed)
 
-        parts = self._map(share, self._models if render is None else [None] * len(self._shares))
+            parts = self._map(share, self._bound.correct)
         self._models = [p.model for p in parts]  # kept per share: each worker reads its own next time
         return _cat([p.correction for p in parts])
 
@@ -715,7 +739,8 @@ class EventPoseTracker(nn.Module):
 
     def _launch(self, window: tuple) -> None:
         """Take the packed ``window`` into the EROS and the flow on the intake thread (:meth:`_take_ahead` waits)."""
-        self._ahead = _Ahead(self._intake_thread().submit(intake_step, self.eros, self.flow, *window), window)
+        intake = (self._bound or self._bind()).intake[0]
+        self._ahead = _Ahead(self._intake_thread().submit(intake, *window), window)
 
     def _take_ahead(self, x: torch.Tensor) -> FlowField:
         """The flow of the window the intake thread took in, once it is done; ``x`` is that window's."""
@@ -798,6 +823,22 @@ class _Made(NamedTuple):
     model: TemplateModel | None
 
 
+class _Bound(NamedTuple):
+    """The stages' bound steps (:meth:`EventPoseTracker._bind`; ``intake`` and ``correct`` one per worker share) and
+    numpy views of the tracker's buffers an update reads and writes."""
+    intake: list[Callable[..., FlowField]]
+    motion: Callable[..., tuple[np.ndarray, ...]]
+    correct: list[Callable[..., CorrectionStep]]
+    output: Callable[..., tuple[np.ndarray, np.ndarray]]
+    pose: np.ndarray
+    prev_pose: np.ndarray
+    origin: np.ndarray
+    events_seen: np.ndarray
+    min_depth: np.ndarray
+    render_next: np.ndarray
+    render_next_ok: np.ndarray
+
+
 @dataclass
 class _Render:
     depth: torch.Tensor
@@ -807,6 +848,11 @@ class _Render:
 
 _T = TypeVar("_T")
 _ALL = slice(None)  # every row: the share of a single worker
+
+
+def _cut(v: np.ndarray | None, rows: slice) -> np.ndarray | None:
+    """A share's rows of a batch-leading array (all rows, or ``None``: as it is)."""
+    return v if v is None or rows == _ALL else v[rows]
 
 
 def _cat(parts: list[_T]) -> _T:

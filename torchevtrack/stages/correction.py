@@ -24,7 +24,7 @@ from torchevtrack.stages.eros import _canvas_kernel, _check_time_surface, _decay
 from torchevtrack.stages.template import (NEWTON_DAMPING, NEWTON_MAX_STEP, NUM_HYPOTHESES, Correction, TemplateModel,
                                           _camera_array, _model_in_box, _newton_kernel, _render_box, correct_canvas)
 
-__all__ = ["CorrectionStep", "correction_step"]
+__all__ = ["CorrectionStep", "bind_correction", "correction_step"]
 
 
 class CorrectionStep(NamedTuple):
@@ -83,39 +83,68 @@ def correction_step(
         raise ValueError(f"surface (B, H, W) and t_now_us (B,) must have B = {B} rows, got {tuple(surface.shape)} "
                          f"and {tuple(t_now_us.shape)}")
     _check_time_surface(last_us, B, *surface.shape[1:])
-    if model is None:  # the canvas box first: the observation needs only that, the rest of the model can wait
+    if model is None:
         _check_render(render_pose, depth, gray, origin, silhouette)
-        origin64, cam = origin.numpy().astype(np.float64), _camera_array(camera)
-        box, gain = _render_box(depth.numpy(), origin64, cam, margin_px)
-        N, observed_box = canvas, box.astype(np.float32).astype(np.float64)  # as the model's box (float32) gives it
     elif model.coef.shape[0] != B:
         raise ValueError(f"model must have B = {B} elements, got {model.coef.shape[0]}")
-    else:
-        N, observed_box = model.depth.shape[-1], model.box.numpy().astype(np.float64)
-    obs = np.empty((B, N, N), dtype=np.float32)
-    _canvas_kernel(surface.numpy(), last_us.numpy(), observed_box, t_now_us.numpy().astype(np.int64, copy=False),
-                   int(max_age_us), float(recency_us), _decay_table(float(recency_us), int(max_age_us)), obs)
-    if on_observed is not None:
-        on_observed()
+    run = bind_correction(surface.numpy(), last_us.numpy(), camera, canvas=canvas, margin_px=margin_px,
+                          edge_clip=edge_clip, silhouette=silhouette, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule,
+                          iterations=iterations, max_age_us=max_age_us, recency_us=recency_us)
     if model is None:
-        model = _model_in_box(render_pose.numpy().astype(np.float64), depth.numpy(),
-                              (depth if gray is None else gray).numpy(), gray is not None, origin64, cam, box, gain, N,
-                              edge_clip, silhouette)
-    if rule != "newton":
-        return CorrectionStep(model, correct_canvas(model, predicted, torch.from_numpy(obs), camera, dp_px=dp_px,
-                                                    dtheta_deg=dtheta_deg, rule=rule, iterations=iterations))
-    pose = np.empty((B, 7))
-    score, scores, moved = np.empty(B), np.empty((B, NUM_HYPOTHESES)), np.empty(B, dtype=np.int64)
-    _newton_kernel(model.coef.numpy(), model.depth.numpy(), model.K.numpy().astype(np.float64),
-                   model.render_pose.numpy(), predicted.numpy(), obs.reshape(B, N * N),
-                   model.gain.numpy().astype(np.float64), camera.fx, camera.fy, float(dp_px), math.radians(dtheta_deg),
-                   iterations, NEWTON_DAMPING, NEWTON_MAX_STEP, pose, score, scores, moved)
-    dt = model.depth.numpy().dtype
-    scores = scores.astype(dt)  # numpy: a few numbers, without torch's dispatch (argmax: the first of ties, as torch)
-    return CorrectionStep(model, Correction(
-        torch.from_numpy(pose), torch.from_numpy(score.astype(dt)), torch.from_numpy(scores),
-        torch.from_numpy(scores.argmax(1)), torch.from_numpy(np.zeros((B, NUM_HYPOTHESES), dtype=np.bool_)),
-        torch.from_numpy(moved)))
+        return run(render_pose.numpy(), predicted.numpy(), depth.numpy(), None if gray is None else gray.numpy(),
+                   origin.numpy(), t_now_us.numpy(), on_observed=on_observed)
+    return run(None, predicted.numpy(), None, None, None, t_now_us.numpy(), model=model, on_observed=on_observed)
+
+
+def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *, canvas: int = 128,
+                    margin_px: float = 20.0, edge_clip: float = 0.1, silhouette: bool = True, dp_px: float = 1.0,
+                    dtheta_deg: float = 0.5, rule: str = "newton", iterations: int = 1, max_age_us: int = 0,
+                    recency_us: float = 0.0) -> Callable[..., CorrectionStep]:
+    """:func:`correction_step` bound to the EROS ``surface`` ``(B, H, W)`` and time surface ``last_us`` (numpy views,
+    read at each call) and its options, unchecked, for a caller that corrects every update (the tracker).
+
+    Returns ``run(render_pose, predicted, depth, gray, origin, t_now_us, model=None, on_observed=None)``, the
+    arguments of :func:`correction_step` as numpy arrays (``render_pose`` float32; ``depth``, ``gray`` and
+    ``origin`` ``None`` with a ``model`` to reuse), giving its :class:`CorrectionStep`.
+    """
+    cam = _camera_array(camera)
+    max_age_us, recency_us = int(max_age_us), float(recency_us)
+    table = _decay_table(recency_us, max_age_us)
+    dp, dtheta = float(dp_px), math.radians(dtheta_deg)
+
+    def run(render_pose, predicted, depth, gray, origin, t_now_us, model=None, on_observed=None) -> CorrectionStep:
+        B = predicted.shape[0]
+        if model is None:  # the canvas box first: the observation needs only that, the rest of the model can wait
+            origin64 = origin.astype(np.float64)
+            box, gain = _render_box(depth, origin64, cam, margin_px)
+            N, observed_box = canvas, box.astype(np.float32).astype(np.float64)  # as the model's box (float32) gives it
+        else:
+            N, observed_box = model.depth.shape[-1], model.box.numpy().astype(np.float64)
+        obs = np.empty((B, N, N), dtype=np.float32)
+        _canvas_kernel(surface, last_us, observed_box, t_now_us.astype(np.int64, copy=False), max_age_us, recency_us,
+                       table, obs)
+        if on_observed is not None:
+            on_observed()
+        if model is None:
+            model = _model_in_box(render_pose.astype(np.float64), depth, depth if gray is None else gray,
+                                  gray is not None, origin64, cam, box, gain, N, edge_clip, silhouette)
+        if rule != "newton":
+            return CorrectionStep(model, correct_canvas(model, torch.from_numpy(predicted), torch.from_numpy(obs),
+                                                        camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule,
+                                                        iterations=iterations))
+        pose = np.empty((B, 7))
+        score, scores, moved = np.empty(B), np.empty((B, NUM_HYPOTHESES)), np.empty(B, dtype=np.int64)
+        _newton_kernel(model.coef.numpy(), model.depth.numpy(), model.K.numpy().astype(np.float64),
+                       model.render_pose.numpy(), predicted, obs.reshape(B, N * N),
+                       model.gain.numpy().astype(np.float64), camera.fx, camera.fy, dp, dtheta, iterations,
+                       NEWTON_DAMPING, NEWTON_MAX_STEP, pose, score, scores, moved)
+        dt = model.depth.numpy().dtype
+        scores = scores.astype(dt)  # numpy: a few numbers, without torch's dispatch (argmax: the first of ties, as torch)
+        return CorrectionStep(model, Correction(
+            torch.from_numpy(pose), torch.from_numpy(score.astype(dt)), torch.from_numpy(scores),
+            torch.from_numpy(scores.argmax(1)), torch.from_numpy(np.zeros((B, NUM_HYPOTHESES), dtype=np.bool_)),
+            torch.from_numpy(moved)))
+    return run
 
 
 def _check_render(render_pose, depth, gray, origin, silhouette) -> None:

@@ -19,7 +19,7 @@ calls bit for bit (``tests/test_motion.py`` checks it against them):
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import numba
 import numpy as np
@@ -36,7 +36,7 @@ from torchevtrack.stages.velocity import (
     _shift_twist_kernel,
 )
 
-__all__ = ["Motion", "invalid_poses", "motion_step", "SOURCES"]
+__all__ = ["Motion", "bind_motion", "invalid_poses", "motion_step", "SOURCES"]
 
 SOURCES = ("flow", "poses", "none")
 
@@ -97,24 +97,49 @@ def motion_step(source: str, pose: torch.Tensor, prev_pose: torch.Tensor, dt: fl
                     or (feedback is not None and feedback.shape != (B, 6))):
         raise ValueError(f"expected for B={B}: a filter of B, flow uv and flow (B, G, 2) with a bool valid (B, G), "
                          "depth (B, h, w), int64 origin (B, 2) and feedback (B, 6)")
-    predicted, twist = np.empty((B, 7)), np.empty((B, 6))
-    n_vectors, rejected = np.zeros(B, dtype=np.int64), np.empty(B, dtype=np.bool_)
+    run = bind_motion(source, pose.numpy(), prev_pose.numpy(), float(dt), min_depth.numpy(), kf=kf, groups=G,
+                      max_speed=max_speed, radius=radius, feedback=None if feedback is None else feedback.numpy())
+    out = run(flow.uv.numpy(), flow.flow.numpy(), flow.valid.numpy(), depth.numpy(), origin.numpy()) if by_flow \
+        else run()
+    return Motion(*(torch.from_numpy(a) for a in out))
+
+
+def bind_motion(source: str, pose: np.ndarray, prev_pose: np.ndarray, dt: float, min_depth: np.ndarray, *,
+                kf: VelocityKF | None = None, groups: int = 0, max_speed: float = float("inf"), radius: int = 2,
+                feedback: np.ndarray | None = None) -> Callable[..., tuple[np.ndarray, ...]]:
+    """:func:`motion_step` bound to its state, unchecked, for a caller that runs it every update on the same
+    buffers (the tracker): the arrays are numpy views of the tensors :func:`motion_step` takes, read at each call
+    (``kf``'s state is updated in place); ``groups`` is the flow's number of blocks ``G``.
+
+    Returns ``run(uv, flow, valid, depth, origin)`` (the flow field's arrays and the render's, for ``source =
+    "flow"``; ``run()`` otherwise) giving new arrays ``(predicted, twist, n_vectors, rejected)`` as :class:`Motion`.
+    """
+    B = pose.shape[0]
     dts = periods(B, float(dt))
-    if by_flow:
-        c = kf.camera
-        fb = _NO_FEEDBACK if feedback is None else feedback.numpy()
-        bad = _motion_kernel(0, pose.numpy(), prev_pose.numpy(), dts, min_depth.numpy(), kf.x.numpy(), kf.P.numpy(),
-                             kf.rho, kf.Q.numpy(), flow.uv.numpy(), flow.flow.numpy(), flow.valid.numpy(),
-                             float(max_speed), depth.numpy(), origin.numpy(), int(radius), c.fx, c.fy, c.cx, c.cy,
-                             kf.r_px, kf.iters, kf.k, kf.min_vectors, kf.normal, fb, feedback is not None,
-                             np.empty((B, G), dtype=np.bool_), np.empty((B, G)), np.empty((B, G)), np.empty((B, G)),
-                             np.empty(B, dtype=np.bool_), predicted, twist, n_vectors, rejected)
+    if source != "flow":
+        code = SOURCES.index(source)
+
+        def run() -> tuple[np.ndarray, ...]:
+            out = np.empty((B, 7)), np.empty((B, 6)), np.zeros(B, dtype=np.int64), np.empty(B, dtype=np.bool_)
+            _motion_kernel(code, pose, prev_pose, dts, min_depth, *_NO_FLOW, *out)
+            return out
+        return run
+    c = kf.camera
+    x, P, Q = kf.x.numpy(), kf.P.numpy(), kf.Q.numpy()
+    fb = _NO_FEEDBACK if feedback is None else feedback
+    scratch = (np.empty((B, groups), dtype=np.bool_), np.empty((B, groups)), np.empty((B, groups)),
+               np.empty((B, groups)), np.empty(B, dtype=np.bool_))
+    speed, r, iters, k, min_vectors = float(max_speed), int(radius), kf.iters, kf.k, kf.min_vectors
+
+    def run(uv, flow, valid, depth, origin) -> tuple[np.ndarray, ...]:
+        out = np.empty((B, 7)), np.empty((B, 6)), np.zeros(B, dtype=np.int64), np.empty(B, dtype=np.bool_)
+        bad = _motion_kernel(0, pose, prev_pose, dts, min_depth, x, P, kf.rho, Q, uv, flow, valid, speed, depth,
+                             origin, r, c.fx, c.fy, c.cx, c.cy, kf.r_px, iters, k, min_vectors, kf.normal, fb,
+                             feedback is not None, *scratch, *out)
         if bad >= 0:
             raise torch.linalg.LinAlgError(f"kf_update: the covariance of filter {bad} is not positive-definite")
-    else:
-        _motion_kernel(SOURCES.index(source), pose.numpy(), prev_pose.numpy(), dts, min_depth.numpy(), *_NO_FLOW,
-                       predicted, twist, n_vectors, rejected)
-    return Motion(*(torch.from_numpy(a) for a in (predicted, twist, n_vectors, rejected)))
+        return out
+    return run
 
 
 def invalid_poses(pose: torch.Tensor, min_depth: torch.Tensor) -> torch.Tensor:

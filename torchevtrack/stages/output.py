@@ -19,7 +19,7 @@ so its numbers are those of the stage calls bit for bit (``tests/test_output.py`
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import numba
 import numpy as np
@@ -31,7 +31,7 @@ from torchevtrack.stages.propagate import _twist_between_kernel
 from torchevtrack.stages.ukf import PoseUKF, _cov_arg, _ukf_predict_kernel, _ukf_update_kernel, _weights_np
 from torchevtrack.stages.velocity import CorrectionFeedback, _feedback_kernel, _shift_twist_kernel
 
-__all__ = ["Output", "output_step"]
+__all__ = ["Output", "bind_output", "output_step"]
 
 
 class Output(NamedTuple):
@@ -75,29 +75,50 @@ def output_step(pose: torch.Tensor, predicted: torch.Tensor, measured: torch.Ten
         raise ValueError(f"the UKF and the feedback must have B={B} elements")
     if symmetry_axis is not None and symmetry_axis.shape != (B, 3):
         raise ValueError(f"symmetry_axis must have shape ({B}, 3), got {tuple(symmetry_axis.shape)}")
+    run = bind_output(pose.numpy(), float(dt), min_depth.numpy(), ukf=ukf, feedback=feedback)
+    out = run(predicted.numpy(), measured.numpy(), twist.numpy(),
+              None if symmetry_axis is None else symmetry_axis.double().numpy())
+    return Output(*(torch.from_numpy(a) for a in out))
+
+
+def bind_output(pose: np.ndarray, dt: float, min_depth: np.ndarray, *, ukf: PoseUKF | None = None,
+                feedback: CorrectionFeedback | None = None) -> Callable[..., tuple[np.ndarray, np.ndarray]]:
+    """:func:`output_step` bound to its state, unchecked, for a caller that runs it every update on the same
+    buffers (the tracker): ``pose`` and ``min_depth`` are numpy views of the tensors :func:`output_step` takes,
+    read at each call (``ukf`` and ``feedback`` are updated in place).
+
+    Returns ``run(predicted, measured, twist, symmetry_axis)`` (float64 numpy arrays; the axis ``(B, 3)`` or
+    ``None``) giving new arrays ``(pose, rejected)`` as :class:`Output`.
+    """
+    B = pose.shape[0]
+    dts = periods(B, float(dt))
     fb = feedback is not None
     if ukf is not None:
         Wm, Wc, spread = _weights_np(ukf.alpha, ukf.beta, ukf.kappa)
         (q, q_diag), (r, r_diag) = _cov_arg(ukf.q_density), _cov_arg(ukf.R)
-        x, P = ukf.x.numpy(), ukf.P.numpy()
+        filt = (True, ukf.x.numpy(), ukf.P.numpy(), q, q_diag, r, r_diag, Wm, Wc, spread)
     else:
-        Wm, Wc, spread, q, q_diag, r, r_diag, x, P = _NO_UKF
-    out, rejected = np.empty((B, 7)), np.empty(B, dtype=np.bool_)
-    bad = _output_kernel(pose.numpy(), predicted.numpy(), measured.numpy(), twist.numpy(), periods(B, float(dt)),
-                         min_depth.numpy(), fb, feedback.b.numpy() if fb else _NO_B,
-                         _NO_AXIS if symmetry_axis is None else symmetry_axis.double().numpy(), symmetry_axis is not None,
-                         feedback.gain if fb else 0.0, feedback.leak if fb else 0.0,
-                         feedback.mask.numpy() if fb else _NO_MASK, feedback.limit.numpy() if fb else _NO_LIMIT,
-                         ukf is not None, x, P, q, q_diag, r, r_diag, Wm, Wc, spread, out, rejected)
-    if bad >= 0:
-        raise torch.linalg.LinAlgError(f"{'ukf_predict' if bad < B else 'ukf_update'}: the covariance of filter "
-                                       f"{bad % B} is not positive-definite")
-    return Output(torch.from_numpy(out), torch.from_numpy(rejected))
+        filt = (False, *_NO_UKF)
+    gains = (feedback.gain, feedback.leak, feedback.mask.numpy(), feedback.limit.numpy()) if fb \
+        else (0.0, 0.0, _NO_MASK, _NO_LIMIT)
+    b = feedback.b.numpy() if fb else _NO_B
+
+    def run(predicted, measured, twist, symmetry_axis) -> tuple[np.ndarray, np.ndarray]:
+        out, rejected = np.empty((B, 7)), np.empty(B, dtype=np.bool_)
+        has_axis = symmetry_axis is not None
+        bad = _output_kernel(pose, predicted, measured, twist, dts, min_depth, fb, b,
+                             symmetry_axis if has_axis else _NO_AXIS, has_axis, *gains, *filt, out, rejected)
+        if bad >= 0:
+            raise torch.linalg.LinAlgError(f"{'ukf_predict' if bad < B else 'ukf_update'}: the covariance of "
+                                           f"filter {bad % B} is not positive-definite")
+        return out, rejected
+    return run
 
 
 _NO_B, _NO_AXIS, _NO_MASK, _NO_LIMIT = np.zeros((1, 6)), np.zeros((1, 3)), np.zeros(6, np.bool_), np.zeros(6)
-_NO_UKF = (np.zeros(25), np.zeros(25), 1.0, np.zeros((1, 12)), True, np.zeros((1, 6)), True, np.zeros((1, 13)),
-           np.zeros((1, 12, 12)))
+# The UKF arguments of _output_kernel without a UKF (not read), in its order: x, P, q, q_diag, r, r_diag, Wm, Wc, spread.
+_NO_UKF = (np.zeros((1, 13)), np.zeros((1, 12, 12)), np.zeros((1, 12)), True, np.zeros((1, 6)), True, np.zeros(25),
+           np.zeros(25), 1.0)
 
 
 @numba.njit(cache=True, nogil=True)
