@@ -114,6 +114,27 @@ def test_the_bound_steps_follow_new_buffers(seq):
     assert torch.equal(poses[0], poses[1])
 
 
+def test_a_deep_copy_tracks_on_its_own_buffers(seq):
+    """A copy (``copy.deepcopy``, without threads) binds its own steps: its updates leave the original as it was and
+    give the original's poses."""
+    import copy
+
+    t0 = int(seq.gt_t_us[0])
+    windows = [seq.events.slice_time(t0 + k * 2000, t0 + (k + 1) * 2000) for k in range(12)]
+    tracker = EventPoseTracker(CAM, seq.mesh, pipeline=False)
+    tracker.reset(seq.gt_poses[0])
+    for w in windows[:6]:
+        tracker(w.x, w.y, w.t, w.p)
+    twin = copy.deepcopy(tracker)
+    state = {k: v.clone() for k, v in tracker.state_dict().items()}
+    got = torch.stack([twin(w.x, w.y, w.t, w.p) for w in windows[6:]])
+    assert all(torch.equal(v, tracker.state_dict()[k]) for k, v in state.items())
+    expected = torch.stack([tracker(w.x, w.y, w.t, w.p) for w in windows[6:]])
+    assert torch.equal(got, expected)
+    tracker.close()
+    twin.close()
+
+
 def test_a_failing_share_waits_for_the_others(seq):
     """The caller works the first share, the pool the others; an error in the first still lets them finish (they
     use the tracker's state) before it propagates."""

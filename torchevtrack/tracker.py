@@ -618,6 +618,11 @@ class EventPoseTracker(nn.Module):
         self._bound = None  # the buffers may be new tensors: bind again
         return super()._apply(fn, recurse)
 
+    def __getstate__(self) -> dict:
+        state = super().__getstate__()  # a copy of the attributes
+        state["_bound"] = None  # a copy binds its own buffers (the bound steps hold views of these)
+        return state
+
     def _render_pose_ahead(self, predicted: np.ndarray, twist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """render.ahead: the poses to render at now (where the last update's prediction, moved on by its twist,
         was valid; else ``predicted``), float64 and float32, and the next update's in the buffers (:func:`propagate`
