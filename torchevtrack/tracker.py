@@ -592,24 +592,22 @@ class EventPoseTracker(nn.Module):
 
     def _bind(self) -> "_Bound":
         """Bind each stage's compiled step to the buffers it reads and writes (numpy views: no checks or conversions
-        per update), per worker share where the workers run it."""
+        per update), per worker share where the workers run it (one worker: its share is the whole batch)."""
         cfg, o, e = self.config, self.corrector.options, self.config.eros
-        shares = self._shares if self._pool is not None else [None]
         fb = self.feedback
         motion = bind_motion(cfg.velocity.source, self.pose.numpy(), self.prev_pose.numpy(), self.dt,
                              self._min_depth.numpy(), kf=self.velocity, groups=self.flow.n_blocks,
                              max_speed=cfg.flow.max_speed,
                              radius=max(cfg.flow.block // 4, 2),  # flow lies on edges: the pixel may fall just off
                              feedback=None if fb is None else fb.b.numpy())
-        correct = [bind_correction(self.eros.surface[_ALL if r is None else r].numpy(),
-                                   self.flow.sae[_ALL if r is None else r].numpy(), self.camera,
+        correct = [bind_correction(self.eros.surface[r].numpy(), self.flow.sae[r].numpy(), self.camera,
                                    canvas=o["canvas"], margin_px=o["margin_px"], edge_clip=o["edge_clip"],
                                    silhouette=o["silhouette"], dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"],
                                    rule=o["rule"], iterations=o["iterations"], max_age_us=e.max_age_us,
-                                   recency_us=e.recency_us) for r in shares]
+                                   recency_us=e.recency_us) for r in self._shares]
         output = bind_output(self.pose.numpy(), self.dt, self._min_depth.numpy(),
                              ukf=self.ukf if cfg.ukf.enabled else None, feedback=fb)
-        self._bound = _Bound([bind_intake(self.eros, self.flow, r) for r in shares], motion, correct, output,
+        self._bound = _Bound([bind_intake(self.eros, self.flow, r) for r in self._shares], motion, correct, output,
                              self.pose.numpy(), self.prev_pose.numpy(), self.origin.numpy(), self.events_seen.numpy(),
                              self._min_depth.numpy(), self._render_next.numpy(), self._render_next_ok.numpy())
         return self._bound
@@ -744,8 +742,7 @@ class EventPoseTracker(nn.Module):
 
     def _launch(self, window: tuple) -> None:
         """Take the packed ``window`` into the EROS and the flow on the intake thread (:meth:`_take_ahead` waits)."""
-        intake = (self._bound or self._bind()).intake[0]
-        self._ahead = _Ahead(self._intake_thread().submit(intake, *window), window)
+        self._ahead = _Ahead(self._intake_thread().submit(self._bound.intake[0], *window), window)
 
     def _take_ahead(self, x: torch.Tensor) -> FlowField:
         """The flow of the window the intake thread took in, once it is done; ``x`` is that window's."""
