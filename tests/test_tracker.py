@@ -229,10 +229,9 @@ def test_invalid_updates_keep_the_last_pose():
 def test_render_reuse_skips_renders_only_within_the_threshold(seq):
     def tracked(reuse_px):
         tracker = EventPoseTracker(CAM, seq.mesh, TrackerConfig().replace(render={"reuse_px": reuse_px, "ahead": False}))
-        renderer = tracker._renderers[0]
         calls = []
-        render = renderer.render_unit  # the tracker's path to the compiled rasteriser
-        renderer.render_unit = lambda poses, camera, shaded=True: calls.append(shaded) or render(poses, camera, shaded)
+        render = tracker._render_one  # the tracker's path to the compiled rasteriser (one stream)
+        tracker._render_one = lambda poses, shaded, model: calls.append(shaded) or render(poses, shaded, model)
         times, poses = tracker.track(seq.events, seq.gt_poses[0], t_start_us=int(seq.gt_t_us[0]),
                                      t_end_us=int(seq.gt_t_us[-1]), progress=False)
         tracker.close()
@@ -473,21 +472,19 @@ def test_render_ahead_made_on_the_intake_thread_gives_the_serial_poses(seq, monk
     assert torch.equal(out[True], out[False])
 
 
-def test_a_failed_render_ahead_raises_in_the_update_that_needs_it_once(seq, monkeypatch):
-    import torchevtrack.tracker as tracker_module
-
-    make = tracker_module.EventPoseTracker._render_with_model
-
-    def failing_once(self, *a):
-        if not failing_once.failed:
-            failing_once.failed = True
-            raise MemoryError("no memory for the render")
-        return make(self, *a)
-
-    failing_once.failed = False
-    monkeypatch.setattr(tracker_module.EventPoseTracker, "_render_with_model", failing_once)
+def test_a_failed_render_ahead_raises_in_the_update_that_needs_it_once(seq):
     tracker = EventPoseTracker(CAM, seq.mesh, workers=1, pipeline=True)
     tracker.reset(seq.gt_poses[0])
+    make = tracker._render_one
+
+    def failing_once(poses, shaded, model):
+        if model and not failing_once.failed:  # a render with its model: the one made on the thread
+            failing_once.failed = True
+            raise MemoryError("no memory for the render")
+        return make(poses, shaded, model)
+
+    failing_once.failed = False
+    tracker._render_one = failing_once
     t0 = int(seq.gt_t_us[0])
     w = [seq.events.slice_time(t0 + k * 2000, t0 + (k + 1) * 2000) for k in range(3)]
     tracker(w[0].x, w[0].y, w[0].t, w[0].p)  # renders at once, and its successor's render on the thread, which fails
@@ -504,12 +501,12 @@ def test_render_ahead_excludes_render_reuse():
 
 
 def test_the_tracker_renders_what_the_renderer_renders(seq):
-    """One stream renders through the rasteriser's unchecked numpy entry (render_unit): bit for bit
-    RasterRenderer.render of the same pose and window."""
+    """One stream renders through one compiled call (bind_render_model): bit for bit RasterRenderer.render of the
+    same pose and window."""
     tracker = EventPoseTracker(CAM, seq.mesh)
     pose = seq.gt_poses[:1].clone()
     pose[:, 3:] *= 1.0004  # not quite unit: both normalise it the same way
     tracker.reset(pose)
-    want = tracker._renderers[0].render(pose, roi=tuple(tracker._windows(pose)[0].tolist()), shaded=False)
+    want = tracker._renderers[0].render(pose, roi=tuple(tracker._windows(pose.numpy())[0].tolist()), shaded=False)
     assert torch.equal(tracker.depth, want.depth) and float(want.depth.max()) > 0
     tracker.close()

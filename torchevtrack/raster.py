@@ -342,6 +342,13 @@ class RasterRenderer:
         """Drop the mesh (the renderer can no longer be used)."""
         self._mesh = None
 
+    @property
+    def raster_mesh(self) -> RasterMesh:
+        """The mesh's arrays the kernel draws (:func:`raster_mesh`)."""
+        if self._mesh is None:
+            raise RuntimeError("renderer is closed")
+        return self._mesh
+
     def __enter__(self) -> "RasterRenderer":
         return self
 

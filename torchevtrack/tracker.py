@@ -67,12 +67,12 @@ from torchevtrack.stages import batch_mask, periods
 from torchevtrack.stages.correction import CorrectionStep, bind_correction
 from torchevtrack.stages.eros import EROS
 from torchevtrack.stages.flow import FlowField, TripletFlow
-from torchevtrack.stages.intake import bind_intake, intake_step
+from torchevtrack.stages.intake import bind_intake
 from torchevtrack.stages.motion import _render_ahead_kernel, bind_motion, invalid_poses
 from torchevtrack.stages.output import bind_output
 from torchevtrack.stages.propagate import propagate
-from torchevtrack.stages.template import (Correction, TemplateCorrector, TemplateModel, _camera_array, _model_in_box,
-                                          _render_box, window_of)
+from torchevtrack.stages.render_model import bind_render_model
+from torchevtrack.stages.template import Correction, TemplateCorrector, TemplateModel, window_of
 from torchevtrack.stages.ukf import PoseUKF
 from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, shift_twist
 
@@ -198,7 +198,7 @@ class EventPoseTracker(nn.Module):
         self._pipeline = bool(pipeline)
         self._intake: ThreadPoolExecutor | None = None  # the pipeline's thread, made when first needed
         self._ahead: _Ahead | None = None  # the next window, taken in on the intake thread
-        self._rendering: Future | None = None  # render.ahead: the next update's render, on the intake thread
+        self._rendering: Future | None = None  # render.ahead: the next update's Rendered, on the intake thread
         self.period_us = cfg.period_us
         self.dt = self.period_us * 1e-6
 
@@ -236,6 +236,12 @@ class EventPoseTracker(nn.Module):
         t = cfg.template
         self.corrector = TemplateCorrector(camera, canvas=t.canvas, margin_px=t.margin_px, dp_px=t.dp_px,
                                            dtheta_deg=t.dtheta_deg, rule=t.rule, iterations=t.iterations)
+        o = self.corrector.options
+        # one stream with the compiled rasteriser: a render, and its template model, in one compiled call
+        self._render_one = bind_render_model(self._renderers[0], self._radius[0], margin_px=cfg.render.margin_px,
+                                             canvas=o["canvas"], box_margin_px=o["margin_px"],
+                                             edge_clip=o["edge_clip"], silhouette=o["silhouette"]) \
+            if B == 1 and isinstance(self._renderers[0], RasterRenderer) else None
         u = cfg.ukf
         self.ukf = PoseUKF(B, q_pdot=u.q_pdot, q_w=u.q_w, q_p=u.q_p, q_q=u.q_q, r_p=u.r_p, r_q=u.r_q, p0=u.p0)
         lc = cfg.loss
@@ -257,8 +263,8 @@ class EventPoseTracker(nn.Module):
         self.register_buffer("origin", torch.zeros(B, 2, dtype=torch.long))
         self.register_buffer("events_seen", torch.zeros(B, dtype=torch.long))
         self.register_buffer("t_last", torch.zeros(B, dtype=torch.long))
-        self.quality = Quality(torch.full((B,), float("nan")), torch.zeros(B, dtype=torch.long),
-                               torch.zeros(B, dtype=torch.long), torch.zeros(B, dtype=torch.bool))
+        self._quality: Quality | tuple = Quality(torch.full((B,), float("nan")), torch.zeros(B, dtype=torch.long),
+                                                 torch.zeros(B, dtype=torch.long), torch.zeros(B, dtype=torch.bool))
         self.stage_ms: dict[str, float] = {}
         # template of the last render, one per worker's share (reused while render.reuse_px allows)
         self._models: list[TemplateModel] | None = None
@@ -330,7 +336,7 @@ class EventPoseTracker(nn.Module):
             self.loss.reset(m)
         if mask is None:
             self.loss_update = None
-            self._render(pose, shaded=False)
+            self._render(pose.numpy(), shaded=False)
         else:
             self._render_depth(pose, m)
         self._models = None  # the template of the last render (see render.reuse_px)
@@ -390,7 +396,7 @@ class EventPoseTracker(nn.Module):
         # A pose that is not finite or puts the object (nearly) behind the camera is not a pose: such a
         # prediction or output is replaced by the last pose (zero motion) rather than used or emitted.
         predicted, twist, n_vectors, rejected = \
-            run.motion(flow.uv.numpy(), flow.flow.numpy(), flow.valid.numpy(), self.depth.numpy(), run.origin) \
+            run.motion(flow.uv, flow.flow, flow.valid, self.depth.numpy(), run.origin) \
             if cfg.velocity.source == "flow" else run.motion()
         if launch is not None and not cfg.template.enabled:  # nothing reads the surfaces after the flow
             launch()
@@ -400,7 +406,7 @@ class EventPoseTracker(nn.Module):
             (predicted, predicted.astype(np.float32))
         render = None  # None: the correction uses self._models (the last render's, or one made with this render)
         if not (cfg.template.enabled and self._reusable(pose32)):
-            render = self._render(torch.from_numpy(render_pose), shaded=cfg.template.enabled)
+            render = self._render(render_pose, shaded=cfg.template.enabled)
             if render.model is not None:
                 self._models, render = [render.model], None
             if self._pipeline and cfg.render.ahead and run.render_next_ok.all():
@@ -411,13 +417,13 @@ class EventPoseTracker(nn.Module):
         n_events = np.bincount(b.numpy(), minlength=B) if b is not None else np.full(B, x.numel())
         run.events_seen[:] += n_events
         if cfg.template.enabled:
-            corr = self._correct(predicted, pose32, render, self._t_now(t, b).numpy(), launch)
+            corr = self._correct(predicted, pose32, render, self._t_now(t, b), launch)
             # Until the EROS holds enough events, its edges are too sparse to correct against.
             warm = (run.events_seen >= cfg.template.warmup_events)[:, None]
-            measured = np.where(warm, corr.pose.numpy(), predicted)
+            measured = np.where(warm, corr.pose, predicted)
             score = corr.score
         else:
-            measured, score = predicted, torch.full((B,), float("nan"))
+            measured, score = predicted, np.full(B, np.nan, dtype=np.float32)
         clock.lap("correction")
 
         # the objects' symmetry axes in the camera frame, for the feedback (zero stays zero; none: no rotation)
@@ -427,10 +433,9 @@ class EventPoseTracker(nn.Module):
         clock.lap("ukf")
         run.prev_pose[:] = run.pose
         run.pose[:] = out
-        self.quality = Quality(score, torch.from_numpy(n_vectors), torch.from_numpy(n_events),
-                               torch.from_numpy(bad | rejected))
+        self._quality = (score, n_vectors, n_events, bad | rejected)
         if self.loss is not None:
-            upd = self.loss(self.quality, self._t_now(t, b) if t_us is None else t_us)
+            upd = self.loss(self.quality, torch.from_numpy(run.t_last) if t_us is None else t_us)
             self.loss_update = upd
             if upd.reinit_index.numel():  # on_lost gave poses: those elements restart there (the detector did)
                 pose = self.pose.clone()
@@ -440,6 +445,13 @@ class EventPoseTracker(nn.Module):
                 self.loss.lost_at_us.copy_(lost_at)  # the first loss stays on record
             clock.lap("loss")
         self.stage_ms = clock.ms
+
+    @property
+    def quality(self) -> Quality:
+        """The last update's :class:`Quality` (made from its numpy fields when first asked for)."""
+        if not isinstance(self._quality, Quality):
+            self._quality = Quality(*(torch.from_numpy(np.asarray(f)) for f in self._quality))
+        return self._quality
 
     @property
     def lost(self) -> torch.Tensor | None:
@@ -505,9 +517,10 @@ class EventPoseTracker(nn.Module):
         return (times, poses, lost) if return_lost else (times, poses)
 
     # -- internals ---------------------------------------------------------------------------
-    def _windows(self, poses: torch.Tensor, index: list[int] | None = None) -> np.ndarray:
-        """Render windows ``(K, 4)`` ``(u0, v0, w, h)`` of the elements ``index`` (default all), clipped to the frame."""
-        t, radius = poses.numpy()[:, :3], self._radius_of.numpy()
+    def _windows(self, poses: np.ndarray, index: list[int] | None = None) -> np.ndarray:
+        """Render windows ``(K, 4)`` ``(u0, v0, w, h)`` of the elements ``index`` (default all) at ``poses`` ``(B, 7)``,
+        clipped to the frame."""
+        t, radius = poses[:, :3], self._radius_of.numpy()
         if index is not None:
             t, radius = t[index], radius[index]
         return window_of(t, self.camera, radius, self.config.render.margin_px, clip=True)
@@ -530,26 +543,25 @@ class EventPoseTracker(nn.Module):
         if gray is not None:
             gray[i, dv:dv + h, du:du + w] = g[0]
 
-    def _render(self, poses: torch.Tensor, shaded: bool):
-        """Render each element in its own window around its pose, placed in buffers of one common size
-        (the largest window; outside its own window an element's buffers hold background, as its window
+    def _render(self, poses: np.ndarray, shaded: bool):
+        """Render each element in its own window around its pose (``poses`` ``(B, 7)`` float64), placed in buffers of
+        one common size (the largest window; outside its own window an element's buffers hold background, as its window
         contains its object). A render's pixels depend slightly on its window, so own windows keep the
         elements from changing each other's renders. Keeps the depth and the windows' common ``origin``."""
         B = self.batch_size
         H, W = self.camera.height, self.camera.width
         if B == 1:  # the own window is the common one: the render is the buffer
-            renderer = self._renderers[self._renderer_of[0]]
             if self._rendering is not None:  # made ahead, at these poses, with its template model (render.ahead)
                 rendering, self._rendering = self._rendering, None  # taken, even if it failed
                 made = rendering.result()
                 self.depth = made.depth
                 self.origin.numpy()[:] = made.window[:, :2]
                 return _Render(made.depth, made.gray, made.model)
-            if isinstance(renderer, RasterRenderer):
-                depth, gray, win = self._render_unit(poses.numpy(), shaded)
+            if self._render_one is not None:
+                depth, gray, win, _ = self._render_one(poses, shaded, False)
             else:
                 win = self._windows(poses)
-                out = renderer.render(poses, roi=tuple(win[0].tolist()), shaded=shaded)
+                out = self._renderers[0].render(torch.from_numpy(poses), roi=tuple(win[0].tolist()), shaded=shaded)
                 depth, gray = out.depth, out.gray
             self.depth = depth
             self.origin.numpy()[:] = win[:, :2]
@@ -560,13 +572,13 @@ class EventPoseTracker(nn.Module):
         depth = torch.zeros(B, h, w)
         gray = torch.empty(B, h, w) if shaded else None
 
-        poses_np, depth_np, gray_np = poses.numpy(), depth.numpy(), None if gray is None else gray.numpy()
+        depth_np, gray_np = depth.numpy(), None if gray is None else gray.numpy()
 
         def share(rows: slice) -> None:
             for i in range(B)[rows]:
                 if shaded:
                     gray_np[i] = self._renderers[self._renderer_of[i]].background
-                self._render_into(i, poses_np[i:i + 1], win[i], origin[i], depth_np, gray_np)
+                self._render_into(i, poses[i:i + 1], win[i], origin[i], depth_np, gray_np)
 
         if self._threaded_render:
             self._map(share)
@@ -575,13 +587,6 @@ class EventPoseTracker(nn.Module):
         self.depth = depth
         self.origin.copy_(torch.from_numpy(origin))
         return _Render(depth, gray)
-
-    def _render_unit(self, poses: np.ndarray, shaded: bool) -> tuple[torch.Tensor, torch.Tensor | None, np.ndarray]:
-        """The render of one element with the compiled rasteriser, in its window: ``poses`` ``(1, 7)`` float64 are
-        valid (motion_step), so they are only normalised. Returns depth, gray and the window ``(1, 4)``."""
-        win = window_of(poses[:, :3], self.camera, self._radius_of.numpy(), self.config.render.margin_px, clip=True)
-        depth, gray = self._raster(0, poses, win[0], shaded)
-        return torch.from_numpy(depth), None if gray is None else torch.from_numpy(gray), win
 
     def _raster(self, i: int, pose: np.ndarray, win: np.ndarray, shaded: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """Element ``i``'s compiled rasteriser at the valid ``pose`` ``(1, 7)`` float64 (only normalised) in the
@@ -609,7 +614,8 @@ class EventPoseTracker(nn.Module):
                              ukf=self.ukf if cfg.ukf.enabled else None, feedback=fb)
         self._bound = _Bound([bind_intake(self.eros, self.flow, r) for r in self._shares], motion, correct, output,
                              self.pose.numpy(), self.prev_pose.numpy(), self.origin.numpy(), self.events_seen.numpy(),
-                             self._min_depth.numpy(), self._render_next.numpy(), self._render_next_ok.numpy())
+                             self.t_last.numpy(), self._min_depth.numpy(), self._render_next.numpy(),
+                             self._render_next_ok.numpy())
         return self._bound
 
     def _apply(self, fn, recurse=True):
@@ -633,22 +639,10 @@ class EventPoseTracker(nn.Module):
 
     def _render_soon(self, poses: np.ndarray, shaded: bool, model: bool) -> None:
         """Make the next update's render at ``poses`` and, with ``model``, its template model on the intake thread
-        (one element, compiled rasteriser)."""
-        if self.batch_size == 1 and isinstance(self._renderers[0], RasterRenderer):
-            self._rendering = self._intake_thread().submit(self._render_with_model, poses, shaded, model)
-
-    def _render_with_model(self, poses: np.ndarray, shaded: bool, model: bool) -> "_Made":
-        """The render at ``poses`` ``(1, 7)`` and, with ``model``, the template model that
-        :func:`~torchevtrack.stages.correction.correction_step` would make of it (the same kernels and arguments)."""
-        depth, gray, win = self._render_unit(poses, shaded)
-        if not model:
-            return _Made(depth, gray, win, None)
-        o = self.corrector.options
-        origin, cam = win[:, :2].astype(np.float64), _camera_array(self.camera)
-        box, gain = _render_box(depth.numpy(), origin, cam, o["margin_px"])
-        model = _model_in_box(poses.astype(np.float32).astype(np.float64), depth.numpy(), gray.numpy(), True, origin,
-                              cam, box, gain, o["canvas"], o["edge_clip"], o["silhouette"])
-        return _Made(depth, gray, win, model)
+        (one element, compiled rasteriser), in one compiled call
+        (:func:`~torchevtrack.stages.render_model.bind_render_model`)."""
+        if self._render_one is not None:
+            self._rendering = self._intake_thread().submit(self._render_one, poses, shaded, model)
 
     def _drop_render(self) -> None:
         """Forget a render made ahead (a reset moved the poses): wait for the thread."""
@@ -666,7 +660,7 @@ class EventPoseTracker(nn.Module):
         if not index:
             return
         H, W = self.camera.height, self.camera.width
-        win = self._windows(poses, index)
+        win = self._windows(poses.numpy(), index)
         h0, w0 = self.depth.shape[-2:]
         w, h = max(w0, int(win[:, 2].max())), max(h0, int(win[:, 3].max()))
         origin = self.origin.clone()
@@ -696,15 +690,16 @@ class EventPoseTracker(nn.Module):
         return self._models is not None and reuse > 0 and \
             bool((self._model.shift_px(torch.from_numpy(pose)) < reuse).all())
 
-    def _t_now(self, t: torch.Tensor, b: torch.Tensor | None) -> torch.Tensor:
-        """Latest event time per element in this window (int64 us; the previous one if the window is empty)."""
+    def _t_now(self, t: torch.Tensor, b: torch.Tensor | None) -> np.ndarray:
+        """Latest event time per element in this window (int64 us, the view of :attr:`t_last` the update binds; the
+        previous one if the window is empty)."""
+        last = self._bound.t_last
         if t.numel():
-            last = self.t_last.numpy()  # numpy: a few numbers, without torch's dispatch
             if b is None:
                 np.maximum(last, t.numpy().max(), out=last)
             else:
                 np.maximum.at(last, b.numpy(), t.numpy())
-        return self.t_last
+        return last
 
     @staticmethod
     def _feedback_on(cfg: TrackerConfig) -> bool:
@@ -766,8 +761,8 @@ class EventPoseTracker(nn.Module):
         parts = list(self._ahead.flow.result())
         for i in m.nonzero()[:, 0].tolist():
             k = slice(None) if b is None else b == i
-            redo = intake_step(self.eros, self.flow, x[k], y[k], t[k], p[k], None if b is None else b[k] - i,
-                               rows=slice(i, i + 1))
+            redo = bind_intake(self.eros, self.flow, slice(i, i + 1))(x[k], y[k], t[k], p[k],
+                                                                       None if b is None else b[k] - i)
             for field, row in zip(parts, redo):
                 field[i] = row[0]
         self._ahead = _Ahead(_resolved(FlowField(*parts)), self._ahead.window)
@@ -817,14 +812,6 @@ def _resolved(value) -> Future:
     return f
 
 
-class _Made(NamedTuple):
-    """A render made ahead on the intake thread: its images, window ``(1, 4)`` and template model."""
-    depth: torch.Tensor
-    gray: torch.Tensor | None
-    window: np.ndarray
-    model: TemplateModel | None
-
-
 class _Bound(NamedTuple):
     """The stages' bound steps (:meth:`EventPoseTracker._bind`; ``intake`` and ``correct`` one per worker share) and
     numpy views of the tracker's buffers an update reads and writes."""
@@ -836,6 +823,7 @@ class _Bound(NamedTuple):
     prev_pose: np.ndarray
     origin: np.ndarray
     events_seen: np.ndarray
+    t_last: np.ndarray
     min_depth: np.ndarray
     render_next: np.ndarray
     render_next_ok: np.ndarray
@@ -858,8 +846,10 @@ def _cut(v: np.ndarray | None, rows: slice) -> np.ndarray | None:
 
 
 def _cat(parts: list[_T]) -> _T:
-    """Named tuples of batch-leading tensors, concatenated field by field (the only one as it is)."""
-    return parts[0] if len(parts) == 1 else type(parts[0])(*(torch.cat(f) for f in zip(*parts)))
+    """Named tuples of batch-leading tensors or numpy arrays, concatenated field by field (the only one as it is)."""
+    if len(parts) == 1:
+        return parts[0]
+    return type(parts[0])(*(np.concatenate(f) if isinstance(f[0], np.ndarray) else torch.cat(f) for f in zip(*parts)))
 
 
 def _per_stream(value, default: list[int], name: str) -> list[int]:

@@ -91,9 +91,11 @@ def correction_step(
                           edge_clip=edge_clip, silhouette=silhouette, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule,
                           iterations=iterations, max_age_us=max_age_us, recency_us=recency_us)
     if model is None:
-        return run(render_pose.numpy(), predicted.numpy(), depth.numpy(), None if gray is None else gray.numpy(),
+        step = run(render_pose.numpy(), predicted.numpy(), depth.numpy(), None if gray is None else gray.numpy(),
                    origin.numpy(), t_now_us.numpy(), on_observed=on_observed)
-    return run(None, predicted.numpy(), None, None, None, t_now_us.numpy(), model=model, on_observed=on_observed)
+    else:
+        step = run(None, predicted.numpy(), None, None, None, t_now_us.numpy(), model=model, on_observed=on_observed)
+    return CorrectionStep(step.model, Correction(*(torch.from_numpy(a) for a in step.correction)))
 
 
 def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *, canvas: int = 128,
@@ -105,7 +107,8 @@ def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *,
 
     Returns ``run(render_pose, predicted, depth, gray, origin, t_now_us, model=None, on_observed=None)``, the
     arguments of :func:`correction_step` as numpy arrays (``render_pose`` float32; ``depth``, ``gray`` and
-    ``origin`` ``None`` with a ``model`` to reuse), giving its :class:`CorrectionStep`.
+    ``origin`` ``None`` with a ``model`` to reuse), giving its :class:`CorrectionStep` with the fields of the
+    correction as numpy arrays.
     """
     cam = _camera_array(camera)
     max_age_us, recency_us = int(max_age_us), float(recency_us)
@@ -129,9 +132,9 @@ def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *,
             model = _model_in_box(render_pose.astype(np.float64), depth, depth if gray is None else gray,
                                   gray is not None, origin64, cam, box, gain, N, edge_clip, silhouette)
         if rule != "newton":
-            return CorrectionStep(model, correct_canvas(model, torch.from_numpy(predicted), torch.from_numpy(obs),
-                                                        camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule,
-                                                        iterations=iterations))
+            c = correct_canvas(model, torch.from_numpy(predicted), torch.from_numpy(obs), camera, dp_px=dp_px,
+                               dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
+            return CorrectionStep(model, Correction(*(f.numpy() for f in c)))
         pose = np.empty((B, 7))
         score, scores, moved = np.empty(B), np.empty((B, NUM_HYPOTHESES)), np.empty(B, dtype=np.int64)
         _newton_kernel(model.coef.numpy(), model.depth.numpy(), model.K.numpy().astype(np.float64),
@@ -139,11 +142,9 @@ def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *,
                        model.gain.numpy().astype(np.float64), camera.fx, camera.fy, dp, dtheta, iterations,
                        NEWTON_DAMPING, NEWTON_MAX_STEP, pose, score, scores, moved)
         dt = model.depth.numpy().dtype
-        scores = scores.astype(dt)  # numpy: a few numbers, without torch's dispatch (argmax: the first of ties, as torch)
-        return CorrectionStep(model, Correction(
-            torch.from_numpy(pose), torch.from_numpy(score.astype(dt)), torch.from_numpy(scores),
-            torch.from_numpy(scores.argmax(1)), torch.from_numpy(np.zeros((B, NUM_HYPOTHESES), dtype=np.bool_)),
-            torch.from_numpy(moved)))
+        scores = scores.astype(dt)  # argmax: the first of ties, as torch's
+        return CorrectionStep(model, Correction(pose, score.astype(dt), scores, scores.argmax(1),
+                                                np.zeros((B, NUM_HYPOTHESES), dtype=np.bool_), moved))
     return run
 
 

@@ -15,7 +15,7 @@ import numba
 import numpy as np
 import torch
 
-from torchevtrack.stages.eros import EROS, _check_fields, _eros_kernel, prepare_events
+from torchevtrack.stages.eros import EROS, _eros_kernel, prepare_events
 from torchevtrack.stages.flow import FlowField, TripletFlow, _event_arrays, _flow_packet, _range_error, _smooth
 
 __all__ = ["bind_intake", "intake_step"]
@@ -26,13 +26,13 @@ def intake_step(eros: EROS, flow: TripletFlow, x: torch.Tensor, y: torch.Tensor,
     """``eros(x, y, b, rows)`` and then ``flow(x, y, t, p, b, rows)``: the arguments, result and errors of the two
     stages' ``forward`` (packed events: ``(N,)`` integer pixels ``x, y``, int64 microseconds ``t``, polarity
     ``p``, batch index ``b`` counted from the first of ``rows``), in one compiled call."""
-    return bind_intake(eros, flow, rows)(x, y, t, p, b)
+    return FlowField(*(torch.from_numpy(a) for a in bind_intake(eros, flow, rows)(x, y, t, p, b)))
 
 
 def bind_intake(eros: EROS, flow: TripletFlow, rows: slice | None = None) -> Callable[..., FlowField]:
     """:func:`intake_step` bound to the two stages' state (numpy views of their ``rows``, written in place at each
     call), for a caller that takes in a window every update (the tracker). Returns ``run(x, y, t, p, b)``, which
-    checks the events as :func:`intake_step` does."""
+    checks the events as :func:`intake_step` does and gives its flow field as numpy arrays."""
     surface = eros.surface if rows is None else eros.surface[rows]
     sae = flow.sae_padded if rows is None else flow.sae_padded[rows]
     B, C = sae.shape[:2]
@@ -47,17 +47,16 @@ def bind_intake(eros: EROS, flow: TripletFlow, rows: slice | None = None) -> Cal
 
     def run(x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor | None = None,
             b: torch.Tensor | None = None) -> FlowField:
-        _check_fields(x, y, b)
-        xn, yn, tn, pn, bn, batched = _event_arrays(C, x, y, t, p, b)
+        xn, yn, tn, pn, bn, batched = _event_arrays(C, x, y, t, p, b)  # checks the fields as the EROS stage does
         out, uv = np.zeros((B, G, 2), dtype=np.float32), np.empty((B, G, 2), dtype=np.float32)
         valid, count = np.empty((B, G), dtype=np.bool_), np.empty((B, G), dtype=np.int64)
         if not _intake_kernel(s, lam, r, sae_np, xn, yn, tn, pn, bn, C, batched, *matching, out, uv, valid, count):
             prepare_events(x, y, b, *surface.shape[1:], B)  # the EROS stage's range error
             _range_error(tuple(sae.shape[:2]) + (flow.height, flow.width), x, y, t, p, b)
-        out, uv, valid = torch.from_numpy(out), torch.from_numpy(uv), torch.from_numpy(valid)
         if flow.smooth:
-            out, uv = _smooth(out, uv, valid, flow.gy, flow.gx)
-        return FlowField(uv, out, valid, torch.from_numpy(count))
+            out, uv = (a.numpy() for a in _smooth(torch.from_numpy(out), torch.from_numpy(uv), torch.from_numpy(valid),
+                                                  flow.gy, flow.gx))
+        return FlowField(uv, out, valid, count)
     return run
 
 

@@ -1,0 +1,80 @@
+"""render_model_step against its oracle: the render window, the rasteriser's render in it and template_model of it,
+one call after the other, bit for bit."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchevtrack.camera import Camera
+from torchevtrack.mesh import load_mesh
+from torchevtrack.raster import RasterRenderer
+from torchevtrack.stages.render_model import render_model_step
+from torchevtrack.stages.template import render_window, template_model
+
+CAM = Camera(160, 120, 150.0, 150.0, 79.5, 59.5)
+OPTIONS = dict(canvas=64, box_margin_px=12.0, edge_clip=0.2, silhouette=True)
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    r = RasterRenderer(load_mesh("can"), CAM, background=0.25)
+    yield r
+    r.close()
+
+
+def _radius(renderer):
+    return float(np.linalg.norm(renderer.raster_mesh.vertices, axis=1).max())
+
+
+def _pose(tx, ty, tz, angle, axis=(0.3, 1.0, 0.2), scale=1.0):
+    """A pose with a quaternion ``scale`` times unit length (the renderers normalise it, the model keeps it)."""
+    a = torch.tensor(axis, dtype=torch.float64)
+    a = a / a.norm()
+    q = torch.cat([torch.tensor([math.cos(angle / 2)], dtype=torch.float64), math.sin(angle / 2) * a]) * scale
+    return torch.cat([torch.tensor([tx, ty, tz], dtype=torch.float64), q])[None]
+
+
+@pytest.mark.parametrize("pose", [
+    _pose(0.0, 0.0, 0.45, 0.4),
+    _pose(0.04, -0.03, 0.6, 2.0, scale=1.0003),  # not quite unit
+    _pose(0.15, 0.1, 0.5, -1.0),  # the window cut by the frame's corner
+])
+def test_render_model_step_is_the_stage_calls_bit_for_bit(renderer, pose):
+    radius = _radius(renderer)
+    got = render_model_step(renderer, pose, radius, margin_px=10, **OPTIONS)
+    win = render_window(pose, CAM, radius, margin_px=10)
+    u0, v0, w, h = win[0].tolist()
+    u1, v1 = min(max(u0, 0), CAM.width - min(w, CAM.width)), min(max(v0, 0), CAM.height - min(h, CAM.height))
+    w, h = min(w, CAM.width), min(h, CAM.height)  # clipped to the frame as the tracker renders
+    assert got.window.tolist() == [[u1, v1, w, h]]
+    want = renderer.render(pose, roi=(u1, v1, w, h))
+    assert torch.equal(got.depth, want.depth) and torch.equal(got.gray, want.gray)
+    assert float(want.depth.max()) > 0  # the comparison covers real pixels
+    model = template_model(pose.float().double(), want.depth, want.gray, torch.tensor([[u1, v1]]), CAM,
+                           canvas=OPTIONS["canvas"], margin_px=OPTIONS["box_margin_px"],
+                           edge_clip=OPTIONS["edge_clip"], silhouette=OPTIONS["silhouette"])
+    for name, a, c in zip(model._fields, got.model, model):
+        assert a.dtype == c.dtype and torch.equal(a, c), name
+    assert float(model.render_template.abs().max()) > 0
+
+
+def test_the_render_alone(renderer):
+    pose = _pose(0.0, 0.01, 0.5, 0.7)
+    depth_only = render_model_step(renderer, pose, _radius(renderer), shaded=False, model=False)
+    shaded = render_model_step(renderer, pose, _radius(renderer), model=False)
+    assert depth_only.gray is None and depth_only.model is None and shaded.model is None
+    assert torch.equal(depth_only.depth, shaded.depth) and shaded.gray is not None
+
+
+def test_bad_input(renderer):
+    radius = _radius(renderer)
+    with pytest.raises(ValueError, match="float64 \\(1, 7\\)"):
+        render_model_step(renderer, _pose(0.0, 0.0, 0.5, 0.1).float(), radius)
+    with pytest.raises(ValueError, match="in front of the camera"):
+        render_model_step(renderer, _pose(0.0, 0.0, -0.5, 0.1), radius)
+    with pytest.raises(ValueError, match="needs the grey render"):
+        render_model_step(renderer, _pose(0.0, 0.0, 0.5, 0.1), radius, shaded=False)
+    with pytest.raises(TypeError, match="RasterRenderer"):
+        render_model_step(object(), _pose(0.0, 0.0, 0.5, 0.1), radius)
