@@ -208,3 +208,34 @@ def test_rows_update_only_their_elements():
     out = part(x[mine], y[mine], b[mine] - 1, rows=slice(1, 3))
     assert out.shape == (2, 10, 12) and torch.equal(part.surface[1:], whole.surface[1:])
     assert (part.surface[0] == 0).all()
+
+
+def test_time_surface_is_the_newest_event_per_pixel():
+    """TimeSurface against a loop over the events: the newest time of each pixel, any polarity, per element."""
+    from torchevtrack.stages.eros import TimeSurface
+
+    gen = torch.Generator().manual_seed(4)
+    H, W, B, n = 7, 9, 3, 400
+    x, y = torch.randint(0, W, (n,), generator=gen), torch.randint(0, H, (n,), generator=gen)
+    b = torch.randint(0, B, (n,), generator=gen)
+    t = torch.randint(0, 10_000, (n,), generator=gen)  # not sorted: the newest is the largest, in any order
+    ts = TimeSurface(H, W, batch_size=B)
+    out = ts(x, y, t, b)
+    want = [[[NEVER] * W for _ in range(H)] for _ in range(B)]
+    for xi, yi, ti, bi in zip(x.tolist(), y.tolist(), t.tolist(), b.tolist()):
+        want[bi][yi][xi] = max(want[bi][yi][xi], ti)
+    assert out is ts.last_us and out.tolist() == want
+    ts(x[:5], y[:5], t[:5] + 20_000, rows=slice(2, 3))  # element 2 alone, b counted from the first row
+    for xi, yi, ti in zip(x[:5].tolist(), y[:5].tolist(), t[:5].tolist()):
+        want[2][yi][xi] = max(want[2][yi][xi], ti + 20_000)
+    assert ts.last_us.tolist() == want
+    ts.reset(torch.tensor([False, True, False]))
+    want[1] = [[NEVER] * W for _ in range(H)]
+    assert ts.last_us.tolist() == want
+    with pytest.raises(ValueError, match="y must lie"):
+        ts(x, y + H, t, b)
+    with pytest.raises(TypeError, match="int64"):
+        ts(x, y, t.int(), b)
+    assert ts.last_us.tolist() == want  # nothing written
+    ts.reset()
+    assert bool((ts.last_us == NEVER).all())

@@ -1,9 +1,9 @@
-"""intake_step against its oracle: the EROS stage and then the flow stage, bit for bit."""
+"""intake_step against its oracle: the EROS stage, the time surface stage and then the flow stage, bit for bit."""
 
 import pytest
 import torch
 
-from torchevtrack.stages.eros import EROS
+from torchevtrack.stages.eros import EROS, TimeSurface
 from torchevtrack.stages.flow import TripletFlow
 from torchevtrack.stages.intake import intake_step
 
@@ -12,8 +12,8 @@ H, W, B = 60, 80, 3
 
 def _stages(B=B, smooth=False):
     """Two polarity channels: the flow checks the polarities too."""
-    return EROS(H, W, batch_size=B), TripletFlow(H, W, batch_size=B, block=20, min_samples=5, per_polarity=True,
-                                                 smooth=smooth)
+    return EROS(H, W, batch_size=B), TimeSurface(H, W, batch_size=B), \
+        TripletFlow(H, W, batch_size=B, block=20, min_samples=5, per_polarity=True, smooth=smooth)
 
 
 def _window(seed, t0, n=3000, B=B):
@@ -31,48 +31,78 @@ def _window(seed, t0, n=3000, B=B):
 
 @pytest.mark.parametrize("smooth", [False, True])
 def test_intake_step_is_the_eros_then_the_flow_bit_for_bit(smooth):
-    eros, flow = _stages(smooth=smooth)
-    ref_eros, ref_flow = _stages(smooth=smooth)
+    eros, times, flow = _stages(smooth=smooth)
+    ref_eros, ref_times, ref_flow = _stages(smooth=smooth)
     for k in range(3):  # later windows see the surfaces the earlier ones left
         x, y, t, p, b = _window(k, 10_000 + 2000 * k)
-        got = intake_step(eros, flow, x, y, t, p, b)
+        got = intake_step(eros, times, flow, x, y, t, p, b)
         ref_eros(x, y, b)
+        ref_times(x, y, t, b)
         want = ref_flow(x, y, t, p, b)
         for a, c in zip(got, want):
             assert a.dtype == c.dtype and torch.equal(a, c)
         assert torch.equal(eros.surface, ref_eros.surface) and torch.equal(flow.sae_padded, ref_flow.sae_padded)
+        assert torch.equal(times.last_us, ref_times.last_us)
     assert int(want.valid.sum()) > 0 and float(eros.surface.max()) > 0  # the comparison covers real work
+    # the time surface holds the flow's SAE, either polarity: the observation may read either
+    assert torch.equal(times.last_us, flow.sae.amax(1))
 
 
 def test_rows_and_one_element_without_a_batch_index():
-    eros, flow = _stages()
-    ref_eros, ref_flow = _stages()
+    eros, times, flow = _stages()
+    ref_eros, ref_times, ref_flow = _stages()
     x, y, t, p, b = _window(1, 5000)
     keep = b == 1
-    got = intake_step(eros, flow, x[keep], y[keep], t[keep], p[keep], b[keep] - 1, rows=slice(1, 2))
+    got = intake_step(eros, times, flow, x[keep], y[keep], t[keep], p[keep], b[keep] - 1, rows=slice(1, 2))
     ref_eros(x[keep], y[keep], b[keep] - 1, rows=slice(1, 2))
+    ref_times(x[keep], y[keep], t[keep], b[keep] - 1, rows=slice(1, 2))
     want = ref_flow(x[keep], y[keep], t[keep], p[keep], b[keep] - 1, rows=slice(1, 2))
     assert all(torch.equal(a, c) for a, c in zip(got, want))
     assert torch.equal(eros.surface, ref_eros.surface) and torch.equal(flow.sae_padded, ref_flow.sae_padded)
-    one_eros, one_flow = _stages(B=1)
-    ref_eros, ref_flow = _stages(B=1)
-    got = intake_step(one_eros, one_flow, x[keep], y[keep], t[keep], p[keep])
+    assert torch.equal(times.last_us, ref_times.last_us)
+    one_eros, one_times, one_flow = _stages(B=1)
+    ref_eros, ref_times, ref_flow = _stages(B=1)
+    got = intake_step(one_eros, one_times, one_flow, x[keep], y[keep], t[keep], p[keep])
     ref_eros(x[keep], y[keep])
+    ref_times(x[keep], y[keep], t[keep])
     want = ref_flow(x[keep], y[keep], t[keep], p[keep])
     assert all(torch.equal(a, c) for a, c in zip(got, want))
-    assert torch.equal(one_eros.surface, ref_eros.surface)
+    assert torch.equal(one_eros.surface, ref_eros.surface) and torch.equal(one_times.last_us, ref_times.last_us)
 
 
 def test_bad_events_raise_the_stages_errors_and_write_nothing():
-    eros, flow = _stages()
+    eros, times, flow = _stages()
     x, y, t, p, b = _window(2, 5000)
-    before = eros.surface.clone(), flow.sae_padded.clone()
+    before = eros.surface.clone(), times.last_us.clone(), flow.sae_padded.clone()
     for bad, match in (((x.clone().fill_(W), y, t, p, b), "x"), ((x, y, t, p.clone().fill_(2), b), "p must"),
                        ((x, y, t, p, b.clone().fill_(B)), "b")):
         with pytest.raises(ValueError, match=match):
-            intake_step(eros, flow, *bad)
-        assert torch.equal(eros.surface, before[0]) and torch.equal(flow.sae_padded, before[1])
+            intake_step(eros, times, flow, *bad)
+        assert torch.equal(eros.surface, before[0]) and torch.equal(times.last_us, before[1])
+        assert torch.equal(flow.sae_padded, before[2])
     with pytest.raises(TypeError):
-        intake_step(eros, flow, x.float(), y, t, p, b)
+        intake_step(eros, times, flow, x.float(), y, t, p, b)
     with pytest.raises(ValueError, match="same elements"):
-        intake_step(EROS(H, W, batch_size=2), flow, x, y, t, p, b)
+        intake_step(EROS(H, W, batch_size=2), times, flow, x, y, t, p, b)
+
+
+def test_the_flow_alone_and_the_checked_events():
+    """surfaces=False leaves the EROS and the time surface alone; checked sees the events once they are known to be in
+    range, and bad events raise before it is called."""
+    from torchevtrack.stages.intake import bind_intake
+
+    eros, times, flow = _stages()
+    ref_eros, ref_times, ref_flow = _stages()
+    x, y, t, p, b = _window(3, 7000)
+    seen = []
+    got = bind_intake(eros, times, flow)(x, y, t, p, b, surfaces=False, checked=lambda *ev: seen.append(ev))
+    want = ref_flow(x, y, t, p, b)
+    assert all(torch.equal(torch.from_numpy(a), c) for a, c in zip(got, want))
+    assert torch.equal(flow.sae_padded, ref_flow.sae_padded)
+    assert torch.equal(eros.surface, ref_eros.surface) and torch.equal(times.last_us, ref_times.last_us)  # untouched
+    (xs, ys, ts, bs), = seen
+    assert (xs == x.numpy()).all() and (ys == y.numpy()).all() and (ts == t.numpy()).all() and (bs == b.numpy()).all()
+    seen.clear()
+    with pytest.raises(ValueError, match="p must"):
+        bind_intake(eros, times, flow)(x, y, t, p.clone().fill_(2), b, surfaces=False, checked=seen.append)
+    assert not seen and torch.equal(flow.sae_padded, ref_flow.sae_padded)

@@ -3,9 +3,11 @@
 One update consumes the events of one window (``1 / rate_hz``, 2 ms by default) for each of ``B``
 sequences and runs, in the paper's order:
 
-1. :class:`~torchevtrack.stages.eros.EROS` and :class:`~torchevtrack.stages.flow.TripletFlow` take the events (with
-   the pipeline, when the window is known one update ahead, on a thread of their own during the previous
-   update's step 5: :func:`~torchevtrack.stages.intake.intake_step`);
+1. :class:`~torchevtrack.stages.eros.EROS`, its :class:`~torchevtrack.stages.eros.TimeSurface` and
+   :class:`~torchevtrack.stages.flow.TripletFlow` take the events in one compiled call
+   (:func:`~torchevtrack.stages.intake.intake_step`). With the pipeline, when the window is known one update ahead,
+   on a thread of their own during the previous update's step 5; in streaming, the EROS side on that thread together
+   with step 5's observation (:func:`~torchevtrack.stages.observe.observe_step`) while the flow runs here;
 2. :class:`~torchevtrack.stages.velocity.VelocityKF` fuses the block flows, with depth sampled from the
    last render (the mesh at the previous pose: no depth sensor);
 3. :func:`~torchevtrack.stages.propagate.propagate` moves the pose with the twist for one period (the
@@ -15,7 +17,8 @@ sequences and runs, in the paper's order:
    :func:`~torchevtrack.stages.motion.motion_step`;
 4. the mesh is rendered once, in a window around the propagated pose; by default (``render.ahead``) around
    the pose the previous update predicted for this one (its propagated pose moved on by its twist), so that
-   with the pipeline the render is made on the pipeline's thread during the previous update's step 5;
+   with the pipeline the render and its template model are made on the pipeline's thread during the previous
+   update's step 5, in one compiled call (:func:`~torchevtrack.stages.render_model.render_model_step`);
 5. :class:`~torchevtrack.stages.template.TemplateCorrector` scores hypotheses around the propagated pose,
    warped from that render, against the EROS observation (optionally weighted toward its newest events, ``eros.recency_us``)
    and moves the pose to the best (the paper's argmax of 13, or a Newton step over all six axes:
@@ -64,11 +67,12 @@ from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.render import _normalise_quaternions, make_renderer
 from torchevtrack.stages import batch_mask, periods
-from torchevtrack.stages.correction import CorrectionStep, bind_correction
-from torchevtrack.stages.eros import EROS
+from torchevtrack.stages.correction import CorrectionStep, _observed_box, bind_correction
+from torchevtrack.stages.eros import EROS, TimeSurface
 from torchevtrack.stages.flow import FlowField, TripletFlow
 from torchevtrack.stages.intake import bind_intake
 from torchevtrack.stages.motion import _render_ahead_kernel, bind_motion, invalid_poses
+from torchevtrack.stages.observe import bind_observe
 from torchevtrack.stages.output import bind_output
 from torchevtrack.stages.propagate import propagate
 from torchevtrack.stages.render_model import bind_render_model
@@ -130,9 +134,10 @@ class EventPoseTracker(nn.Module):
             flow (:func:`~torchevtrack.stages.intake.intake_step`) while an update searches, whenever that
             window is known: in :meth:`track`, and in :class:`~torchevtrack.online.OnlineTracker` when a push
             completes several windows; and (``render.ahead``, one sequence, compiled rasteriser) make the next
-            update's render meanwhile, at every update. Default: on with one worker and two or more usable cores.
-            Results do not depend on it; with it, the ``eros``, ``flow`` and ``render`` of ``stage_ms`` are
-            the waits for that thread.
+            update's render meanwhile, at every update, and when the window was not known ahead (streaming), take
+            its events into the EROS and the time surface and observe them while the calling thread runs the flow.
+            Default: on with one worker and two or more usable cores. Results do not depend on it; with it, the
+            ``eros``, ``flow``, ``render`` and ``correction`` of ``stage_ms`` include the waits for that thread.
         on_lost: re-initialisation callback of the loss detector (needs ``config.loss.enabled``):
             ``on_lost(batch_indices (K,) int64, t_us (K,) int64) -> poses (K, 7) or None``, called with
             the elements declared lost in an update; the elements it returns poses for restart there
@@ -145,8 +150,8 @@ class EventPoseTracker(nn.Module):
 
     After each update, ``quality`` holds its :class:`Quality` and ``stage_ms`` the milliseconds spent in
     each stage (eros, flow, velocity, render, correction, ukf; and loss with a detector; ukf includes the
-    correction feedback's update, which runs with it; the EROS and the flow run as one compiled call per worker,
-    :func:`~torchevtrack.stages.intake.intake_step`, whose time counts as the flow's). With
+    correction feedback's update, which runs with it; the EROS, the time surface and the flow run as one compiled
+    call per worker, :func:`~torchevtrack.stages.intake.intake_step`, whose time counts as the flow's). With
     ``config.loss.enabled``, ``loss`` is the :class:`~torchevtrack.loss.LossDetector` (its buffers:
     confidence, lost, lost_at_us, ...), ``loss_update`` the :class:`~torchevtrack.loss.LossUpdate` of
     the last update and ``lost`` its ``(B,)`` flags; without it all three are ``None``.
@@ -199,6 +204,7 @@ class EventPoseTracker(nn.Module):
         self._intake: ThreadPoolExecutor | None = None  # the pipeline's thread, made when first needed
         self._ahead: _Ahead | None = None  # the next window, taken in on the intake thread
         self._rendering: Future | None = None  # render.ahead: the next update's Rendered, on the intake thread
+        self._observing: Future | None = None  # streaming: this update's EROS, time surface and observation there
         self.period_us = cfg.period_us
         self.dt = self.period_us * 1e-6
 
@@ -223,6 +229,7 @@ class EventPoseTracker(nn.Module):
 
         H, W = camera.height, camera.width
         self.eros = EROS(H, W, cfg.eros.kernel_size, cfg.eros.decay, batch_size=B)
+        self.time_surface = TimeSurface(H, W, batch_size=B)
         f = cfg.flow
         self.flow = TripletFlow(H, W, batch_size=B, block=f.block, min_samples=f.min_samples, D=f.radius,
                                 dt_max_us=f.dt_max_us, tol=f.tol, smooth=f.smooth, estimate=f.estimate)
@@ -321,6 +328,7 @@ class EventPoseTracker(nn.Module):
             if mask is None:  # a fresh start: that window is not coming
                 self._ahead = None
         self.eros.reset(m)
+        self.time_surface.reset(m)
         self.flow.reset(m)
         if self._ahead is not None:
             self._retake_ahead(m)
@@ -370,7 +378,12 @@ class EventPoseTracker(nn.Module):
         operations); the returned poses are ordinary tensors.
         """
         with torch.inference_mode():
-            self._update(x, y, t, p, b, t_us, next_window if self._pipeline else None)
+            try:
+                self._update(x, y, t, p, b, t_us, next_window if self._pipeline else None)
+            finally:
+                if self._observing is not None:  # the update failed after it gave the intake thread its part
+                    wait([self._observing])
+                    self._observing = None
         return torch.from_numpy(self.pose.numpy().copy())
 
     def _update(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor, b: torch.Tensor | None,
@@ -384,7 +397,13 @@ class EventPoseTracker(nn.Module):
         if self._ahead is not None:  # this window went in on the intake thread during the last update
             clock.lap("eros")
             flow = self._take_ahead(x)
-        elif self._pool is None:  # both stages in one compiled call: its time counts as the flow's
+        elif self._rendering is not None and ahead is None and cfg.template.enabled:
+            # streaming (the next window unknown) with the render made ahead: the EROS, the time surface and the
+            # observation on the pipeline's thread, after that render, while this one runs the flow
+            clock.lap("eros")
+            flow = run.intake[0](x, y, t, p, b, surfaces=False,
+                                 checked=lambda *ev: self._observe_soon(*ev, self._t_now(t, b).copy()))
+        elif self._pool is None:  # the three stages in one compiled call: its time counts as the flow's
             clock.lap("eros")
             flow = run.intake[0](x, y, t, p, b)
         else:  # each worker takes the events of its share of the batch
@@ -417,7 +436,11 @@ class EventPoseTracker(nn.Module):
         n_events = np.bincount(b.numpy(), minlength=B) if b is not None else np.full(B, x.numel())
         run.events_seen[:] += n_events
         if cfg.template.enabled:
-            corr = self._correct(predicted, pose32, render, self._t_now(t, b), launch)
+            obs = None
+            if self._observing is not None:
+                observing, self._observing = self._observing, None
+                obs = observing.result()  # also when None (no box): the surfaces are then the correction's to read
+            corr = self._correct(predicted, pose32, render, self._t_now(t, b), launch, obs)
             # Until the EROS holds enough events, its edges are too sparse to correct against.
             warm = (run.events_seen >= cfg.template.warmup_events)[:, None]
             measured = np.where(warm, corr.pose, predicted)
@@ -605,14 +628,17 @@ class EventPoseTracker(nn.Module):
                              max_speed=cfg.flow.max_speed,
                              radius=max(cfg.flow.block // 4, 2),  # flow lies on edges: the pixel may fall just off
                              feedback=None if fb is None else fb.b.numpy())
-        correct = [bind_correction(self.eros.surface[r].numpy(), self.flow.sae[r].numpy(), self.camera,
-                                   canvas=o["canvas"], margin_px=o["margin_px"], edge_clip=o["edge_clip"],
-                                   silhouette=o["silhouette"], dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"],
-                                   rule=o["rule"], iterations=o["iterations"], max_age_us=e.max_age_us,
-                                   recency_us=e.recency_us) for r in self._shares]
+        correct = [bind_correction(self.eros.surface[r].numpy(), self.time_surface.last_us[r, None].numpy(),
+                                   self.camera, canvas=o["canvas"], margin_px=o["margin_px"],
+                                   edge_clip=o["edge_clip"], silhouette=o["silhouette"], dp_px=o["dp_px"],
+                                   dtheta_deg=o["dtheta_deg"], rule=o["rule"], iterations=o["iterations"],
+                                   max_age_us=e.max_age_us, recency_us=e.recency_us) for r in self._shares]
         output = bind_output(self.pose.numpy(), self.dt, self._min_depth.numpy(),
                              ukf=self.ukf if cfg.ukf.enabled else None, feedback=fb)
-        self._bound = _Bound([bind_intake(self.eros, self.flow, r) for r in self._shares], motion, correct, output,
+        observe = bind_observe(self.eros, self.time_surface, canvas=o["canvas"], max_age_us=e.max_age_us,
+                               recency_us=e.recency_us)
+        self._bound = _Bound([bind_intake(self.eros, self.time_surface, self.flow, r) for r in self._shares], motion,
+                             correct, output, observe,
                              self.pose.numpy(), self.prev_pose.numpy(), self.origin.numpy(), self.events_seen.numpy(),
                              self.t_last.numpy(), self._min_depth.numpy(), self._render_next.numpy(),
                              self._render_next_ok.numpy())
@@ -708,14 +734,15 @@ class EventPoseTracker(nn.Module):
         return v.source == "flow" and cfg.template.enabled and v.feedback_gain > 0
 
     def _correct(self, predicted: np.ndarray, pose32: np.ndarray, render: "_Render | None", t_now: np.ndarray,
-                 on_observed: Callable[[], object] | None = None) -> Correction:
+                 on_observed: Callable[[], object] | None = None, obs: np.ndarray | None = None) -> Correction:
         """Template correction of the ``predicted`` poses with a new template model of ``render`` (made at ``pose32``),
         or the last model when ``render`` is ``None``; each worker corrects its share of the batch. ``on_observed``
-        (only without workers) is called once the EROS and the time surface have been read."""
+        (only without workers) is called once the EROS and the time surface have been read. ``obs``: the observation
+        made on the intake thread under the last model's box (one element, ``render`` ``None``)."""
         if render is None:
             def share(rows: slice, correct: Callable[..., CorrectionStep], model: TemplateModel) -> CorrectionStep:
                 return correct(None, _cut(predicted, rows), None, None, None, _cut(t_now, rows), model=model,
-                               on_observed=on_observed)
+                               on_observed=on_observed, obs=obs)
 
             parts = self._map(share, self._bound.correct, self._models)
         else:
@@ -728,6 +755,21 @@ class EventPoseTracker(nn.Module):
             parts = self._map(share, self._bound.correct)
         self._models = [p.model for p in parts]  # kept per share: each worker reads its own next time
         return _cat([p.correction for p in parts])
+
+    def _observe_soon(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, b: np.ndarray | None,
+                      t_now: np.ndarray) -> None:
+        """Take the checked events into the EROS and the time surface on the intake thread and observe them under the
+        canvas box of the render made ahead there (:mod:`~torchevtrack.stages.observe`), for :meth:`_correct`."""
+        rendering, observe = self._rendering, self._bound.observe
+
+        def job() -> np.ndarray | None:
+            try:  # done: the job before this one on the thread
+                model = rendering.result().model
+            except BaseException:  # the update raises it when it takes the render; the events still go in
+                model = None
+            return observe(x, y, t, b, None if model is None else _observed_box(model), t_now)
+
+        self._observing = self._intake_thread().submit(job)
 
     def _intake_thread(self) -> ThreadPoolExecutor:
         """The pipeline's thread, made on first use."""
@@ -761,8 +803,8 @@ class EventPoseTracker(nn.Module):
         parts = list(self._ahead.flow.result())
         for i in m.nonzero()[:, 0].tolist():
             k = slice(None) if b is None else b == i
-            redo = bind_intake(self.eros, self.flow, slice(i, i + 1))(x[k], y[k], t[k], p[k],
-                                                                       None if b is None else b[k] - i)
+            redo = bind_intake(self.eros, self.time_surface, self.flow, slice(i, i + 1))(
+                x[k], y[k], t[k], p[k], None if b is None else b[k] - i)
             for field, row in zip(parts, redo):
                 field[i] = row[0]
         self._ahead = _Ahead(_resolved(FlowField(*parts)), self._ahead.window)
@@ -819,6 +861,7 @@ class _Bound(NamedTuple):
     motion: Callable[..., tuple[np.ndarray, ...]]
     correct: list[Callable[..., CorrectionStep]]
     output: Callable[..., tuple[np.ndarray, np.ndarray]]
+    observe: Callable[..., np.ndarray | None | bool]
     pose: np.ndarray
     prev_pose: np.ndarray
     origin: np.ndarray

@@ -10,7 +10,11 @@ import numba
 import numpy as np
 import torch
 
-__all__ = ["batch_mask"]
+__all__ = ["NEVER", "batch_mask"]
+
+NEVER = -(2 ** 62)
+"""Time of a pixel that never fired, in the time surfaces (int64 microseconds): the flow's SAE and the
+:class:`~torchevtrack.stages.eros.TimeSurface`."""
 
 
 def batch_mask(mask: torch.Tensor | None, batch_size: int) -> torch.Tensor:

@@ -105,27 +105,30 @@ def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *,
     """:func:`correction_step` bound to the EROS ``surface`` ``(B, H, W)`` and time surface ``last_us`` (numpy views,
     read at each call) and its options, unchecked, for a caller that corrects every update (the tracker).
 
-    Returns ``run(render_pose, predicted, depth, gray, origin, t_now_us, model=None, on_observed=None)``, the
-    arguments of :func:`correction_step` as numpy arrays (``render_pose`` float32; ``depth``, ``gray`` and
+    Returns ``run(render_pose, predicted, depth, gray, origin, t_now_us, model=None, on_observed=None, obs=None)``,
+    the arguments of :func:`correction_step` as numpy arrays (``render_pose`` float32; ``depth``, ``gray`` and
     ``origin`` ``None`` with a ``model`` to reuse), giving its :class:`CorrectionStep` with the fields of the
-    correction as numpy arrays.
+    correction as numpy arrays. ``obs``: the observation ``(B, N, N)`` under the ``model``'s box if it was made
+    elsewhere (:mod:`~torchevtrack.stages.observe`); the surfaces are then not read.
     """
     cam = _camera_array(camera)
     max_age_us, recency_us = int(max_age_us), float(recency_us)
     table = _decay_table(recency_us, max_age_us)
     dp, dtheta = float(dp_px), math.radians(dtheta_deg)
 
-    def run(render_pose, predicted, depth, gray, origin, t_now_us, model=None, on_observed=None) -> CorrectionStep:
+    def run(render_pose, predicted, depth, gray, origin, t_now_us, model=None, on_observed=None,
+            obs=None) -> CorrectionStep:
         B = predicted.shape[0]
         if model is None:  # the canvas box first: the observation needs only that, the rest of the model can wait
             origin64 = origin.astype(np.float64)
             box, gain = _render_box(depth, origin64, cam, margin_px)
             N, observed_box = canvas, box.astype(np.float32).astype(np.float64)  # as the model's box (float32) gives it
         else:
-            N, observed_box = model.depth.shape[-1], model.box.numpy().astype(np.float64)
-        obs = np.empty((B, N, N), dtype=np.float32)
-        _canvas_kernel(surface, last_us, observed_box, t_now_us.astype(np.int64, copy=False), max_age_us, recency_us,
-                       table, obs)
+            N = model.depth.shape[-1]
+        if obs is None:
+            obs = np.empty((B, N, N), dtype=np.float32)
+            _canvas_kernel(surface, last_us, observed_box if model is None else _observed_box(model),
+                           t_now_us.astype(np.int64, copy=False), max_age_us, recency_us, table, obs)
         if on_observed is not None:
             on_observed()
         if model is None:
@@ -159,3 +162,8 @@ def _check_render(render_pose, depth, gray, origin, silhouette) -> None:
                          f"{tuple(render_pose.shape)} and {tuple(origin.shape)}")
     if gray is None and not silhouette:
         raise ValueError("without a grey render the template needs silhouette=True")
+
+
+def _observed_box(model: TemplateModel) -> np.ndarray:
+    """The canvas box ``(B, 3)`` float64 a template model's observation is made under (its float32 box)."""
+    return model.box.numpy().astype(np.float64)

@@ -1,4 +1,5 @@
-"""Stage 1: EROS, the exponentially reduced ordinal surface (velocity-independent event image).
+"""Stage 1: EROS, the exponentially reduced ordinal surface (velocity-independent event image), and the timestamp
+surface of the newest event per pixel (:class:`TimeSurface`), which weighs the EROS by recency when it is observed.
 
 Definition, per event at pixel ``(x, y)`` of batch element ``b``, in order: every pixel of the
 ``k x k`` window centred on ``(x, y)`` (clipped to the image, the event pixel included) is multiplied
@@ -33,10 +34,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from torchevtrack.stages import batch_mask, canvas_taps
+from torchevtrack.stages import NEVER, batch_mask, canvas_taps
 
-__all__ = ["EROS", "canvas_observation", "eros_update", "eros_update_", "observation", "prepare_events",
-           "recent_observation"]
+__all__ = ["EROS", "TimeSurface", "canvas_observation", "eros_update", "eros_update_", "observation", "prepare_events",
+           "recent_observation", "time_surface_update_"]
 
 
 def prepare_events(x: torch.Tensor, y: torch.Tensor, b: torch.Tensor | None, height: int, width: int,
@@ -417,3 +418,90 @@ class EROS(nn.Module):
     def extra_repr(self) -> str:
         B, H, W = self.surface.shape
         return f"height={H}, width={W}, kernel_size={self.kernel_size}, decay={self.decay}, batch_size={B}"
+
+
+def time_surface_update_(last_us: torch.Tensor, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor,
+                         b: torch.Tensor | None = None) -> torch.Tensor:
+    """Apply events to a timestamp surface in place and return it: ``last_us[b, y, x] = max(last_us[b, y, x], t)``.
+
+    Shape:
+        last_us: ``(B, H, W)`` int64 microseconds (:data:`~torchevtrack.stages.NEVER` where no event has been).
+        x, y: ``(N,)`` integer pixels; t: ``(N,)`` int64 microseconds; b: ``(N,)`` batch index or ``None``.
+
+    Raises:
+        TypeError / ValueError: as :func:`prepare_events`, and for ``t`` not int64 ``(N,)``.
+    """
+    if not isinstance(last_us, torch.Tensor) or last_us.dtype != torch.int64 or last_us.ndim != 3 \
+            or not last_us.is_contiguous():
+        raise ValueError("last_us must be a contiguous int64 (B, H, W) tensor, got "
+                         f"{getattr(last_us, 'dtype', type(last_us).__name__)} {tuple(getattr(last_us, 'shape', ()))}")
+    _check_fields(x, y, b)
+    if not isinstance(t, torch.Tensor) or t.dtype != torch.int64 or t.shape != x.shape:
+        raise TypeError(f"t must be an int64 tensor of microseconds with the shape of x {tuple(x.shape)}")
+    bn = np.zeros(1, dtype=np.int64) if b is None else b.numpy()
+    if not _time_kernel(last_us.numpy(), x.numpy(), y.numpy(), t.numpy(), bn, b is not None):
+        prepare_events(x, y, b, *last_us.shape[1:], last_us.shape[0])  # raises the range error
+    return last_us
+
+
+@numba.njit(cache=True, nogil=True)
+def _time_kernel(last, x, y, t, b, batched):
+    """Apply the events; returns False, untouched, if one lies outside the surface."""
+    B, H, W = last.shape
+    for i in range(x.shape[0]):
+        k = b[i] if batched else 0
+        if x[i] < 0 or x[i] >= W or y[i] < 0 or y[i] >= H or k < 0 or k >= B:
+            return False
+    for i in range(x.shape[0]):
+        k = b[i] if batched else 0
+        last[k, y[i], x[i]] = max(last[k, y[i], x[i]], t[i])
+    return True
+
+
+class TimeSurface(nn.Module):
+    """The time of the newest event at each pixel, of either polarity, for ``B`` event streams.
+
+    The observation (:func:`canvas_observation`) weighs the EROS by it. The flow keeps a surface of its own (one
+    channel per polarity, padded), which its matching writes as it reads, so this one lets the EROS side observe
+    while the flow runs (the tracker's pipeline).
+
+    Args:
+        height, width: sensor size in pixels; batch_size: number of streams ``B``.
+
+    Buffers:
+        last_us: ``(B, H, W)`` int64 microseconds, :data:`~torchevtrack.stages.NEVER` where no event has been.
+
+    ``forward(x, y, t, b=None, rows=None)`` applies a packet (``b`` counted from ``rows.start``) and returns
+    ``last_us`` (of ``rows``), the buffer itself.
+
+    Example:
+        >>> import torch
+        >>> ts = TimeSurface(2, 3)
+        >>> ts(torch.tensor([1, 1]), torch.tensor([0, 0]), torch.tensor([40, 70]))[0, 0].tolist()[1]
+        70
+    """
+
+    last_us: torch.Tensor
+
+    def __init__(self, height: int, width: int, batch_size: int = 1):
+        super().__init__()
+        for name, v in (("height", height), ("width", width), ("batch_size", batch_size)):
+            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+                raise ValueError(f"{name} must be a positive int, got {v!r}")
+        self.register_buffer("last_us", torch.full((batch_size, height, width), NEVER, dtype=torch.int64))
+
+    def forward(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, b: torch.Tensor | None = None,
+                rows: slice | None = None) -> torch.Tensor:
+        return time_surface_update_(self.last_us if rows is None else self.last_us[rows], x, y, t, b)
+
+    def reset(self, mask: torch.Tensor | None = None) -> None:
+        """Forget the events of every element, or of those selected by ``mask`` (``(B,)`` bool or ``(K,)``
+        indices, see :func:`~torchevtrack.stages.batch_mask`)."""
+        if mask is None:
+            self.last_us.fill_(NEVER)
+        else:
+            self.last_us.masked_fill_(batch_mask(mask, self.last_us.shape[0])[:, None, None], NEVER)
+
+    def extra_repr(self) -> str:
+        B, H, W = self.last_us.shape
+        return f"height={H}, width={W}, batch_size={B}"

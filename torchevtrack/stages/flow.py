@@ -59,7 +59,7 @@ import torch.nn.functional as Fnn
 from numba.cpython.unsafe.numbers import trailing_zeros
 from torch import nn
 
-from torchevtrack.stages import batch_mask
+from torchevtrack.stages import NEVER, batch_mask
 from torchevtrack.stages.eros import _check_fields, prepare_events
 
 __all__ = [
@@ -72,10 +72,6 @@ __all__ = [
     "sae_update_",
     "triplet_samples",
 ]
-
-NEVER = -(2 ** 62)
-"""SAE value of a pixel that never fired (int64 microseconds)."""
-
 
 class FlowField(NamedTuple):
     """Sparse flow on the block grid of ``G = Gy * Gx`` RoIs (row-major, block ``(gy, gx)`` is ``gy * Gx + gx``).
