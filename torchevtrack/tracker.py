@@ -286,6 +286,20 @@ class EventPoseTracker(nn.Module):
         self.register_buffer("_render_next_ok", torch.zeros(B, dtype=torch.bool), persistent=False)
         self._bound: _Bound | None = None  # the stages' compiled steps bound to these buffers (made on first use)
 
+    # The state an update replaces, none of it a parameter, buffer or submodule: set as plain attributes, without
+    # nn.Module's bookkeeping for those (~1-3 us each, several per update). The depth buffer: _set_depth.
+    _PLAIN = frozenset({"_rendering", "_observing", "_models", "_quality", "stage_ms", "_ahead", "loss_update", "_bound"})
+
+    def __setattr__(self, name: str, value) -> None:
+        if name in EventPoseTracker._PLAIN:
+            object.__setattr__(self, name, value)
+        else:
+            super().__setattr__(name, value)
+
+    def _set_depth(self, depth: torch.Tensor) -> None:
+        """Replace the depth buffer (the registered name, without nn.Module's checks: ``depth`` is a tensor)."""
+        self._buffers["depth"] = depth
+
     # -- state -------------------------------------------------------------------------------
     @torch.inference_mode()
     def reset(self, initial_pose: torch.Tensor, twist: torch.Tensor | None = None,
@@ -436,11 +450,12 @@ class EventPoseTracker(nn.Module):
         n_events = np.bincount(b.numpy(), minlength=B) if b is not None else np.full(B, x.numel())
         run.events_seen[:] += n_events
         if cfg.template.enabled:
-            obs = None
-            if self._observing is not None:
+            if self._observing is not None:  # (its window's times went into t_last when it was given out)
                 observing, self._observing = self._observing, None
-                obs = observing.result()  # also when None (no box): the surfaces are then the correction's to read
-            corr = self._correct(predicted, pose32, render, self._t_now(t, b), launch, obs)
+                obs, t_now = observing.result(), run.t_last  # obs None (no box): the correction observes itself
+            else:
+                obs, t_now = None, self._t_now(t, b)
+            corr = self._correct(predicted, pose32, render, t_now, launch, obs)
             # Until the EROS holds enough events, its edges are too sparse to correct against.
             warm = (run.events_seen >= cfg.template.warmup_events)[:, None]
             measured = np.where(warm, corr.pose, predicted)
@@ -577,7 +592,7 @@ class EventPoseTracker(nn.Module):
             if self._rendering is not None:  # made ahead, at these poses, with its template model (render.ahead)
                 rendering, self._rendering = self._rendering, None  # taken, even if it failed
                 made = rendering.result()
-                self.depth = made.depth
+                self._set_depth(made.depth)
                 self.origin.numpy()[:] = made.window[:, :2]
                 return _Render(made.depth, made.gray, made.model)
             if self._render_one is not None:
@@ -586,7 +601,7 @@ class EventPoseTracker(nn.Module):
                 win = self._windows(poses)
                 out = self._renderers[0].render(torch.from_numpy(poses), roi=tuple(win[0].tolist()), shaded=shaded)
                 depth, gray = out.depth, out.gray
-            self.depth = depth
+            self._set_depth(depth)
             self.origin.numpy()[:] = win[:, :2]
             return _Render(depth, gray)
         win = self._windows(poses)
@@ -607,7 +622,7 @@ class EventPoseTracker(nn.Module):
             self._map(share)
         else:
             share(slice(None))
-        self.depth = depth
+        self._set_depth(depth)
         self.origin.copy_(torch.from_numpy(origin))
         return _Render(depth, gray)
 
@@ -701,7 +716,7 @@ class EventPoseTracker(nn.Module):
             origin[i] = torch.tensor([min(wi[0], W - w), min(wi[1], H - h)])
             depth[i] = 0.0
             self._render_into(i, poses.numpy()[i:i + 1], wi, origin[i].numpy(), depth.numpy(), None)
-        self.depth = depth
+        self._set_depth(depth)
         self.origin.copy_(origin)
 
     @property
