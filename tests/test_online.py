@@ -8,6 +8,7 @@ from hypothesis import strategies as st
 from torch import nn
 
 from torchevtrack.camera import Camera
+from torchevtrack.config import TrackerConfig
 from torchevtrack.events import EventStream
 from torchevtrack.online import OnlineTracker
 from torchevtrack.synth.generate import generate_sequence
@@ -257,13 +258,16 @@ def test_bad_input_is_rejected():
         OnlineTracker(object())
 
 
-def test_pushes_of_several_windows_run_the_pipeline_with_the_serial_poses(seq):
-    """A push that completes several windows lets the tracker take each next one in ahead: same poses."""
+@pytest.mark.parametrize("render_ahead", [False, True])
+def test_pushes_of_several_windows_run_the_pipeline_with_the_serial_poses(seq, render_ahead):
+    """A push that completes several windows lets the tracker take each next one in ahead (with render.ahead, one
+    stream's windows go into the EROS side on the pipeline's thread instead): same poses."""
     t0 = _t0(seq)
     ev = seq.events.slice_time(t0, t0 + 30_000)
+    cfg = TrackerConfig().replace(render={"ahead": render_ahead})
     out = {}
     for pipeline in (False, True):
-        tracker = EventPoseTracker(CAM, seq.mesh, workers=1, pipeline=pipeline)
+        tracker = EventPoseTracker(CAM, seq.mesh, cfg, workers=1, pipeline=pipeline)
         online = OnlineTracker(tracker)
         online.start(seq.gt_poses[0], t0)
         got = []

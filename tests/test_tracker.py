@@ -331,39 +331,43 @@ def test_feedback_ignores_turns_about_a_symmetry_axis():
 
 # -- the pipeline: the next window's intake during an update's search -------------------------------
 def _counting_intake(monkeypatch):
-    """Count the windows the tracker takes in ahead (its calls of the intake kernel on the pipeline's thread; the
-    serial update calls it on the caller's)."""
+    """Count the windows the pipeline's thread takes in: ahead (its calls of the intake kernel) and into the EROS side
+    with the observation (the observe kernel); the serial update calls the intake kernel on the caller's thread."""
     import threading
 
     import torchevtrack.stages.intake as intake_module
+    import torchevtrack.stages.observe as observe_module
 
-    calls = []
-    kernel = intake_module._intake_kernel
+    calls = {"intake": [], "observe": []}
+    for name, module, attr in (("intake", intake_module, "_intake_kernel"), ("observe", observe_module,
+                                                                              "_observe_kernel")):
+        def counted(*args, kernel=getattr(module, attr), name=name):
+            if threading.current_thread() is not threading.main_thread():
+                calls[name].append(1)
+            return kernel(*args)
 
-    def counted(*args):
-        if threading.current_thread() is not threading.main_thread():
-            calls.append(1)
-        return kernel(*args)
-
-    monkeypatch.setattr(intake_module, "_intake_kernel", counted)
+        monkeypatch.setattr(module, attr, counted)
     return calls
 
 
 @pytest.mark.parametrize("ablation", ["full", "velocity_only", "correction_only"])
 def test_the_pipeline_gives_the_poses_of_the_serial_update(seq, ablation, monkeypatch):
-    """Bit for bit, one stream and a batch on one worker; every window but the first is taken in ahead."""
+    """Bit for bit, one stream and a batch on one worker. Every window but the first goes in on the pipeline's
+    thread: taken in ahead, or (one stream with its template made ahead) into the EROS side with the observation."""
     calls = _counting_intake(monkeypatch)
     cfg = TrackerConfig().replace(**ABLATIONS[ablation])
     t0, t1 = int(seq.gt_t_us[0]), int(seq.gt_t_us[0]) + 40_000
     for batch in (1, 2):
         out = {}
+        observes = batch == 1 and cfg.template.enabled
         for pipeline in (False, True):
             tracker = EventPoseTracker(CAM, [seq.mesh] * batch, cfg, workers=1, pipeline=pipeline)
-            calls.clear()
+            calls["intake"].clear(), calls["observe"].clear()
             out[pipeline] = tracker.track([seq.events] * batch, seq.gt_poses[0], t_start_us=t0, t_end_us=t1,
                                           progress=False)[1]
             tracker.close()
-            assert len(calls) == (out[pipeline].shape[1] - 1 if pipeline else 0)
+            n = out[pipeline].shape[1] - 1 if pipeline else 0
+            assert (len(calls["intake"]), len(calls["observe"])) == ((0, n) if observes else (n, 0))
         assert torch.equal(out[True], out[False])
 
 
@@ -371,7 +375,9 @@ def test_pipeline_options_and_a_window_that_was_not_taken_in(seq, monkeypatch):
     with pytest.raises(ValueError, match="workers=1"):
         EventPoseTracker(CAM, [seq.mesh] * 2, workers=2, pipeline=True)
     assert not EventPoseTracker(CAM, [seq.mesh] * 2, workers=2)._pipeline  # the workers use the cores
-    tracker = EventPoseTracker(CAM, seq.mesh, workers=1, pipeline=True)
+    # (with render.ahead, one stream's windows go into the EROS side on that thread instead of ahead)
+    tracker = EventPoseTracker(CAM, seq.mesh, TrackerConfig().replace(render={"ahead": False}), workers=1,
+                               pipeline=True)
     tracker.reset(seq.gt_poses[0])
     w = [seq.events.slice_time(int(seq.gt_t_us[0]) + k * 2000, int(seq.gt_t_us[0]) + (k + 1) * 2000)
          for k in range(3)]

@@ -130,14 +130,17 @@ class EventPoseTracker(nn.Module):
         workers: threads that run the batch's EROS, flow, renders and template corrections, each on its own share
             of the elements (the compiled kernels release the GIL, so they run on as many cores); default
             ``min(B, usable cores)``, 1 runs everything in the calling thread. Results do not depend on it.
-        pipeline: with one worker, let a thread of its own take the next window's events into the EROS and the
-            flow (:func:`~torchevtrack.stages.intake.intake_step`) while an update searches, whenever that
-            window is known: in :meth:`track`, and in :class:`~torchevtrack.online.OnlineTracker` when a push
-            completes several windows; and (``render.ahead``, one sequence, compiled rasteriser) make the next
-            update's render meanwhile, at every update, and when the window was not known ahead (streaming), take
-            its events into the EROS and the time surface and observe them while the calling thread runs the flow.
-            Default: on with one worker and two or more usable cores. Results do not depend on it; with it, the
-            ``eros``, ``flow``, ``render`` and ``correction`` of ``stage_ms`` include the waits for that thread.
+        pipeline: with one worker, let a thread of its own share each update. With ``render.ahead`` (default),
+            one sequence, the compiled rasteriser and the template on, that thread makes the next update's render
+            and template model (:func:`~torchevtrack.stages.render_model.render_model_step`) while an update
+            searches, and takes each window into the EROS and the time surface and observes it
+            (:func:`~torchevtrack.stages.observe.observe_step`) while the calling thread runs the flow. Otherwise it
+            takes the next window's events into the EROS, the time surface and the flow
+            (:func:`~torchevtrack.stages.intake.intake_step`) while an update searches, whenever that window is
+            known: in :meth:`track`, and in :class:`~torchevtrack.online.OnlineTracker` when a push completes
+            several windows (and with ``render.ahead``, one sequence, also makes the next update's render). Default:
+            on with one worker and two or more usable cores. Results do not depend on it; with it, the ``eros``,
+            ``flow``, ``render`` and ``correction`` of ``stage_ms`` include the waits for that thread.
         on_lost: re-initialisation callback of the loss detector (needs ``config.loss.enabled``):
             ``on_lost(batch_indices (K,) int64, t_us (K,) int64) -> poses (K, 7) or None``, called with
             the elements declared lost in an update; the elements it returns poses for restart there
@@ -249,6 +252,11 @@ class EventPoseTracker(nn.Module):
                                              canvas=o["canvas"], box_margin_px=o["margin_px"],
                                              edge_clip=o["edge_clip"], silhouette=o["silhouette"]) \
             if B == 1 and isinstance(self._renderers[0], RasterRenderer) else None
+        # The pipeline's thread takes a known next window in ahead, unless it makes each update's render and template
+        # ahead (one stream, compiled rasteriser): it then takes each window into the EROS side and observes it while
+        # the flow runs here, which splits an update more evenly between the two threads (both, bit for bit).
+        self._take_in_ahead = self._pipeline and not (self._render_one is not None and cfg.render.ahead
+                                                      and t.enabled)
         u = cfg.ukf
         self.ukf = PoseUKF(B, q_pdot=u.q_pdot, q_w=u.q_w, q_p=u.q_p, q_q=u.q_q, r_p=u.r_p, r_q=u.r_q, p0=u.p0)
         lc = cfg.loss
@@ -383,17 +391,17 @@ class EventPoseTracker(nn.Module):
             b: ``(N,)`` batch index (None: all batch element 0). Time order within each batch element.
             t_us: time stamp of this update (int or ``(B,)`` int64 us, the window end), given to the loss
                 detector and ``on_lost``; default: the latest event time seen per element.
-            next_window: the next window's ``(x, y, t, p, b)``, if it is already known. With the pipeline on, its
-                events go into the EROS and the flow while this update searches (until the next call, those two
-                stages' state belongs to the intake thread), and the next call must be for exactly these tensors
-                (else RuntimeError); without the pipeline it is ignored.
+            next_window: the next window's ``(x, y, t, p, b)``, if it is already known. When the pipeline takes
+                windows in ahead (see ``pipeline``), its events go into the EROS, the time surface and the flow while
+                this update searches (until the next call, those stages' state belongs to the intake thread), and
+                the next call must be for exactly these tensors (else RuntimeError); otherwise it is ignored.
 
         The update runs in ``torch.inference_mode`` (no autograd bookkeeping on its many small tensor
         operations); the returned poses are ordinary tensors.
         """
         with torch.inference_mode():
             try:
-                self._update(x, y, t, p, b, t_us, next_window if self._pipeline else None)
+                self._update(x, y, t, p, b, t_us, next_window if self._take_in_ahead else None)
             finally:
                 if self._observing is not None:  # the update failed after it gave the intake thread its part
                     wait([self._observing])
