@@ -94,3 +94,16 @@ def test_bench_bad_arguments(seqdir, capsys, argv, message):
 def test_bench_missing_directory(tmp_path, capsys):
     assert main(["bench", str(tmp_path / "nope"), "--json"]) == 2
     assert "not found" in capsys.readouterr().err
+
+
+def test_the_packets_cover_the_events_once_in_order(seqdir):
+    """The streaming measurement's packets: consecutive chunk_us slices of [t0, t_end), every event in one."""
+    from torchevtrack.cli.bench import packets
+
+    seq, _ = seqdir
+    t0, t_end = int(seq.events.t[0]) + 50, int(seq.events.t[0]) + 7_300
+    got = packets(seq.events, t0, t_end, 1000)
+    assert len(got) == 8  # 7 full packets and the last 250 us
+    assert torch.equal(torch.cat([p.t for p in got]), seq.events.slice_time(t0, t_end).t)
+    assert all(int(p.t.min()) >= t0 + 1000 * k and int(p.t.max()) < min(t0 + 1000 * (k + 1), t_end)
+               for k, p in enumerate(got) if len(p))

@@ -9,8 +9,9 @@ kernels run with the caches the rest of the update leaves them (slower than in i
 
 With ``--batch B`` the sequence is tracked ``B`` times in one batch (``--workers`` threads; the kernel times are
 then summed over the workers, so kernels + glue can exceed ``forward``). With one worker the tracker's pipeline
-takes each next window in (``_intake_kernel``: EROS and flow) on a thread of its own during the search, so that
-kernel overlaps ``forward``; ``--no-pipeline`` runs it inside (``_eros_kernel``, ``_flow_packet``).
+runs part of each update on a thread of its own (one stream: the next render and template, ``_render_model_kernel``,
+and each window's EROS side and observation, ``_observe_kernel``; a batch: the next window's intake,
+``_intake_kernel``), overlapping ``forward``; ``--no-pipeline`` runs everything inside.
 
 ``(wait for the intake thread)`` is the calling thread's time waiting for the pipeline's thread (counted with
 the kernels, outside the glue).
@@ -33,7 +34,7 @@ from pathlib import Path
 
 import torch
 
-from torchevtrack.cli.bench import _stream
+from torchevtrack.cli.bench import _stream, packets
 from torchevtrack.config import TrackerConfig
 from torchevtrack.online import OnlineTracker
 from torchevtrack.synth.sequence import Sequence
@@ -43,6 +44,8 @@ KERNELS = {
     "torchevtrack.stages.eros": ["_eros_kernel"],
     "torchevtrack.stages.flow": ["_flow_packet"],
     "torchevtrack.stages.intake": ["_intake_kernel"],
+    "torchevtrack.stages.observe": ["_observe_kernel"],
+    "torchevtrack.stages.render_model": ["_render_model_kernel"],
     "torchevtrack.stages.motion": ["_motion_kernel"],
     "torchevtrack.stages.output": ["_output_kernel"],
     "torchevtrack.raster": ["_render_kernel"],
@@ -106,13 +109,15 @@ def main() -> None:
     rows = []
     for _ in range(args.passes + 1):
         times.clear()
-        start = time.perf_counter()
         if args.stream:
             online = OnlineTracker(tracker)
             online.start(seq.gt_poses[0], t0)
             n = (t1 - t0) // tracker.period_us
             t1 = t0 + n * tracker.period_us
-            _stream(online, seq.events.slice_time(t0, t1), t0, t1, 1000)
+            pushes = packets(seq.events, t0, t1, 1000)
+        start = time.perf_counter()
+        if args.stream:
+            _stream(online, pushes, t1)
         else:
             _, poses = tracker.track([seq.events] * args.batch, seq.gt_poses[0], t_start_us=t0, t_end_us=t1,
                                      progress=False)
