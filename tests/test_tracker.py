@@ -329,7 +329,7 @@ def test_feedback_ignores_turns_about_a_symmetry_axis():
     tracker.close()
 
 
-# -- the pipeline: the next window's intake during an update's search -------------------------------
+# -- the pipeline: part of each update on a thread of its own -------------------------------------
 def _counting_intake(monkeypatch):
     """Count the windows the pipeline's thread takes in: ahead (its calls of the intake kernel) and into the EROS side
     with the observation (the observe kernel); the serial update calls the intake kernel on the caller's thread."""

@@ -1,4 +1,4 @@
-"""Throughput of stage 1 (EROS) and stage 2 (SAE, triplet flow) on a 640x480 sensor.
+"""Throughput of stage 1 (EROS and its time surface) and stage 2 (SAE, triplet flow) on a 640x480 sensor.
 
 Events: a bar rotating about the image centre (every pixel fires when the bar crosses it, radii
 20..230 px) plus 10 % uniform noise, at a chosen event rate; processed in fixed-duration packets like
@@ -17,7 +17,7 @@ import time
 import numpy as np
 import torch
 
-from torchevtrack.stages.eros import EROS
+from torchevtrack.stages.eros import EROS, TimeSurface
 from torchevtrack.stages.flow import TripletFlow, sae_update_
 
 H, W = 480, 640
@@ -97,6 +97,9 @@ def main(argv=None) -> int:
         sae2 = torch.zeros(1, 1, H, W, dtype=torch.int64)
         bench("EROS + SAE", packets,
               lambda i, j: (both(x[i:j], y[i:j]), sae_update_(sae2, x[i:j], y[i:j], t[i:j], None)))
+        stage1, times = EROS(H, W), TimeSurface(H, W)
+        bench("EROS + time surface (stage 1)", packets,
+              lambda i, j: (stage1(x[i:j], y[i:j]), times(x[i:j], y[i:j], t[i:j])))
         f = flow(x[packets[-1][0]:packets[-1][1]], y[packets[-1][0]:packets[-1][1]],
                  t[packets[-1][0]:packets[-1][1]], p[packets[-1][0]:packets[-1][1]])
         print(f"  last packet: {int(f.count.sum())} triplet samples, {int(f.valid.sum())} valid blocks")

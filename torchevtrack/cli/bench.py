@@ -200,7 +200,7 @@ def summary(r: dict) -> str:
         f"latency per update: p50 {r['p50_ms']:.1f} ms, p99 {r['p99_ms']:.1f} ms, max {r['latency_max_ms']:.1f} ms",
         "stage ms: " + ", ".join(f"{k} {v:.2f}" for k, v in r["stage_ms"].items()) + f" (sum {r['update_ms']:.1f})",
         f"offline, one sequence: {r['offline']['updates_per_s']:.1f} updates/s"
-        + (" (pipelined: next window's intake during the search)" if r["offline"]["pipeline"] else ""),
+        + (" (pipelined: a second thread takes part of each update)" if r["offline"]["pipeline"] else ""),
     ]
     if r["repeat"] > 1:
         runs = r["runs"]
