@@ -106,3 +106,15 @@ def test_the_flow_alone_and_the_checked_events():
     with pytest.raises(ValueError, match="p must"):
         bind_intake(eros, times, flow)(x, y, t, p.clone().fill_(2), b, surfaces=False, checked=seen.append)
     assert not seen and torch.equal(flow.sae_padded, ref_flow.sae_padded)
+
+
+def test_without_a_time_surface():
+    """time_surface None: the EROS and the flow alone, as their stage calls."""
+    eros, _, flow = _stages()
+    ref_eros, _, ref_flow = _stages()
+    x, y, t, p, b = _window(4, 9000)
+    got = intake_step(eros, None, flow, x, y, t, p, b)
+    ref_eros(x, y, b)
+    want = ref_flow(x, y, t, p, b)
+    assert all(torch.equal(a, c) for a, c in zip(got, want))
+    assert torch.equal(eros.surface, ref_eros.surface) and torch.equal(flow.sae_padded, ref_flow.sae_padded)

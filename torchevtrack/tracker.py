@@ -3,11 +3,12 @@
 One update consumes the events of one window (``1 / rate_hz``, 2 ms by default) for each of ``B``
 sequences and runs, in the paper's order:
 
-1. :class:`~torchevtrack.stages.eros.EROS`, its :class:`~torchevtrack.stages.eros.TimeSurface` and
-   :class:`~torchevtrack.stages.flow.TripletFlow` take the events in one compiled call
-   (:func:`~torchevtrack.stages.intake.intake_step`). With the pipeline, when the window is known one update ahead,
-   on a thread of their own during the previous update's step 5; in streaming, the EROS side on that thread together
-   with step 5's observation (:func:`~torchevtrack.stages.observe.observe_step`) while the flow runs here;
+1. :class:`~torchevtrack.stages.eros.EROS` and :class:`~torchevtrack.stages.flow.TripletFlow` take the events in
+   one compiled call (:func:`~torchevtrack.stages.intake.intake_step`). With the pipeline: for one stream with its
+   template made ahead, the EROS (and a :class:`~torchevtrack.stages.eros.TimeSurface` of its own) on a thread of
+   their own together with step 5's observation (:func:`~torchevtrack.stages.observe.observe_step`) while the flow
+   runs here; otherwise, when the window is known one update ahead, both on that thread during the previous update's
+   step 5;
 2. :class:`~torchevtrack.stages.velocity.VelocityKF` fuses the block flows, with depth sampled from the
    last render (the mesh at the previous pose: no depth sensor);
 3. :func:`~torchevtrack.stages.propagate.propagate` moves the pose with the twist for one period (the
@@ -232,7 +233,6 @@ class EventPoseTracker(nn.Module):
 
         H, W = camera.height, camera.width
         self.eros = EROS(H, W, cfg.eros.kernel_size, cfg.eros.decay, batch_size=B)
-        self.time_surface = TimeSurface(H, W, batch_size=B)
         f = cfg.flow
         self.flow = TripletFlow(H, W, batch_size=B, block=f.block, min_samples=f.min_samples, D=f.radius,
                                 dt_max_us=f.dt_max_us, tol=f.tol, smooth=f.smooth, estimate=f.estimate)
@@ -254,9 +254,13 @@ class EventPoseTracker(nn.Module):
             if B == 1 and isinstance(self._renderers[0], RasterRenderer) else None
         # The pipeline's thread takes a known next window in ahead, unless it makes each update's render and template
         # ahead (one stream, compiled rasteriser): it then takes each window into the EROS side and observes it while
-        # the flow runs here, which splits an update more evenly between the two threads (both, bit for bit).
-        self._take_in_ahead = self._pipeline and not (self._render_one is not None and cfg.render.ahead
-                                                      and t.enabled)
+        # the flow runs here, which splits an update more evenly between the two threads (both, bit for bit). That
+        # observation weighs the EROS by a time surface of the EROS side's own (the flow writes its SAE meanwhile);
+        # otherwise the observation reads the SAE's channel maximum, the same numbers, and no time surface is kept
+        # (for a batch, ~20 MB less memory traffic per step).
+        observes = self._pipeline and self._render_one is not None and cfg.render.ahead and t.enabled
+        self._take_in_ahead = self._pipeline and not observes
+        self.time_surface = TimeSurface(H, W, batch_size=B) if observes else None
         u = cfg.ukf
         self.ukf = PoseUKF(B, q_pdot=u.q_pdot, q_w=u.q_w, q_p=u.q_p, q_q=u.q_q, r_p=u.r_p, r_q=u.r_q, p0=u.p0)
         lc = cfg.loss
@@ -296,7 +300,8 @@ class EventPoseTracker(nn.Module):
 
     # The state an update replaces, none of it a parameter, buffer or submodule: set as plain attributes, without
     # nn.Module's bookkeeping for those (~1-3 us each, several per update). The depth buffer: _set_depth.
-    _PLAIN = frozenset({"_rendering", "_observing", "_models", "_quality", "stage_ms", "_ahead", "loss_update", "_bound"})
+    _PLAIN = frozenset({"_rendering", "_observing", "_models", "_quality", "stage_ms", "_ahead", "loss_update",
+                        "_bound"})
 
     def __setattr__(self, name: str, value) -> None:
         if name in EventPoseTracker._PLAIN:
@@ -350,7 +355,8 @@ class EventPoseTracker(nn.Module):
             if mask is None:  # a fresh start: that window is not coming
                 self._ahead = None
         self.eros.reset(m)
-        self.time_surface.reset(m)
+        if self.time_surface is not None:
+            self.time_surface.reset(m)
         self.flow.reset(m)
         if self._ahead is not None:
             self._retake_ahead(m)
@@ -651,15 +657,17 @@ class EventPoseTracker(nn.Module):
                              max_speed=cfg.flow.max_speed,
                              radius=max(cfg.flow.block // 4, 2),  # flow lies on edges: the pixel may fall just off
                              feedback=None if fb is None else fb.b.numpy())
-        correct = [bind_correction(self.eros.surface[r].numpy(), self.time_surface.last_us[r, None].numpy(),
-                                   self.camera, canvas=o["canvas"], margin_px=o["margin_px"],
-                                   edge_clip=o["edge_clip"], silhouette=o["silhouette"], dp_px=o["dp_px"],
-                                   dtheta_deg=o["dtheta_deg"], rule=o["rule"], iterations=o["iterations"],
-                                   max_age_us=e.max_age_us, recency_us=e.recency_us) for r in self._shares]
+        times = self.flow.sae if self.time_surface is None else self.time_surface.last_us[:, None]  # (B, C, H, W)
+        correct = [bind_correction(self.eros.surface[r].numpy(), times[r].numpy(), self.camera, canvas=o["canvas"],
+                                   margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"],
+                                   dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"], rule=o["rule"],
+                                   iterations=o["iterations"], max_age_us=e.max_age_us, recency_us=e.recency_us)
+                   for r in self._shares]
         output = bind_output(self.pose.numpy(), self.dt, self._min_depth.numpy(),
                              ukf=self.ukf if cfg.ukf.enabled else None, feedback=fb)
-        observe = bind_observe(self.eros, self.time_surface, canvas=o["canvas"], max_age_us=e.max_age_us,
-                               recency_us=e.recency_us)
+        observe = None if self.time_surface is None else \
+            bind_observe(self.eros, self.time_surface, canvas=o["canvas"], max_age_us=e.max_age_us,
+                         recency_us=e.recency_us)
         self._bound = _Bound([bind_intake(self.eros, self.time_surface, self.flow, r) for r in self._shares], motion,
                              correct, output, observe,
                              self.pose.numpy(), self.prev_pose.numpy(), self.origin.numpy(), self.events_seen.numpy(),
@@ -884,7 +892,7 @@ class _Bound(NamedTuple):
     motion: Callable[..., tuple[np.ndarray, ...]]
     correct: list[Callable[..., CorrectionStep]]
     output: Callable[..., tuple[np.ndarray, np.ndarray]]
-    observe: Callable[..., np.ndarray | None | bool]
+    observe: Callable[..., np.ndarray | None | bool] | None
     pose: np.ndarray
     prev_pose: np.ndarray
     origin: np.ndarray
