@@ -151,14 +151,17 @@ def _recent_reference(surface, last_us, origin, size, t_now, max_age_us, recency
 
 @pytest.mark.parametrize("size", [(37, 52), (1, 9), (8, 1)])
 @pytest.mark.parametrize("max_age_us, recency_us", [(0, 0.0), (3000, 0.0), (0, 800.0), (3000, 800.0)])
-def test_recent_observation_matches_its_definition(size, max_age_us, recency_us):
+@pytest.mark.parametrize("channels", [2, 1])  # the flow's SAE (a strided view), the EROS side's time surface
+def test_recent_observation_matches_its_definition(size, max_age_us, recency_us, channels):
     gen = torch.Generator().manual_seed(21)
     B, H, W = 2, 60, 80
     surface = torch.rand(B, H, W, generator=gen) * (torch.rand(B, H, W, generator=gen) > 0.5)
-    padded = torch.full((B, 2, H + 4, W + 4), NEVER, dtype=torch.int64)  # a strided view, as the flow stage keeps it
-    last = padded[:, :, 2:-2, 2:-2]
-    fired = torch.rand(B, 2, H, W, generator=gen) > 0.3
-    last.copy_(torch.where(fired, torch.randint(0, 10000, (B, 2, H, W), generator=gen), NEVER))
+    padded = torch.full((B, channels, H + 4, W + 4), NEVER, dtype=torch.int64)
+    last = padded[:, :, 2:-2, 2:-2] if channels == 2 else padded[:, :, 2:-2, 2:-2].contiguous()
+    # one channel: more pixels fired, and recently enough, that the median of the small windows keeps some
+    fired = torch.rand(B, channels, H, W, generator=gen) > (0.3 if channels == 2 else 0.05)
+    first = 0 if channels == 2 else 7500
+    last.copy_(torch.where(fired, torch.randint(first, 10000, (B, channels, H, W), generator=gen), NEVER))
     origin = torch.tensor([[3, 5], [W - size[1], H - size[0]]])
     t_now = torch.tensor([10000, 9000])
     out = recent_observation(surface, last, origin, size, t_now, max_age_us, recency_us)
@@ -172,12 +175,14 @@ def test_recent_observation_matches_its_definition(size, max_age_us, recency_us)
 
 
 @pytest.mark.parametrize("max_age_us, recency_us", [(0, 0.0), (3000, 800.0)])
-def test_canvas_observation_is_the_recent_observation_of_the_tap_window_in_the_canvas(max_age_us, recency_us):
+@pytest.mark.parametrize("channels", [2, 1])
+def test_canvas_observation_is_the_recent_observation_of_the_tap_window_in_the_canvas(max_age_us, recency_us,
+                                                                                      channels):
     gen = torch.Generator().manual_seed(5)
     B, H, W, N = 3, 60, 80, 24
     surface = torch.rand(B, H, W, generator=gen) * (torch.rand(B, H, W, generator=gen) > 0.4)
-    last = torch.where(torch.rand(B, 2, H, W, generator=gen) > 0.3,
-                       torch.randint(0, 10000, (B, 2, H, W), generator=gen), NEVER)
+    last = torch.where(torch.rand(B, channels, H, W, generator=gen) > 0.3,
+                       torch.randint(0, 10000, (B, channels, H, W), generator=gen), NEVER)
     t_now = torch.tensor([10000, 9000, 9500])
     # inside the frame at 1.7 frame px per canvas px; over the top-left corner; wholly outside the frame
     box = torch.tensor([[40.3, 31.2, 40.8], [3.0, 4.5, 30.0], [-50.0, 20.0, 20.0]], dtype=torch.float64)
