@@ -108,13 +108,21 @@ def eros_update_(surface: torch.Tensor, x: torch.Tensor, y: torch.Tensor, b: tor
 
 
 @numba.njit(cache=True, nogil=True)
-def _eros_kernel(surface, x, y, b, batched, r, lam):
-    """Apply the events in order; returns False, untouched, if one lies outside the surface."""
-    B, H, W = surface.shape
+def _inside(x, y, b, batched, B, H, W):
+    """Every event inside ``[0, W) x [0, H)`` with its batch index (``batched``) in ``[0, B)``."""
     for i in range(x.shape[0]):
         k = b[i] if batched else 0
         if x[i] < 0 or x[i] >= W or y[i] < 0 or y[i] >= H or k < 0 or k >= B:
             return False
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _eros_kernel(surface, x, y, b, batched, r, lam):
+    """Apply the events in order; returns False, untouched, if one lies outside the surface."""
+    B, H, W = surface.shape
+    if not _inside(x, y, b, batched, B, H, W):
+        return False
     for i in range(x.shape[0]):
         u, v, k = x[i], y[i], b[i] if batched else 0
         u0, u1 = max(u - r, 0), min(u + r + 1, W)
@@ -458,10 +466,8 @@ def time_surface_update_(last_us: torch.Tensor, x: torch.Tensor, y: torch.Tensor
 def _time_kernel(last, x, y, t, b, batched):
     """Apply the events; returns False, untouched, if one lies outside the surface."""
     B, H, W = last.shape
-    for i in range(x.shape[0]):
-        k = b[i] if batched else 0
-        if x[i] < 0 or x[i] >= W or y[i] < 0 or y[i] >= H or k < 0 or k >= B:
-            return False
+    if not _inside(x, y, b, batched, B, H, W):
+        return False
     for i in range(x.shape[0]):
         k = b[i] if batched else 0
         last[k, y[i], x[i]] = max(last[k, y[i], x[i]], t[i])
