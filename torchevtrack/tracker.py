@@ -136,7 +136,7 @@ class EventPoseTracker(nn.Module):
             and template model (:func:`~torchevtrack.stages.render_model.render_model_step`) while an update
             searches, and takes each window into the EROS and the time surface and observes it
             (:func:`~torchevtrack.stages.observe.observe_step`) while the calling thread runs the flow. Otherwise it
-            takes the next window's events into the EROS, the time surface and the flow
+            takes the next window's events into the EROS and the flow
             (:func:`~torchevtrack.stages.intake.intake_step`) while an update searches, whenever that window is
             known: in :meth:`track`, and in :class:`~torchevtrack.online.OnlineTracker` when a push completes
             several windows (and with ``render.ahead``, one sequence, also makes the next update's render). Default:
@@ -154,8 +154,9 @@ class EventPoseTracker(nn.Module):
 
     After each update, ``quality`` holds its :class:`Quality` and ``stage_ms`` the milliseconds spent in
     each stage (eros, flow, velocity, render, correction, ukf; and loss with a detector; ukf includes the
-    correction feedback's update, which runs with it; the EROS, the time surface and the flow run as one compiled
-    call per worker, :func:`~torchevtrack.stages.intake.intake_step`, whose time counts as the flow's). With
+    correction feedback's update, which runs with it; the EROS and the flow, and the time surface where one is kept,
+    run as one compiled call per worker, :func:`~torchevtrack.stages.intake.intake_step`, whose time counts as the
+    flow's). With
     ``config.loss.enabled``, ``loss`` is the :class:`~torchevtrack.loss.LossDetector` (its buffers:
     confidence, lost, lost_at_us, ...), ``loss_update`` the :class:`~torchevtrack.loss.LossUpdate` of
     the last update and ``lost`` its ``(B,)`` flags; without it all three are ``None``.
@@ -398,7 +399,7 @@ class EventPoseTracker(nn.Module):
             t_us: time stamp of this update (int or ``(B,)`` int64 us, the window end), given to the loss
                 detector and ``on_lost``; default: the latest event time seen per element.
             next_window: the next window's ``(x, y, t, p, b)``, if it is already known. When the pipeline takes
-                windows in ahead (see ``pipeline``), its events go into the EROS, the time surface and the flow while
+                windows in ahead (see ``pipeline``), its events go into the EROS and the flow while
                 this update searches (until the next call, those stages' state belongs to the intake thread), and
                 the next call must be for exactly these tensors (else RuntimeError); otherwise it is ignored.
 
@@ -425,9 +426,9 @@ class EventPoseTracker(nn.Module):
         if self._ahead is not None:  # this window went in on the intake thread during the last update
             clock.lap("eros")
             flow = self._take_ahead(x)
-        elif self._rendering is not None and ahead is None and cfg.template.enabled:
-            # streaming (the next window unknown) with the render made ahead: the EROS, the time surface and the
-            # observation on the pipeline's thread, after that render, while this one runs the flow
+        elif self._rendering is not None and self.time_surface is not None:
+            # the render and template made ahead: the EROS, the time surface and the observation on the pipeline's
+            # thread, after that render, while this one runs the flow
             clock.lap("eros")
             flow = run.intake[0](x, y, t, p, b, surfaces=False,
                                  checked=lambda *ev: self._observe_soon(*ev, self._t_now(t, b).copy()))
