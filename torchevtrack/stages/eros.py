@@ -78,6 +78,12 @@ def _check_fields(x, y, b) -> None:
             raise ValueError(f"{name} must be a CPU tensor, got one on {f.device}")
 
 
+def _check_times(t, shape) -> None:
+    """``t``: an int64 tensor of microseconds, one per event (``shape``, that of ``x``)."""
+    if not isinstance(t, torch.Tensor) or t.dtype != torch.int64 or t.shape != shape:
+        raise TypeError(f"t must be an int64 tensor of microseconds with the shape of x {tuple(shape)}")
+
+
 def _check_params(kernel_size: int, decay: float) -> None:
     if isinstance(kernel_size, bool) or not isinstance(kernel_size, int) or kernel_size <= 0 or kernel_size % 2 == 0:
         raise ValueError(f"kernel_size must be a positive odd int, got {kernel_size!r}")
@@ -454,8 +460,7 @@ def time_surface_update_(last_us: torch.Tensor, x: torch.Tensor, y: torch.Tensor
         raise ValueError("last_us must be a contiguous int64 (B, H, W) tensor, got "
                          f"{getattr(last_us, 'dtype', type(last_us).__name__)} {tuple(getattr(last_us, 'shape', ()))}")
     _check_fields(x, y, b)
-    if not isinstance(t, torch.Tensor) or t.dtype != torch.int64 or t.shape != x.shape:
-        raise TypeError(f"t must be an int64 tensor of microseconds with the shape of x {tuple(x.shape)}")
+    _check_times(t, x.shape)
     bn = np.zeros(1, dtype=np.int64) if b is None else b.numpy()
     if not _time_kernel(last_us.numpy(), x.numpy(), y.numpy(), t.numpy(), bn, b is not None):
         prepare_events(x, y, b, *last_us.shape[1:], last_us.shape[0])  # raises the range error

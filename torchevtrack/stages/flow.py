@@ -60,7 +60,7 @@ from numba.cpython.unsafe.numbers import trailing_zeros
 from torch import nn
 
 from torchevtrack.stages import NEVER, batch_mask
-from torchevtrack.stages.eros import _check_fields, prepare_events
+from torchevtrack.stages.eros import _check_fields, _check_times, prepare_events
 
 __all__ = [
     "NEVER",
@@ -105,8 +105,7 @@ def _check_sae(sae: torch.Tensor) -> None:
 
 def _check_time_polarity(t, p, shape: torch.Size, C: int) -> None:
     """``t`` int64 microseconds and, with two SAE channels (``C = 2``), an integer ``p``, both of ``shape``."""
-    if not isinstance(t, torch.Tensor) or t.dtype != torch.int64 or t.shape != shape:
-        raise TypeError(f"t must be an int64 tensor of microseconds with the shape of x {tuple(shape)}")
+    _check_times(t, shape)
     if C == 2 and (not isinstance(p, torch.Tensor) or p.shape != shape or p.is_floating_point()):
         raise TypeError(f"p must be an integer tensor with the shape of x {tuple(shape)}")
 

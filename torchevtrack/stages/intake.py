@@ -39,8 +39,8 @@ def bind_intake(eros: EROS, time_surface: TimeSurface | None, flow: TripletFlow,
                 rows: slice | None = None) -> Callable[..., FlowField]:
     """:func:`intake_step` bound to the stages' state (numpy views of their ``rows``, written in place at each call),
     for a caller that takes in a window every update (the tracker); ``time_surface`` ``None``: none is kept.
-    Returns ``run(x, y, t, p, b, surfaces=True,
-    checked=None)``, which checks the events as :func:`intake_step` does and gives its flow field as numpy arrays.
+    Returns ``run(x, y, t, p, b, surfaces=True, checked=None)``, which checks the events as :func:`intake_step` does
+    and gives its flow field as numpy arrays.
     With ``surfaces=False`` it runs the flow alone, leaving the EROS and the time surface to the caller. ``checked``,
     if given, is called with the events as numpy arrays ``(x, y, t, b)`` (``b`` ``None`` for one element) once every
     event is known to be in range, before anything is written (from there on the call cannot fail): the caller may

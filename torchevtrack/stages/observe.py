@@ -17,8 +17,8 @@ import numba
 import numpy as np
 import torch
 
-from torchevtrack.stages.eros import (EROS, TimeSurface, _canvas_kernel, _check_fields, _decay_table, _eros_kernel,
-                                      _time_kernel, prepare_events)
+from torchevtrack.stages.eros import (EROS, TimeSurface, _canvas_kernel, _check_fields, _check_times, _decay_table,
+                                      _eros_kernel, _time_kernel, prepare_events)
 
 __all__ = ["bind_observe", "observe_step"]
 
@@ -37,8 +37,7 @@ def observe_step(eros: EROS, time_surface: TimeSurface, x: torch.Tensor, y: torc
     Shape: returns the observation ``(B, canvas, canvas)`` float32, or ``None`` without a box.
     """
     _check_fields(x, y, b)
-    if not isinstance(t, torch.Tensor) or t.dtype != torch.int64 or t.shape != x.shape:
-        raise TypeError(f"t must be an int64 tensor of microseconds with the shape of x {tuple(x.shape)}")
+    _check_times(t, x.shape)
     B = eros.surface.shape[0] if rows is None else len(range(eros.surface.shape[0])[rows])
     if box is not None and (box.shape != (B, 3) or box.dtype != torch.float64):
         raise ValueError(f"box must be a float64 ({B}, 3) tensor, got {box.dtype} {tuple(box.shape)}")
