@@ -66,7 +66,7 @@ from torchevtrack.geometry import check_pose, quat_rotate
 from torchevtrack.loss import LossDetector, LossUpdate, OnLost
 from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
 from torchevtrack.raster import RasterRenderer
-from torchevtrack.render import _normalise_quaternions, make_renderer
+from torchevtrack.render import make_renderer
 from torchevtrack.stages import batch_mask, periods
 from torchevtrack.stages.correction import CorrectionStep, _observed_box, bind_correction
 from torchevtrack.stages.eros import EROS, TimeSurface
@@ -248,11 +248,12 @@ class EventPoseTracker(nn.Module):
         self.corrector = TemplateCorrector(camera, canvas=t.canvas, margin_px=t.margin_px, dp_px=t.dp_px,
                                            dtheta_deg=t.dtheta_deg, rule=t.rule, iterations=t.iterations)
         o = self.corrector.options
-        # one stream with the compiled rasteriser: a render, and its template model, in one compiled call
-        self._render_one = bind_render_model(self._renderers[0], self._radius[0], margin_px=cfg.render.margin_px,
-                                             canvas=o["canvas"], box_margin_px=o["margin_px"],
-                                             edge_clip=o["edge_clip"], silhouette=o["silhouette"]) \
-            if B == 1 and isinstance(self._renderers[0], RasterRenderer) else None
+        # each compiled rasteriser's render (and template model) of a pose in its window, in one compiled call
+        self._render_bindings = [
+            bind_render_model(r, radius, margin_px=cfg.render.margin_px, canvas=o["canvas"],
+                              box_margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"])
+            if isinstance(r, RasterRenderer) else None for r, radius in zip(self._renderers, self._radius)]
+        self._render_one = self._render_bindings[0] if B == 1 else None  # one stream: the render is the buffer
         # The pipeline's thread takes a known next window in ahead, unless it makes each update's render and template
         # ahead (one stream, compiled rasteriser): it then takes each window into the EROS side and observes it while
         # the flow runs here, which splits an update more evenly between the two threads (both, bit for bit). That
@@ -582,16 +583,17 @@ class EventPoseTracker(nn.Module):
                      gray: np.ndarray | None) -> None:
         """Render element ``i`` at the valid ``pose`` ``(1, 7)`` float64 in its own window ``win`` and write it into
         row ``i`` of the common-size buffers whose top-left pixel is ``origin`` ``(2,)`` (the own window lies inside).
-        The compiled rasteriser goes through :meth:`_raster` (the workers render in parallel only inside its kernel:
-        checks and tensor glue would hold the GIL)."""
+        The compiled rasteriser goes through its unchecked binding (the workers render in parallel only inside its
+        kernel: checks and tensor glue would hold the GIL), which finds the same window."""
         u, v, w, h = win.tolist()
         du, dv = u - int(origin[0]), v - int(origin[1])
-        renderer = self._renderers[self._renderer_of[i]]
-        if isinstance(renderer, RasterRenderer):
-            d, g = self._raster(i, pose, win, gray is not None)
+        bound = self._render_bindings[self._renderer_of[i]]
+        if bound is not None:
+            out = bound(pose, gray is not None, False)
         else:
-            out = renderer.render(torch.from_numpy(pose), roi=(u, v, w, h), shaded=gray is not None)
-            d, g = out.depth.numpy(), None if gray is None else out.gray.numpy()
+            out = self._renderers[self._renderer_of[i]].render(torch.from_numpy(pose), roi=(u, v, w, h),
+                                                               shaded=gray is not None)
+        d, g = out.depth.numpy(), None if gray is None else out.gray.numpy()
         depth[i, dv:dv + h, du:du + w] = d[0]
         if gray is not None:
             gray[i, dv:dv + h, du:du + w] = g[0]
@@ -640,13 +642,6 @@ class EventPoseTracker(nn.Module):
         self._set_depth(depth)
         self.origin.copy_(torch.from_numpy(origin))
         return _Render(depth, gray)
-
-    def _raster(self, i: int, pose: np.ndarray, win: np.ndarray, shaded: bool) -> tuple[np.ndarray, np.ndarray | None]:
-        """Element ``i``'s compiled rasteriser at the valid ``pose`` ``(1, 7)`` float64 (only normalised) in the
-        window ``win`` ``(4,)``, through its unchecked numpy entry: depth and grey (or ``None``) ``(1, h, w)``."""
-        p = pose.copy()
-        _normalise_quaternions(p)
-        return self._renderers[self._renderer_of[i]].render_unit(p, self.camera.crop(*win.tolist()), shaded)
 
     def _bind(self) -> "_Bound":
         """Bind each stage's compiled step to the buffers it reads and writes (numpy views: no checks or conversions

@@ -129,9 +129,10 @@ def _render_model_kernel(pose, unit, pose32, radius, cam, W, H, margin, vertices
     box = np.empty((1, 3))
     gain = np.empty(1, dtype=np.float32)
     box32, K = np.empty((1, 3), dtype=np.float32), np.empty((1, 4), dtype=np.float32)
-    T, Z = np.empty((1, N, N), dtype=np.float32), np.empty((1, N, N), dtype=np.float32)
-    coef = np.zeros((1, N + 6, N + 6), dtype=np.float32)
-    points, valid = np.empty((1, P, 3), dtype=np.float32), np.empty((1, P), dtype=np.bool_)
+    n, m = (N, P) if model else (0, 0)  # without the model: empty arrays (a render alone allocates nothing more)
+    T, Z = np.empty((1, n, n), dtype=np.float32), np.empty((1, n, n), dtype=np.float32)
+    coef = np.zeros((1, n + 6, n + 6) if model else (1, 0, 0), dtype=np.float32)
+    points, valid = np.empty((1, m, 3), dtype=np.float32), np.empty((1, m), dtype=np.bool_)
     if model:
         origin = win[:, :2].astype(np.float64)
         _box_kernel(depth, origin, cam, box_margin, box, gain)
