@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import concurrent.futures
 import importlib
 import threading
 import time
@@ -37,6 +36,7 @@ import torch
 from torchevtrack.cli.bench import _stream, packets
 from torchevtrack.config import TrackerConfig
 from torchevtrack.online import OnlineTracker
+from torchevtrack.pipeline import Job
 from torchevtrack.synth.sequence import Sequence
 from torchevtrack.tracker import EventPoseTracker
 
@@ -81,16 +81,16 @@ def main() -> None:
                 return out
             setattr(m, name, timed)
 
-    result = concurrent.futures.Future.result
+    result = Job.result
 
-    def timed_result(self, timeout=None):  # the calling thread waiting for the pipeline's thread
+    def timed_result(self):  # the calling thread waiting for the pipeline's thread
         t = time.perf_counter()
-        out = result(self, timeout)
+        out = result(self)
         if threading.get_ident() == main_thread:
             times["(wait for the intake thread)"] += time.perf_counter() - t
         return out
 
-    concurrent.futures.Future.result = timed_result
+    Job.result = timed_result
 
     seq = Sequence.load(args.seqdir)
     t0 = int(seq.gt_t_us[0])

@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import os
 import time
-from concurrent.futures import Future, ThreadPoolExecutor, wait
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, NamedTuple, Sequence, TypeVar
@@ -65,6 +65,7 @@ from torchevtrack.events import EventStream
 from torchevtrack.geometry import check_pose, quat_rotate
 from torchevtrack.loss import LossDetector, LossUpdate, OnLost
 from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
+from torchevtrack.pipeline import Job, PipelineThread
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.render import make_renderer
 from torchevtrack.stages import batch_mask, periods
@@ -206,10 +207,10 @@ class EventPoseTracker(nn.Module):
         elif pipeline and self._pool is not None:
             raise ValueError("pipeline needs workers=1: the worker threads already share the batch")
         self._pipeline = bool(pipeline)
-        self._intake: ThreadPoolExecutor | None = None  # the pipeline's thread, made when first needed
+        self._intake: PipelineThread | None = None  # the pipeline's thread, made when first needed
         self._ahead: _Ahead | None = None  # the next window, taken in on the intake thread
-        self._rendering: Future | None = None  # render.ahead: the next update's Rendered, on the intake thread
-        self._observing: Future | None = None  # streaming: this update's EROS, time surface and observation there
+        self._rendering: Job | None = None  # render.ahead: the next update's Rendered, on the intake thread
+        self._observing: Job | None = None  # streaming: this update's EROS, time surface and observation there
         self.period_us = cfg.period_us
         self.dt = self.period_us * 1e-6
 
@@ -383,9 +384,10 @@ class EventPoseTracker(nn.Module):
         """Release the renderers' GL contexts and the worker threads."""
         for r in self._renderers:
             r.close()
-        for pool in (self._pool, self._intake):
-            if pool is not None:
-                pool.shutdown()
+        if self._pool is not None:
+            self._pool.shutdown()
+        if self._intake is not None:
+            self._intake.close()
         self._intake = None
 
     # -- one update --------------------------------------------------------------------------
@@ -412,7 +414,7 @@ class EventPoseTracker(nn.Module):
                 self._update(x, y, t, p, b, t_us, next_window if self._take_in_ahead else None)
             finally:
                 if self._observing is not None:  # the update failed after it gave the intake thread its part
-                    wait([self._observing])
+                    self._observing.wait()
                     self._observing = None
         return torch.from_numpy(self.pose.numpy().copy())
 
@@ -700,7 +702,7 @@ class EventPoseTracker(nn.Module):
     def _drop_render(self) -> None:
         """Forget a render made ahead (a reset moved the poses): wait for the thread."""
         if self._rendering is not None:
-            wait([self._rendering])
+            self._rendering.wait()
             self._rendering = None
 
     def _render_depth(self, poses: torch.Tensor, mask: torch.Tensor) -> None:
@@ -798,10 +800,10 @@ class EventPoseTracker(nn.Module):
 
         self._observing = self._intake_thread().submit(job)
 
-    def _intake_thread(self) -> ThreadPoolExecutor:
+    def _intake_thread(self) -> PipelineThread:
         """The pipeline's thread, made on first use."""
         if self._intake is None:
-            self._intake = ThreadPoolExecutor(1, thread_name_prefix="torchevtrack-intake")
+            self._intake = PipelineThread("torchevtrack-intake")
         return self._intake
 
     def _launch(self, window: tuple) -> None:
@@ -820,7 +822,7 @@ class EventPoseTracker(nn.Module):
         """Forget a window taken in ahead whose update will not come (the loop ended early): wait for the thread. (A
         render made ahead stays: it depends on the poses only, and the next update still renders there.)"""
         if self._ahead is not None:
-            wait([self._ahead.flow])  # not .result(): in a finally, its error would hide the one that stopped the loop
+            self._ahead.flow.wait()  # not .result(): in a finally, its error would hide the one that stopped the loop
             self._ahead = None
 
     def _retake_ahead(self, m: torch.Tensor) -> None:
@@ -834,7 +836,7 @@ class EventPoseTracker(nn.Module):
                 x[k], y[k], t[k], p[k], None if b is None else b[k] - i)
             for field, row in zip(parts, redo):
                 field[i] = row[0]
-        self._ahead = _Ahead(_resolved(FlowField(*parts)), self._ahead.window)
+        self._ahead = _Ahead(Job.of(FlowField(*parts)), self._ahead.window)
 
     def _share_events(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor,
                       b: torch.Tensor | None) -> list[tuple[torch.Tensor, ...]]:
@@ -871,14 +873,8 @@ class EventPoseTracker(nn.Module):
 @dataclass
 class _Ahead:
     """A window ``(x, y, t, p, b)`` taken into the EROS and the flow ahead of its update, and its flow field."""
-    flow: Future
+    flow: Job
     window: tuple
-
-
-def _resolved(value) -> Future:
-    f = Future()
-    f.set_result(value)
-    return f
 
 
 class _Bound(NamedTuple):
