@@ -769,13 +769,16 @@ _MIN_OBSERVATION = 1e-4
 
 @numba.njit(cache=True, nogil=True)
 def _bspline_weights(x):
-    """Cubic B-spline weights of the taps ``i - 1 .. i + 2`` at ``i + x`` (``0 <= x < 1``), and their first and
-    second derivatives: three 4-tuples."""
+    """Cubic B-spline weights of the taps ``i - 1 .. i + 2`` at ``i + x`` (``0 <= x < 1``, float32), and their first
+    and second derivatives: three 4-tuples of float32."""
+    f4 = np.float32
+    one, half = f4(1.0), f4(0.5)
     x2 = x * x
-    w0, w3 = (1 - x) ** 3 / 6, x2 * x / 6
-    w1 = 2 / 3 - x2 + x2 * x / 2
-    return ((w0, w1, 1 - w0 - w1 - w3, w3), (-(1 - x) ** 2 / 2, -2 * x + 1.5 * x2, 0.5 + x - 1.5 * x2, x2 / 2),
-            (1 - x, 3 * x - 2, 1 - 3 * x, x))
+    w0, w3 = (one - x) ** 3 * f4(1 / 6), x2 * x * f4(1 / 6)
+    w1 = f4(2 / 3) - x2 + x2 * x * half
+    return ((w0, w1, one - w0 - w1 - w3, w3),
+            (-(one - x) ** 2 * half, f4(-2.0) * x + f4(1.5) * x2, half + x - f4(1.5) * x2, x2 * half),
+            (one - x, f4(3.0) * x - f4(2.0), one - f4(3.0) * x, x))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -793,7 +796,7 @@ def _pixel_motion(e0, e2, Ar, A2, d0, d1, d2):
     return -P0, -P1, -P2, P1 * d2 - P2 * d1, P2 * d0 - P0 * d2, P0 * d1 - P1 * d0
 
 
-# Pixels per block of :func:`_quadratic_terms`: its scratch (39 rows of _BLOCK float64) stays in the L1 cache.
+# Pixels per block of :func:`_quadratic_terms`: its scratch (39 rows of _BLOCK float32) stays in the L1 cache.
 _BLOCK = 64
 
 
@@ -846,7 +849,9 @@ def _quadratic_terms(coef, K, render_pose, pose, o, X):
     gather of the taps), with per-pixel values in rows of the flat scratch ``c`` (row ``r``, pixel ``i`` at
     ``c[r * _BLOCK + i]``; constant offsets let the compiler see that rows do not overlap): 0-5 the row
     ``G_u``, 6-11 ``G_v``, 12 ``O`` (0 off the canvas), 13-14 the spline fractions, 15-16 the first taps,
-    17-32 the 4 x 4 taps, 33-38 ``O`` times ``T, T_u, T_v, T_uu, T_uv, T_vv``.
+    17-32 the 4 x 4 taps, 33-38 ``O`` times ``T, T_u, T_v, T_uu, T_uv, T_vv``. The warp is float64; the
+    per-pixel terms and a block's sums are float32 (twice the vector lanes; the template is float32, and a
+    block's sums round at ~1e-7), the totals float64. Of the symmetric ``M`` only the upper triangle is summed.
     """
     N = coef.shape[0] - 6
     B = _BLOCK
@@ -859,7 +864,7 @@ def _quadratic_terms(coef, K, render_pose, pose, o, X):
     s0 = 0.0
     g = np.zeros(6)
     M = np.zeros((6, 6))
-    c = np.empty(39 * B)
+    c = np.empty(39 * B, dtype=np.float32)
     for p0 in range(0, o.shape[0], B):
         nb = min(B, o.shape[0] - p0)
         for i in range(nb):
@@ -898,26 +903,63 @@ def _quadratic_terms(coef, K, render_pose, pose, o, X):
             c[36 * B + i] = w * (a2 * wv[0] + b2 * wv[1] + e2 * wv[2] + h2 * wv[3])
             c[37 * B + i] = w * (a1 * dv[0] + b1 * dv[1] + e1 * dv[2] + h1 * dv[3])
             c[38 * B + i] = w * (a0 * ddv[0] + b0 * ddv[1] + e0 * ddv[2] + h0 * ddv[3])
-        acc = 0.0
+        acc = np.float32(0.0)
         for i in range(nb):
             acc += c[33 * B + i]
         s0 += acc
-        for k in range(6):  # g[k] and row k of M, whose lower part is dropped
-            gk = m0 = m1 = m2 = m3 = m4 = m5 = 0.0
-            for i in range(nb):
-                Gu, Gv = c[k * B + i], c[(6 + k) * B + i]
-                gk += c[34 * B + i] * Gu + c[35 * B + i] * Gv
-                hu, hv = c[36 * B + i] * Gu + c[37 * B + i] * Gv, c[37 * B + i] * Gu + c[38 * B + i] * Gv
-                m0 += hu * c[i] + hv * c[6 * B + i]
-                m1 += hu * c[B + i] + hv * c[7 * B + i]
-                m2 += hu * c[2 * B + i] + hv * c[8 * B + i]
-                m3 += hu * c[3 * B + i] + hv * c[9 * B + i]
-                m4 += hu * c[4 * B + i] + hv * c[10 * B + i]
-                m5 += hu * c[5 * B + i] + hv * c[11 * B + i]
+        # g and the upper triangle of M, row k from hu = T_uu G_u[k] + T_uv G_v[k], hv = T_uv G_u[k] + T_vv G_v[k]
+        Tu, Tv, Tuu = c[34 * B:34 * B + nb], c[35 * B:35 * B + nb], c[36 * B:36 * B + nb]
+        Tuv, Tvv = c[37 * B:37 * B + nb], c[38 * B:38 * B + nb]
+        g0 = m00 = m01 = m02 = m03 = m04 = m05 = np.float32(0.0)
+        for i in range(nb):
+            Gu, Gv = c[i], c[6 * B + i]
+            g0 += Tu[i] * Gu + Tv[i] * Gv
+            hu, hv = Tuu[i] * Gu + Tuv[i] * Gv, Tuv[i] * Gu + Tvv[i] * Gv
+            m00 += hu * Gu + hv * Gv
+            m01 += hu * c[B + i] + hv * c[7 * B + i]
+            m02 += hu * c[2 * B + i] + hv * c[8 * B + i]
+            m03 += hu * c[3 * B + i] + hv * c[9 * B + i]
+            m04 += hu * c[4 * B + i] + hv * c[10 * B + i]
+            m05 += hu * c[5 * B + i] + hv * c[11 * B + i]
+        g1 = m11 = m12 = m13 = m14 = m15 = np.float32(0.0)
+        for i in range(nb):
+            Gu, Gv = c[B + i], c[7 * B + i]
+            g1 += Tu[i] * Gu + Tv[i] * Gv
+            hu, hv = Tuu[i] * Gu + Tuv[i] * Gv, Tuv[i] * Gu + Tvv[i] * Gv
+            m11 += hu * Gu + hv * Gv
+            m12 += hu * c[2 * B + i] + hv * c[8 * B + i]
+            m13 += hu * c[3 * B + i] + hv * c[9 * B + i]
+            m14 += hu * c[4 * B + i] + hv * c[10 * B + i]
+            m15 += hu * c[5 * B + i] + hv * c[11 * B + i]
+        g2 = m22 = m23 = m24 = m25 = np.float32(0.0)
+        for i in range(nb):
+            Gu, Gv = c[2 * B + i], c[8 * B + i]
+            g2 += Tu[i] * Gu + Tv[i] * Gv
+            hu, hv = Tuu[i] * Gu + Tuv[i] * Gv, Tuv[i] * Gu + Tvv[i] * Gv
+            m22 += hu * Gu + hv * Gv
+            m23 += hu * c[3 * B + i] + hv * c[9 * B + i]
+            m24 += hu * c[4 * B + i] + hv * c[10 * B + i]
+            m25 += hu * c[5 * B + i] + hv * c[11 * B + i]
+        g3 = g4 = g5 = m33 = m34 = m35 = m44 = m45 = m55 = np.float32(0.0)
+        for i in range(nb):
+            Gu, Gv, Fu, Fv, Eu, Ev = c[3 * B + i], c[9 * B + i], c[4 * B + i], c[10 * B + i], c[5 * B + i], c[11 * B + i]
+            g3 += Tu[i] * Gu + Tv[i] * Gv
+            g4 += Tu[i] * Fu + Tv[i] * Fv
+            g5 += Tu[i] * Eu + Tv[i] * Ev
+            hu, hv = Tuu[i] * Gu + Tuv[i] * Gv, Tuv[i] * Gu + Tvv[i] * Gv
+            m33 += hu * Gu + hv * Gv
+            m34 += hu * Fu + hv * Fv
+            m35 += hu * Eu + hv * Ev
+            hu, hv = Tuu[i] * Fu + Tuv[i] * Fv, Tuv[i] * Fu + Tvv[i] * Fv
+            m44 += hu * Fu + hv * Fv
+            m45 += hu * Eu + hv * Ev
+            m55 += (Tuu[i] * Eu + Tuv[i] * Ev) * Eu + (Tuv[i] * Eu + Tvv[i] * Ev) * Ev
+        for k, gk in enumerate((g0, g1, g2, g3, g4, g5)):
             g[k] -= gk
-            row = (m0, m1, m2, m3, m4, m5)
-            for m in range(k, 6):
-                M[k, m] += row[m]
+        for k, m, v in ((0, 0, m00), (0, 1, m01), (0, 2, m02), (0, 3, m03), (0, 4, m04), (0, 5, m05), (1, 1, m11),
+                        (1, 2, m12), (1, 3, m13), (1, 4, m14), (1, 5, m15), (2, 2, m22), (2, 3, m23), (2, 4, m24),
+                        (2, 5, m25), (3, 3, m33), (3, 4, m34), (3, 5, m35), (4, 4, m44), (4, 5, m45), (5, 5, m55)):
+            M[k, m] += v
     for k in range(6):
         for m in range(k + 1, 6):
             M[m, k] = M[k, m]
