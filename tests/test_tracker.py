@@ -481,16 +481,19 @@ def test_render_ahead_made_on_the_intake_thread_gives_the_serial_poses(seq, monk
 def test_a_failed_render_ahead_raises_in_the_update_that_needs_it_once(seq):
     tracker = EventPoseTracker(CAM, seq.mesh, workers=1, pipeline=True)
     tracker.reset(seq.gt_poses[0])
-    make = tracker._render_one
+    binding = tracker._render_one
+    make = binding.kernel
 
-    def failing_once(poses, shaded, model):
-        if model and not failing_once.failed:  # a render with its model: the one made on the thread
+    at = make.py_func.__code__.co_varnames.index("model")
+
+    def failing_once(*args):  # the compiled call
+        if args[at] and not failing_once.failed:  # a render with its model: the one made on the thread
             failing_once.failed = True
             raise MemoryError("no memory for the render")
-        return make(poses, shaded, model)
+        return make(*args)
 
     failing_once.failed = False
-    tracker._render_one = failing_once
+    binding.kernel = failing_once
     t0 = int(seq.gt_t_us[0])
     w = [seq.events.slice_time(t0 + k * 2000, t0 + (k + 1) * 2000) for k in range(3)]
     tracker(w[0].x, w[0].y, w[0].t, w[0].p)  # renders at once, and its successor's render on the thread, which fails

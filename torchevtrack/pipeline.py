@@ -57,6 +57,11 @@ class Job:
         with self._done:
             pass
 
+    def raised(self) -> bool:
+        """Whether the job raised, once it has run (waits for it)."""
+        self.wait()
+        return self._error is not None
+
     def result(self) -> Any:
         """The job's return value, once it has run; re-raises its error."""
         self.wait()

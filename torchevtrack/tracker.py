@@ -69,7 +69,7 @@ from torchevtrack.pipeline import Job, PipelineThread
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.render import make_renderer
 from torchevtrack.stages import batch_mask, periods
-from torchevtrack.stages.correction import CorrectionStep, _observed_box, bind_correction
+from torchevtrack.stages.correction import CorrectionStep, bind_correction
 from torchevtrack.stages.eros import EROS, TimeSurface
 from torchevtrack.stages.flow import FlowField, TripletFlow
 from torchevtrack.stages.intake import bind_intake
@@ -209,7 +209,8 @@ class EventPoseTracker(nn.Module):
         self._pipeline = bool(pipeline)
         self._intake: PipelineThread | None = None  # the pipeline's thread, made when first needed
         self._ahead: _Ahead | None = None  # the next window, taken in on the intake thread
-        self._rendering: Job | None = None  # render.ahead: the next update's Rendered, on the intake thread
+        self._rendering: Job | None = None  # render.ahead: the next update's render and model, on the intake thread
+        self._rendering_as = (True, True)  # its shaded and model flags
         self._observing: Job | None = None  # streaming: this update's EROS, time surface and observation there
         self.period_us = cfg.period_us
         self.dt = self.period_us * 1e-6
@@ -303,8 +304,8 @@ class EventPoseTracker(nn.Module):
 
     # The state an update replaces, none of it a parameter, buffer or submodule: set as plain attributes, without
     # nn.Module's bookkeeping for those (~1-3 us each, several per update). The depth buffer: _set_depth.
-    _PLAIN = frozenset({"_rendering", "_observing", "_models", "_quality", "stage_ms", "_ahead", "loss_update",
-                        "_bound"})
+    _PLAIN = frozenset({"_rendering", "_rendering_as", "_observing", "_models", "_quality", "stage_ms", "_ahead",
+                        "loss_update", "_bound"})
 
     def __setattr__(self, name: str, value) -> None:
         if name in EventPoseTracker._PLAIN:
@@ -610,7 +611,7 @@ class EventPoseTracker(nn.Module):
         if B == 1:  # the own window is the common one: the render is the buffer
             if self._rendering is not None:  # made ahead, at these poses, with its template model (render.ahead)
                 rendering, self._rendering = self._rendering, None  # taken, even if it failed
-                made = rendering.result()
+                made = self._render_one.finish(rendering.result(), *self._rendering_as)
                 self._set_depth(made.depth)
                 self.origin.numpy()[:] = made.window[:, :2]
                 return _Render(made.depth, made.gray, made.model)
@@ -696,8 +697,10 @@ class EventPoseTracker(nn.Module):
         """Make the next update's render at ``poses`` and, with ``model``, its template model on the intake thread
         (one element, compiled rasteriser), in one compiled call
         (:func:`~torchevtrack.stages.render_model.bind_render_model`)."""
-        if self._render_one is not None:
-            self._rendering = self._intake_thread().submit(self._render_one, poses, shaded, model)
+        if self._render_one is not None:  # only the compiled call on that thread: it needs the GIL only to start
+            r = self._render_one
+            self._rendering = self._intake_thread().submit(r.kernel, *r.start(poses, shaded, model))
+            self._rendering_as = (shaded, model)
 
     def _drop_render(self) -> None:
         """Forget a render made ahead (a reset moved the poses): wait for the thread."""
@@ -789,14 +792,12 @@ class EventPoseTracker(nn.Module):
                       t_now: np.ndarray) -> None:
         """Take the checked events into the EROS and the time surface on the intake thread and observe them under the
         canvas box of the render made ahead there (:mod:`~torchevtrack.stages.observe`), for :meth:`_correct`."""
-        rendering, observe = self._rendering, self._bound.observe
+        rendering, observe, box = self._rendering, self._bound.observe, self._render_one.observed_box
 
         def job() -> np.ndarray | None:
-            try:  # done: the job before this one on the thread
-                model = rendering.result().model
-            except BaseException:  # the update raises it when it takes the render; the events still go in
-                model = None
-            return observe(x, y, t, b, None if model is None else _observed_box(model), t_now)
+            # the render, the job before this one on the thread, wrote the box of its model; if it failed, the update
+            # raises that when it takes the render, and the events still go in
+            return observe(x, y, t, b, None if rendering.raised() else box, t_now)
 
         self._observing = self._intake_thread().submit(job)
 

@@ -13,7 +13,7 @@ bit (``tests/test_render_model.py``).
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -23,7 +23,7 @@ from torchevtrack.raster import AMBIENT, LIGHT_DIRECTION, RasterRenderer, _rende
 from torchevtrack.render import _normalise_quaternions
 from torchevtrack.stages.template import TemplateModel, _box_kernel, _model_filters, _model_kernel, _window_kernel
 
-__all__ = ["Rendered", "bind_render_model", "render_model_step"]
+__all__ = ["RenderModelBinding", "Rendered", "bind_render_model", "render_model_step"]
 
 
 class Rendered(NamedTuple):
@@ -82,42 +82,13 @@ def render_model_step(renderer: RasterRenderer, pose: torch.Tensor, radius: floa
                              edge_clip=edge_clip, silhouette=silhouette)(pose.numpy(), shaded, model)
 
 
-def bind_render_model(renderer: RasterRenderer, radius: float, *, margin_px: int = 24, canvas: int = 128,
-                      box_margin_px: float = 20.0, edge_clip: float = 0.1,
-                      silhouette: bool = True) -> Callable[[np.ndarray, bool, bool], Rendered]:
-    """:func:`render_model_step` bound to a renderer and its options, unchecked, for a caller whose poses are valid
-    (the tracker). Returns ``run(pose, shaded, model)``, ``pose`` a ``(1, 7)`` float64 numpy array (``model`` needs
-    ``shaded``)."""
-    mesh, cam = renderer.raster_mesh, renderer.camera
-    camera = np.array([cam.fx, cam.fy, cam.cx, cam.cy])
-    sizes = (cam.width, cam.height)
-    radii = np.full(1, float(radius))
-    clip_range = (renderer.znear, renderer.zfar)
-    step = max(1, canvas // 16)  # the model's object points: every step-th canvas pixel
-    points = len(range(step // 2, canvas, step)) ** 2
-    model_args = (float(box_margin_px), silhouette, 0.125 / edge_clip, *_model_filters(canvas), canvas, step, points)
-
-    def run(pose: np.ndarray, shaded: bool, model: bool) -> Rendered:
-        unit = pose.copy()
-        _normalise_quaternions(unit)  # the renderers' rule (numpy's sum order)
-        pose32 = pose.astype(np.float32).astype(np.float64)  # the model's pose, as correction_step rounds it
-        win, depth, gray, made = _render_model_kernel(pose, unit, pose32, radii, camera, *sizes, float(margin_px),
-                                                      *mesh, *clip_range, LIGHT_DIRECTION, AMBIENT,
-                                                      renderer.background, shaded, model, *model_args)
-        made_model = None
-        if model:
-            p = torch.from_numpy(pose32)
-            made_model = TemplateModel(p, p, *(torch.from_numpy(a) for a in made))
-        return Rendered(torch.from_numpy(depth), torch.from_numpy(gray) if shaded else None, win, made_model)
-    return run
-
-
 @numba.njit(cache=True, nogil=True)
 def _render_model_kernel(pose, unit, pose32, radius, cam, W, H, margin, vertices, faces, planes, albedo, normals,
                          znear, zfar, light, ambient, background, shaded, model, box_margin, silhouette, edge_scale, g1,
-                         g2, pre, N, step, P):
-    """The window of ``pose`` (``(1, 4)``), its render at ``unit`` (its normalised copy) there, and with ``model`` the
-    template model's arrays at ``pose32`` (``box, K, gain, render_template, depth, coef, points, valid``)."""
+                         g2, pre, N, step, P, observed_box):
+    """The window of ``pose`` (``(1, 4)``), its render at ``unit`` (its normalised copy) there, ``pose32``, and with
+    ``model`` the template model's arrays at ``pose32`` (``box, K, gain, render_template, depth, coef, points,
+    valid``), its box also into ``observed_box`` as float64."""
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     win = np.empty((1, 4), dtype=np.int64)
     _window_kernel(np.ascontiguousarray(pose[:, :3]), radius, fx, fy, cx, cy, margin, W, H, True, win)
@@ -138,4 +109,62 @@ def _render_model_kernel(pose, unit, pose32, radius, cam, W, H, margin, vertices
         _box_kernel(depth, origin, cam, box_margin, box, gain)
         _model_kernel(depth, gray, origin, box, cam, np.ascontiguousarray(pose32[:, 2]), True, silhouette, edge_scale,
                       g1, g2, pre, step, step, box32, K, T, coef, Z, points, valid)
-    return win, depth, gray, (box32, K, gain, T, Z, coef, points, valid)
+        for k in range(3):
+            observed_box[0, k] = box32[0, k]
+    return win, depth, gray, pose32, (box32, K, gain, T, Z, coef, points, valid)
+
+
+def bind_render_model(renderer: RasterRenderer, radius: float, *, margin_px: int = 24, canvas: int = 128,
+                      box_margin_px: float = 20.0, edge_clip: float = 0.1, silhouette: bool = True) -> "RenderModelBinding":
+    """:func:`render_model_step` bound to a renderer and its options, unchecked, for a caller whose poses are valid
+    (the tracker): a :class:`RenderModelBinding`."""
+    return RenderModelBinding(renderer, radius, margin_px=margin_px, canvas=canvas, box_margin_px=box_margin_px,
+                              edge_clip=edge_clip, silhouette=silhouette)
+
+
+class RenderModelBinding:
+    """:func:`render_model_step` of one renderer and its options (:func:`bind_render_model`), callable as
+    ``binding(pose, shaded, model) -> Rendered`` (``pose`` a ``(1, 7)`` float64 numpy array; ``model`` needs
+    ``shaded``), and in three parts for a caller that runs the compiled call on another thread without the GIL in
+    between: ``args = binding.start(pose, shaded, model)`` (the Python part before it), ``raw =
+    binding.kernel(*args)`` (the compiled call: the only part that needs to run on the other thread) and
+    ``binding.finish(raw, shaded, model)`` (the tensors of the result).
+
+    Attributes:
+        observed_box: ``(1, 3)`` float64, the canvas box of the last model made (its float32 box, as the
+            observation of :mod:`~torchevtrack.stages.correction` takes it), written by the compiled call.
+    """
+
+    kernel = staticmethod(_render_model_kernel)  # the compiled call
+
+    def __init__(self, renderer: RasterRenderer, radius: float, *, margin_px: int, canvas: int,
+                 box_margin_px: float, edge_clip: float, silhouette: bool) -> None:
+        mesh, cam = renderer.raster_mesh, renderer.camera
+        self.observed_box = np.zeros((1, 3))
+        step = max(1, canvas // 16)  # the model's object points: every step-th canvas pixel
+        points = len(range(step // 2, canvas, step)) ** 2
+        self._args = (np.full(1, float(radius)), np.array([cam.fx, cam.fy, cam.cx, cam.cy]), cam.width, cam.height,
+                      float(margin_px), *mesh, renderer.znear, renderer.zfar, LIGHT_DIRECTION, AMBIENT,
+                      renderer.background)
+        self._model_args = (float(box_margin_px), silhouette, 0.125 / edge_clip, *_model_filters(canvas), canvas, step,
+                            points, self.observed_box)
+
+    def __call__(self, pose: np.ndarray, shaded: bool, model: bool) -> Rendered:
+        return self.finish(self.kernel(*self.start(pose, shaded, model)), shaded, model)
+
+    def start(self, pose: np.ndarray, shaded: bool, model: bool) -> tuple:
+        """The arguments of :attr:`kernel` for ``pose``: the pose, its normalised copy (the renderers' rule, numpy's
+        sum order) and its float32 rounding (the model's pose, as correction_step rounds it)."""
+        unit = pose.copy()
+        _normalise_quaternions(unit)
+        return pose, unit, pose.astype(np.float32).astype(np.float64), *self._args, shaded, model, *self._model_args
+
+    @staticmethod
+    def finish(raw: tuple, shaded: bool, model: bool) -> Rendered:
+        """The :class:`Rendered` of :attr:`kernel`'s result."""
+        win, depth, gray, pose32, made = raw
+        made_model = None
+        if model:
+            p = torch.from_numpy(pose32)
+            made_model = TemplateModel(p, p, *(torch.from_numpy(a) for a in made))
+        return Rendered(torch.from_numpy(depth), torch.from_numpy(gray) if shaded else None, win, made_model)
