@@ -303,6 +303,17 @@ def _nb_quat_canonical(q0, q1, q2, q3):
     return q0, q1, q2, q3
 
 
+@numba.njit(cache=True, nogil=True)
+def _nb_normalise_quaternions(p, norm):
+    """Divide the quaternions of poses ``p`` ``(B, 7)`` by their norms (squares summed in order) in place, the norms
+    into ``norm`` ``(B,)``."""
+    for b in range(p.shape[0]):
+        n = math.sqrt(p[b, 3] * p[b, 3] + p[b, 4] * p[b, 4] + p[b, 5] * p[b, 5] + p[b, 6] * p[b, 6])
+        norm[b] = n
+        for k in range(3, 7):
+            p[b, k] /= n
+
+
 @numba.njit(cache=True, nogil=True, inline="always")
 def _nb_quat_exp(a0, a1, a2):
     """:func:`quat_exp`."""

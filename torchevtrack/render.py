@@ -55,7 +55,7 @@ import torch
 import trimesh
 
 from torchevtrack.camera import Camera
-from torchevtrack.geometry import pose_to_matrix
+from torchevtrack.geometry import _nb_normalise_quaternions, pose_to_matrix
 
 __all__ = ["AMBIENT", "BACKENDS", "DEFAULT_ALBEDO", "LIGHT_DIRECTION", "Render", "Renderer", "make_renderer"]
 
@@ -464,8 +464,8 @@ def _unit_poses(poses: torch.Tensor) -> np.ndarray:
 def _normalise_quaternions(p: np.ndarray) -> np.ndarray:
     """Divide the quaternions of poses ``(B, 7)`` by their norms, in place, and return those norms ``(B,)`` (the
     one rule by which renders normalise their poses)."""
-    norm = np.sqrt(np.einsum("bi,bi->b", p[:, 3:], p[:, 3:]))
-    p[:, 3:] /= norm[:, None]
+    norm = np.empty(p.shape[0])
+    _nb_normalise_quaternions(p, norm)
     return norm
 
 

@@ -19,8 +19,8 @@ import numba
 import numpy as np
 import torch
 
+from torchevtrack.geometry import _nb_normalise_quaternions
 from torchevtrack.raster import AMBIENT, LIGHT_DIRECTION, RasterRenderer, _render_kernel
-from torchevtrack.render import _normalise_quaternions
 from torchevtrack.stages.template import TemplateModel, _box_kernel, _model_filters, _model_kernel, _window_kernel
 
 __all__ = ["RenderModelBinding", "Rendered", "bind_render_model", "render_model_step"]
@@ -83,12 +83,16 @@ def render_model_step(renderer: RasterRenderer, pose: torch.Tensor, radius: floa
 
 
 @numba.njit(cache=True, nogil=True)
-def _render_model_kernel(pose, unit, pose32, radius, cam, W, H, margin, vertices, faces, planes, albedo, normals,
-                         znear, zfar, light, ambient, background, shaded, model, box_margin, silhouette, edge_scale, g1,
-                         g2, pre, N, step, P, observed_box):
-    """The window of ``pose`` (``(1, 4)``), its render at ``unit`` (its normalised copy) there, ``pose32``, and with
-    ``model`` the template model's arrays at ``pose32`` (``box, K, gain, render_template, depth, coef, points,
-    valid``), its box also into ``observed_box`` as float64."""
+def _render_model_kernel(pose, radius, cam, W, H, margin, vertices, faces, planes, albedo, normals, znear, zfar, light,
+                         ambient, background, shaded, model, box_margin, silhouette, edge_scale, g1, g2, pre, N, step, P,
+                         observed_box):
+    """The window of ``pose`` (``(1, 4)``), its render there at its normalised copy (the renderers' rule,
+    :func:`~torchevtrack.render._normalise_quaternions`), its float32 rounding ``pose32`` (the model's pose, as
+    correction_step rounds it), and with ``model`` the template model's arrays at ``pose32`` (``box, K, gain,
+    render_template, depth, coef, points, valid``), its box also into ``observed_box`` as float64."""
+    unit = pose.copy()
+    _nb_normalise_quaternions(unit, np.empty(1))
+    pose32 = pose.astype(np.float32).astype(np.float64)
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     win = np.empty((1, 4), dtype=np.int64)
     _window_kernel(np.ascontiguousarray(pose[:, :3]), radius, fx, fy, cx, cy, margin, W, H, True, win)
@@ -153,11 +157,8 @@ class RenderModelBinding:
         return self.finish(self.kernel(*self.start(pose, shaded, model)), shaded, model)
 
     def start(self, pose: np.ndarray, shaded: bool, model: bool) -> tuple:
-        """The arguments of :attr:`kernel` for ``pose``: the pose, its normalised copy (the renderers' rule, numpy's
-        sum order) and its float32 rounding (the model's pose, as correction_step rounds it)."""
-        unit = pose.copy()
-        _normalise_quaternions(unit)
-        return pose, unit, pose.astype(np.float32).astype(np.float64), *self._args, shaded, model, *self._model_args
+        """The arguments of :attr:`kernel` for ``pose``."""
+        return pose, *self._args, shaded, model, *self._model_args
 
     @staticmethod
     def finish(raw: tuple, shaded: bool, model: bool) -> Rendered:
