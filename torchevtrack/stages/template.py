@@ -986,6 +986,68 @@ def _apply_step(pose, delta):
 
 
 @numba.njit(cache=True, nogil=True)
+def _largest_eigenvalue(S, work):
+    """The largest eigenvalue of a symmetric matrix ``S`` ``(n, n)`` by cyclic Jacobi rotations on ``work`` (a
+    scratch copy), to float64 precision: a 6 x 6 costs a fraction of a LAPACK call's overhead."""
+    n = S.shape[0]
+    work[:] = S
+    for _ in range(50):
+        off = scale = 0.0
+        for i in range(n):
+            scale += work[i, i] * work[i, i]
+            for j in range(i + 1, n):
+                off += work[i, j] * work[i, j]
+        if off <= 1e-32 * (scale + 2.0 * off) or off == 0.0:
+            break
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                apq = work[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (work[q, q] - work[p, p]) / (2.0 * apq)
+                t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                sn = t * c
+                for k in range(n):  # columns p, q
+                    akp, akq = work[k, p], work[k, q]
+                    work[k, p], work[k, q] = c * akp - sn * akq, sn * akp + c * akq
+                for k in range(n):  # rows p, q
+                    apk, aqk = work[p, k], work[q, k]
+                    work[p, k], work[q, k] = c * apk - sn * aqk, sn * apk + c * aqk
+    top = work[0, 0]
+    for i in range(1, n):
+        top = max(top, work[i, i])
+    return top
+
+
+@numba.njit(cache=True, nogil=True)
+def _solve_positive_definite(A, b):
+    """``A^-1 b`` for a symmetric positive-definite ``A`` ``(n, n)`` by its Cholesky factor (``A`` is
+    overwritten by it)."""
+    n = A.shape[0]
+    for j in range(n):
+        d = A[j, j]
+        for k in range(j):
+            d -= A[j, k] * A[j, k]
+        A[j, j] = d = math.sqrt(d)
+        for i in range(j + 1, n):
+            v = A[i, j]
+            for k in range(j):
+                v -= A[i, k] * A[j, k]
+            A[i, j] = v / d
+    x = b.copy()
+    for i in range(n):  # L y = b
+        for k in range(i):
+            x[i] -= A[i, k] * x[k]
+        x[i] /= A[i, i]
+    for i in range(n - 1, -1, -1):  # L^T x = y
+        for k in range(i + 1, n):
+            x[i] -= A[k, i] * x[k]
+        x[i] /= A[i, i]
+    return x
+
+
+@numba.njit(cache=True, nogil=True)
 def _newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, iterations, damping, max_step,
                    out_pose, out_score, out_scores, out_moved):
     """The ``"newton"`` rule of :func:`search` on the exact second-order model, per element (:func:`newton_search`).
@@ -1004,6 +1066,7 @@ def _newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta,
         cur = pose[b].copy()
         moved = 0
         o, X = _observed_points(Z[b], K[b], obs[b])
+        gu, delta, Hu, A, work = np.empty(6), np.empty(6), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
         for it in range(iterations):
             s0, g, M = _quadratic_terms(coef[b], K[b], render_pose[b], cur, o, X)
             un = unit.copy()
@@ -1015,12 +1078,29 @@ def _newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta,
                     for sign in range(2):
                         d = un[a] * (1.0 - 2.0 * sign)
                         out_scores[b, 1 + 2 * a + sign] = s0 - g[a] * d + 0.5 * M[a, a] * d * d
-            gu = -g * un
-            Hu = M * np.outer(un, un)
-            lam = max(np.linalg.eigvalsh(Hu)[-1], 0.0) + damping * np.mean(np.abs(np.diag(Hu))) + 1e-12
-            step = np.linalg.solve(lam * np.eye(6) - Hu, gu)
-            delta = np.minimum(np.maximum(step, -max_step), max_step) * un
-            new = s0 - g @ delta + 0.5 * delta @ (M @ delta)
+            for i in range(6):
+                gu[i] = -g[i] * un[i]
+                for j in range(6):
+                    Hu[i, j] = M[i, j] * un[i] * un[j]
+            mean_curv = 0.0
+            for i in range(6):
+                mean_curv += abs(Hu[i, i])
+            lam = max(_largest_eigenvalue(Hu, work), 0.0) + damping * mean_curv / 6 + 1e-12
+            for i in range(6):
+                for j in range(6):
+                    A[i, j] = -Hu[i, j]
+                A[i, i] += lam
+            step = _solve_positive_definite(A, gu)
+            for i in range(6):
+                delta[i] = min(max(step[i], -max_step), max_step) * un[i]
+            gd = dMd = 0.0  # g . delta and delta^T M delta (small loops: no BLAS calls)
+            for i in range(6):
+                gd += g[i] * delta[i]
+                Md = 0.0
+                for j in range(6):
+                    Md += M[i, j] * delta[j]
+                dMd += delta[i] * Md
+            new = s0 - gd + 0.5 * dMd
             if not new > s0:
                 break
             cur = _apply_step(cur, delta)
