@@ -37,6 +37,8 @@ from torchevtrack.cli.bench import _stream, packets
 from torchevtrack.config import TrackerConfig
 from torchevtrack.online import OnlineTracker
 from torchevtrack.pipeline import Job
+from torchevtrack.stages import render_model
+from torchevtrack.stages.render_model import RenderModelBinding
 from torchevtrack.synth.sequence import Sequence
 from torchevtrack.tracker import EventPoseTracker
 
@@ -45,12 +47,12 @@ KERNELS = {
     "torchevtrack.stages.flow": ["_flow_packet"],
     "torchevtrack.stages.intake": ["_intake_kernel"],
     "torchevtrack.stages.observe": ["_observe_kernel"],
-    "torchevtrack.stages.render_model": ["_render_model_kernel"],
+    "torchevtrack.stages.render_model": ["_render_model_kernel", "_observed_points"],
     "torchevtrack.stages.motion": ["_motion_kernel"],
     "torchevtrack.stages.output": ["_output_kernel"],
     "torchevtrack.raster": ["_render_kernel"],
     "torchevtrack.stages.template": ["_box_kernel", "_model_kernel"],
-    "torchevtrack.stages.correction": ["_canvas_kernel", "_newton_kernel"],
+    "torchevtrack.stages.correction": ["_canvas_kernel", "_newton_kernel", "_newton_points_kernel"],
 }
 
 
@@ -80,6 +82,7 @@ def main() -> None:
                 times[key] += time.perf_counter() - t
                 return out
             setattr(m, name, timed)
+    RenderModelBinding.kernel = staticmethod(render_model._render_model_kernel)  # the binding's own reference
 
     result = Job.result
 
