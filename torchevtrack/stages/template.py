@@ -810,6 +810,25 @@ def _tap_rows(c, r, w, d, dd):
             k0 * dd[0] + k1 * dd[1] + k2 * dd[2] + k3 * dd[3])
 
 
+@numba.njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _hessian_row(c, nb, k, Tu, Tv, Tuu, Tuv, Tvv):
+    """Block sums of :func:`_quadratic_terms`' ``g[k]`` (``O grad T . G[k]``) and row ``k`` of ``M`` (``hu G_u + hv G_v``
+    with ``hu = T_uu G_u[k] + T_uv G_v[k]``, ``hv = T_uv G_u[k] + T_vv G_v[k]``), float32: seven numbers."""
+    B = _BLOCK
+    gk = m0 = m1 = m2 = m3 = m4 = m5 = np.float32(0.0)
+    for i in range(nb):
+        Gu, Gv = c[k * B + i], c[(6 + k) * B + i]
+        gk += Tu[i] * Gu + Tv[i] * Gv
+        hu, hv = Tuu[i] * Gu + Tuv[i] * Gv, Tuv[i] * Gu + Tvv[i] * Gv
+        m0 += hu * c[i] + hv * c[6 * B + i]
+        m1 += hu * c[B + i] + hv * c[7 * B + i]
+        m2 += hu * c[2 * B + i] + hv * c[8 * B + i]
+        m3 += hu * c[3 * B + i] + hv * c[9 * B + i]
+        m4 += hu * c[4 * B + i] + hv * c[10 * B + i]
+        m5 += hu * c[5 * B + i] + hv * c[11 * B + i]
+    return gk, m0, m1, m2, m3, m4, m5
+
+
 @numba.njit(cache=True, nogil=True)
 def _observed_points(Z, K, obs):
     """The observed canvas pixels of one element (``|O| >= _MIN_OBSERVATION``, ``obs`` ``(N * N,)``) in raster
@@ -907,39 +926,12 @@ def _quadratic_terms(coef, K, render_pose, pose, o, X):
         for i in range(nb):
             acc += c[33 * B + i]
         s0 += acc
-        # g and the upper triangle of M, row k from hu = T_uu G_u[k] + T_uv G_v[k], hv = T_uv G_u[k] + T_vv G_v[k]
+        # g and the upper triangle of M: rows 0-2 (their unused lower entries are three sums), then rows 3-5 together
         Tu, Tv, Tuu = c[34 * B:34 * B + nb], c[35 * B:35 * B + nb], c[36 * B:36 * B + nb]
         Tuv, Tvv = c[37 * B:37 * B + nb], c[38 * B:38 * B + nb]
-        g0 = m00 = m01 = m02 = m03 = m04 = m05 = np.float32(0.0)
-        for i in range(nb):
-            Gu, Gv = c[i], c[6 * B + i]
-            g0 += Tu[i] * Gu + Tv[i] * Gv
-            hu, hv = Tuu[i] * Gu + Tuv[i] * Gv, Tuv[i] * Gu + Tvv[i] * Gv
-            m00 += hu * Gu + hv * Gv
-            m01 += hu * c[B + i] + hv * c[7 * B + i]
-            m02 += hu * c[2 * B + i] + hv * c[8 * B + i]
-            m03 += hu * c[3 * B + i] + hv * c[9 * B + i]
-            m04 += hu * c[4 * B + i] + hv * c[10 * B + i]
-            m05 += hu * c[5 * B + i] + hv * c[11 * B + i]
-        g1 = m11 = m12 = m13 = m14 = m15 = np.float32(0.0)
-        for i in range(nb):
-            Gu, Gv = c[B + i], c[7 * B + i]
-            g1 += Tu[i] * Gu + Tv[i] * Gv
-            hu, hv = Tuu[i] * Gu + Tuv[i] * Gv, Tuv[i] * Gu + Tvv[i] * Gv
-            m11 += hu * Gu + hv * Gv
-            m12 += hu * c[2 * B + i] + hv * c[8 * B + i]
-            m13 += hu * c[3 * B + i] + hv * c[9 * B + i]
-            m14 += hu * c[4 * B + i] + hv * c[10 * B + i]
-            m15 += hu * c[5 * B + i] + hv * c[11 * B + i]
-        g2 = m22 = m23 = m24 = m25 = np.float32(0.0)
-        for i in range(nb):
-            Gu, Gv = c[2 * B + i], c[8 * B + i]
-            g2 += Tu[i] * Gu + Tv[i] * Gv
-            hu, hv = Tuu[i] * Gu + Tuv[i] * Gv, Tuv[i] * Gu + Tvv[i] * Gv
-            m22 += hu * Gu + hv * Gv
-            m23 += hu * c[3 * B + i] + hv * c[9 * B + i]
-            m24 += hu * c[4 * B + i] + hv * c[10 * B + i]
-            m25 += hu * c[5 * B + i] + hv * c[11 * B + i]
+        g0, m00, m01, m02, m03, m04, m05 = _hessian_row(c, nb, 0, Tu, Tv, Tuu, Tuv, Tvv)
+        g1, _, m11, m12, m13, m14, m15 = _hessian_row(c, nb, 1, Tu, Tv, Tuu, Tuv, Tvv)
+        g2, _, _, m22, m23, m24, m25 = _hessian_row(c, nb, 2, Tu, Tv, Tuu, Tuv, Tvv)
         g3 = g4 = g5 = m33 = m34 = m35 = m44 = m45 = m55 = np.float32(0.0)
         for i in range(nb):
             Gu, Gv, Fu, Fv, Eu, Ev = c[3 * B + i], c[9 * B + i], c[4 * B + i], c[10 * B + i], c[5 * B + i], c[11 * B + i]
