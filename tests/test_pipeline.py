@@ -27,6 +27,7 @@ def test_a_job_hands_back_its_error_and_the_thread_goes_on():
     bad = thread.submit(lambda: 1 / 0)
     good = thread.submit(lambda x: x + 1, 41)
     bad.wait()  # waiting does not raise
+    assert bad.raised() and not good.raised()
     with pytest.raises(ZeroDivisionError):
         bad.result()
     assert good.result() == 42
