@@ -47,12 +47,12 @@ KERNELS = {
     "torchevtrack.stages.flow": ["_flow_packet"],
     "torchevtrack.stages.intake": ["_intake_kernel"],
     "torchevtrack.stages.observe": ["_observe_kernel"],
-    "torchevtrack.stages.render_model": ["_render_model_kernel", "_observed_points"],
+    "torchevtrack.stages.render_model": ["_render_model_kernel"],
     "torchevtrack.stages.motion": ["_motion_kernel"],
     "torchevtrack.stages.output": ["_output_kernel"],
     "torchevtrack.raster": ["_render_kernel"],
     "torchevtrack.stages.template": ["_box_kernel", "_model_kernel"],
-    "torchevtrack.stages.correction": ["_canvas_kernel", "_newton_kernel", "_newton_points_kernel"],
+    "torchevtrack.stages.correction": ["_canvas_kernel", "_newton_kernel"],
 }
 
 

@@ -471,10 +471,10 @@ class EventPoseTracker(nn.Module):
         if cfg.template.enabled:
             if self._observing is not None:  # (its window's times went into t_last when it was given out)
                 observing, self._observing = self._observing, None
-                (obs, points), t_now = observing.result(), run.t_last  # obs None (no box): the correction observes
+                obs, t_now = observing.result(), run.t_last  # obs None (no box): the correction observes itself
             else:
-                obs, points, t_now = None, None, self._t_now(t, b)
-            corr = self._correct(predicted, pose32, render, t_now, launch, obs, points)
+                obs, t_now = None, self._t_now(t, b)
+            corr = self._correct(predicted, pose32, render, t_now, launch, obs)
             # Until the EROS holds enough events, its edges are too sparse to correct against.
             warm = (run.events_seen >= cfg.template.warmup_events)[:, None]
             measured = np.where(warm, corr.pose, predicted)
@@ -766,17 +766,15 @@ class EventPoseTracker(nn.Module):
         return v.source == "flow" and cfg.template.enabled and v.feedback_gain > 0
 
     def _correct(self, predicted: np.ndarray, pose32: np.ndarray, render: "_Render | None", t_now: np.ndarray,
-                 on_observed: Callable[[], object] | None = None, obs: np.ndarray | None = None,
-                 points: tuple | None = None) -> Correction:
+                 on_observed: Callable[[], object] | None = None, obs: np.ndarray | None = None) -> Correction:
         """Template correction of the ``predicted`` poses with a new template model of ``render`` (made at ``pose32``),
         or the last model when ``render`` is ``None``; each worker corrects its share of the batch. ``on_observed``
         (only without workers) is called once the EROS and the time surface have been read. ``obs``: the observation
-        made on the intake thread under the last model's box (one element, ``render`` ``None``), and ``points`` its
-        observed pixels for the search if they were found there too."""
+        made on the intake thread under the last model's box (one element, ``render`` ``None``)."""
         if render is None:
             def share(rows: slice, correct: Callable[..., CorrectionStep], model: TemplateModel) -> CorrectionStep:
                 return correct(None, _cut(predicted, rows), None, None, None, _cut(t_now, rows), model=model,
-                               on_observed=on_observed, obs=obs, points=points)
+                               on_observed=on_observed, obs=obs)
 
             parts = self._map(share, self._bound.correct, self._models)
         else:
@@ -793,19 +791,13 @@ class EventPoseTracker(nn.Module):
     def _observe_soon(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, b: np.ndarray | None,
                       t_now: np.ndarray) -> None:
         """Take the checked events into the EROS and the time surface on the intake thread and observe them under the
-        canvas box of the render made ahead there (:mod:`~torchevtrack.stages.observe`), for :meth:`_correct`: the
-        job gives the observation and the search's observed pixels."""
-        rendering, observe, binding = self._rendering, self._bound.observe, self._render_one
-        search = self.config.template.rule == "newton"
+        canvas box of the render made ahead there (:mod:`~torchevtrack.stages.observe`), for :meth:`_correct`."""
+        rendering, observe, box = self._rendering, self._bound.observe, self._render_one.observed_box
 
-        def job() -> tuple:
+        def job() -> np.ndarray | None:
             # the render, the job before this one on the thread, wrote the box of its model; if it failed, the update
             # raises that when it takes the render, and the events still go in
-            if rendering.raised():
-                return observe(x, y, t, b, None, t_now), None
-            obs = observe(x, y, t, b, binding.observed_box, t_now)
-            # the search's observed pixels too: they depend on the observation and the model only
-            return obs, binding.observed_points(rendering.result(), obs) if search else None
+            return observe(x, y, t, b, None if rendering.raised() else box, t_now)
 
         self._observing = self._intake_thread().submit(job)
 

@@ -22,8 +22,7 @@ import torch
 from torchevtrack.camera import Camera
 from torchevtrack.stages.eros import _canvas_kernel, _check_time_surface, _decay_table
 from torchevtrack.stages.template import (NEWTON_DAMPING, NEWTON_MAX_STEP, NUM_HYPOTHESES, Correction, TemplateModel,
-                                          _camera_array, _model_in_box, _newton_kernel, _newton_points_kernel,
-                                          _render_box, correct_canvas)
+                                          _camera_array, _model_in_box, _newton_kernel, _render_box, correct_canvas)
 
 __all__ = ["CorrectionStep", "bind_correction", "correction_step"]
 
@@ -110,17 +109,15 @@ def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *,
     the arguments of :func:`correction_step` as numpy arrays (``render_pose`` float32; ``depth``, ``gray`` and
     ``origin`` ``None`` with a ``model`` to reuse), giving its :class:`CorrectionStep` with the fields of the
     correction as numpy arrays. ``obs``: the observation ``(B, N, N)`` under the ``model``'s box if it was made
-    elsewhere (:mod:`~torchevtrack.stages.observe`); the surfaces are then not read. ``points``: for one element
-    (``B = 1``, ``"newton"`` rule), that observation's observed pixels ``(o, X)`` if they were found elsewhere too
-    (:meth:`~torchevtrack.stages.render_model.RenderModelBinding.observed_points`).
+    elsewhere (:mod:`~torchevtrack.stages.observe`); the surfaces are then not read.
     """
     cam = _camera_array(camera)
     max_age_us, recency_us = int(max_age_us), float(recency_us)
     table = _decay_table(recency_us, max_age_us)
     dp, dtheta = float(dp_px), math.radians(dtheta_deg)
 
-    def run(render_pose, predicted, depth, gray, origin, t_now_us, model=None, on_observed=None, obs=None,
-            points=None) -> CorrectionStep:
+    def run(render_pose, predicted, depth, gray, origin, t_now_us, model=None, on_observed=None,
+            obs=None) -> CorrectionStep:
         B = predicted.shape[0]
         if model is None:  # the canvas box first: the observation needs only that, the rest of the model can wait
             origin64 = origin.astype(np.float64)
@@ -143,14 +140,10 @@ def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *,
             return CorrectionStep(model, Correction(*(f.numpy() for f in c)))
         pose = np.empty((B, 7))
         score, scores, moved = np.empty(B), np.empty((B, NUM_HYPOTHESES)), np.empty(B, dtype=np.int64)
-        search = (model.gain.numpy().astype(np.float64), camera.fx, camera.fy, dp, dtheta, iterations, NEWTON_DAMPING,
-                  NEWTON_MAX_STEP, pose, score, scores, moved)
-        K = model.K.numpy().astype(np.float64)
-        if points is None:
-            _newton_kernel(model.coef.numpy(), model.depth.numpy(), K, model.render_pose.numpy(), predicted,
-                           obs.reshape(B, N * N), *search)
-        else:
-            _newton_points_kernel(model.coef.numpy(), K, model.render_pose.numpy(), predicted, *points, *search)
+        _newton_kernel(model.coef.numpy(), model.depth.numpy(), model.K.numpy().astype(np.float64),
+                       model.render_pose.numpy(), predicted, obs.reshape(B, N * N),
+                       model.gain.numpy().astype(np.float64), camera.fx, camera.fy, dp, dtheta, iterations,
+                       NEWTON_DAMPING, NEWTON_MAX_STEP, pose, score, scores, moved)
         dt = model.depth.numpy().dtype
         scores = scores.astype(dt)  # argmax: the first of ties, as torch's
         return CorrectionStep(model, Correction(pose, score.astype(dt), scores, scores.argmax(1),

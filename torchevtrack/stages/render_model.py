@@ -21,8 +21,7 @@ import torch
 
 from torchevtrack.geometry import _nb_normalise_quaternions
 from torchevtrack.raster import AMBIENT, LIGHT_DIRECTION, RasterRenderer, _render_kernel
-from torchevtrack.stages.template import (TemplateModel, _box_kernel, _model_filters, _model_kernel,
-                                          _observed_points, _window_kernel)
+from torchevtrack.stages.template import TemplateModel, _box_kernel, _model_filters, _model_kernel, _window_kernel
 
 __all__ = ["RenderModelBinding", "Rendered", "bind_render_model", "render_model_step"]
 
@@ -160,14 +159,6 @@ class RenderModelBinding:
     def start(self, pose: np.ndarray, shaded: bool, model: bool) -> tuple:
         """The arguments of :attr:`kernel` for ``pose``."""
         return pose, *self._args, shaded, model, *self._model_args
-
-    @staticmethod
-    def observed_points(raw: tuple, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The search's observed canvas pixels ``o`` ``(n,)`` and points ``X`` ``(3, n)`` of the observation ``obs``
-        ``(1, N, N)`` under the model of :attr:`kernel`'s result ``raw`` (:func:`~torchevtrack.stages.template.
-        _observed_points`, as :func:`~torchevtrack.stages.template.newton_search` finds them)."""
-        K, Z = raw[4][1], raw[4][4]
-        return _observed_points(Z[0], K[0].astype(np.float64), obs.reshape(-1))
 
     @staticmethod
     def finish(raw: tuple, shaded: bool, model: bool) -> Rendered:

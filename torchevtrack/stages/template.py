@@ -1040,59 +1040,6 @@ def _solve_positive_definite(A, b):
 
 
 @numba.njit(cache=True, nogil=True)
-def _newton_one(b, coef, K, render_pose, pose, o, X, gain, fx, fy, dp, dtheta, iterations, damping, max_step, out_pose,
-                out_score, out_scores, out_moved):
-    """:func:`_newton_kernel` of element ``b``, from its observed pixels ``o``, ``X`` (:func:`_observed_points`)."""
-    z = pose[b, 2]
-    unit = np.array([z * dp / fx, z * dp / fy, dp / max(gain[b], 1e-12) if gain[b] > 0 else 0.0,
-                     dtheta, dtheta, dtheta])
-    cur = pose[b].copy()
-    moved = 0
-    gu, delta, Hu, A, work = np.empty(6), np.empty(6), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
-    for it in range(iterations):
-        s0, g, M = _quadratic_terms(coef[b], K[b], render_pose[b], cur, o, X)
-        un = unit.copy()
-        un[:2] *= cur[2] / pose[b, 2]
-        if it == 0:
-            out_score[b] = s0
-            out_scores[b, 0] = s0
-            for a in range(6):
-                for sign in range(2):
-                    d = un[a] * (1.0 - 2.0 * sign)
-                    out_scores[b, 1 + 2 * a + sign] = s0 - g[a] * d + 0.5 * M[a, a] * d * d
-        for i in range(6):
-            gu[i] = -g[i] * un[i]
-            for j in range(6):
-                Hu[i, j] = M[i, j] * un[i] * un[j]
-        mean_curv = 0.0
-        for i in range(6):
-            mean_curv += abs(Hu[i, i])
-        lam = max(_largest_eigenvalue(Hu, work), 0.0) + damping * mean_curv / 6 + 1e-12
-        for i in range(6):
-            for j in range(6):
-                A[i, j] = -Hu[i, j]
-            A[i, i] += lam
-        step = _solve_positive_definite(A, gu)
-        for i in range(6):
-            delta[i] = min(max(step[i], -max_step), max_step) * un[i]
-        gd = dMd = 0.0  # g . delta and delta^T M delta (small loops: no BLAS calls)
-        for i in range(6):
-            gd += g[i] * delta[i]
-            Md = 0.0
-            for j in range(6):
-                Md += M[i, j] * delta[j]
-            dMd += delta[i] * Md
-        new = s0 - gd + 0.5 * dMd
-        if not new > s0:
-            break
-        cur = _apply_step(cur, delta)
-        out_score[b] = new
-        moved += 1
-    out_pose[b] = cur
-    out_moved[b] = moved
-
-
-@numba.njit(cache=True, nogil=True)
 def _newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, iterations, damping, max_step,
                    out_pose, out_score, out_scores, out_moved):
     """The ``"newton"`` rule of :func:`search` on the exact second-order model, per element (:func:`newton_search`).
@@ -1105,18 +1052,54 @@ def _newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta,
     translation units scale with the current depth.
     """
     for b in range(coef.shape[0]):
+        z = pose[b, 2]
+        unit = np.array([z * dp / fx, z * dp / fy, dp / max(gain[b], 1e-12) if gain[b] > 0 else 0.0,
+                         dtheta, dtheta, dtheta])
+        cur = pose[b].copy()
+        moved = 0
         o, X = _observed_points(Z[b], K[b], obs[b])
-        _newton_one(b, coef, K, render_pose, pose, o, X, gain, fx, fy, dp, dtheta, iterations, damping, max_step,
-                    out_pose, out_score, out_scores, out_moved)
-
-
-@numba.njit(cache=True, nogil=True)
-def _newton_points_kernel(coef, K, render_pose, pose, o, X, gain, fx, fy, dp, dtheta, iterations, damping, max_step,
-                          out_pose, out_score, out_scores, out_moved):
-    """:func:`_newton_kernel` of one element whose observed pixels ``o``, ``X`` were found elsewhere
-    (:func:`observed_points`)."""
-    _newton_one(0, coef, K, render_pose, pose, o, X, gain, fx, fy, dp, dtheta, iterations, damping, max_step,
-                out_pose, out_score, out_scores, out_moved)
+        gu, delta, Hu, A, work = np.empty(6), np.empty(6), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
+        for it in range(iterations):
+            s0, g, M = _quadratic_terms(coef[b], K[b], render_pose[b], cur, o, X)
+            un = unit.copy()
+            un[:2] *= cur[2] / pose[b, 2]
+            if it == 0:
+                out_score[b] = s0
+                out_scores[b, 0] = s0
+                for a in range(6):
+                    for sign in range(2):
+                        d = un[a] * (1.0 - 2.0 * sign)
+                        out_scores[b, 1 + 2 * a + sign] = s0 - g[a] * d + 0.5 * M[a, a] * d * d
+            for i in range(6):
+                gu[i] = -g[i] * un[i]
+                for j in range(6):
+                    Hu[i, j] = M[i, j] * un[i] * un[j]
+            mean_curv = 0.0
+            for i in range(6):
+                mean_curv += abs(Hu[i, i])
+            lam = max(_largest_eigenvalue(Hu, work), 0.0) + damping * mean_curv / 6 + 1e-12
+            for i in range(6):
+                for j in range(6):
+                    A[i, j] = -Hu[i, j]
+                A[i, i] += lam
+            step = _solve_positive_definite(A, gu)
+            for i in range(6):
+                delta[i] = min(max(step[i], -max_step), max_step) * un[i]
+            gd = dMd = 0.0  # g . delta and delta^T M delta (small loops: no BLAS calls)
+            for i in range(6):
+                gd += g[i] * delta[i]
+                Md = 0.0
+                for j in range(6):
+                    Md += M[i, j] * delta[j]
+                dMd += delta[i] * Md
+            new = s0 - gd + 0.5 * dMd
+            if not new > s0:
+                break
+            cur = _apply_step(cur, delta)
+            out_score[b] = new
+            moved += 1
+        out_pose[b] = cur
+        out_moved[b] = moved
 
 
 def quadratic_score(coef: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, render_pose: torch.Tensor,
