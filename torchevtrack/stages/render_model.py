@@ -84,8 +84,8 @@ def render_model_step(renderer: RasterRenderer, pose: torch.Tensor, radius: floa
 
 @numba.njit(cache=True, nogil=True)
 def _render_model_kernel(pose, radius, cam, W, H, margin, vertices, faces, planes, albedo, normals, znear, zfar, light,
-                         ambient, background, shaded, model, box_margin, silhouette, edge_scale, g1, g2, pre, N, step, P,
-                         observed_box):
+                         ambient, background, shaded, model, box_margin, silhouette, edge_scale, g1, g2, pre, N, step,
+                         P, observed_box):
     """The window of ``pose`` (``(1, 4)``), its render there at its normalised copy (the renderers' rule,
     :func:`~torchevtrack.render._normalise_quaternions`), its float32 rounding ``pose32`` (the model's pose, as
     correction_step rounds it), and with ``model`` the template model's arrays at ``pose32`` (``box, K, gain,
@@ -119,7 +119,8 @@ def _render_model_kernel(pose, radius, cam, W, H, margin, vertices, faces, plane
 
 
 def bind_render_model(renderer: RasterRenderer, radius: float, *, margin_px: int = 24, canvas: int = 128,
-                      box_margin_px: float = 20.0, edge_clip: float = 0.1, silhouette: bool = True) -> "RenderModelBinding":
+                      box_margin_px: float = 20.0, edge_clip: float = 0.1,
+                      silhouette: bool = True) -> "RenderModelBinding":
     """:func:`render_model_step` bound to a renderer and its options, unchecked, for a caller whose poses are valid
     (the tracker): a :class:`RenderModelBinding`."""
     return RenderModelBinding(renderer, radius, margin_px=margin_px, canvas=canvas, box_margin_px=box_margin_px,

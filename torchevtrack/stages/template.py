@@ -812,8 +812,9 @@ def _tap_rows(c, r, w, d, dd):
 
 @numba.njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _hessian_row(c, nb, k, Tu, Tv, Tuu, Tuv, Tvv):
-    """Block sums of :func:`_quadratic_terms`' ``g[k]`` (``O grad T . G[k]``) and row ``k`` of ``M`` (``hu G_u + hv G_v``
-    with ``hu = T_uu G_u[k] + T_uv G_v[k]``, ``hv = T_uv G_u[k] + T_vv G_v[k]``), float32: seven numbers."""
+    """Block sums of :func:`_quadratic_terms`' ``g[k]`` (``O grad T . G[k]``) and row ``k`` of ``M``
+    (``hu G_u + hv G_v`` with ``hu = T_uu G_u[k] + T_uv G_v[k]``, ``hv = T_uv G_u[k] + T_vv G_v[k]``), float32: seven
+    numbers."""
     B = _BLOCK
     gk = m0 = m1 = m2 = m3 = m4 = m5 = np.float32(0.0)
     for i in range(nb):
@@ -934,7 +935,8 @@ def _quadratic_terms(coef, K, render_pose, pose, o, X):
         g2, _, _, m22, m23, m24, m25 = _hessian_row(c, nb, 2, Tu, Tv, Tuu, Tuv, Tvv)
         g3 = g4 = g5 = m33 = m34 = m35 = m44 = m45 = m55 = np.float32(0.0)
         for i in range(nb):
-            Gu, Gv, Fu, Fv, Eu, Ev = c[3 * B + i], c[9 * B + i], c[4 * B + i], c[10 * B + i], c[5 * B + i], c[11 * B + i]
+            Gu, Gv, Fu, Fv = c[3 * B + i], c[9 * B + i], c[4 * B + i], c[10 * B + i]
+            Eu, Ev = c[5 * B + i], c[11 * B + i]
             g3 += Tu[i] * Gu + Tv[i] * Gv
             g4 += Tu[i] * Fu + Tv[i] * Fv
             g5 += Tu[i] * Eu + Tv[i] * Ev
