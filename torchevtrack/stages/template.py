@@ -112,8 +112,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from torchevtrack.camera import Camera
-from torchevtrack.geometry import (_nb_quat_canonical, _nb_quat_exp, _nb_quat_mul, _nb_quat_to_matrix, quat_canonical,
-                                  quat_conj, quat_exp, quat_log, quat_mul, quat_rotate, quat_to_matrix)
+from torchevtrack.geometry import (_nb_cholesky, _nb_cholesky_solve, _nb_quat_canonical, _nb_quat_exp, _nb_quat_mul,
+                                  _nb_quat_to_matrix, quat_canonical, quat_conj, quat_exp, quat_log, quat_mul,
+                                  quat_rotate, quat_to_matrix)
 from torchevtrack.stages import canvas_taps
 
 __all__ = [
@@ -1015,33 +1016,6 @@ def _largest_eigenvalue(S, work):
 
 
 @numba.njit(cache=True, nogil=True)
-def _solve_positive_definite(A, b):
-    """``A^-1 b`` for a symmetric positive-definite ``A`` ``(n, n)`` by its Cholesky factor (``A`` is
-    overwritten by it)."""
-    n = A.shape[0]
-    for j in range(n):
-        d = A[j, j]
-        for k in range(j):
-            d -= A[j, k] * A[j, k]
-        A[j, j] = d = math.sqrt(d)
-        for i in range(j + 1, n):
-            v = A[i, j]
-            for k in range(j):
-                v -= A[i, k] * A[j, k]
-            A[i, j] = v / d
-    x = b.copy()
-    for i in range(n):  # L y = b
-        for k in range(i):
-            x[i] -= A[i, k] * x[k]
-        x[i] /= A[i, i]
-    for i in range(n - 1, -1, -1):  # L^T x = y
-        for k in range(i + 1, n):
-            x[i] -= A[k, i] * x[k]
-        x[i] /= A[i, i]
-    return x
-
-
-@numba.njit(cache=True, nogil=True)
 def _newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, iterations, damping, max_step,
                    out_pose, out_score, out_scores, out_moved):
     """The ``"newton"`` rule of :func:`search` on the exact second-order model, per element (:func:`newton_search`).
@@ -1060,7 +1034,8 @@ def _newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta,
         cur = pose[b].copy()
         moved = 0
         o, X = _observed_points(Z[b], K[b], obs[b])
-        gu, delta, Hu, A, work = np.empty(6), np.empty(6), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
+        gu, step, delta = np.empty(6), np.empty(6), np.empty(6)
+        Hu, A, L, work = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
         for it in range(iterations):
             s0, g, M = _quadratic_terms(coef[b], K[b], render_pose[b], cur, o, X)
             un = unit.copy()
@@ -1080,11 +1055,13 @@ def _newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta,
             for i in range(6):
                 mean_curv += abs(Hu[i, i])
             lam = max(_largest_eigenvalue(Hu, work), 0.0) + damping * mean_curv / 6 + 1e-12
-            for i in range(6):
-                for j in range(6):
-                    A[i, j] = -Hu[i, j]
+            for i in range(6):  # lambda I - Hu, from Hu's lower triangle (all that its Cholesky factor reads)
+                for j in range(i + 1):
+                    A[i, j] = A[j, i] = -Hu[i, j]
                 A[i, i] += lam
-            step = _solve_positive_definite(A, gu)
+            if not _nb_cholesky(A, L):  # positive definite by construction, unless the terms are not finite
+                break
+            _nb_cholesky_solve(L, gu, step)
             for i in range(6):
                 delta[i] = min(max(step[i], -max_step), max_step) * un[i]
             gd = dMd = 0.0  # g . delta and delta^T M delta (small loops: no BLAS calls)
