@@ -210,7 +210,6 @@ class EventPoseTracker(nn.Module):
         self._intake: PipelineThread | None = None  # the pipeline's thread, made when first needed
         self._ahead: _Ahead | None = None  # the next window, taken in on the intake thread
         self._rendering: Job | None = None  # render.ahead: the next update's render and model, on the intake thread
-        self._rendering_as = (True, True)  # its shaded and model flags
         self._observing: Job | None = None  # streaming: this update's EROS, time surface and observation there
         self.period_us = cfg.period_us
         self.dt = self.period_us * 1e-6
@@ -304,8 +303,8 @@ class EventPoseTracker(nn.Module):
 
     # The state an update replaces, none of it a parameter, buffer or submodule: set as plain attributes, without
     # nn.Module's bookkeeping for those (~1-3 us each, several per update). The depth buffer: _set_depth.
-    _PLAIN = frozenset({"_rendering", "_rendering_as", "_observing", "_models", "_quality", "stage_ms", "_ahead",
-                        "loss_update", "_bound"})
+    _PLAIN = frozenset({"_rendering", "_observing", "_models", "_quality", "stage_ms", "_ahead", "loss_update",
+                        "_bound"})
 
     def __setattr__(self, name: str, value) -> None:
         if name in EventPoseTracker._PLAIN:
@@ -611,7 +610,7 @@ class EventPoseTracker(nn.Module):
         if B == 1:  # the own window is the common one: the render is the buffer
             if self._rendering is not None:  # made ahead, at these poses, with its template model (render.ahead)
                 rendering, self._rendering = self._rendering, None  # taken, even if it failed
-                made = self._render_one.finish(rendering.result(), *self._rendering_as)
+                made = self._render_one.finish(rendering.result())
                 self._set_depth(made.depth)
                 self.origin.numpy()[:] = made.window[:, :2]
                 return _Render(made.depth, made.gray, made.model)
@@ -700,7 +699,6 @@ class EventPoseTracker(nn.Module):
         if self._render_one is not None:  # only the compiled call on that thread: it needs the GIL only to start
             r = self._render_one
             self._rendering = self._intake_thread().submit(r.kernel, *r.start(poses, shaded, model))
-            self._rendering_as = (shaded, model)
 
     def _drop_render(self) -> None:
         """Forget a render made ahead (a reset moved the poses): wait for the thread."""

@@ -133,7 +133,7 @@ class RenderModelBinding:
     ``shaded``), and in three parts for a caller that runs the compiled call on another thread without the GIL in
     between: ``args = binding.start(pose, shaded, model)`` (the Python part before it), ``raw =
     binding.kernel(*args)`` (the compiled call: the only part that needs to run on the other thread) and
-    ``binding.finish(raw, shaded, model)`` (the tensors of the result).
+    ``binding.finish(raw)`` (the tensors of the result).
 
     Attributes:
         observed_box: ``(1, 3)`` float64, the canvas box of the last model made (its float32 box, as the
@@ -155,18 +155,19 @@ class RenderModelBinding:
                             points, self.observed_box)
 
     def __call__(self, pose: np.ndarray, shaded: bool, model: bool) -> Rendered:
-        return self.finish(self.kernel(*self.start(pose, shaded, model)), shaded, model)
+        return self.finish(self.kernel(*self.start(pose, shaded, model)))
 
     def start(self, pose: np.ndarray, shaded: bool, model: bool) -> tuple:
         """The arguments of :attr:`kernel` for ``pose``."""
         return pose, *self._args, shaded, model, *self._model_args
 
     @staticmethod
-    def finish(raw: tuple, shaded: bool, model: bool) -> Rendered:
-        """The :class:`Rendered` of :attr:`kernel`'s result."""
+    def finish(raw: tuple) -> Rendered:
+        """The :class:`Rendered` of :attr:`kernel`'s result (a window has pixels, so an empty grey image means an
+        unshaded render, and empty model arrays a render without its model)."""
         win, depth, gray, pose32, made = raw
         made_model = None
-        if model:
+        if made[3].size:  # the template
             p = torch.from_numpy(pose32)
             made_model = TemplateModel(p, p, *(torch.from_numpy(a) for a in made))
-        return Rendered(torch.from_numpy(depth), torch.from_numpy(gray) if shaded else None, win, made_model)
+        return Rendered(torch.from_numpy(depth), torch.from_numpy(gray) if gray.size else None, win, made_model)
