@@ -58,8 +58,6 @@ def main() -> None:
     radius = float(torch.as_tensor(seq.mesh.vertices).norm(dim=1).max())
     reloc = Relocaliser(RasterRenderer(seq.mesh, cam), radius, max_age_us=cfg.eros.max_age_us,
                         recency_us=cfg.eros.recency_us)
-    import torchevtrack.stages.relocalise as R
-    R.DEBUG = lambda p: (round(float((p[0, :3] - truth[:3]).norm()) * 100, 2), round(math.degrees(float(quat_log(quat_mul(p[0, 3:], quat_conj(truth[3:]))).norm())), 1))
     gen = torch.Generator().manual_seed(args.seed)
     t_arg = torch.tensor([t_now])
     reloc(truth[None], eros.surface, ts.last_us[:, None], t_arg)  # compile
