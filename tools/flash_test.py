@@ -88,7 +88,8 @@ def main() -> None:
     after = slice(k, None)
     i_f = (t_flash - t0) // period
     print(f"{args.seqdir} mode={args.mode} flash_events={n_flash} dropped={dropped}")
-    print(f"update ms (the first, compiling, left out): max {max(ms[1:]):.1f}, flash windows {[round(v, 1) for v in ms[i_f:i_f + 3]]}, "
+    flash_ms = [round(v, 1) for v in ms[i_f:i_f + 3]]
+    print(f"update ms (the first, compiling, left out): max {max(ms[1:]):.1f}, flash windows {flash_ms}, "
           f"p99 {sorted(ms[1:])[int(0.99 * (len(ms) - 1))]:.2f}; peak RSS growth while tracking {peak - base:.0f} MB "
           f"(peak {peak:.0f} MB)")
     te, re = e["te"], e["re"]
