@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -52,20 +53,19 @@ def burst_step(n_events: torch.Tensor, dt_us: int, rate: torch.Tensor, run: torc
         rate: ``(B,)`` float64 events/s (NaN: none yet); run: ``(B,)`` int64 consecutive bursts before this one.
         floor: ``min_fraction * H * W`` events; ratio, ema, max_run: see :class:`BurstGuard`.
 
-    Shape: ``(B,)`` inputs, :class:`BurstState` of ``(B,)`` tensors.
+    Shape: ``(B,)`` inputs, :class:`BurstState` of ``(B,)`` tensors. (numpy inside: a window costs microseconds.)
     """
     if not dt_us > 0:
         raise ValueError(f"dt_us must be positive, got {dt_us}")
-    n = n_events.to(torch.float64)
-    per_s = n / (dt_us * 1e-6)
-    above = torch.isnan(rate) | (n > ratio * rate * (dt_us * 1e-6))
-    burst = (n > floor) & above & (run < max_run)
-    accepted = ~burst
-    restart = torch.isnan(rate) | (run >= max_run)  # the first window, or the new normal after a long run
-    new_rate = torch.where(restart, per_s, (1 - ema) * rate + ema * per_s)
-    rate = torch.where(accepted, new_rate, rate)
-    run = torch.where(burst, run + 1, torch.zeros_like(run))
-    return BurstState(burst, rate, run)
+    n = n_events.numpy().astype(np.float64)
+    r, k = rate.numpy(), run.numpy()
+    dt = dt_us * 1e-6
+    fresh = np.isnan(r)
+    burst = (n > floor) & (fresh | (n > ratio * np.where(fresh, 0.0, r) * dt)) & (k < max_run)
+    restart = fresh | (k >= max_run)  # the first window, or the new normal after a long run
+    new_rate = np.where(restart, n / dt, (1 - ema) * np.where(fresh, 0.0, r) + ema * n / dt)
+    return BurstState(torch.from_numpy(burst), torch.from_numpy(np.where(burst, r, new_rate)),
+                      torch.from_numpy(np.where(burst, k + 1, 0).astype(np.int64)))
 
 
 def keep_events(b: torch.Tensor | None, n: int, burst: torch.Tensor) -> slice | torch.Tensor:
@@ -117,14 +117,12 @@ class BurstGuard(nn.Module):
 
     def forward(self, n_events: torch.Tensor, dt_us: int) -> torch.Tensor:
         n_events = torch.as_tensor(n_events)
-        if n_events.shape != self.rate.shape or n_events.is_floating_point():
+        if n_events.shape != self.rate.shape or n_events.is_floating_point() or n_events.dtype == torch.bool:
             raise ValueError(f"n_events must be an integer {tuple(self.rate.shape)} tensor, got {n_events.dtype} "
                              f"{tuple(n_events.shape)}")
         s = burst_step(n_events, dt_us, self.rate, self.run, floor=self.floor, ratio=self.ratio, ema=self.ema,
                        max_run=self.max_run)
-        self.rate.copy_(s.rate)
-        self.run.copy_(s.run)
-        self.burst.copy_(s.burst)
+        self.rate.numpy()[:], self.run.numpy()[:], self.burst.numpy()[:] = s.rate.numpy(), s.run.numpy(), s.burst.numpy()
         return s.burst
 
     def reset(self, mask: torch.Tensor | None = None) -> None:
