@@ -5,7 +5,7 @@ state carries across them, as in a live stream) and writes OUTDIR with the kept 
 SEQDIR copied, so ``torchevtrack track`` and ``eval`` run on it unchanged. Prints the kept fraction and the
 filter's speed (events/s of the filter call alone).
 
-    python tools/denoise_sequence.py SEQDIR OUTDIR [--dt-us 5000]
+    python tools/denoise_sequence.py SEQDIR OUTDIR [--dt-us 10000]
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("seqdir")
     ap.add_argument("outdir")
-    ap.add_argument("--dt-us", type=int, default=5000)
+    ap.add_argument("--dt-us", type=int, default=10_000)
     ap.add_argument("--chunk", type=int, default=20_000, help="events per filter call (a 2 ms window is 2-10 k)")
     args = ap.parse_args()
     torch.set_num_threads(1)

@@ -122,7 +122,8 @@ class BurstGuard(nn.Module):
                              f"{tuple(n_events.shape)}")
         s = burst_step(n_events, dt_us, self.rate, self.run, floor=self.floor, ratio=self.ratio, ema=self.ema,
                        max_run=self.max_run)
-        self.rate.numpy()[:], self.run.numpy()[:], self.burst.numpy()[:] = s.rate.numpy(), s.run.numpy(), s.burst.numpy()
+        self.rate.numpy()[:], self.run.numpy()[:] = s.rate.numpy(), s.run.numpy()
+        self.burst.numpy()[:] = s.burst.numpy()
         return s.burst
 
     def reset(self, mask: torch.Tensor | None = None) -> None:
