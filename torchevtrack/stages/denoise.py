@@ -145,7 +145,8 @@ class BackgroundActivityFilter(nn.Module):
     Args:
         height, width: sensor size in pixels; batch_size: ``B``.
         dt_us: an event passes when a 3x3 neighbour fired at most this long before it (default 10 ms: 5 ms
-            cost a slow regular sequence 1.4 cm / 14 deg, 20 ms let the noisy fast one be lost; tools/denoise_sequence.py).
+            cost a slow regular sequence 1.4 cm / 14 deg, 20 ms let a noisy fast one be lost;
+            ``tools/denoise_sequence.py``).
         hot_period_us: length of the periods over which hot pixels are counted (default 0.2 s).
         hot_ratio: a hot pixel fires more than this many times the mean of its neighbours (default 8) ...
         hot_min_rate_hz: ... and at least this often (default 50 Hz; ``hot_min_count`` is this times the period).

@@ -18,7 +18,8 @@ its canvas, :func:`~torchevtrack.stages.eros.canvas_observation`):
    (:func:`~torchevtrack.stages.template.newton_search`), each on a fresh render at the current pose.
 3. **Clear winner.** ``runner_up`` is the score of the best first-level candidate farther than
    ``distinct_m`` / ``distinct_deg`` from the result (rescored on the result's 128 px canvas); the result is
-   ``clear`` when its score is at least ``1 + min_margin`` times the runner-up's. A caller restarts tracking only at a clear result.
+   ``clear`` when its score is at least ``1 + min_margin`` times the runner-up's. A caller restarts tracking only
+   at a clear result.
 
 The cost is dominated by the renders: ``27 * 5 + 3 * 27 * 3`` candidates, each a render of its window, a template
 model and one FFT (``tools/bench_relocalise.py``). Batch elements are searched one after the other.
