@@ -164,7 +164,7 @@ class EventPoseTracker(nn.Module):
 
     Batch elements do not share state, and each is rendered in a window that depends on its own pose
     only: :meth:`reset` with a mask restarts some elements, and the others' poses continue as if nothing
-    had happened: bit for bit with one argmax correction round per update and no correction feedback;
+    had happened: exactly with one argmax correction round per update and no correction feedback;
     otherwise the float32 rounding of the correction differs with the other elements' data (about 1e-8 m)
     and carries on into the poses.
     """
@@ -234,20 +234,13 @@ class EventPoseTracker(nn.Module):
         self._threaded_render = self._pool is not None and cfg.render.backend == "raster"
 
         H, W = camera.height, camera.width
-        self.eros = EROS(H, W, cfg.eros.kernel_size, cfg.eros.decay, batch_size=B)
-        f = cfg.flow
-        self.flow = TripletFlow(H, W, batch_size=B, block=f.block, min_samples=f.min_samples, D=f.radius,
-                                dt_max_us=f.dt_max_us, tol=f.tol, smooth=f.smooth, estimate=f.estimate)
-        v = cfg.velocity
-        self.velocity = VelocityKF(camera, rho=v.rho, q_v=v.q_v, q_w=v.q_w, r_px=v.r_px,
-                                   min_vectors=v.min_vectors, normal=f.estimate == "normal", batch_size=B)
+        self.eros = EROS.from_config(H, W, cfg.eros, batch_size=B)
+        self.flow = TripletFlow.from_config(H, W, cfg.flow, batch_size=B)
+        v, t = cfg.velocity, cfg.template
+        self.velocity = VelocityKF.from_config(camera, v, normal=cfg.flow.estimate == "normal", batch_size=B)
         # Feedback of the corrections into the flow twist (needs both; off in the paper's ablations without them).
-        self.feedback = CorrectionFeedback(v.feedback_gain, v.feedback_leak, v.feedback_axes, v.feedback_max_v,
-                                           v.feedback_max_w, batch_size=B) \
-            if self._feedback_on(cfg) else None
-        t = cfg.template
-        self.corrector = TemplateCorrector(camera, canvas=t.canvas, margin_px=t.margin_px, dp_px=t.dp_px,
-                                           dtheta_deg=t.dtheta_deg, rule=t.rule, iterations=t.iterations)
+        self.feedback = CorrectionFeedback.from_config(v, batch_size=B) if self._feedback_on(cfg) else None
+        self.corrector = TemplateCorrector.from_config(camera, t)
         o = self.corrector.options
         # each compiled rasteriser's render (and template model) of a pose in its window, in one compiled call
         self._render_bindings = [
@@ -257,15 +250,14 @@ class EventPoseTracker(nn.Module):
         self._render_one = self._render_bindings[0] if B == 1 else None  # one stream: the render is the buffer
         # The pipeline's thread takes a known next window in ahead, unless it makes each update's render and template
         # ahead (one stream, compiled rasteriser): it then takes each window into the EROS side and observes it while
-        # the flow runs here, which splits an update more evenly between the two threads (both, bit for bit). That
+        # the flow runs here, which splits an update more evenly between the two threads (both give the same poses). That
         # observation weighs the EROS by a time surface of the EROS side's own (the flow writes its SAE meanwhile);
         # otherwise the observation reads the SAE's channel maximum, the same numbers, and no time surface is kept
         # (for a batch, ~20 MB less memory traffic per step).
         observes = self._pipeline and self._render_one is not None and cfg.render.ahead and t.enabled
         self._take_in_ahead = self._pipeline and not observes
         self.time_surface = TimeSurface(H, W, batch_size=B) if observes else None
-        u = cfg.ukf
-        self.ukf = PoseUKF(B, q_pdot=u.q_pdot, q_w=u.q_w, q_p=u.q_p, q_q=u.q_q, r_p=u.r_p, r_q=u.r_q, p0=u.p0)
+        self.ukf = PoseUKF.from_config(cfg.ukf, batch_size=B)
         lc = cfg.loss
         if lc.enabled:
             # Without flow velocity no flow vectors are counted: the flow criterion would flag every update.
@@ -325,7 +317,7 @@ class EventPoseTracker(nn.Module):
         ``mask`` (``(B,)`` bool or ``(K,)`` indices) restarts only the selected elements, e.g. to
         re-initialise lost ones mid-stream: their EROS and time surface are cleared, their velocity
         filter, UKF, pose, events seen and loss-detector state start over as in a full reset, and their
-        depth is rendered at the new pose. The other elements keep their state bit for bit (the depth
+        depth is rendered at the new pose. The other elements keep their state exactly (the depth
         buffer may grow to a larger common window, which zero-pads theirs: exact, their objects lie
         inside their old windows), and their rows of ``initial_pose`` and ``twist`` are ignored.
         """
