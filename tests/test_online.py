@@ -276,5 +276,5 @@ def test_pushes_of_several_windows_run_the_pipeline_with_the_serial_poses(seq, r
         got += online.flush(t0 + 30_000)
         tracker.close()
         out[pipeline] = _collect(got)
-        assert tracker._ahead is None and len(online.stage_ms) == 15
+        assert tracker._run.ahead is None and len(online.stage_ms) == 15
     assert torch.equal(out[True][0], out[False][0]) and torch.equal(out[True][1], out[False][1])

@@ -319,7 +319,7 @@ def test_render_window_contains_the_object_and_correct_render_accepts_a_render(s
     assert float(box_f[0, 2]) == max(int(u.max() - u.min()), int(v.max() - v.min())) + 1 + 40
     obs = torch.zeros(1, CAM.height, CAM.width)
     obs[0, roi[1] : roi[1] + roi[3], roi[0] : roi[0] + roi[2]] = _edges(base)[0]
-    corr = tm.TemplateCorrector(CAM)
+    corr = tm.TemplateCorrector(CAM, rule="argmax", iterations=1)
     a = corr.correct_render(POSE, base, roi[:2], obs)
     b = corr.correct_render(POSE, full, (0, 0), obs)
     # (the renderer's window and full-frame grey differ by up to ~2/255 on a few % of pixels)
@@ -743,7 +743,7 @@ def test_reused_model_matches_a_fresh_render(scenes):
     wobble = (torch.rand(6, 6, generator=g_, dtype=torch.float64) * 2 - 1) * steps[0, 1::2].diagonal() * 0.3
     refs = tm.apply_steps(starts, wobble[:, None])[:, 0]
     rd = r.render(refs.float(), roi=roi)
-    corr = tm.TemplateCorrector(CAM)
+    corr = tm.TemplateCorrector(CAM, rule="argmax", iterations=1)
     model = corr.template_model(refs, rd.depth, rd.gray, roi[:2])
     shift = model.shift_px(starts)
     assert (shift > 0.2).all() and (shift < 1.3).all()

@@ -105,7 +105,7 @@ def test_the_bound_steps_follow_new_buffers(seq):
             if replace and i == 10:
                 old = tracker.eros.surface
                 tracker._apply(lambda t: t.clone())
-                assert tracker._bound is None and tracker.eros.surface is not old
+                assert tracker._run.bound is None and tracker.eros.surface is not old
             out.append(tracker(w.x, w.y, w.t, w.p))
         if replace:
             assert not torch.equal(old, tracker.eros.surface)  # the new surface took the later events
@@ -400,7 +400,7 @@ def test_pipeline_options_and_a_window_that_was_not_taken_in(seq, monkeypatch):
     monkeypatch.setattr(output_module, "_output_kernel", failing)
     with pytest.raises(FloatingPointError):
         tracker.track(seq.events, seq.gt_poses[0], progress=False)
-    assert tracker._ahead is None
+    assert tracker._run.ahead is None
     monkeypatch.setattr(output_module, "_output_kernel", kernel)
     tracker.reset(seq.gt_poses[0])
     assert tracker(*win[0]).shape == (1, 7)
@@ -499,7 +499,7 @@ def test_a_failed_render_ahead_raises_in_the_update_that_needs_it_once(seq):
     tracker(w[0].x, w[0].y, w[0].t, w[0].p)  # renders at once, and its successor's render on the thread, which fails
     with pytest.raises(MemoryError, match="no memory"):
         tracker(w[1].x, w[1].y, w[1].t, w[1].p)
-    assert tracker._rendering is None  # taken: the next update renders again rather than raise the same error
+    assert tracker._run.rendering is None  # taken: the next update renders again rather than raise the same error
     assert torch.isfinite(tracker(w[2].x, w[2].y, w[2].t, w[2].p)).all()
     tracker.close()
 

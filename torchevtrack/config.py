@@ -19,8 +19,6 @@ from pathlib import Path
 import yaml
 
 from torchevtrack.render import BACKENDS
-from torchevtrack.stages.template import RULES
-from torchevtrack.stages.velocity import TWIST_AXES
 
 __all__ = [
     "ErosConfig",
@@ -33,6 +31,9 @@ __all__ = [
     "TrackerConfig",
     "ABLATIONS",
 ]
+
+RULES = ("argmax", "group", "newton")  # template.rule: the correction's decision rules
+TWIST_AXES = ("vx", "vy", "vz", "wx", "wy", "wz")  # names of the twist components [v, w]
 
 
 @dataclass

@@ -101,7 +101,7 @@ def quat_exp(phi: torch.Tensor) -> torch.Tensor:
 
     This is ``exp(phi / 2)`` of the pure quaternion ``(0, phi)``: ``(cos(a / 2), sin(a / 2) phi / a)``,
     ``a = |phi|``, and ``(1, phi / 2)`` where ``|phi|^2`` is 0 (the values of
-    ``kornia.geometry.conversions.axis_angle_to_quaternion``, bit for bit, in fewer operations).
+    ``kornia.geometry.conversions.axis_angle_to_quaternion``, exactly, in fewer operations).
     Shape: ``(..., 3) -> (..., 4)``.
     """
     a0, a1, a2 = phi[..., 0:1], phi[..., 1:2], phi[..., 2:3]

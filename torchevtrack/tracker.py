@@ -46,6 +46,7 @@ Example:
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor, wait
@@ -164,7 +165,7 @@ class EventPoseTracker(nn.Module):
 
     Batch elements do not share state, and each is rendered in a window that depends on its own pose
     only: :meth:`reset` with a mask restarts some elements, and the others' poses continue as if nothing
-    had happened: bit for bit with one argmax correction round per update and no correction feedback;
+    had happened: exactly with one argmax correction round per update and no correction feedback;
     otherwise the float32 rounding of the correction differs with the other elements' data (about 1e-8 m)
     and carries on into the poses.
     """
@@ -208,9 +209,6 @@ class EventPoseTracker(nn.Module):
             raise ValueError("pipeline needs workers=1: the worker threads already share the batch")
         self._pipeline = bool(pipeline)
         self._intake: PipelineThread | None = None  # the pipeline's thread, made when first needed
-        self._ahead: _Ahead | None = None  # the next window, taken in on the intake thread
-        self._rendering: Job | None = None  # render.ahead: the next update's render and model, on the intake thread
-        self._observing: Job | None = None  # streaming: this update's EROS, time surface and observation there
         self.period_us = cfg.period_us
         self.dt = self.period_us * 1e-6
 
@@ -234,20 +232,13 @@ class EventPoseTracker(nn.Module):
         self._threaded_render = self._pool is not None and cfg.render.backend == "raster"
 
         H, W = camera.height, camera.width
-        self.eros = EROS(H, W, cfg.eros.kernel_size, cfg.eros.decay, batch_size=B)
-        f = cfg.flow
-        self.flow = TripletFlow(H, W, batch_size=B, block=f.block, min_samples=f.min_samples, D=f.radius,
-                                dt_max_us=f.dt_max_us, tol=f.tol, smooth=f.smooth, estimate=f.estimate)
-        v = cfg.velocity
-        self.velocity = VelocityKF(camera, rho=v.rho, q_v=v.q_v, q_w=v.q_w, r_px=v.r_px,
-                                   min_vectors=v.min_vectors, normal=f.estimate == "normal", batch_size=B)
+        self.eros = EROS.from_config(H, W, cfg.eros, batch_size=B)
+        self.flow = TripletFlow.from_config(H, W, cfg.flow, batch_size=B)
+        v, t = cfg.velocity, cfg.template
+        self.velocity = VelocityKF.from_config(camera, v, normal=cfg.flow.estimate == "normal", batch_size=B)
         # Feedback of the corrections into the flow twist (needs both; off in the paper's ablations without them).
-        self.feedback = CorrectionFeedback(v.feedback_gain, v.feedback_leak, v.feedback_axes, v.feedback_max_v,
-                                           v.feedback_max_w, batch_size=B) \
-            if self._feedback_on(cfg) else None
-        t = cfg.template
-        self.corrector = TemplateCorrector(camera, canvas=t.canvas, margin_px=t.margin_px, dp_px=t.dp_px,
-                                           dtheta_deg=t.dtheta_deg, rule=t.rule, iterations=t.iterations)
+        self.feedback = CorrectionFeedback.from_config(v, batch_size=B) if self._feedback_on(cfg) else None
+        self.corrector = TemplateCorrector.from_config(camera, t)
         o = self.corrector.options
         # each compiled rasteriser's render (and template model) of a pose in its window, in one compiled call
         self._render_bindings = [
@@ -257,15 +248,14 @@ class EventPoseTracker(nn.Module):
         self._render_one = self._render_bindings[0] if B == 1 else None  # one stream: the render is the buffer
         # The pipeline's thread takes a known next window in ahead, unless it makes each update's render and template
         # ahead (one stream, compiled rasteriser): it then takes each window into the EROS side and observes it while
-        # the flow runs here, which splits an update more evenly between the two threads (both, bit for bit). That
+        # the flow runs here, which splits an update more evenly between the two threads (both give the same poses). That
         # observation weighs the EROS by a time surface of the EROS side's own (the flow writes its SAE meanwhile);
         # otherwise the observation reads the SAE's channel maximum, the same numbers, and no time surface is kept
         # (for a batch, ~20 MB less memory traffic per step).
         observes = self._pipeline and self._render_one is not None and cfg.render.ahead and t.enabled
         self._take_in_ahead = self._pipeline and not observes
         self.time_surface = TimeSurface(H, W, batch_size=B) if observes else None
-        u = cfg.ukf
-        self.ukf = PoseUKF(B, q_pdot=u.q_pdot, q_w=u.q_w, q_p=u.q_p, q_q=u.q_q, r_p=u.r_p, r_q=u.r_q, p0=u.p0)
+        self.ukf = PoseUKF.from_config(cfg.ukf, batch_size=B)
         lc = cfg.loss
         if lc.enabled:
             # Without flow velocity no flow vectors are counted: the flow criterion would flag every update.
@@ -285,11 +275,9 @@ class EventPoseTracker(nn.Module):
         self.register_buffer("origin", torch.zeros(B, 2, dtype=torch.long))
         self.register_buffer("events_seen", torch.zeros(B, dtype=torch.long))
         self.register_buffer("t_last", torch.zeros(B, dtype=torch.long))
-        self._quality: Quality | tuple = Quality(torch.full((B,), float("nan")), torch.zeros(B, dtype=torch.long),
-                                                 torch.zeros(B, dtype=torch.long), torch.zeros(B, dtype=torch.bool))
+        self._run = _UpdateState(Quality(torch.full((B,), float("nan")), torch.zeros(B, dtype=torch.long),
+                                         torch.zeros(B, dtype=torch.long), torch.zeros(B, dtype=torch.bool)))
         self.stage_ms: dict[str, float] = {}
-        # template of the last render, one per worker's share (reused while render.reuse_px allows)
-        self._models: list[TemplateModel] | None = None
         # The object centre must stay farther than its bounding radius (plus the near plane).
         self.register_buffer("_symmetry_axis", torch.stack([self._sym_axes[i] for i in self._renderer_of]),
                              persistent=False)  # (B, 3) object frame, zero: none
@@ -299,18 +287,6 @@ class EventPoseTracker(nn.Module):
         # render.ahead: where the next update renders (the last prediction moved on by its twist), when valid
         self.register_buffer("_render_next", torch.zeros(B, 7, dtype=f64), persistent=False)
         self.register_buffer("_render_next_ok", torch.zeros(B, dtype=torch.bool), persistent=False)
-        self._bound: _Bound | None = None  # the stages' compiled steps bound to these buffers (made on first use)
-
-    # The state an update replaces, none of it a parameter, buffer or submodule: set as plain attributes, without
-    # nn.Module's bookkeeping for those (~1-3 us each, several per update). The depth buffer: _set_depth.
-    _PLAIN = frozenset({"_rendering", "_observing", "_models", "_quality", "stage_ms", "_ahead", "loss_update",
-                        "_bound"})
-
-    def __setattr__(self, name: str, value) -> None:
-        if name in EventPoseTracker._PLAIN:
-            object.__setattr__(self, name, value)
-        else:
-            super().__setattr__(name, value)
 
     def _set_depth(self, depth: torch.Tensor) -> None:
         """Replace the depth buffer (the registered name, without nn.Module's checks: ``depth`` is a tensor)."""
@@ -325,7 +301,7 @@ class EventPoseTracker(nn.Module):
         ``mask`` (``(B,)`` bool or ``(K,)`` indices) restarts only the selected elements, e.g. to
         re-initialise lost ones mid-stream: their EROS and time surface are cleared, their velocity
         filter, UKF, pose, events seen and loss-detector state start over as in a full reset, and their
-        depth is rendered at the new pose. The other elements keep their state bit for bit (the depth
+        depth is rendered at the new pose. The other elements keep their state exactly (the depth
         buffer may grow to a larger common window, which zero-pads theirs: exact, their objects lie
         inside their old windows), and their rows of ``initial_pose`` and ``twist`` are ignored.
         """
@@ -353,15 +329,15 @@ class EventPoseTracker(nn.Module):
             raise ValueError("initial_pose puts the object centre closer to the camera than the object's radius")
         self._drop_render()
         self._render_next_ok.masked_fill_(m, False)
-        if self._ahead is not None:  # the intake thread is done with the surfaces before they are cleared
-            self._ahead.flow.result()
+        if self._run.ahead is not None:  # the intake thread is done with the surfaces before they are cleared
+            self._run.ahead.flow.result()
             if mask is None:  # a fresh start: that window is not coming
-                self._ahead = None
+                self._run.ahead = None
         self.eros.reset(m)
         if self.time_surface is not None:
             self.time_surface.reset(m)
         self.flow.reset(m)
-        if self._ahead is not None:
+        if self._run.ahead is not None:
             self._retake_ahead(m)
         self.velocity.reset(shift_twist(twist, pose[:, :3]), m)  # about the centre
         self.ukf.reset(pose, twist, m)
@@ -378,7 +354,7 @@ class EventPoseTracker(nn.Module):
             self._render(pose.numpy(), shaded=False)
         else:
             self._render_depth(pose, m)
-        self._models = None  # the template of the last render (see render.reuse_px)
+        self._run.models = None  # the template of the last render (see render.reuse_px)
 
     def close(self) -> None:
         """Release the renderers' GL contexts and the worker threads."""
@@ -413,9 +389,9 @@ class EventPoseTracker(nn.Module):
             try:
                 self._update(x, y, t, p, b, t_us, next_window if self._take_in_ahead else None)
             finally:
-                if self._observing is not None:  # the update failed after it gave the intake thread its part
-                    self._observing.wait()
-                    self._observing = None
+                if self._run.observing is not None:  # the update failed after it gave the intake thread its part
+                    self._run.observing.wait()
+                    self._run.observing = None
         return torch.from_numpy(self.pose.numpy().copy())
 
     def _update(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor, b: torch.Tensor | None,
@@ -423,13 +399,13 @@ class EventPoseTracker(nn.Module):
         """One update (:meth:`forward`): the new poses go to :attr:`pose`."""
         cfg = self.config
         B = self.batch_size
-        run = self._bound or self._bind()
+        run = self._run.bound or self._bind()
         clock = _StageClock()
         launch = None if ahead is None else lambda: self._launch(ahead)  # once this update has read the surfaces
-        if self._ahead is not None:  # this window went in on the intake thread during the last update
+        if self._run.ahead is not None:  # this window went in on the intake thread during the last update
             clock.lap("eros")
             flow = self._take_ahead(x)
-        elif self._rendering is not None and self.time_surface is not None:
+        elif self._run.rendering is not None and self.time_surface is not None:
             # the render and template made ahead: the EROS, the time surface and the observation on the pipeline's
             # thread, after that render, while this one runs the flow
             clock.lap("eros")
@@ -455,11 +431,11 @@ class EventPoseTracker(nn.Module):
 
         render_pose, pose32 = self._render_pose_ahead(predicted, twist) if cfg.render.ahead else \
             (predicted, predicted.astype(np.float32))
-        render = None  # None: the correction uses self._models (the last render's, or one made with this render)
+        render = None  # None: the correction uses self._run.models (the last render's, or one made with this render)
         if not (cfg.template.enabled and self._reusable(pose32)):
             render = self._render(render_pose, shaded=cfg.template.enabled)
             if render.model is not None:
-                self._models, render = [render.model], None
+                self._run.models, render = [render.model], None
             if self._pipeline and cfg.render.ahead and run.render_next_ok.all():
                 # the template model too, unless the thread will take the next window in (it would then wait)
                 self._render_soon(run.render_next.copy(), cfg.template.enabled,
@@ -468,8 +444,8 @@ class EventPoseTracker(nn.Module):
         n_events = np.bincount(b.numpy(), minlength=B) if b is not None else np.full(B, x.numel())
         run.events_seen[:] += n_events
         if cfg.template.enabled:
-            if self._observing is not None:  # (its window's times went into t_last when it was given out)
-                observing, self._observing = self._observing, None
+            if self._run.observing is not None:  # (its window's times went into t_last when it was given out)
+                observing, self._run.observing = self._run.observing, None
                 obs, t_now = observing.result(), run.t_last  # obs None (no box): the correction observes itself
             else:
                 obs, t_now = None, self._t_now(t, b)
@@ -489,7 +465,7 @@ class EventPoseTracker(nn.Module):
         clock.lap("ukf")
         run.prev_pose[:] = run.pose
         run.pose[:] = out
-        self._quality = (score, n_vectors, n_events, bad | rejected)
+        self._run.quality = (score, n_vectors, n_events, bad | rejected)
         if self.loss is not None:
             upd = self.loss(self.quality, torch.from_numpy(run.t_last) if t_us is None else t_us)
             self.loss_update = upd
@@ -505,9 +481,9 @@ class EventPoseTracker(nn.Module):
     @property
     def quality(self) -> Quality:
         """The last update's :class:`Quality` (made from its numpy fields when first asked for)."""
-        if not isinstance(self._quality, Quality):
-            self._quality = Quality(*(torch.from_numpy(np.asarray(f)) for f in self._quality))
-        return self._quality
+        if not isinstance(self._run.quality, Quality):
+            self._run.quality = Quality(*(torch.from_numpy(np.asarray(f)) for f in self._run.quality))
+        return self._run.quality
 
     @property
     def lost(self) -> torch.Tensor | None:
@@ -608,8 +584,8 @@ class EventPoseTracker(nn.Module):
         B = self.batch_size
         H, W = self.camera.height, self.camera.width
         if B == 1:  # the own window is the common one: the render is the buffer
-            if self._rendering is not None:  # made ahead, at these poses, with its template model (render.ahead)
-                rendering, self._rendering = self._rendering, None  # taken, even if it failed
+            if self._run.rendering is not None:  # made ahead, at these poses, with its template model (render.ahead)
+                rendering, self._run.rendering = self._run.rendering, None  # taken, even if it failed
                 made = self._render_one.finish(rendering.result())
                 self._set_depth(made.depth)
                 self.origin.numpy()[:] = made.window[:, :2]
@@ -666,27 +642,27 @@ class EventPoseTracker(nn.Module):
         observe = None if self.time_surface is None else \
             bind_observe(self.eros, self.time_surface, canvas=o["canvas"], max_age_us=e.max_age_us,
                          recency_us=e.recency_us)
-        self._bound = _Bound([bind_intake(self.eros, self.time_surface, self.flow, r) for r in self._shares], motion,
+        self._run.bound = _Bound([bind_intake(self.eros, self.time_surface, self.flow, r) for r in self._shares], motion,
                              correct, output, observe,
                              self.pose.numpy(), self.prev_pose.numpy(), self.origin.numpy(), self.events_seen.numpy(),
                              self.t_last.numpy(), self._min_depth.numpy(), self._render_next.numpy(),
                              self._render_next_ok.numpy())
-        return self._bound
+        return self._run.bound
 
     def _apply(self, fn, recurse=True):
-        self._bound = None  # the buffers may be new tensors: bind again
+        self._run.bound = None  # the buffers may be new tensors: bind again
         return super()._apply(fn, recurse)
 
     def __getstate__(self) -> dict:
         state = super().__getstate__()  # a copy of the attributes
-        state["_bound"] = None  # a copy binds its own buffers (the bound steps hold views of these)
+        state["_run"] = dataclasses.replace(self._run, bound=None)  # a copy binds its own buffers
         return state
 
     def _render_pose_ahead(self, predicted: np.ndarray, twist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """render.ahead: the poses to render at now (where the last update's prediction, moved on by its twist,
         was valid; else ``predicted``), float64 and float32, and the next update's in the buffers (:func:`propagate`
         of ``predicted`` and ``twist``, and whether it is valid)."""
-        B, run = self.batch_size, self._bound
+        B, run = self.batch_size, self._run.bound
         now, now32 = np.empty((B, 7)), np.empty((B, 7), dtype=np.float32)
         _render_ahead_kernel(predicted, twist, periods(B, self.dt), run.min_depth, run.render_next, run.render_next_ok,
                              now, now32)
@@ -698,13 +674,13 @@ class EventPoseTracker(nn.Module):
         (:func:`~torchevtrack.stages.render_model.bind_render_model`)."""
         if self._render_one is not None:  # only the compiled call on that thread: it needs the GIL only to start
             r = self._render_one
-            self._rendering = self._intake_thread().submit(r.kernel, *r.start(poses, shaded, model))
+            self._run.rendering = self._intake_thread().submit(r.kernel, *r.start(poses, shaded, model))
 
     def _drop_render(self) -> None:
         """Forget a render made ahead (a reset moved the poses): wait for the thread."""
-        if self._rendering is not None:
-            self._rendering.wait()
-            self._rendering = None
+        if self._run.rendering is not None:
+            self._run.rendering.wait()
+            self._run.rendering = None
 
     def _render_depth(self, poses: torch.Tensor, mask: torch.Tensor) -> None:
         """Render the depth of the ``mask`` elements at ``poses`` ``(B, 7)`` into the depth buffer.
@@ -737,19 +713,19 @@ class EventPoseTracker(nn.Module):
     @property
     def _model(self) -> TemplateModel | None:
         """The template model of the last render, all ``B`` elements (the shares' concatenated)."""
-        return None if self._models is None else _cat(self._models)
+        return None if self._run.models is None else _cat(self._run.models)
 
     def _reusable(self, pose: np.ndarray) -> bool:
         """The last render's template serves ``pose`` ``(B, 7)``: ``render.reuse_px > 0`` and no object point of that
         render moves that many pixels, for every batch element (the batch renders together)."""
         reuse = self.config.render.reuse_px
-        return self._models is not None and reuse > 0 and \
+        return self._run.models is not None and reuse > 0 and \
             bool((self._model.shift_px(torch.from_numpy(pose)) < reuse).all())
 
     def _t_now(self, t: torch.Tensor, b: torch.Tensor | None) -> np.ndarray:
         """Latest event time per element in this window (int64 us, the view of :attr:`t_last` the update binds; the
         previous one if the window is empty)."""
-        last = self._bound.t_last
+        last = self._run.bound.t_last
         if t.numel():
             if b is None:
                 np.maximum(last, t.numpy().max(), out=last)
@@ -774,30 +750,30 @@ class EventPoseTracker(nn.Module):
                 return correct(None, _cut(predicted, rows), None, None, None, _cut(t_now, rows), model=model,
                                on_observed=on_observed, obs=obs)
 
-            parts = self._map(share, self._bound.correct, self._models)
+            parts = self._map(share, self._run.bound.correct, self._run.models)
         else:
             depth, gray = render.depth.numpy(), None if render.gray is None else render.gray.numpy()
 
             def share(rows: slice, correct: Callable[..., CorrectionStep]) -> CorrectionStep:
                 return correct(_cut(pose32, rows), _cut(predicted, rows), _cut(depth, rows), _cut(gray, rows),
-                               _cut(self._bound.origin, rows), _cut(t_now, rows), on_observed=on_observed)
+                               _cut(self._run.bound.origin, rows), _cut(t_now, rows), on_observed=on_observed)
 
-            parts = self._map(share, self._bound.correct)
-        self._models = [p.model for p in parts]  # kept per share: each worker reads its own next time
+            parts = self._map(share, self._run.bound.correct)
+        self._run.models = [p.model for p in parts]  # kept per share: each worker reads its own next time
         return _cat([p.correction for p in parts])
 
     def _observe_soon(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, b: np.ndarray | None,
                       t_now: np.ndarray) -> None:
         """Take the checked events into the EROS and the time surface on the intake thread and observe them under the
         canvas box of the render made ahead there (:mod:`~torchevtrack.stages.observe`), for :meth:`_correct`."""
-        rendering, observe, box = self._rendering, self._bound.observe, self._render_one.observed_box
+        rendering, observe, box = self._run.rendering, self._run.bound.observe, self._render_one.observed_box
 
         def job() -> np.ndarray | None:
             # the render, the job before this one on the thread, wrote the box of its model; if it failed, the update
             # raises that when it takes the render, and the events still go in
             return observe(x, y, t, b, None if rendering.raised() else box, t_now)
 
-        self._observing = self._intake_thread().submit(job)
+        self._run.observing = self._intake_thread().submit(job)
 
     def _intake_thread(self) -> PipelineThread:
         """The pipeline's thread, made on first use."""
@@ -807,11 +783,11 @@ class EventPoseTracker(nn.Module):
 
     def _launch(self, window: tuple) -> None:
         """Take the packed ``window`` into the EROS and the flow on the intake thread (:meth:`_take_ahead` waits)."""
-        self._ahead = _Ahead(self._intake_thread().submit(self._bound.intake[0], *window), window)
+        self._run.ahead = _Ahead(self._intake_thread().submit(self._run.bound.intake[0], *window), window)
 
     def _take_ahead(self, x: torch.Tensor) -> FlowField:
         """The flow of the window the intake thread took in, once it is done; ``x`` is that window's."""
-        ahead, self._ahead = self._ahead, None
+        ahead, self._run.ahead = self._run.ahead, None
         flow = ahead.flow.result()
         if ahead.window[0] is not x:
             raise RuntimeError("the update is not for the window taken in ahead (an interrupted track or push?)")
@@ -820,22 +796,22 @@ class EventPoseTracker(nn.Module):
     def _drop_ahead(self) -> None:
         """Forget a window taken in ahead whose update will not come (the loop ended early): wait for the thread. (A
         render made ahead stays: it depends on the poses only, and the next update still renders there.)"""
-        if self._ahead is not None:
-            self._ahead.flow.wait()  # not .result(): in a finally, its error would hide the one that stopped the loop
-            self._ahead = None
+        if self._run.ahead is not None:
+            self._run.ahead.flow.wait()  # not .result(): in a finally, its error would hide the one that stopped the loop
+            self._run.ahead = None
 
     def _retake_ahead(self, m: torch.Tensor) -> None:
         """After a reset of the elements ``m`` ``(B,)`` bool: take their events of the window already taken in
         ahead into their cleared EROS and flow again (the others keep theirs), as if the reset came first."""
-        x, y, t, p, b = self._ahead.window
-        parts = list(self._ahead.flow.result())
+        x, y, t, p, b = self._run.ahead.window
+        parts = list(self._run.ahead.flow.result())
         for i in m.nonzero()[:, 0].tolist():
             k = slice(None) if b is None else b == i
             redo = bind_intake(self.eros, self.time_surface, self.flow, slice(i, i + 1))(
                 x[k], y[k], t[k], p[k], None if b is None else b[k] - i)
             for field, row in zip(parts, redo):
                 field[i] = row[0]
-        self._ahead = _Ahead(Job.of(FlowField(*parts)), self._ahead.window)
+        self._run.ahead = _Ahead(Job.of(FlowField(*parts)), self._run.ahead.window)
 
     def _share_events(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor,
                       b: torch.Tensor | None) -> list[tuple[torch.Tensor, ...]]:
@@ -867,6 +843,25 @@ class EventPoseTracker(nn.Module):
         finally:
             wait(others)  # also when the first share failed: the others still use the tracker's state
         return [first] + [f.result() for f in others]
+
+
+@dataclass
+class _UpdateState:
+    """What one update leaves for the next, none of it a parameter, buffer or submodule (a plain object, so that
+    setting these costs no nn.Module bookkeeping).
+
+    quality: the last update's :class:`Quality` (or its fields as numpy arrays until read); ahead: the next window,
+    taken in on the intake thread; rendering: render.ahead, the next update's render and model on the intake thread;
+    observing: streaming, this update's EROS, time surface and observation there; models: the template of the last
+    render, one per worker's share (reused while render.reuse_px allows); bound: the stages' compiled steps bound
+    to the tracker's buffers (made on first use).
+    """
+    quality: "Quality | tuple"
+    ahead: "_Ahead | None" = None
+    rendering: Job | None = None
+    observing: Job | None = None
+    models: "list[TemplateModel] | None" = None
+    bound: "_Bound | None" = None
 
 
 @dataclass

@@ -1,11 +1,10 @@
 """Step 5 of an update without the glue between its kernels: template model, observation, Newton search.
 
-The tracker's correction used to be three stage calls, each with its own checks, tensor conversions and float64
-copies: :func:`~torchevtrack.stages.template.template_model` of the render,
+:func:`correction_step` runs, on numpy buffers and without per-stage checks, the kernels of three stage calls:
+:func:`~torchevtrack.stages.template.template_model` of the render,
 :func:`~torchevtrack.stages.eros.canvas_observation` of the EROS under the model's canvas box, and
-:func:`~torchevtrack.stages.template.newton_search` from the predicted poses. :func:`correction_step` runs the same
-kernels on numpy buffers, so its numbers are those of the stage calls bit for bit (``tests/test_correction.py``
-checks it against them). The order: the canvas box from the render's extent, the observation under it, then the
+:func:`~torchevtrack.stages.template.newton_search` from the predicted poses. Invariant: its results equal those of
+the three stage calls exactly (``tests/test_correction.py``). The order: the canvas box from the render's extent, the observation under it, then the
 rest of the template model and the search. Once the observation is made it tells (``on_observed``): from then on
 the next window's events may update the surfaces while the model and the search run (the tracker's pipeline, see
 :class:`~torchevtrack.tracker.EventPoseTracker`).

@@ -34,6 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from torchevtrack.config import ErosConfig
 from torchevtrack.stages import NEVER, batch_mask, canvas_taps
 
 __all__ = ["EROS", "TimeSurface", "canvas_observation", "eros_update", "eros_update_", "observation", "prepare_events",
@@ -179,7 +180,7 @@ def observation(surface: torch.Tensor) -> torch.Tensor:
 def _median3x3(surface: torch.Tensor, border: str) -> torch.Tensor:
     """3x3 median of finite images: sort the three rows of every column of the padded image, then the median is
     the median of (largest low, median of the middles, smallest high) over three adjacent columns. It selects
-    one of the nine values, so it equals any other exact median (kornia's sorting network) bit for bit."""
+    one of the nine values, so it equals any other exact median (e.g. kornia's sorting network) exactly."""
     p = F.pad(surface[:, None], (1, 1, 1, 1), mode=border)[:, 0]
     a, b, c = p[:, :-2], p[:, 1:-1], p[:, 2:]
     lo, hi = torch.minimum(a, b), torch.maximum(a, b)
@@ -407,7 +408,8 @@ class EROS(nn.Module):
 
     surface: torch.Tensor
 
-    def __init__(self, height: int, width: int, kernel_size: int = 7, decay: float = 0.3, batch_size: int = 1):
+    def __init__(self, height: int, width: int, kernel_size: int = ErosConfig.kernel_size,
+                 decay: float = ErosConfig.decay, batch_size: int = 1):
         super().__init__()
         _check_params(kernel_size, decay)
         for name, v in (("height", height), ("width", width), ("batch_size", batch_size)):
@@ -416,6 +418,11 @@ class EROS(nn.Module):
         self.kernel_size = kernel_size
         self.decay = float(decay)
         self.register_buffer("surface", torch.zeros(batch_size, height, width, dtype=torch.float32))
+
+    @classmethod
+    def from_config(cls, height: int, width: int, cfg: ErosConfig, batch_size: int = 1) -> "EROS":
+        """The EROS of the config section ``eros`` (:class:`~torchevtrack.config.ErosConfig`) for ``B`` streams."""
+        return cls(height, width, cfg.kernel_size, cfg.decay, batch_size=batch_size)
 
     @property
     def lam(self) -> float:

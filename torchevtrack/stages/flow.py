@@ -43,7 +43,7 @@ order.
 Memory: the matching needs no temporaries beyond its output (12 bytes per possible sample, ``K`` per
 event). :class:`TripletFlow` matches a packet longer than ``chunk`` events (a burst) chunk by chunk, so
 that buffer stays bounded, then registers all samples together; the samples, the SAE and the flow
-field are those of one pass, bit for bit (the samples themselves are few: about 0.5 per event on noise
+field equal those of one pass exactly (the samples themselves are few: about 0.5 per event on noise
 bursts).
 """
 
@@ -59,6 +59,7 @@ import torch.nn.functional as Fnn
 from numba.cpython.unsafe.numbers import trailing_zeros
 from torch import nn
 
+from torchevtrack.config import FlowConfig
 from torchevtrack.stages import NEVER, batch_mask
 from torchevtrack.stages.eros import _check_fields, _check_times, prepare_events
 
@@ -821,6 +822,30 @@ def _smooth(flow: torch.Tensor, uv: torch.Tensor, valid: torch.Tensor, gy: int, 
     return sm[..., :2].contiguous(), sm[..., 2:].contiguous()
 
 
+class FlowParams(NamedTuple):
+    """The constants :func:`_flow_packet` takes after the events, in its argument order (``TripletFlow.params``).
+
+    ``dirs`` ``(K, 2)`` triplet directions, ``pad`` the SAE border (``2 D``), ``dt_max_us``, ``tol``, ``chunk`` (see
+    :class:`TripletFlow`), ``block_x`` ``(W,)`` block column of each pixel column, ``block_y`` ``(H,)`` first block
+    index of each pixel row, ``n_blocks`` ``G``, ``min_samples``, ``max_candidates``, ``tie_tol``, ``normal``
+    (``estimate == "normal"``), ``inlier``, ``centres`` ``(G, 2)`` block centres in pixels.
+    """
+    dirs: np.ndarray
+    pad: int
+    dt_max_us: int
+    tol: float
+    chunk: int
+    block_x: np.ndarray
+    block_y: np.ndarray
+    n_blocks: int
+    min_samples: int
+    max_candidates: int
+    tie_tol: float
+    normal: bool
+    inlier: float
+    centres: np.ndarray
+
+
 class TripletFlow(nn.Module):
     """Stateful triplet-matching flow for ``B`` event streams, one flow field per packet.
 
@@ -837,7 +862,7 @@ class TripletFlow(nn.Module):
             block neighbourhood.
         max_candidates, tie_tol, estimate, inlier: see :func:`register_blocks`.
         chunk: a packet of more events is matched this many at a time, in bounded memory and with the
-            same result bit for bit (module docstring).
+            same result exactly (module docstring).
 
     Buffers:
         sae: ``(B, C, H, W)`` int64 last event time in us (:data:`NEVER` if none), ``C = 2`` if
@@ -851,10 +876,17 @@ class TripletFlow(nn.Module):
 
     sae: torch.Tensor
 
-    def __init__(self, height: int, width: int, batch_size: int = 1, block: int = 30, min_samples: int = 20,
-                 D: int = 2, dt_max_us: int = 50_000, tol: float = 0.125, per_polarity: bool = False,
-                 smooth: bool = False, max_candidates: int = 128, tie_tol: float = 0.02,
-                 estimate: str = "normal", inlier: float = 0.25, chunk: int = 2 ** 16):
+    @classmethod
+    def from_config(cls, height: int, width: int, cfg: FlowConfig, batch_size: int = 1) -> "TripletFlow":
+        """The flow of the config section ``flow`` (:class:`~torchevtrack.config.FlowConfig`) for ``B`` streams."""
+        return cls(height, width, batch_size=batch_size, block=cfg.block, min_samples=cfg.min_samples, D=cfg.radius,
+                   dt_max_us=cfg.dt_max_us, tol=cfg.tol, smooth=cfg.smooth, estimate=cfg.estimate)
+
+    def __init__(self, height: int, width: int, batch_size: int = 1, block: int = FlowConfig.block,
+                 min_samples: int = FlowConfig.min_samples, D: int = FlowConfig.radius,
+                 dt_max_us: int = FlowConfig.dt_max_us, tol: float = FlowConfig.tol, per_polarity: bool = False,
+                 smooth: bool = FlowConfig.smooth, max_candidates: int = 128, tie_tol: float = 0.02,
+                 estimate: str = FlowConfig.estimate, inlier: float = 0.25, chunk: int = 2 ** 16):
         super().__init__()
         for name, v in (("height", height), ("width", width), ("batch_size", batch_size), ("block", block),
                         ("min_samples", min_samples), ("max_candidates", max_candidates), ("chunk", chunk)):
@@ -874,12 +906,10 @@ class TripletFlow(nn.Module):
         C = 2 if per_polarity else 1
         self.gy, self.gx, centres = block_grid(height, width, block)
         self.register_buffer("centres", centres, persistent=False)
-        # constant arrays of the compiled step (_flow_packet): the directions, the block grid column of each
-        # pixel column and first block of each pixel row (_sample_blocks), the centres as numpy
-        self._dirs = _direction_array(D)
-        self._block_x = np.arange(width) // block
-        self._block_y = np.arange(height) // block * self.gx
-        self._centres = centres.numpy()
+        self.params = FlowParams(_direction_array(D), self.pad, self.dt_max_us, self.tol, chunk,
+                                 np.arange(width) // block, np.arange(height) // block * self.gx, self.gy * self.gx,
+                                 min_samples, max_candidates, self.tie_tol, estimate == "normal", self.inlier,
+                                 centres.numpy())
         # Stored padded by 2D with NEVER so that p1, p2 lookups need no bounds checks.
         self.register_buffer("sae_padded", torch.full((batch_size, C, height + 2 * self.pad, width + 2 * self.pad),
                                                       NEVER, dtype=torch.int64))
@@ -912,10 +942,7 @@ class TripletFlow(nn.Module):
         uv = np.empty((B, G, 2), dtype=np.float32)
         valid = np.empty((B, G), dtype=np.bool_)
         count = np.empty((B, G), dtype=np.int64)
-        if not _flow_packet(sae.numpy(), xn, yn, tn, pn, bn, C, batched, self._dirs,
-                            self.pad, self.dt_max_us, self.tol, self.chunk, self._block_x, self._block_y, G,
-                            self.min_samples, self.max_candidates, self.tie_tol, self.estimate == "normal",
-                            self.inlier, self._centres, out, uv, valid, count):
+        if not _flow_packet(sae.numpy(), xn, yn, tn, pn, bn, C, batched, *self.params, out, uv, valid, count):
             _range_error((B, C, self.height, self.width), x, y, t, p, b)
         out, uv, valid, count = torch.from_numpy(out), torch.from_numpy(uv), torch.from_numpy(valid), \
             torch.from_numpy(count)
@@ -930,8 +957,7 @@ class TripletFlow(nn.Module):
         Shape: prepared events ``(N,)``; returns ``event (S,)`` (index into the packet) and ``flow (S, 2)``.
         """
         ev, flow, _ = _match_packet(self.sae_padded.numpy(), xi.numpy(), yi.numpy(), t.numpy(),
-                                    _NONE, ch.numpy(), 1, True, self._dirs, self.pad, self.dt_max_us, self.tol,
-                                    self.chunk)
+                                    _NONE, ch.numpy(), 1, True, *self.params[:5])
         return torch.from_numpy(ev), torch.from_numpy(flow)
 
     def extra_repr(self) -> str:

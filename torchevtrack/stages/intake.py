@@ -4,7 +4,7 @@ The stages only read their own state and the events, so their order does not mat
 runs the flow's kernel (which checks every event before it writes), then the EROS and the time surface kernels,
 inside one call that releases the GIL. The tracker's pipeline thread runs it for the next window while the main
 thread searches (:class:`~torchevtrack.tracker.EventPoseTracker`); one call keeps that thread from waiting for the
-GIL between the stages. Its numbers are those of the stage calls bit for bit (``tests/test_intake.py``).
+GIL between the stages. Its results equal those of the stage calls exactly (``tests/test_intake.py``).
 
 The bound form (:func:`bind_intake`) can also run the flow alone, for a caller that takes the events into the EROS
 and the time surface elsewhere meanwhile (:mod:`~torchevtrack.stages.observe`).
@@ -54,12 +54,10 @@ def bind_intake(eros: EROS, time_surface: TimeSurface | None, flow: TripletFlow,
     if surface.shape[0] != B or last.shape[0] != B:
         raise ValueError(f"the EROS, the time surface and the flow must hold the same elements, got "
                          f"{surface.shape[0]}, {last.shape[0]} and {B}")
-    G = flow.gy * flow.gx
+    G = flow.n_blocks
     s, last_np, sae_np = surface.numpy(), last.numpy(), sae.numpy()
     lam, r = s.dtype.type(eros.decay ** (1.0 / eros.kernel_size)), eros.kernel_size // 2
-    matching = (flow._dirs, flow.pad, flow.dt_max_us, flow.tol, flow.chunk, flow._block_x, flow._block_y, G,
-                flow.min_samples, flow.max_candidates, flow.tie_tol, flow.estimate == "normal", flow.inlier,
-                flow._centres)
+    matching = flow.params
 
     def _range_errors(x, y, t, p, b):
         prepare_events(x, y, b, *surface.shape[1:], B)  # the EROS stage's range error

@@ -1,10 +1,9 @@
 """Steps 2 and 3 of an update in one compiled call: the twist of each element and its propagated pose.
 
-Between the flow and the render, the tracker runs a dozen small operations on a few numbers per element: the
-velocity filter's prediction and update, the twist back about the camera, the propagation and the validity
-check. Each costs a Python call and its checks, more than its arithmetic. :func:`motion_step` runs them as one
-compiled call of the stages' own kernels, in the same order, so its numbers are those of the stage-by-stage
-calls bit for bit (``tests/test_motion.py`` checks it against them):
+:func:`motion_step` runs, as one compiled call of the stages' own kernels, the small per-element operations between
+the flow and the render: the velocity filter's prediction and update, the twist back about the camera, the
+propagation and the validity check. Its results equal those of the stage-by-stage calls exactly
+(``tests/test_motion.py``):
 
 - ``source = "flow"`` (the paper): :meth:`VelocityKF.predict <torchevtrack.stages.velocity.VelocityKF.predict>`;
   the valid flow vectors slower than ``max_speed``; their depth from the last render

@@ -6,7 +6,7 @@ In streaming, a window's events arrive just before its update, so its intake can
 (:func:`~torchevtrack.stages.intake.bind_intake` with ``surfaces=False``), the tracker's pipeline thread takes the
 events into the EROS and the time surface and observes them under the canvas box of the template made ahead
 (:class:`~torchevtrack.tracker.EventPoseTracker`). :func:`observe_step` is the EROS stage, the time surface stage and
-``canvas_observation``, one after the other, bit for bit (``tests/test_observe.py``).
+``canvas_observation``, one after the other; its results equal theirs exactly (``tests/test_observe.py``).
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """The end of an update in one compiled call: correction feedback, UKF, validity check, canonical output pose.
 
-After the template correction, the tracker turned its measured poses into the output with a handful of small
-calls per update. :func:`output_step` runs the stages' own kernels in the same order inside one compiled call,
-so its numbers are those of the stage calls bit for bit (``tests/test_output.py`` checks it against them):
+:func:`output_step` turns the measured poses of an update into its output poses by running the stages' own kernels,
+in this order, inside one compiled call; its results equal those of the stage calls exactly
+(``tests/test_output.py``):
 
 1. with a :class:`~torchevtrack.stages.velocity.CorrectionFeedback`: the correction's rate,
    :func:`~torchevtrack.stages.propagate.twist_between` the predicted and measured poses, taken about the

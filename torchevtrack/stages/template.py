@@ -94,7 +94,8 @@ Example:
     >>> depth = (square * 0.5).float()[None]  # a fronto-parallel square 0.5 m away
     >>> obs = torch.roll((square & ~inner).float(), 1, dims=1)[None]  # its outline, 1 px further right
     >>> pose = torch.tensor([[0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0]])
-    >>> out = TemplateCorrector(cam, canvas=64, margin_px=8)(pose, depth, None, (0, 0), obs)
+    >>> corrector = TemplateCorrector(cam, canvas=64, margin_px=8, rule="argmax", iterations=1)
+    >>> out = corrector(pose, depth, None, (0, 0), obs)
     >>> int(out.index), round(float(out.pose[0, 0]) * 80 / 0.5, 2)  # +x hypothesis: 1 px right
     (1, 1.0)
 """
@@ -112,6 +113,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from torchevtrack.camera import Camera
+from torchevtrack.config import RULES, TemplateConfig
 from torchevtrack.geometry import (_nb_cholesky, _nb_cholesky_solve, _nb_quat_canonical, _nb_quat_exp, _nb_quat_mul,
                                   _nb_quat_to_matrix, quat_canonical, quat_conj, quat_exp, quat_log, quat_mul,
                                   quat_rotate, quat_to_matrix)
@@ -160,7 +162,6 @@ NUM_HYPOTHESES = 1 + 2 * len(AXES)
 NEWTON_DAMPING, NEWTON_MAX_STEP = 0.5, 1.0  # newton_step's damping and step clip (hypothesis steps per axis)
 # EDOPT's groups of axes whose image motions look alike, as axis indices into AXES.
 GROUPS = ((0, 4), (1, 3), (5,), (2,))
-RULES = ("argmax", "group", "newton")
 
 
 class Correction(NamedTuple):
@@ -1790,12 +1791,12 @@ class TemplateCorrector(nn.Module):
     def __init__(
         self,
         camera: Camera,
-        canvas: int = 128,
-        margin_px: float = 20.0,
-        dp_px: float = 1.0,
-        dtheta_deg: float = 0.5,
-        rule: str = "argmax",
-        iterations: int = 1,
+        canvas: int = TemplateConfig.canvas,
+        margin_px: float = TemplateConfig.margin_px,
+        dp_px: float = TemplateConfig.dp_px,
+        dtheta_deg: float = TemplateConfig.dtheta_deg,
+        rule: str = TemplateConfig.rule,
+        iterations: int = TemplateConfig.iterations,
         edge_clip: float = 0.1,
         silhouette: bool = True,
         scoring: str = "taylor",
@@ -1812,6 +1813,12 @@ class TemplateCorrector(nn.Module):
             canvas=canvas, margin_px=margin_px, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule,
             iterations=iterations, edge_clip=edge_clip, silhouette=silhouette, scoring=scoring, warp=warp,
         )
+
+    @classmethod
+    def from_config(cls, camera: Camera, cfg: TemplateConfig) -> "TemplateCorrector":
+        """The correction of the config section ``template`` (:class:`~torchevtrack.config.TemplateConfig`)."""
+        return cls(camera, canvas=cfg.canvas, margin_px=cfg.margin_px, dp_px=cfg.dp_px, dtheta_deg=cfg.dtheta_deg,
+                   rule=cfg.rule, iterations=cfg.iterations)
 
     def forward(self, pose, depth, gray, origin, observation, observation_origin=(0, 0)) -> Correction:
         return correct(

@@ -57,6 +57,7 @@ from torchevtrack.geometry import (
     quat_log,
     quat_mul,
 )
+from torchevtrack.config import UKFConfig
 from torchevtrack.stages import batch_mask
 
 __all__ = [
@@ -510,13 +511,13 @@ class PoseUKF(nn.Module):
     def __init__(
         self,
         batch_size: int = 1,
-        q_pdot: float = 1.0,
-        q_w: float = 10.0,
-        q_p: float = 1e-4,
-        q_q: float = 1e-3,
-        r_p: float = 1e-5,
-        r_q: float = 1e-4,
-        p0: float | torch.Tensor = 1e-3,
+        q_pdot: float = UKFConfig.q_pdot,
+        q_w: float = UKFConfig.q_w,
+        q_p: float = UKFConfig.q_p,
+        q_q: float = UKFConfig.q_q,
+        r_p: float = UKFConfig.r_p,
+        r_q: float = UKFConfig.r_q,
+        p0: float | torch.Tensor = UKFConfig.p0,
         alpha: float = 1.0,
         beta: float = 2.0,
         kappa: float = 0.0,
@@ -539,6 +540,12 @@ class PoseUKF(nn.Module):
         x[:, 9] = 1.0
         self.register_buffer("x", x)
         self.register_buffer("P", self.P0.expand(batch_size, -1, -1).clone())
+
+    @classmethod
+    def from_config(cls, cfg: UKFConfig, batch_size: int = 1) -> "PoseUKF":
+        """The smoother of the config section ``ukf`` (:class:`~torchevtrack.config.UKFConfig`) for ``B`` streams."""
+        return cls(batch_size, q_pdot=cfg.q_pdot, q_w=cfg.q_w, q_p=cfg.q_p, q_q=cfg.q_q, r_p=cfg.r_p, r_q=cfg.r_q,
+                   p0=cfg.p0)
 
     @property
     def batch_size(self) -> int:

@@ -54,6 +54,7 @@ import torch
 from torch import nn
 
 from torchevtrack.camera import Camera
+from torchevtrack.config import TWIST_AXES, VelocityConfig
 from torchevtrack.geometry import _nb_cholesky, _nb_cholesky_inverse, _nb_cholesky_solve
 from torchevtrack.stages import batch_mask
 
@@ -69,8 +70,6 @@ __all__ = [
     "sample_depth",
 ]
 
-TWIST_AXES = ("vx", "vy", "vz", "wx", "wy", "wz")
-"""Names of the twist components ``[c_dot, w]`` about the object centre (camera frame), in state order."""
 
 _MAD = 1.4826  # median absolute deviation -> standard deviation for Gaussian noise
 
@@ -454,13 +453,13 @@ class VelocityKF(nn.Module):
     def __init__(
         self,
         camera: Camera,
-        rho: float = 0.5,
-        q_v: float = 0.5,
-        q_w: float = 3.0,
-        r_px: float = 1.0,
+        rho: float = VelocityConfig.rho,
+        q_v: float = VelocityConfig.q_v,
+        q_w: float = VelocityConfig.q_w,
+        r_px: float = VelocityConfig.r_px,
         p0_v: float = 1.0,
         p0_w: float = 5.0,
-        min_vectors: int = 3,
+        min_vectors: int = VelocityConfig.min_vectors,
         iters: int = 3,
         k: float = 1.0,
         normal: bool = False,
@@ -483,6 +482,14 @@ class VelocityKF(nn.Module):
         self.register_buffer("P0", torch.diag(torch.tensor([p0_v**2] * 3 + [p0_w**2] * 3, dtype=f64)))
         self.register_buffer("x", torch.zeros(batch_size, 6, dtype=f64))
         self.register_buffer("P", self.P0.expand(batch_size, 6, 6).clone())
+
+    @classmethod
+    def from_config(cls, camera: Camera, cfg: VelocityConfig, normal: bool = True,
+                    batch_size: int = 1) -> "VelocityKF":
+        """The filter of the config section ``velocity`` for ``B`` streams; ``normal``: the flow gives normal flow
+        (``flow.estimate == "normal"``)."""
+        return cls(camera, rho=cfg.rho, q_v=cfg.q_v, q_w=cfg.q_w, r_px=cfg.r_px, min_vectors=cfg.min_vectors,
+                   normal=normal, batch_size=batch_size)
 
     @property
     def batch_size(self) -> int:
@@ -605,8 +612,9 @@ class CorrectionFeedback(nn.Module):
         [0.0, 0.0, 0.1, 0.0, 0.0, 0.0]
     """
 
-    def __init__(self, gain: float = 0.2, leak: float = 0.8, axes=("vz", "wx", "wy"), max_v: float = 0.1,
-                 max_w: float = 0.5, batch_size: int = 1) -> None:
+    def __init__(self, gain: float = VelocityConfig.feedback_gain, leak: float = VelocityConfig.feedback_leak,
+                 axes=("vz", "wx", "wy"), max_v: float = VelocityConfig.feedback_max_v,
+                 max_w: float = VelocityConfig.feedback_max_w, batch_size: int = 1) -> None:
         super().__init__()
         if not gain >= 0.0 or not 0.0 <= leak < 1.0 or not max_v > 0 or not max_w > 0:
             raise ValueError(f"need gain >= 0, 0 <= leak < 1 and positive limits, got gain={gain}, leak={leak}, "
@@ -621,6 +629,12 @@ class CorrectionFeedback(nn.Module):
         self.register_buffer("limit", torch.tensor([float(max_v)] * 3 + [float(max_w)] * 3, dtype=torch.float64),
                              persistent=False)
         self.register_buffer("b", torch.zeros(batch_size, 6, dtype=torch.float64))
+
+    @classmethod
+    def from_config(cls, cfg: VelocityConfig, batch_size: int = 1) -> "CorrectionFeedback":
+        """The feedback of the config section ``velocity`` (its ``feedback_*`` keys) for ``B`` streams."""
+        return cls(cfg.feedback_gain, cfg.feedback_leak, cfg.feedback_axes, cfg.feedback_max_v, cfg.feedback_max_w,
+                   batch_size=batch_size)
 
     def forward(self, rate: torch.Tensor, symmetry_axis: torch.Tensor | None = None) -> torch.Tensor:
         """Take the corrections' rate ``(B, 6)`` (twist about the centre) and return the new feedback ``b``.

@@ -1,0 +1,47 @@
+"""Smoke tests of tools/: every tool parses its arguments, and those that take a sequence run on a tiny one."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+TOOLS = sorted((ROOT / "tools").glob("*.py"))
+ENV = {**os.environ, "PYTHONPATH": str(ROOT), "PYOPENGL_PLATFORM": os.environ.get("PYOPENGL_PLATFORM", "egl")}
+
+
+def _run(*args: str, timeout: float = 600) -> str:
+    done = subprocess.run([sys.executable, *args], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=timeout)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return done.stdout
+
+
+@pytest.mark.parametrize("tool", TOOLS, ids=[t.name for t in TOOLS])
+def test_help(tool: Path) -> None:
+    assert "usage" in _run(str(tool), "--help", timeout=120)
+
+
+@pytest.fixture(scope="module")
+def sequence(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("tools") / "can"
+    _run("-m", "torchevtrack", "synth", "--object", "can", "--motion", "regular", "--duration", "0.06", "--seed", "1",
+         "--width", "160", "--height", "120", "--fx", "125", "--fy", "125", "--out", str(out), "--quiet")
+    return out
+
+
+def test_overlay_frame(sequence: Path, tmp_path: Path) -> None:
+    png = tmp_path / "overlay.png"
+    _run("tools/overlay_frame.py", str(sequence), "--time", "0.03", "--out", str(png))
+    assert png.stat().st_size > 0
+
+
+def test_profile_update(sequence: Path) -> None:
+    assert "forward" in _run("tools/profile_update.py", str(sequence), "--duration", "0.04", "--passes", "1")
+
+
+def test_bench_flow(sequence: Path) -> None:
+    assert _run("tools/bench_flow.py", "--seq", str(sequence), "--duration", "0.04", "--repeat", "1").strip()
