@@ -24,6 +24,7 @@ import trimesh
 
 from torchevtrack.camera import Camera
 from torchevtrack.events import EventStream
+from torchevtrack.io.atomic import write_text
 from torchevtrack.io.events_h5 import read_events_h5, write_events_h5
 from torchevtrack.io.poses import read_tum, write_tum
 
@@ -60,7 +61,7 @@ class Sequence:
         self.camera.save(d / "camera.json")
         write_tum(d / "gt_poses.txt", self.gt_t_us, self.gt_poses)
         self.mesh.export(d / "mesh.ply", encoding="binary")
-        (d / "meta.json").write_text(json.dumps(self.meta, indent=2, sort_keys=True) + "\n")
+        write_text(d / "meta.json", json.dumps(self.meta, indent=2, sort_keys=True) + "\n")
         return d
 
     @classmethod
