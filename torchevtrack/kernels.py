@@ -19,7 +19,7 @@ import time
 
 __all__ = ["COLD_START_S", "announce_compile", "uncached_kernels", "warmup"]
 
-COLD_START_S = 60  # compile time of all the tracker's kernels on one busy core (`torchevtrack warmup`, measured)
+COLD_START_S = 60  # seconds to compile all the tracker's kernels on a free core (40-57 s measured from an empty cache)
 _announced = False
 
 
@@ -45,8 +45,17 @@ def _is_cached(kernel) -> bool:
 
 
 def uncached_kernels() -> list[str]:
-    """Names of the loaded modules' kernels that the next call would compile (no cached code for their source)."""
-    return sorted(k.py_func.__qualname__ for k in _kernels() if not _is_cached(k))
+    """Names (``module.function``) of the loaded modules' kernels that the next run will compile: those of every
+    module none of whose kernels has cached code for its current source (a fresh install, or an edited module).
+
+    A module counts as a whole: its helper kernels, called only from its other kernels, are compiled into
+    their callers and never get a cache entry of their own.
+    """
+    by_module: dict[str, list] = {}
+    for k in _kernels():
+        by_module.setdefault(k.py_func.__module__, []).append(k)
+    return sorted(f"{m}.{k.py_func.__qualname__}" for m, ks in by_module.items()
+                  if not any(_is_cached(k) for k in ks) for k in ks)
 
 
 def announce_compile() -> None:
@@ -59,8 +68,8 @@ def announce_compile() -> None:
         _announced = True
         total = max(1, len(_kernels()))
         wait = max(5, round(COLD_START_S * len(missing) / total / 5) * 5)
-        print(f"torchevtrack: compiling {len(missing)} numba kernels on first use (about {wait} s, once; cached "
-              "afterwards; `torchevtrack warmup` does it ahead)", file=sys.stderr, flush=True)
+        print(f"torchevtrack: compiling {len(missing)} numba kernels on first use (about {wait} s on a free core, "
+              "once: cached afterwards; `torchevtrack warmup` does it ahead)", file=sys.stderr, flush=True)
 
 
 def warmup(progress: bool = True) -> int:

@@ -64,6 +64,7 @@ from torchevtrack.config import TrackerConfig
 from torchevtrack.events import EventStream
 from torchevtrack.geometry import check_pose, quat_rotate
 from torchevtrack.loss import LossDetector, LossUpdate, OnLost
+from torchevtrack.kernels import announce_compile
 from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
 from torchevtrack.pipeline import Job, PipelineThread
 from torchevtrack.raster import RasterRenderer
@@ -300,6 +301,7 @@ class EventPoseTracker(nn.Module):
         self.register_buffer("_render_next", torch.zeros(B, 7, dtype=f64), persistent=False)
         self.register_buffer("_render_next_ok", torch.zeros(B, dtype=torch.bool), persistent=False)
         self._bound: _Bound | None = None  # the stages' compiled steps bound to these buffers (made on first use)
+        announce_compile()  # one line on stderr if the first update will compile the kernels
 
     # The state an update replaces, none of it a parameter, buffer or submodule: set as plain attributes, without
     # nn.Module's bookkeeping for those (~1-3 us each, several per update). The depth buffer: _set_depth.
