@@ -140,3 +140,30 @@ def test_a_run_that_never_moves_warns_and_exits_3(tmp_path, capsys):
     assert code == 3
     assert "warning: the pose never moved from the start pose" in err
     assert len((tmp_path / "p.txt").read_text().splitlines()) == 1 + 9
+
+
+def _gt_and_pred(tmp_path, scale: float, offset_us: int):
+    """A ground truth at 0..300 ms and a prediction of the same poses whose times are ``t * scale + offset``."""
+    t = torch.arange(0, 300_001, 2000, dtype=torch.int64)
+    poses = torch.zeros(len(t), 7, dtype=torch.float64)
+    poses[:, 0] = t / 1e7
+    poses[:, 2] = 0.6
+    poses[:, 3] = 1.0
+    write_tum(tmp_path / "gt.txt", t, poses)
+    lines = ["# t tx ty tz qx qy qz qw"]
+    for ti, p in zip(t.tolist(), poses.tolist()):
+        lines.append(f"{ti * scale + offset_us:.0f} {p[0]} {p[1]} {p[2]} {p[4]} {p[5]} {p[6]} {p[3]}")
+    (tmp_path / "pred.txt").write_text("\n".join(lines) + "\n")
+    return tmp_path / "gt.txt", tmp_path / "pred.txt"
+
+
+def test_eval_in_another_time_base_fails_and_the_flags_fix_it(tmp_path, capsys):
+    gt, pred = _gt_and_pred(tmp_path, 1.0, 5_000_000)  # microseconds, and 5 s later
+    code, err = _run(capsys, "eval", "--gt", str(gt), "--pred", str(pred))
+    assert code == 2
+    _one_line_error(err, "151 of 151 predicted poses")
+    assert "--time-unit" in err
+    code = main(["eval", "--gt", str(gt), "--pred", str(pred), "--time-unit", "us", "--t-offset", "-5", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert code == 0 and out["n_poses"] == 151 and out["n_dropped"] == 0
+    assert out["rmse_t_cm"] < 1e-6  # the same poses, up to the digits of the files
