@@ -101,3 +101,17 @@ def test_cli_object_name_error_is_one_line(capsys):
     assert main(["synth", "--object", "mustard", "--out", "/nonexistent/never"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "did you mean 'mustard_bottle'" in err
+
+
+def test_a_missing_optional_extra_is_a_one_line_error(monkeypatch, capsys):
+    """Without pyrender (the gl extra), the simulator's renderer says how to install it, in one line."""
+    import torchevtrack.render as render
+
+    monkeypatch.setattr(render, "pyrender", None)
+    monkeypatch.setitem(sys.modules, "pyrender", None)  # `import pyrender` now raises ImportError
+    monkeypatch.setitem(sys.modules, "pyrender.renderer", None)
+    from torchevtrack.cli import main
+
+    assert main(["synth", "--object", "box", "--out", str(Path("/nonexistent/never")), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "pip install 'torchevtrack[gl]'" in err

@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser(_command_of(argv)).parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError) as e:
+    except (ValueError, FileNotFoundError, ImportError) as e:  # bad input, or an optional extra not installed
         print(f"torchevtrack {args.command}: error: {e}", file=sys.stderr)
         return 2
 
