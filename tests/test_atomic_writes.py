@@ -86,3 +86,21 @@ def test_pose_writers_replace_only_on_success(tmp_path, writer):
         writer(tmp_path, t, poses)
     assert path.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["poses.txt"]
+
+
+def test_a_failing_frame_keeps_the_old_video(tmp_path):
+    from torchevtrack.viz import save_video
+
+    path = tmp_path / "overlay.gif"
+    frame = np.zeros((8, 8, 3), dtype=np.uint8)
+    save_video([frame, frame + 50], path, fps=5)
+    before = path.read_bytes()
+
+    def frames():
+        yield frame
+        raise RuntimeError("the renderer failed")
+
+    with pytest.raises(RuntimeError):
+        save_video(frames(), path, fps=5)
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["overlay.gif"]

@@ -1,7 +1,7 @@
 """Writing files so that a failure never loses data: every writer of the package writes to a hidden
 temporary file in the destination's directory and renames it over the destination only when the write
 succeeded (``os.replace``: atomic on POSIX). A failing input, an exception or a killed process leaves an
-existing file as it was (a killed process may leave a ``.NAME.*.tmp`` file beside it).
+existing file as it was (a killed process may leave a hidden ``.NAME.*.tmp.EXT`` file beside it).
 
 Example:
     >>> import os, tempfile
@@ -36,7 +36,8 @@ class replacing:
         self.path = Path(path)
         if self.path.is_dir():
             raise ValueError(f"{self.path} is a directory: give a file name")
-        fd, name = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
+        # the same extension at the end: writers that choose the format by it (images, videos, meshes) still can
+        fd, name = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=f".tmp{self.path.suffix}", dir=self.path.parent)
         os.close(fd)
         self.tmp = Path(name)
 
