@@ -15,7 +15,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory) -> zipfile.ZipFile:
-    """A wheel built from a copy of the tracked files (so the build leaves nothing in the checkout)."""
+    """A wheel built from a copy of the tracked files (so the build leaves nothing in the checkout), with the
+    setuptools of the environment (the dev extra requires one that reads the SPDX licence fields)."""
     tmp = tmp_path_factory.mktemp("wheel")
     files = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, check=True).stdout
     src = tmp / "src"
