@@ -1,13 +1,18 @@
-# Two entry points (see README): `make demo` and `make test`. Both create .venv on first use.
+# Two entry points (see README): `make demo` and `make test`. Both create .venv on first use and install
+# the tested versions (constraints.txt) of the package's dependencies, with the OpenGL extra the simulator needs.
+# On a machine without a local CPU wheel of torch, take it from PyTorch's CPU index:
+#   make test TORCH_INDEX=https://download.pytorch.org/whl/cpu
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
+TORCH_INDEX ?=
 export PYOPENGL_PLATFORM ?= egl
 
-$(BIN)/torchevtrack: pyproject.toml
+$(BIN)/torchevtrack: pyproject.toml constraints.txt
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e ".[dev,ycb,viz,io]"
+	$(if $(TORCH_INDEX),$(BIN)/pip install -q -c constraints.txt torch --index-url $(TORCH_INDEX))
+	$(BIN)/pip install -q -c constraints.txt -e ".[dev,gl,ycb,viz,io]"
 	touch $@
 
 .PHONY: install demo test bench

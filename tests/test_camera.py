@@ -52,3 +52,28 @@ def test_save_load_and_errors(tmp_path):
         Camera.load(tmp_path / "bad.json")
     with pytest.raises(ValueError, match="positive"):
         Camera(0, 10, 1, 1, 0, 0)
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("fx", "500", "camera fx must be a number"),
+    ("cx", float("nan"), "camera cx must be finite"),
+    ("fx", float("inf"), "camera fx must be finite and positive"),
+    ("fy", -3.0, "camera fy must be finite and positive"),
+    ("width", 100000, "camera width must be a positive whole number"),
+    ("width", "640", "camera width must be a positive whole number"),
+    ("width", 64.5, "camera width must be a positive whole number"),
+    ("height", None, "camera height must be a positive whole number"),
+])
+def test_bad_intrinsics_are_one_line_errors(tmp_path, key, value, message):
+    d = {"width": 64, "height": 48, "fx": 50.0, "fy": 50.0, "cx": 32.0, "cy": 24.0, key: value}
+    (tmp_path / "camera.json").write_text(json.dumps(d))  # NaN / Infinity as JSON allows them in Python
+    with pytest.raises(ValueError, match=message) as e:
+        Camera.load(tmp_path / "camera.json")
+    assert "\n" not in str(e.value)
+
+
+def test_a_huge_camera_is_refused_at_construction():
+    """Every image of the tracker has the camera's size: a 30000 x 30000 sensor would be 3.6 GB per image."""
+    with pytest.raises(ValueError, match="30000x30000 is over 16 Mpx"):
+        Camera(30000, 30000, 500.0, 500.0, 1.0, 1.0)
+    assert Camera(1280, 720, 500.0, 500.0, 640.0, 360.0).width == 1280

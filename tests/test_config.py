@@ -1,14 +1,12 @@
-from pathlib import Path
 
 import pytest
 
-from torchevtrack.config import ABLATIONS, TrackerConfig
+from torchevtrack.config import ABLATIONS, DEFAULT_YAML, TrackerConfig
 
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_default_yaml_spells_out_the_dataclass_defaults():
-    assert TrackerConfig.from_yaml(ROOT / "configs" / "default.yaml") == TrackerConfig()
+    assert TrackerConfig.from_yaml(DEFAULT_YAML) == TrackerConfig()
 
 
 def test_partial_yaml_and_unknown_keys(tmp_path):

@@ -65,3 +65,57 @@ def test_concat_and_select():
     assert torch.equal(both.t, ev.t) and torch.equal(both.x, ev.x)
     on = ev.select(ev.p == 1)
     assert (on.p == 1).all() and len(on) == int((ev.p == 1).sum())
+
+
+def _window(n=6):
+    return (torch.tensor([1, 2, 3, 4, 5, 6][:n]), torch.tensor([0, 1, 2, 3, 0, 1][:n]),
+            torch.tensor([10, 10, 20, 30, 40, 50][:n]), torch.tensor([1, 0, 1, 1, 0, 0][:n]))
+
+
+def test_check_window_returns_the_kernels_dtypes():
+    from torchevtrack.events import check_window
+
+    x, y, t, p = (v.to(torch.int32) for v in _window())
+    b = torch.zeros(6, dtype=torch.int32)
+    out = check_window(x, y, t, p, b, width=8, height=4)
+    assert [v.dtype for v in out] == [torch.int16, torch.int16, torch.int64, torch.int8, torch.int64]
+    assert all(torch.equal(a.long(), c.long()) for a, c in zip(out, (x, y, t, p, b)))
+    ev = EventStream.from_arrays(*_window())
+    same = check_window(ev.x, ev.y, ev.t, ev.p, width=8, height=4)
+    assert all(a is c for a, c in zip(same[:4], (ev.x, ev.y, ev.t, ev.p)))  # no copies on the usual path
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda w: {"t": w["t"].double() / 1e6}, "t must be an integer tensor microseconds"),
+    (lambda w: {"t": w["t"].flip(0)}, "t goes back in time at event 1: 40 us after 50 us"),
+    (lambda w: {"t": w["t"] - 15}, "event 0 has t=-5, negative"),
+    (lambda w: {"p": w["p"] * 257}, "event 0 has p=257, a polarity not in"),
+    (lambda w: {"x": w["x"] + 2}, r"event 5 has x=8, outside \[0, 8\) \(the width\)"),
+    (lambda w: {"y": w["y"] - 1}, r"event 0 has y=-1, outside \[0, 4\)"),
+    (lambda w: {"x": w["x"][:5]}, "x has 5 events, t has 6"),
+    (lambda w: {"b": torch.zeros(5, dtype=torch.long)}, "b has 5 events, t has 6: x, y, t, p, b"),
+    (lambda w: {"b": torch.tensor([0, 0, 1, 2, 1, 1])}, r"event 3 has b=2, outside \[0, 2\) \(the batch size\)"),
+    (lambda w: {"x": w["x"].numpy()}, "x must be a torch.Tensor"),
+    (lambda w: {"x": w["x"][None]}, r"x must be 1-D \(N,\)"),
+])
+def test_check_window_names_the_tensor_and_event(change, message):
+    from torchevtrack.events import check_window
+
+    w = dict(zip("xytp", _window())) | {"b": None}
+    w.update(change(w))
+    with pytest.raises(ValueError, match=message) as e:
+        check_window(w["x"], w["y"], w["t"], w["p"], w["b"], width=8, height=4, batch=2)
+    assert "\n" not in str(e.value)
+
+
+def test_check_window_orders_time_per_batch_element():
+    """Time may go back between elements of a packed window, not within one."""
+    from torchevtrack.events import check_window
+
+    x, y, _, p = _window()
+    b = torch.tensor([1, 0, 1, 0, 1, 0])
+    t = torch.tensor([100, 5, 200, 6, 300, 7])
+    check_window(x, y, t, p, b, width=8, height=4, batch=2)
+    t_bad = torch.tensor([100, 5, 200, 6, 150, 7])
+    with pytest.raises(ValueError, match="t goes back in time at event 4 of batch element 1: 150 us after 200 us"):
+        check_window(x, y, t_bad, p, b, width=8, height=4, batch=2)

@@ -278,3 +278,60 @@ def test_pushes_of_several_windows_run_the_pipeline_with_the_serial_poses(seq, r
         out[pipeline] = _collect(got)
         assert tracker._run.ahead is None and len(online.stage_ms) == 15
     assert torch.equal(out[True][0], out[False][0]) and torch.equal(out[True][1], out[False][1])
+
+
+class _Constant(EventPoseTracker):
+    """A stand-in tracker that answers at once (its pose: zero) and reports stage times and lost flags."""
+
+    def __init__(self, period_us: int) -> None:
+        nn.Module.__init__(self)
+        self.camera, self.batch_size, self.period_us = CAM, 1, period_us
+        self.stage_ms = {"eros": 0.1, "flow": 0.2}
+        self.loss_update = None
+
+    @property
+    def lost(self) -> torch.Tensor:
+        return torch.zeros(1, dtype=torch.bool)
+
+    def reset(self, initial_pose, twist=None, mask=None) -> None:
+        pass
+
+    def forward(self, x, y, t, p, b=None, t_us=None, next_window=None):
+        return torch.zeros(1, 7, dtype=torch.float64)
+
+    def _drop_ahead(self) -> None:
+        pass
+
+
+def test_a_minute_of_streaming_keeps_memory_flat():
+    """500 Hz for 60 s (30000 updates): the statistics keep the last `history` updates and the traced memory
+    after a minute is that after ten seconds (unbounded lists grew ~470 bytes per update, 14 MB a minute)."""
+    import tracemalloc
+
+    online = OnlineTracker(_Constant(2000), history=1000)
+    online.start(torch.tensor([0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0]), 0)
+    rng = np.random.default_rng(0)
+
+    def stream(seconds: int, t_from: int) -> int:
+        for k in range(seconds * 500):
+            t = np.sort(rng.integers(t_from + 2000 * k, t_from + 2000 * (k + 1), 20))
+            online.push(EventStream.from_arrays(rng.integers(0, 160, 20), rng.integers(0, 120, 20), t,
+                                                rng.integers(0, 2, 20), validate=False))
+        return t_from + seconds * 1_000_000
+
+    tracemalloc.start()
+    try:
+        t = stream(10, 0)
+        after_10s = tracemalloc.get_traced_memory()[0]
+        stream(50, t)
+        after_60s = tracemalloc.get_traced_memory()[0]
+    finally:
+        tracemalloc.stop()
+    assert online.updates == 30_000 - 1  # the last window is still open
+    assert len(online.latencies_ms) == len(online.stage_ms) == len(online.lost) == 1000
+    assert after_60s - after_10s < 100_000, f"grew {after_60s - after_10s} bytes in 50 s"
+
+
+def test_history_must_be_positive():
+    with pytest.raises(ValueError, match="history must be a positive number of updates"):
+        OnlineTracker(_Constant(2000), history=0)

@@ -80,8 +80,27 @@ def test_missing_file_is_named(tmp_path):
 def test_wrong_dtype(tmp_path):
     ev = random_events(100)
     write_raw(tmp_path / "f.h5", t=ev.t.numpy().astype(np.float64) / 1e6)
-    with pytest.raises(TypeError, match="'t'.*float64"):
+    with pytest.raises(ValueError, match="'t' has dtype float64, expected integers microseconds"):
         read_events_h5(tmp_path / "f.h5")
+
+
+def test_stored_values_are_checked_before_narrowing(tmp_path):
+    """An x of 40000 stored as int32 or a polarity of 257 is an error, not a wrapped pixel or polarity 1;
+    int32 timestamps are read exactly (as int64)."""
+    ev = random_events(100)
+    x = ev.x.numpy().astype(np.int32)
+    x[5] = 40000
+    write_raw(tmp_path / "x.h5", x=x)
+    with pytest.raises(ValueError, match=r"event 5 has x=40000, outside \[0, 32768\)"):
+        read_events_h5(tmp_path / "x.h5")
+    p = ev.p.numpy().astype(np.int16)
+    p[9] = 257
+    write_raw(tmp_path / "p.h5", p=p)
+    with pytest.raises(ValueError, match=r"event 9 has p=257, a polarity not in \{0, 1\}"):
+        read_events_h5(tmp_path / "p.h5")
+    write_raw(tmp_path / "t32.h5", t=ev.t.numpy().astype(np.int32))
+    got = read_events_h5(tmp_path / "t32.h5")
+    assert got.t.dtype == torch.int64 and torch.equal(got.t, ev.t)
 
 
 def test_unsorted_time_names_event(tmp_path):

@@ -2,14 +2,44 @@
 
 Pose convention (everywhere): object in camera frame, OpenCV axes, metres, tensor layout
 ``[tx, ty, tz, qw, qx, qy, qz]``. Timestamps: int64 microseconds. See ``torchevtrack.geometry``.
+
+The names below are imported on first use (``torchevtrack.EventPoseTracker`` loads the tracker and its
+kernels), so ``import torchevtrack`` is quick and loads neither OpenGL nor numba.
 """
 
-from torchevtrack.camera import Camera
-from torchevtrack.config import TrackerConfig
-from torchevtrack.events import EventStream
-from torchevtrack.online import OnlineTracker
-from torchevtrack.stages.eros import EROS
-from torchevtrack.tracker import EventPoseTracker
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
 
 __all__ = ["Camera", "EROS", "EventPoseTracker", "EventStream", "OnlineTracker", "TrackerConfig"]
 __version__ = "0.1.0"
+
+_MODULE_OF = {
+    "Camera": "torchevtrack.camera",
+    "EROS": "torchevtrack.stages.eros",
+    "EventPoseTracker": "torchevtrack.tracker",
+    "EventStream": "torchevtrack.events",
+    "OnlineTracker": "torchevtrack.online",
+    "TrackerConfig": "torchevtrack.config",
+}
+
+if TYPE_CHECKING:
+    from torchevtrack.camera import Camera
+    from torchevtrack.config import TrackerConfig
+    from torchevtrack.events import EventStream
+    from torchevtrack.online import OnlineTracker
+    from torchevtrack.stages.eros import EROS
+    from torchevtrack.tracker import EventPoseTracker
+
+
+def __getattr__(name: str):
+    if name not in _MODULE_OF:
+        raise AttributeError(f"module 'torchevtrack' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_MODULE_OF[name]), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

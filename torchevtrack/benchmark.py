@@ -60,6 +60,7 @@ import torchevtrack
 from torchevtrack.camera import Camera
 from torchevtrack.config import ABLATIONS, TrackerConfig
 from torchevtrack.geometry import perturb_pose
+from torchevtrack.io.atomic import write_text
 from torchevtrack.io.poses import read_tum, write_tum
 from torchevtrack.loss import compare_with_ground_truth
 from torchevtrack.mesh import hidden_symmetry_axis
@@ -393,8 +394,8 @@ def run_benchmark(
         for it in tqdm(items, desc="overlays", unit="seq", disable=not progress):
             res["overlays"][it.name] = _write_overlays(it, tracked[it.name], base, out / "overlays")
 
-    (out / "results.json").write_text(json.dumps(res, indent=2) + "\n")
-    (out / "table.md").write_text(table_markdown(res))
+    write_text(out / "results.json", json.dumps(res, indent=2) + "\n")
+    write_text(out / "table.md", table_markdown(res))
     return res
 
 

@@ -20,7 +20,10 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["Camera", "interaction_matrix"]
+__all__ = ["Camera", "MAX_PIXELS", "MAX_SIDE", "interaction_matrix"]
+
+MAX_SIDE = 1 << 15  # pixel coordinates are stored as int16
+MAX_PIXELS = 4096 * 4096  # a sensor of 16 Mpx: the tracker's per-pixel images then take ~64 MB each
 
 
 @dataclass(frozen=True)
@@ -28,9 +31,10 @@ class Camera:
     """Pinhole intrinsics (pixels) and sensor size.
 
     Attributes:
-        width, height: sensor size in pixels.
-        fx, fy: focal lengths in pixels.
-        cx, cy: principal point in pixels.
+        width, height: sensor size in pixels: integers, each at most :data:`MAX_SIDE` and together at most
+            :data:`MAX_PIXELS` (every image of the tracker has this size).
+        fx, fy: focal lengths in pixels, finite and positive.
+        cx, cy: principal point in pixels, finite.
         distortion: OpenCV lens distortion ``(k1, k2, p1, p2, k3)`` of the sensor, or ``None``. Every
             method here stays pinhole; events are undistorted into the pinhole image of the same ``K``
             with :mod:`torchevtrack.distortion`.
@@ -45,14 +49,27 @@ class Camera:
     distortion: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
-        if int(self.width) <= 0 or int(self.height) <= 0:
-            raise ValueError(f"camera size must be positive, got {self.width}x{self.height}")
-        if not (self.fx > 0 and self.fy > 0):
-            raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
-        object.__setattr__(self, "width", int(self.width))
-        object.__setattr__(self, "height", int(self.height))
+        for k in ("width", "height"):
+            v = self.__dict__[k]
+            if isinstance(v, (str, bytes, bool)) or v is None or not float(v).is_integer() or not 0 < v < MAX_SIDE:
+                raise ValueError(f"camera {k} must be a positive whole number of pixels below {MAX_SIDE}, "
+                                 f"got {v!r}")
+            object.__setattr__(self, k, int(v))
+        if self.width * self.height > MAX_PIXELS:
+            raise ValueError(f"camera size {self.width}x{self.height} is over {MAX_PIXELS // 1_000_000} Mpx "
+                             f"({self.width * self.height * 4 / 1e9:.1f} GB per image): check camera.json")
         for k in ("fx", "fy", "cx", "cy"):
-            object.__setattr__(self, k, float(getattr(self, k)))
+            v = self.__dict__[k]
+            try:
+                if isinstance(v, (str, bytes, bool)) or v is None:
+                    raise TypeError
+                f = float(v)
+            except (TypeError, ValueError):
+                raise ValueError(f"camera {k} must be a number of pixels, got {v!r}") from None
+            if not math.isfinite(f) or (k in ("fx", "fy") and f <= 0):
+                rule = "finite and positive" if k in ("fx", "fy") else "finite"
+                raise ValueError(f"camera {k} must be {rule}, got {v!r}")
+            object.__setattr__(self, k, f)
         if self.distortion is not None:
             d = tuple(float(c) for c in self.distortion)
             if len(d) not in (4, 5) or not all(math.isfinite(c) for c in d):
@@ -81,7 +98,9 @@ class Camera:
         return cls(d["width"], d["height"], d["fx"], d["fy"], d["cx"], d["cy"], d.get("distortion"))
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+        from torchevtrack.io.atomic import write_text
+
+        write_text(path, json.dumps(self.to_dict(), indent=2) + "\n")
 
     @classmethod
     def load(cls, path: str | Path) -> "Camera":

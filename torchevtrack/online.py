@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import operator
 import time
+from collections import deque
 from typing import Sequence
 
 import numpy as np
@@ -62,24 +63,33 @@ class OnlineTracker:
 
     Args:
         tracker: the tracker to drive (its ``batch_size`` is ``B``, its ``period_us`` the window length).
+        history: how many of the latest updates the statistics below keep (default 10000: 20 s at 500 Hz),
+            so that memory stays flat however long the stream runs.
 
     Attributes:
-        latencies_ms: per update, milliseconds from the call of the :meth:`push` (or :meth:`flush`) that
+        updates: updates run since :meth:`start`.
+        latencies_ms: for each of the last ``history`` updates, milliseconds from the call of the :meth:`push` (or :meth:`flush`) that
             completed its window to that call returning the pose. When one call completes several
             windows, all their poses are returned together and share that call's latency.
-        stage_ms: per update, the tracker's ``stage_ms`` (milliseconds per pipeline stage).
-        lost: per update, the tracker's ``lost`` flags ``(B,)`` bool (only with a loss detector, else empty).
+        stage_ms: for each of the last ``history`` updates, the tracker's ``stage_ms`` (milliseconds per stage).
+        lost: for each of the last ``history`` updates, the tracker's ``lost`` flags ``(B,)`` bool (only with a
+            loss detector, else empty).
+
+    The three are ``collections.deque`` objects (index, iterate, ``len``, ``numpy.asarray`` like lists).
     """
 
-    def __init__(self, tracker: EventPoseTracker) -> None:
+    def __init__(self, tracker: EventPoseTracker, history: int = 10_000) -> None:
         if not isinstance(tracker, EventPoseTracker):
             raise TypeError(f"tracker must be an EventPoseTracker, got {type(tracker).__name__}")
+        if isinstance(history, bool) or not isinstance(history, int) or history < 1:
+            raise ValueError(f"history must be a positive number of updates, got {history!r}")
+        self.history = history
         self.tracker = tracker
         self.batch_size: int = tracker.batch_size
         self.period_us: int = int(tracker.period_us)
-        self.latencies_ms: list[float] = []
-        self.stage_ms: list[dict[str, float]] = []
-        self.lost: list[torch.Tensor] = []
+        self.latencies_ms: deque[float] = deque(maxlen=history)
+        self.stage_ms: deque[dict[str, float]] = deque(maxlen=history)
+        self.lost: deque[torch.Tensor] = deque(maxlen=history)
         self._t0: int | None = None
         self._done = 0  # windows emitted since start()
         self._received: list[int] = []  # per stream: every event before this time has been received
@@ -101,9 +111,9 @@ class OnlineTracker:
         self._done = 0
         self._received = [0] * self.batch_size
         self._pending = [[] for _ in range(self.batch_size)]
-        self.latencies_ms = []
-        self.stage_ms = []
-        self.lost = []
+        self.latencies_ms.clear()
+        self.stage_ms.clear()
+        self.lost.clear()
 
     def reset(self, pose: torch.Tensor, twist: torch.Tensor | None = None, mask: torch.Tensor | None = None) -> None:
         """Re-initialise tracker elements at ``pose`` ``(B, 7)`` or ``(7,)`` (optional twist ``(B, 6)``) now:
@@ -111,6 +121,10 @@ class OnlineTracker:
         those elements (:meth:`EventPoseTracker.reset`), e.g. the ones the tracker reported lost."""
         self._check_started()
         self.tracker.reset(pose, twist, mask)
+
+    @property
+    def updates(self) -> int:
+        return self._done
 
     @property
     def t_next_us(self) -> int:

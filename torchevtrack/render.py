@@ -1,8 +1,9 @@
 """Headless depth and shaded-grey rendering of a mesh at a batch of poses (pyrender, offscreen).
 
-The OpenGL platform is chosen before pyrender is imported: ``PYOPENGL_PLATFORM`` if set, else EGL
-when ``libEGL`` is present, else OSMesa. The scene (mesh and camera) is built once; each render only
-moves the mesh node and, for a region of interest, changes the intrinsics and the viewport size.
+pyrender (the ``gl`` extra) is imported when the first :class:`Renderer` is made, after choosing the
+OpenGL platform: ``PYOPENGL_PLATFORM`` if set, else EGL when ``libEGL`` is present, else OSMesa. The
+scene (mesh and camera) is built once; each render only moves the mesh node and, for a region of
+interest, changes the intrinsics and the viewport size.
 
 Shading is a Lambert model with a light fixed to the camera, evaluated per pixel in numpy: one
 unlit (flat) RGBA pass rasterises each surface point's albedo and its interpolated object-frame
@@ -80,12 +81,27 @@ def _select_gl_platform() -> None:
         os.environ["PYOPENGL_PLATFORM"] = "egl"
 
 
-_select_gl_platform()
-import pyrender  # noqa: E402  (must follow the platform choice)
-import pyrender.renderer  # noqa: E402
-from OpenGL import GL  # noqa: E402
+pyrender = GL = _STORAGE_MULTISAMPLE = None  # bound by _load_gl, when the first Renderer is made
 
-_STORAGE_MULTISAMPLE = pyrender.renderer.glRenderbufferStorageMultisample
+
+def _load_gl() -> None:
+    """Import pyrender and OpenGL (the ``gl`` extra) once, after choosing the platform.
+
+    PyOpenGL reads ``PYOPENGL_PLATFORM`` when it is first imported, so :func:`_select_gl_platform` sets it
+    here, when a :class:`Renderer` is made; importing this module (or ``torchevtrack``) loads no OpenGL and
+    sets no environment variable. Raises ``ImportError`` with the install command if pyrender is missing.
+    """
+    global pyrender, GL, _STORAGE_MULTISAMPLE
+    if pyrender is not None:
+        return
+    _select_gl_platform()
+    try:
+        import pyrender.renderer
+        from OpenGL import GL
+    except ImportError as e:
+        raise ImportError(f"the OpenGL renderer needs pyrender ({e}): pip install 'torchevtrack[gl]', "
+                          "or use the built-in renderer (render backend 'raster')") from e
+    _STORAGE_MULTISAMPLE = pyrender.renderer.glRenderbufferStorageMultisample
 
 
 def _single_sample_storage(target, samples, internalformat, width, height):
@@ -151,6 +167,7 @@ class Renderer:
         background: float = 0.0,
     ) -> None:
         _check_renderer_args(mesh, camera, znear, zfar, background)
+        _load_gl()
         self.camera = camera
         self.background = float(background)
 
@@ -268,8 +285,6 @@ class _GLTarget:
     depth-only and shaded silhouettes identical): meshes need outward-facing winding.
     """
 
-    _FLAGS = {True: pyrender.RenderFlags.FLAT | pyrender.RenderFlags.RGBA, False: pyrender.RenderFlags.DEPTH_ONLY}
-
     def __init__(self, offscreen: pyrender.OffscreenRenderer, scene: pyrender.Scene, node: pyrender.Node) -> None:
         renderer = offscreen._renderer
         self._primitive = node.mesh.primitives[0]
@@ -277,7 +292,8 @@ class _GLTarget:
         self._znear, self._zfar = camera_node.camera.znear, camera_node.camera.zfar
         view = np.linalg.inv(scene.get_pose(camera_node))
         self._programs = {}
-        for shaded, flags in self._FLAGS.items():
+        flags_of = {True: pyrender.RenderFlags.FLAT | pyrender.RenderFlags.RGBA, False: pyrender.RenderFlags.DEPTH_ONLY}
+        for shaded, flags in flags_of.items():
             with _single_sampled():
                 offscreen.render(scene, flags=flags)  # uploads the mesh, compiles the program
             offscreen._platform.make_current()

@@ -352,18 +352,27 @@ def save_video(frames: Iterable, path: str | Path, fps: float = 30.0) -> Path:
     import imageio.v2 as iio2
     import imageio.v3 as iio
 
+    from torchevtrack.io.atomic import replacing
+
     n = 0
-    if ext == ".gif":
-        with iio.imopen(path, "w", plugin="pillow") as writer:
-            for n, f in enumerate(frames, start=1):
-                writer.write(checked(n - 1, f), duration=1000.0 / fps, loop=0)
-    else:
-        with iio2.get_writer(path, format="FFMPEG", mode="I", fps=fps, codec="libx264", macro_block_size=1) as writer:
-            for n, f in enumerate(frames, start=1):
-                writer.append_data(checked(n - 1, f))
+    out = replacing(path)  # an existing video stays as it was if a frame fails
+    try:
+        if ext == ".gif":
+            with iio.imopen(out.tmp, "w", plugin="pillow", extension=".gif") as writer:
+                for n, f in enumerate(frames, start=1):
+                    writer.write(checked(n - 1, f), duration=1000.0 / fps, loop=0)
+        else:
+            with iio2.get_writer(out.tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264",
+                                 macro_block_size=1) as writer:
+                for n, f in enumerate(frames, start=1):
+                    writer.append_data(checked(n - 1, f))
+    except BaseException:
+        out.discard()
+        raise
     if n == 0:
-        path.unlink(missing_ok=True)
+        out.discard()
         raise ValueError("no frames to write")
+    out.commit()
     return path
 
 
@@ -417,7 +426,10 @@ def plot_errors_multi(methods: Mapping[str, tuple], path: str | Path, title: str
     if title:
         fig.suptitle(title)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    from torchevtrack.io.atomic import replacing
+
+    with replacing(path) as tmp:
+        fig.savefig(tmp)
     return path
 
 

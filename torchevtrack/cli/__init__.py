@@ -1,39 +1,60 @@
-"""The ``torchevtrack`` command. Each subcommand lives in its own module of this package and
-exposes ``register(subparsers)``, which adds its parser and sets ``func`` (args -> exit code)."""
+"""The ``torchevtrack`` command. Each subcommand lives in a module of this package that exposes
+``register(subparsers)``, which adds its parser(s) and sets ``func`` (args -> exit code).
+
+Only the module of the command being run is imported (``torchevtrack --help`` and ``torchevtrack info``
+do not pay for the tracker's imports): :data:`COMMANDS` names each command's module and its one-line help.
+"""
 
 from __future__ import annotations
 
 import argparse
 import importlib
-import os
 import sys
 
-# Subcommand modules, in the order shown by --help. A module missing here is not a command.
-COMMANDS = ("synth", "info", "track", "eval", "benchmark", "bench", "viz", "convert", "demo")
+# command: (module in this package, help in `torchevtrack --help`), in the order --help shows them
+COMMANDS: dict[str, tuple[str, str]] = {
+    "objects": ("objects", "list the object names (built-in and YCB) that --object / --mesh accept"),
+    "synth": ("synth", "simulate one synthetic event sequence"),
+    "synth-benchmark": ("synth", "simulate the standard 8 benchmark sequences"),
+    "info": ("info", "summarise a sequence directory or an event file"),
+    "track": ("track", "track the object of a sequence directory"),
+    "eval": ("eval", "score predicted poses against ground truth"),
+    "benchmark": ("benchmark", "run the ablation benchmark on a directory of sequences"),
+    "bench": ("bench", "measure the tracker's speed on one sequence"),
+    "viz": ("viz", "overlay video / image of mesh contours over the event surface"),
+    "convert": ("convert", "convert an event file between formats (streamed)"),
+    "demo": ("demo", "end-to-end demo on a synthetic sequence (no data needed)"),
+    "warmup": ("warmup", "compile and cache the numba kernels once (the first run otherwise does)"),
+}
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser; the full parser of ``command``'s module (if one of :data:`COMMANDS`), a one-line entry for
+    the other commands."""
     parser = argparse.ArgumentParser(
         prog="torchevtrack", description="6D object pose tracking from events (learning-free, CPU)."
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in COMMANDS:
-        try:
-            module = importlib.import_module(f"torchevtrack.cli.{name}")
-        except ModuleNotFoundError as e:
-            if e.name == f"torchevtrack.cli.{name}":
-                continue  # not built yet
-            raise
-        module.register(sub)
+    chosen = COMMANDS[command][0] if command in COMMANDS else None
+    for name, (module, help_text) in COMMANDS.items():
+        if module != chosen:
+            sub.add_parser(name, help=help_text)
+        elif name == command:
+            importlib.import_module(f"torchevtrack.cli.{module}").register(sub)
     return parser
 
 
+def _command_of(argv: list[str]) -> str | None:
+    """The first argument that is not an option: the command, if any."""
+    return next((a for a in argv if not a.startswith("-")), None)
+
+
 def main(argv: list[str] | None = None) -> int:
-    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(_command_of(argv)).parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError) as e:
+    except (ValueError, FileNotFoundError, ImportError) as e:  # bad input, or an optional extra not installed
         print(f"torchevtrack {args.command}: error: {e}", file=sys.stderr)
         return 2
 

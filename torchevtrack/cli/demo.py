@@ -8,6 +8,7 @@ from pathlib import Path
 
 import torch
 
+from torchevtrack.io.atomic import write_text
 from torchevtrack.io.poses import write_tum
 from torchevtrack.metrics import evaluate
 from torchevtrack.synth.generate import generate_sequence
@@ -48,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     write_tum(out / "poses.txt", times[0], poses[0])
     m = evaluate(times[0], poses[0], seq.gt_t_us, seq.gt_poses,
                  mesh_points=torch.as_tensor(seq.mesh.vertices[:: max(1, len(seq.mesh.vertices) // 1000)]))
-    (out / "metrics.json").write_text(json.dumps(m, indent=2) + "\n")
+    write_text(out / "metrics.json", json.dumps(m, indent=2) + "\n")
     print(f"      translation RMSE {m['rmse_t_cm']:.2f} cm, rotation RMSE {m['rmse_r_deg']:.2f} deg, "
           f"ADD AUC {m['add_auc']:.3f}, failed: {m['failed']}")
 

@@ -2,6 +2,10 @@
 
 Example:
     torchevtrack eval --gt data/seq0 --pred out/seq0_poses.txt --json
+    torchevtrack eval --gt data/seq0 --pred poses_in_us.txt --time-unit us --t-offset -1700000000
+
+Exit status 2 (one line on stderr) when most predicted poses fall outside the ground truth's time range:
+the two files then use different time bases (units or origins), which ``--time-unit`` and ``--t-offset`` fix.
 """
 
 from __future__ import annotations
@@ -40,6 +44,37 @@ def load_mesh_points(path: str | Path, max_points: int = MAX_MESH_POINTS) -> tor
     if v.shape[0] > max_points:
         v = v[np.linspace(0, v.shape[0] - 1, max_points).round().astype(np.int64)]
     return torch.from_numpy(np.ascontiguousarray(v))
+
+
+TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}  # seconds per unit of a pose file's time column
+
+
+def retime(t_us: torch.Tensor, unit: str = "s", offset_s: float = 0.0) -> torch.Tensor:
+    """Times read from a pose file as seconds (``t_us``, int64 us) when its time column is in ``unit``, shifted by
+    ``offset_s`` seconds: ``-> (N,)`` int64 microseconds.
+
+    Example:
+        >>> retime(torch.tensor([1_500_000_000_000]), "us", -1.0).tolist()
+        [500000]
+    """
+    if unit not in TIME_UNITS:
+        raise ValueError(f"time unit must be one of {', '.join(TIME_UNITS)}, got {unit!r}")
+    if unit == "s" and offset_s == 0.0:
+        return t_us
+    t = t_us.double() * TIME_UNITS[unit] + offset_s * 1e6
+    return t.round().to(torch.int64)
+
+
+def check_overlap(pred_t: torch.Tensor, gt_t: torch.Tensor) -> None:
+    """Raise ``ValueError`` (one line) if most prediction times ``(N,)`` lie outside the ground truth's time range."""
+    inside = int(((pred_t >= gt_t.min()) & (pred_t <= gt_t.max())).sum())
+    if 2 * inside < pred_t.numel():
+        def span(t: torch.Tensor) -> str:
+            return f"{float(t.min()) / 1e6:.6f} .. {float(t.max()) / 1e6:.6f} s"
+
+        raise ValueError(f"{pred_t.numel() - inside} of {pred_t.numel()} predicted poses ({span(pred_t)}) fall outside "
+                         f"the ground truth's time range ({span(gt_t)}): another time base? see --time-unit, "
+                         "--t-offset")
 
 
 def _resolve_gt(gt: Path, mesh: str | None) -> tuple[Path, Path | None]:
@@ -94,6 +129,8 @@ def run(args: argparse.Namespace) -> int:
 
     gt_t, gt_p = load(gt_path, args.gt_format)
     pred_t, pred_p = load(Path(args.pred), args.pred_format)
+    pred_t = retime(pred_t, args.time_unit, args.t_offset)
+    check_overlap(pred_t, gt_t)
     points = load_mesh_points(mesh_path) if mesh_path is not None else None
     r = evaluate(pred_t, pred_p, gt_t, gt_p, mesh_points=points, symmetric=args.symmetric)
     r["n_mesh_points"] = None if points is None else int(points.shape[0])
@@ -121,6 +158,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
     p.add_argument("--fps", type=float, help="frame rate giving the times of BOP scene_gt.json frames")
     p.add_argument("--obj-id", type=int, help="object id to read from BOP scene_gt.json files")
+    p.add_argument("--time-unit", choices=tuple(TIME_UNITS), default="s",
+                   help="unit of the prediction file's time column (default s, as TUM)")
+    p.add_argument("--t-offset", type=float, default=0.0, metavar="SECONDS",
+                   help="add this to the prediction times (after --time-unit) to reach the ground truth's time base")
     p.add_argument("--gt-format", choices=FORMATS, help="override the ground-truth format detection")
     p.add_argument("--pred-format", choices=FORMATS, help="override the prediction format detection")
     p.set_defaults(func=run)

@@ -5,11 +5,17 @@ are read, chunk by chunk (:class:`torchevtrack.distortion.Undistorter`): the tra
 templates with the pinhole ``K`` of the camera, so the events must live in that undistorted image too.
 Events that land outside the sensor are dropped (the count is printed). ``--no-undistort`` tracks the
 raw sensor pixels.
+
+Exit status: 0 tracked; 2 bad input (one line on stderr, nothing written): unreadable or invalid events or camera,
+``--out`` a directory, no events in the tracked span, a start pose that puts the object out of view; 3 the poses
+were written but never moved from the start pose (a warning says why to look).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
+import sys
 import time
 from pathlib import Path
 
@@ -35,7 +41,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="output TUM pose file")
     p.add_argument("--config", type=Path, help="tracker config YAML (default: configs/default.yaml values)")
     p.add_argument("--ablation", choices=sorted(ABLATIONS), default="full", help="the paper's ablations")
-    p.add_argument("--init", help='initial pose "tx ty tz qx qy qz qw" (default: first pose of gt_poses.txt)')
+    p.add_argument("--init", help='initial pose "tx ty tz qx qy qz qw": metres, then a unit quaternion with qw '
+                   "LAST (TUM order; the Python API's pose is [t, qw, qx, qy, qz]); default: first pose of gt_poses.txt")
     p.add_argument("--mesh", help="mesh file or object name (default: SEQDIR/mesh.ply)")
     p.add_argument("--duration", type=float, help="track only the first SECONDS")
     p.add_argument("--no-undistort", action="store_true",
@@ -46,14 +53,41 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def parse_init(text: str) -> torch.Tensor:
-    """``"tx ty tz qx qy qz qw"`` (TUM order) -> pose ``(7,)`` ``[t, qw, qx, qy, qz]``."""
+    """``"tx ty tz qx qy qz qw"`` (TUM order, qw last) -> pose ``(7,)`` ``[t, qw, qx, qy, qz]``.
+
+    Raises ``ValueError`` unless there are 7 finite numbers whose quaternion has unit norm (within 1e-3).
+    """
     try:
         v = [float(s) for s in text.replace(",", " ").split()]
     except ValueError:
         raise ValueError(f"--init must be 7 numbers 'tx ty tz qx qy qz qw', got {text!r}") from None
-    if len(v) != 7:
-        raise ValueError(f"--init must be 7 numbers 'tx ty tz qx qy qz qw', got {len(v)}")
+    if len(v) != 7 or not all(math.isfinite(a) for a in v):
+        raise ValueError(f"--init must be 7 finite numbers 'tx ty tz qx qy qz qw', got {text!r}")
+    norm = math.sqrt(sum(a * a for a in v[3:]))
+    if abs(norm - 1.0) > 1e-3:
+        raise ValueError(f"--init quaternion 'qx qy qz qw' = {' '.join(f'{a:g}' for a in v[3:])} has norm {norm:.4g},"
+                         " not 1")
     return torch.tensor(v[:3] + [v[6]] + v[3:6], dtype=torch.float64)
+
+
+def check_start_pose(camera: Camera, mesh, pose: torch.Tensor) -> str | None:
+    """A warning if the object at ``pose`` (``(7,)``, ``[t, qw, qx, qy, qz]``) shows no edge to track: it fills
+    the whole image; ``None`` if it is fine. Raises ``ValueError`` if no pixel of it is in view."""
+    from torchevtrack.mesh import load_mesh
+    from torchevtrack.raster import RasterRenderer
+
+    with RasterRenderer(load_mesh(mesh), camera) as r:
+        inside = r.render(pose[None]).depth[0] > 0
+    seen = int(inside.sum())
+    if seen == 0:
+        t, q = pose[:3].tolist(), pose[3:].tolist()
+        raise ValueError(f"the object is out of view at the start pose (t = {t[0]:g} {t[1]:g} {t[2]:g} m, "
+                         f"qw qx qy qz = {' '.join(f'{a:g}' for a in q)}); --init takes 'tx ty tz qx qy qz qw'")
+    if seen == inside.numel():
+        return "the object fills the whole image at the start pose: it has no edge to track (too close?)"
+    if seen < 20:
+        return f"the object covers only {seen} pixels at the start pose: too few edges to track"
+    return None
 
 
 def undistorted_events(path: Path, camera: Camera, chunk: int = 1_000_000) -> EventStream:
@@ -73,6 +107,10 @@ def run(args: argparse.Namespace) -> int:
     d = args.seqdir
     if not d.is_dir():
         raise FileNotFoundError(f"sequence directory not found: {d}")
+    if args.out.is_dir():
+        raise ValueError(f"--out {args.out} is a directory: give a file name, e.g. {args.out / 'poses.txt'}")
+    if args.duration is not None and not args.duration > 0:
+        raise ValueError(f"--duration must be positive seconds, got {args.duration}")
     camera = Camera.load(d / "camera.json")
     if camera.distortion is not None and not args.no_undistort:
         events = undistorted_events(d / "events.h5", camera)
@@ -91,14 +129,25 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"{d} has no gt_poses.txt: give the initial pose with --init")
     cfg = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
     cfg = cfg.replace(**ABLATIONS[args.ablation])
+    t_end = t0 + round(args.duration * 1e6) if args.duration else events.t_end
+    n_events = len(events.slice_time(t0, t_end + 1))
+    if n_events == 0:
+        raise ValueError(f"no events between t = {t0} and {t_end} us (the events span {events.t_start} .. "
+                         f"{events.t_end} us): nothing to track")
+    warning = check_start_pose(camera, mesh, pose0)
+    if warning:
+        print(f"torchevtrack track: warning: {warning}", file=sys.stderr)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     tracker = EventPoseTracker(camera, mesh, cfg)
-    t_end = t0 + round(args.duration * 1e6) if args.duration else None
     start = time.perf_counter()
     times, poses = tracker.track(events, pose0, t_start_us=t0, t_end_us=t_end, progress=not args.quiet)
     wall = time.perf_counter() - start
     tracker.close()
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_tum(args.out, times[0], poses[0])
     n = times.shape[1]
-    print(f"{args.out}: {n} poses, {n / wall:.0f} updates/s ({wall:.1f} s)")
+    print(f"{args.out}: {n} poses from {n_events} events, {n / wall:.0f} updates/s ({wall:.1f} s)")
+    if n and torch.allclose(poses[0], pose0.to(poses.dtype).expand_as(poses[0]), rtol=0.0, atol=1e-12):
+        print(f"torchevtrack track: warning: the pose never moved from the start pose in {n} updates: check that "
+              "the object is in view and the events are of it", file=sys.stderr)
+        return 3
     return 0

@@ -24,7 +24,8 @@ import h5py
 import numpy as np
 import torch
 
-from torchevtrack.events import EventStream
+from torchevtrack.events import EventStream, check_window
+from torchevtrack.io.atomic import replacing
 
 __all__ = ["EventsH5Writer", "write_events_h5", "read_events_h5", "iter_events_h5", "events_h5_summary"]
 
@@ -36,7 +37,7 @@ class EventsH5Writer:
     """Append time-sorted event batches to a new HDF5 file (use as a context manager).
 
     Args:
-        path: output file (overwritten).
+        path: output file (replaced when the writer closes without an error; untouched otherwise).
         width, height: optional sensor size, stored as root attributes.
         compression: ``"gzip"`` (default, level 4) or ``"lzf"``.
     """
@@ -46,7 +47,8 @@ class EventsH5Writer:
         if compression not in ("gzip", "lzf"):
             raise ValueError(f"compression must be 'gzip' or 'lzf', got {compression!r}")
         self.path = Path(path)
-        self._f = h5py.File(self.path, "w", track_order=False)
+        self._out = replacing(self.path)  # written to a temporary file, renamed over ``path`` at a successful close
+        self._f = h5py.File(self._out.tmp, "w", track_order=False)
         opts = {"compression_opts": 4} if compression == "gzip" else {}
         self._d = {
             k: self._f.create_dataset(k, shape=(0,), maxshape=(None,), dtype=dt, chunks=(_CHUNK,),
@@ -78,13 +80,19 @@ class EventsH5Writer:
         self._t_last = int(events.t[-1])
 
     def close(self) -> None:
+        """Finish the file: it replaces ``path`` now."""
         self._f.close()
+        self._out.commit()
 
     def __enter__(self) -> "EventsH5Writer":
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, typ, exc, tb) -> None:
+        if typ is None:
+            self.close()
+        else:  # failed mid-way: ``path`` stays as it was
+            self._f.close()
+            self._out.discard()
 
 
 def write_events_h5(path: str | Path, events: EventStream, *, width: int | None = None,
@@ -114,44 +122,29 @@ def _open(path: str | Path) -> h5py.File:
         if d.ndim != 1 or d.shape != n:
             f.close()
             raise ValueError(f"{path}: dataset {k!r} has shape {d.shape}, expected {n} like 't'")
-        if d.dtype.kind not in "iu" or (k == "t" and d.dtype != np.int64):
+        if d.dtype.kind not in "iu":
             f.close()
-            want = "int64 microseconds" if k == "t" else "an integer type"
-            raise TypeError(f"{path}: dataset {k!r} has dtype {d.dtype}, expected {want}")
+            hint = " microseconds (seconds? store round(t * 1e6) as int64)" if k == "t" else ""
+            raise ValueError(f"{path}: dataset {k!r} has dtype {d.dtype}, expected integers{hint}")
     return f
 
 
-def _to_stream(f: h5py.File, i0: int, i1: int) -> EventStream:
-    x, y = f["x"][i0:i1].astype(np.int64), f["y"][i0:i1].astype(np.int64)
-    t, p = f["t"][i0:i1], f["p"][i0:i1].astype(np.int64)
-    return EventStream(torch.from_numpy(x).to(torch.int16), torch.from_numpy(y).to(torch.int16),
-                       torch.from_numpy(t), torch.from_numpy(p).to(torch.int8))
-
-
-def _check(ev: EventStream, path: Path, offset: int, width, height, t_prev: int | None) -> None:
-    """Validate a chunk whose first event has global index ``offset``; errors name the global index."""
-    if len(ev) == 0:
-        return
-
-    def first(mask: torch.Tensor) -> int:
-        return int(torch.nonzero(mask)[0]) + offset
-
-    if int(ev.p.min()) < 0 or int(ev.p.max()) > 1:
-        raise ValueError(f"{path}: polarity must be 0 or 1, event {first((ev.p < 0) | (ev.p > 1))} breaks this")
-    t = ev.t if t_prev is None else torch.cat((torch.tensor([t_prev]), ev.t))
-    back = t[1:] < t[:-1]
-    if bool(back.any()):
-        i = first(back) - (0 if t_prev is None else 1) + 1
-        raise ValueError(f"{path}: timestamps are not sorted: event {i} goes back in time")
-    if int(ev.t[0]) < 0:
-        raise ValueError(f"{path}: negative timestamp at event {offset}")
-    for name, size in (("x", width), ("y", height)):
-        f = getattr(ev, name)
-        bad = (f < 0) if size is None else ((f < 0) | (f >= size))
-        if bool(bad.any()):
-            i = first(bad)
-            raise ValueError(f"{path}: pixel out of bounds: event {i} has {name}={int(f[i - offset])}"
-                             + ("" if size is None else f", sensor {name}-size is {size}"))
+def _read(f: h5py.File, path: Path, i0: int, i1: int, width, height, t_prev: int | None) -> EventStream:
+    """Events ``i0 .. i1`` checked (:func:`~torchevtrack.events.check_window`, on the stored values before they
+    become int16 / int8, so an x of 40000 or a polarity of 257 is an error, not another pixel or polarity)."""
+    x, y, p = (torch.from_numpy(f[k][i0:i1].astype(np.int64)) for k in ("x", "y", "p"))
+    t = f["t"][i0:i1]
+    if t.dtype == np.uint64 and t.size and int(t.max()) >= 1 << 63:
+        raise ValueError(f"{path}: timestamp beyond the int64 range in events {i0} .. {i1 - 1}")
+    t = torch.from_numpy(t.astype(np.int64))
+    try:
+        x, y, t, p, _ = check_window(x, y, t, p, width=width, height=height)
+    except ValueError as e:
+        where = "" if i0 == 0 else f" (in the events from index {i0})"
+        raise ValueError(f"{path}: {e}{where}") from None
+    if t_prev is not None and len(t) and int(t[0]) < t_prev:
+        raise ValueError(f"{path}: timestamps are not sorted: event {i0} at t={int(t[0])} us follows t={t_prev} us")
+    return EventStream(x, y, t, p)
 
 
 def read_events_h5(path: str | Path, *, width: int | None = None, height: int | None = None) -> EventStream:
@@ -162,10 +155,8 @@ def read_events_h5(path: str | Path, *, width: int | None = None, height: int | 
     with _open(path) as f:
         width = width if width is not None else f.attrs.get("width")
         height = height if height is not None else f.attrs.get("height")
-        ev = _to_stream(f, 0, f["t"].shape[0])
-    _check(ev, Path(path), 0, None if width is None else int(width), None if height is None else int(height),
-           None)
-    return ev
+        return _read(f, Path(path), 0, f["t"].shape[0], None if width is None else int(width),
+                     None if height is None else int(height), None)
 
 
 def iter_events_h5(path: str | Path, chunk: int = 1_000_000, *, width: int | None = None,
@@ -179,9 +170,8 @@ def iter_events_h5(path: str | Path, chunk: int = 1_000_000, *, width: int | Non
         n = f["t"].shape[0]
         t_prev = None
         for i in range(0, n, chunk):
-            ev = _to_stream(f, i, min(i + chunk, n))
-            _check(ev, Path(path), i, None if width is None else int(width),
-                   None if height is None else int(height), t_prev)
+            ev = _read(f, Path(path), i, min(i + chunk, n), None if width is None else int(width),
+                       None if height is None else int(height), t_prev)
             t_prev = int(ev.t[-1])
             yield ev
 

@@ -408,7 +408,7 @@ def write_events(path: str | Path, events: EventStream | Iterable[EventStream], 
     """Write events (one stream or an iterable of time-ordered chunks) and return the count written.
 
     Args:
-        path: output file (overwritten).
+        path: output file, replaced only once every chunk is written (on an error it stays as it was).
         events: an :class:`EventStream` or any iterable of them (streamed: nothing is accumulated).
         format: one of ``WRITABLE``; default from the extension (``.h5``/``.hdf5``, ``.npz``,
             ``.txt``/``.csv``).

@@ -17,6 +17,7 @@ from typing import Iterator
 import numpy as np
 
 from torchevtrack.events import EventStream
+from torchevtrack.io.atomic import replacing
 from torchevtrack.io.formats import EventFileError
 
 __all__ = ["NpzReader", "NpzWriter"]
@@ -99,7 +100,7 @@ class NpzWriter:
     """Write events to an ``.npz`` archive (context manager; ``append`` time-ordered chunks).
 
     Args:
-        path: output file (overwritten at close).
+        path: output file, replaced at a successful close (on an error it stays as it was).
         width, height: optional sensor size, stored as 0-d arrays.
         compress: deflate the members (like ``numpy.savez_compressed``).
     """
@@ -123,7 +124,7 @@ class NpzWriter:
             f.close()
         try:
             mode = zipfile.ZIP_DEFLATED if self.compress else zipfile.ZIP_STORED
-            with zipfile.ZipFile(self.path, "w", compression=mode) as z:
+            with replacing(self.path) as tmp, zipfile.ZipFile(tmp, "w", compression=mode) as z:
                 for k in _FIELDS:
                     with z.open(f"{k}.npy", "w", force_zip64=True) as m:
                         header = {"descr": np.lib.format.dtype_to_descr(np.dtype(_DTYPES[k])),

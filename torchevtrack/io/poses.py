@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from torchevtrack.geometry import matrix_to_quat, quat_canonical, quat_to_matrix
+from torchevtrack.io.atomic import write_text
 
 __all__ = [
     "read_tum",
@@ -136,7 +137,7 @@ def write_tum(path: str | Path, t_us: torch.Tensor, poses: torch.Tensor) -> None
     for ti, row in zip(t_us.tolist(), poses.numpy()):
         tx, ty, tz, qw, qx, qy, qz = row
         lines.append(f"{_us_to_seconds_str(ti)} {tx:.9f} {ty:.9f} {tz:.9f} {qx:.9f} {qy:.9f} {qz:.9f} {qw:.9f}")
-    Path(path).write_text("\n".join(lines) + "\n")
+    write_text(path, "\n".join(lines) + "\n")
 
 
 def read_csv(path: str | Path) -> tuple[torch.Tensor, torch.Tensor]:
@@ -177,7 +178,7 @@ def write_csv(path: str | Path, t_us: torch.Tensor, poses: torch.Tensor) -> None
     for ti, row in zip(t_us.tolist(), poses.numpy()):
         tx, ty, tz, qw, qx, qy, qz = row
         lines.append(f"{_us_to_seconds_str(ti)},{tx:.9f},{ty:.9f},{tz:.9f},{qx:.9f},{qy:.9f},{qz:.9f},{qw:.9f}")
-    Path(path).write_text("\n".join(lines) + "\n")
+    write_text(path, "\n".join(lines) + "\n")
 
 
 def _frame_times(
@@ -302,7 +303,7 @@ def write_bop_scene_gt(path: str | Path, t_us: torch.Tensor, poses: torch.Tensor
     R = quat_to_matrix(poses[:, 3:]).reshape(-1, 9).tolist()
     t_mm = (poses[:, :3] * 1000.0).tolist()
     data = {str(f): [{"cam_R_m2c": r, "cam_t_m2c": t, "obj_id": int(obj_id)}] for f, r, t in zip(ids, R, t_mm)}
-    Path(path).write_text(json.dumps(data, indent=1) + "\n")
+    write_text(path, json.dumps(data, indent=1) + "\n")
 
 
 def detect_format(path: str | Path) -> str:

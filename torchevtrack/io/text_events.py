@@ -22,6 +22,7 @@ from typing import Iterator
 import numpy as np
 
 from torchevtrack.events import EventStream
+from torchevtrack.io.atomic import replacing
 from torchevtrack.io.formats import EventFileError
 
 __all__ = ["TextReader", "TextWriter", "looks_like_text"]
@@ -157,7 +158,7 @@ class TextWriter:
     """Write ``t x y p`` lines (use as a context manager; ``append`` time-ordered chunks).
 
     Args:
-        path: output file (overwritten).
+        path: output file, replaced at a successful close (on an error it stays as it was).
         time_unit: ``"us"`` (integer microseconds, default) or ``"s"`` (seconds, six decimals, exact).
         width, height: accepted for symmetry with the other writers (a text file stores no size).
     """
@@ -167,7 +168,8 @@ class TextWriter:
         if time_unit not in ("s", "us"):
             raise ValueError(f"time_unit must be 's' or 'us', got {time_unit!r}")
         self.time_unit = time_unit
-        self._f = open(path, "w")
+        self._out = replacing(path)  # written to a temporary file, renamed over ``path`` at a successful close
+        self._f = open(self._out.tmp, "w")
         unit = "seconds" if time_unit == "s" else "microseconds"
         self._f.write(f"# t x y p  (t in {unit}, p in {{0, 1}})\n")
 
@@ -185,10 +187,16 @@ class TextWriter:
             self._f.write((fmt * len(block)) % tuple(block.ravel().tolist()))
 
     def close(self) -> None:
+        """Finish the file: it replaces ``path`` now."""
         self._f.close()
+        self._out.commit()
 
     def __enter__(self) -> "TextWriter":
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, typ, exc, tb) -> None:
+        if typ is None:
+            self.close()
+        else:  # failed mid-way: ``path`` stays as it was
+            self._f.close()
+            self._out.discard()

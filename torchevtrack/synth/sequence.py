@@ -24,6 +24,7 @@ import trimesh
 
 from torchevtrack.camera import Camera
 from torchevtrack.events import EventStream
+from torchevtrack.io.atomic import replacing, write_text
 from torchevtrack.io.events_h5 import read_events_h5, write_events_h5
 from torchevtrack.io.poses import read_tum, write_tum
 
@@ -59,8 +60,9 @@ class Sequence:
         write_events_h5(d / "events.h5", self.events, width=self.camera.width, height=self.camera.height)
         self.camera.save(d / "camera.json")
         write_tum(d / "gt_poses.txt", self.gt_t_us, self.gt_poses)
-        self.mesh.export(d / "mesh.ply", encoding="binary")
-        (d / "meta.json").write_text(json.dumps(self.meta, indent=2, sort_keys=True) + "\n")
+        with replacing(d / "mesh.ply") as tmp:
+            self.mesh.export(tmp, file_type="ply", encoding="binary")
+        write_text(d / "meta.json", json.dumps(self.meta, indent=2, sort_keys=True) + "\n")
         return d
 
     @classmethod

@@ -1,0 +1,39 @@
+"""The kernels' cache: a cold cache is detected (from an empty NUMBA_CACHE_DIR), announced once in one line, and
+warm after a first run; `warmup` leaves no module of the tracker cold."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_a_cold_cache_is_announced_once_and_warm_after_first_use(tmp_path):
+    script = (
+        "import sys\n"
+        "import torchevtrack.events\n"
+        "from torchevtrack.kernels import announce_compile, uncached_kernels\n"
+        "print(sorted(uncached_kernels()))\n"
+        "announce_compile(); announce_compile()\n"
+        "torchevtrack.events.EventStream.from_arrays([1], [2], [3], [1], width=4, height=4)\n"
+        "print(sorted(uncached_kernels()))\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_CACHE_DIR": str(tmp_path)}
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=600, check=True)
+    before, after = r.stdout.splitlines()
+    assert before == "['torchevtrack.events._first_invalid', 'torchevtrack.events._first_outside']"
+    assert after == "[]"
+    notice = r.stderr.strip().splitlines()
+    assert len(notice) == 1 and notice[0].startswith("torchevtrack: compiling 2 numba kernels on first use")
+    assert "torchevtrack warmup" in notice[0]
+
+
+def test_warmup_leaves_no_tracker_module_cold(capsys):
+    import torchevtrack.online  # noqa: F401  (the modules a tracking run loads)
+    import torchevtrack.tracker  # noqa: F401
+    from torchevtrack.kernels import uncached_kernels, warmup
+
+    warmup(progress=False)
+    assert uncached_kernels() == []
+    assert "compiling" not in capsys.readouterr().err  # warmup reports through its own bar, not the notice
