@@ -68,14 +68,14 @@ class OnlineTracker:
 
     Attributes:
         updates: updates run since :meth:`start`.
-        latencies_ms: for each of the last ``history`` updates, milliseconds from the call of the :meth:`push` (or :meth:`flush`) that
-            completed its window to that call returning the pose. When one call completes several
-            windows, all their poses are returned together and share that call's latency.
+        latencies_ms: for each of the last ``history`` updates, milliseconds from the call of the :meth:`push` (or
+            :meth:`flush`) that completed its window to that call returning the pose. When one call completes
+            several windows, all their poses are returned together and share that call's latency.
         stage_ms: for each of the last ``history`` updates, the tracker's ``stage_ms`` (milliseconds per stage).
         lost: for each of the last ``history`` updates, the tracker's ``lost`` flags ``(B,)`` bool (only with a
             loss detector, else empty).
 
-    The three are ``collections.deque`` objects (index, iterate, ``len``, ``numpy.asarray`` like lists).
+    The three are lists, copied from bounded buffers at each access.
     """
 
     def __init__(self, tracker: EventPoseTracker, history: int = 10_000) -> None:
@@ -87,9 +87,9 @@ class OnlineTracker:
         self.tracker = tracker
         self.batch_size: int = tracker.batch_size
         self.period_us: int = int(tracker.period_us)
-        self.latencies_ms: deque[float] = deque(maxlen=history)
-        self.stage_ms: deque[dict[str, float]] = deque(maxlen=history)
-        self.lost: deque[torch.Tensor] = deque(maxlen=history)
+        self._latencies_ms: deque[float] = deque(maxlen=history)
+        self._stage_ms: deque[dict[str, float]] = deque(maxlen=history)
+        self._lost: deque[torch.Tensor] = deque(maxlen=history)
         self._t0: int | None = None
         self._done = 0  # windows emitted since start()
         self._received: list[int] = []  # per stream: every event before this time has been received
@@ -111,9 +111,9 @@ class OnlineTracker:
         self._done = 0
         self._received = [0] * self.batch_size
         self._pending = [[] for _ in range(self.batch_size)]
-        self.latencies_ms.clear()
-        self.stage_ms.clear()
-        self.lost.clear()
+        self._latencies_ms.clear()
+        self._stage_ms.clear()
+        self._lost.clear()
 
     def reset(self, pose: torch.Tensor, twist: torch.Tensor | None = None, mask: torch.Tensor | None = None) -> None:
         """Re-initialise tracker elements at ``pose`` ``(B, 7)`` or ``(7,)`` (optional twist ``(B, 6)``) now:
@@ -125,6 +125,18 @@ class OnlineTracker:
     @property
     def updates(self) -> int:
         return self._done
+
+    @property
+    def latencies_ms(self) -> list[float]:
+        return list(self._latencies_ms)
+
+    @property
+    def stage_ms(self) -> list[dict[str, float]]:
+        return list(self._stage_ms)
+
+    @property
+    def lost(self) -> list[torch.Tensor]:
+        return list(self._lost)
 
     @property
     def t_next_us(self) -> int:
@@ -210,9 +222,9 @@ class OnlineTracker:
             for k in range(n):  # the tracker's pipeline takes in the window after it meanwhile
                 ahead = windows[k + 1] if k + 1 < n else None
                 out.append((ends[k], self.tracker(*windows[k], t_us=ends[k], next_window=ahead)))
-                self.stage_ms.append(dict(self.tracker.stage_ms))
+                self._stage_ms.append(dict(self.tracker.stage_ms))
                 if self.tracker.lost is not None:
-                    self.lost.append(self.tracker.lost.clone())
+                    self._lost.append(self.tracker.lost.clone())
         finally:
             self.tracker._drop_ahead()
         # Copy the remainders: a view would keep the whole pushed chunk alive.
@@ -221,7 +233,7 @@ class OnlineTracker:
                          for s, c, chunks in zip(buffers, cuts, self._pending)]
         self._done += n
         latency = (time.perf_counter() - t_call) * 1e3
-        self.latencies_ms.extend([latency] * n)
+        self._latencies_ms.extend([latency] * n)
         return out
 
     def _split(self, events, b) -> list[EventStream]:
