@@ -99,7 +99,7 @@ class RasterMesh(NamedTuple):
 def raster_mesh(mesh: trimesh.Trimesh) -> RasterMesh:
     """The triangles and shading attributes of the pyrender backend (crease-split vertices, albedo from the
     vertex colours), with the face planes used for back-face culling."""
-    vertices, faces, albedo, normals = _shading_mesh(mesh)
+    vertices, faces, albedo, normals = _shading_mesh(mesh)[:4]
     corners = vertices[faces]
     n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     planes = np.concatenate((n, np.einsum("fk,fk->f", n, corners[:, 0])[:, None]), axis=1).T
