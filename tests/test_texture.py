@@ -13,7 +13,9 @@ from PIL import Image
 from torchevtrack.camera import Camera
 from torchevtrack.geometry import quat_exp
 from torchevtrack.mesh import load_mesh
-from torchevtrack.render import AMBIENT, LIGHT_DIRECTION, Renderer
+from torchevtrack.raster import RasterRenderer
+from torchevtrack.render import AMBIENT, BACKENDS, LIGHT_DIRECTION, Renderer, make_renderer
+from torchevtrack.stages import template as tm
 from torchevtrack.synth.texture import printed_texture
 
 CAM = Camera(160, 120, 150.0, 140.0, 79.3, 61.7)
@@ -35,13 +37,13 @@ def textured_quad(size, image, uv_scale=1.0):
 
 
 def bilinear(texture, u, v):
-    """Oracle: GL_LINEAR sampling (repeat wrap) of a luminance image ``(H, W)`` (rows top-down, ``v`` up) at
-    texture coordinates ``u, v`` (arrays), in [0, 1] units."""
+    """Oracle: GL_LINEAR sampling (repeat wrap) of an image ``(H, W)`` (rows top-down, ``v`` up) at texture
+    coordinates ``u, v`` (arrays)."""
     H, W = texture.shape
     x, y = u * W - 0.5, (1.0 - v) * H - 0.5
     x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
     a, b = x - x0, y - y0
-    t = texture.astype(np.float64) / 255.0
+    t = np.asarray(texture, dtype=np.float64)
 
     def at(i, j):
         return t[j % H, i % W]
@@ -110,23 +112,57 @@ def test_printed_texture_bad_inputs():
         printed_texture(load_mesh("box"), 0, size=16)
 
 
-# -- pyrender backend ---------------------------------------------------------------------------------------------
-def test_pyrender_samples_the_texture_bilinearly_when_magnified():
+# -- both backends ------------------------------------------------------------------------------------------------
+def trilinear(lum, u, v, lod):
+    """Oracle: GL_LINEAR_MIPMAP_LINEAR sampling at a level of detail ``lod`` (scalar), mipmaps by 2 x 2 means."""
+    levels = [lum.astype(np.float64)]
+    while levels[-1].shape[0] > 1:
+        a = levels[-1]
+        levels.append((a[0::2, 0::2] + a[1::2, 0::2] + a[0::2, 1::2] + a[1::2, 1::2]) / 4)
+    if lod <= 0:
+        return bilinear(levels[0], u, v)
+    lo = int(math.floor(lod))
+    t = lod - lo
+    return (1 - t) * bilinear(levels[lo], u, v) + t * bilinear(levels[lo + 1], u, v)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("uv_scale", [1.0, 7.5])  # magnified ~2x; minified ~4x (repeating 7.5 times)
+def test_texture_is_sampled_as_opengl_does(backend, uv_scale):
     image, lum = stripes_image()
-    mesh = textured_quad(0.2, image)
-    with Renderer(mesh, CAM, background=0.1) as r:
-        out = r.render(pose([0.0, 0.0, 0.25]))  # 0.2 m at 0.25 m: ~120 px for 64 texels (magnified)
+    mesh = textured_quad(0.2, image, uv_scale)
+    z = 0.25
+    with make_renderer(mesh, CAM, backend, background=0.1) as r:
+        out = r.render(pose([0.0, 0.0, z]))
     depth, gray = out.depth[0].numpy(), out.gray[0].numpy()
     v_px, u_px = np.indices(depth.shape)
-    X = (u_px - CAM.cx) * 0.25 / CAM.fx
-    Y = (v_px - CAM.cy) * 0.25 / CAM.fy
+    X = (u_px - CAM.cx) * z / CAM.fx
+    Y = (v_px - CAM.cy) * z / CAM.fy
     u, v = (X + 0.1) / 0.2, (Y + 0.1) / 0.2
     inside = (u > 0.01) & (u < 0.99) & (v > 0.01) & (v < 0.99)
     assert (depth[inside] > 0).all() and inside.sum() > 5000
-    expected = bilinear(lum, u, v) * frontal_shading()
+    # the footprint of a pixel in texels (uv is affine in the pixel on a fronto-parallel quad)
+    rho = max(z / (CAM.fx * 0.2), z / (CAM.fy * 0.2)) * uv_scale * lum.shape[0]
+    expected = trilinear(lum / 255.0, u * uv_scale, v * uv_scale, math.log2(rho)) * frontal_shading()
     err = np.abs(gray - expected)[inside]
-    assert err.mean() < 3e-3 and np.percentile(err, 99) < 0.012
-    assert gray[inside].std() > 0.2  # the texture's bars are there
+    assert err.mean() < 4e-3 and np.percentile(err, 99) < 0.015
+    assert gray[inside].std() > 0.05  # the texture's bars are there
+
+
+def test_textured_renders_of_both_backends_agree():
+    cam = Camera(320, 240, 300.0, 300.0, 159.5, 119.5)
+    for name, z in [("box", 0.35), ("can", 0.8), ("bottle", 0.5)]:
+        mesh = printed_texture(load_mesh(name), 11)
+        p = pose([0.01, -0.01, z], (0.5, 0.6, 0.2))
+        with Renderer(mesh, cam, background=0.2) as a, RasterRenderer(mesh, cam, background=0.2) as b:
+            ra, rb = a.render(p), b.render(p)
+        ma, mb = ra.depth[0].numpy() > 0, rb.depth[0].numpy() > 0
+        assert (ma != mb).sum() <= 0.002 * ma.sum()
+        inner = _eroded(ma & mb, 1)
+        ga, gb = ra.gray[0].numpy(), rb.gray[0].numpy()
+        err = np.abs(ga - gb)[inner]
+        assert err.mean() < 4e-3 and np.percentile(err, 99) < 0.03
+        assert np.hypot(*np.gradient(gb))[inner].mean() > 0.02  # and the texture is there
 
 
 def test_face_colours_give_each_face_its_albedo():
@@ -145,11 +181,12 @@ def test_face_colours_give_each_face_its_albedo():
     assert (np.abs(values - lum[1] * frontal_shading()) < 0.01).mean() > 0.2
 
 
-def test_textured_render_has_inner_edges_where_the_untextured_is_smooth():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_textured_render_has_inner_edges_where_the_untextured_is_smooth(backend):
     box = load_mesh("box")
     mesh = trimesh.Trimesh(box.vertices, box.faces, process=False)  # uncoloured: shading alone
     p = pose([0.0, 0.0, 0.5], (0.4, 0.5, 0.1))
-    with Renderer(printed_texture(mesh, 2), CAM) as a, Renderer(mesh, CAM) as b:
+    with make_renderer(printed_texture(mesh, 2), CAM, backend) as a, make_renderer(mesh, CAM, backend) as b:
         ta, tb = a.render(p), b.render(p)
     np.testing.assert_array_equal(ta.depth.numpy(), tb.depth.numpy())  # same geometry, same silhouette
     grad = [np.hypot(*np.gradient(t.gray[0].numpy())) for t in (ta, tb)]
@@ -161,3 +198,23 @@ def _eroded(mask, n):
     from scipy import ndimage
 
     return ndimage.binary_erosion(mask, np.ones((2 * n + 1, 2 * n + 1)))
+
+
+@pytest.mark.parametrize("name", ["box", "bottle"])
+def test_template_of_a_textured_mesh_has_inner_edges(name):
+    """The tracker's template (Sobel + DoG of the raster render) inside the silhouette: several times the edge
+    energy of the same geometry untextured (whose only inner edges are shading creases)."""
+    geometry = load_mesh(name)
+    plain = trimesh.Trimesh(geometry.vertices, geometry.faces, process=False)
+    cam = Camera(320, 240, 300.0, 300.0, 159.5, 119.5)
+    p = pose([0.0, 0.0, 0.45], (0.4, 0.5, 0.1))[None]
+    energy = []
+    for mesh in (printed_texture(plain, 4), plain):
+        with RasterRenderer(mesh, cam, background=0.2) as r:
+            out = r.render(p)
+        model = tm.template_model(p, out.depth, out.gray, (0, 0), cam)
+        mask = tm.to_canvas((out.depth > 0).to(out.depth.dtype), model.box, 128)[0].numpy() > 0.999
+        inner = _eroded(mask, 10)  # away from the silhouette's band
+        assert inner.sum() > 500
+        energy.append(float(np.abs(model.render_template[0].numpy())[inner].mean()))
+    assert energy[0] > 4 * energy[1]
