@@ -12,7 +12,9 @@ normal (vertex attributes packed in the colour channels), then
 
 with ``AMBIENT = 0.3`` and ``l`` the unit direction towards the light, ``(-0.3, -0.4, -1)``
 normalised in the OpenCV camera frame (the light sits up-left of the lens). ``albedo`` is the
-luminance (0.299 R + 0.587 G + 0.114 B) of the mesh's vertex colours, 0.75 for uncoloured meshes.
+luminance (0.299 R + 0.587 G + 0.114 B) of the mesh's texture (a trimesh ``TextureVisuals`` with UVs and an
+image, sampled trilinearly with mipmaps and repeating UVs, as OpenGL's ``LINEAR_MIPMAP_LINEAR``), else of its
+face or vertex colours, 0.75 for uncoloured meshes.
 This is several times cheaper than pyrender's PBR shader on a software rasteriser. Depth and grey
 are point samples at pixel centres (no anti-aliasing); render a scaled camera and pool for smoother
 edges.
