@@ -7,6 +7,7 @@ to the frame). Timing: CPU time (``time.process_time``) of the compiled kernel a
 :meth:`RasterRenderer.render`, 1 torch thread, best of ``--rounds`` rounds over all poses, after a warm-up.
 
     .venv/bin/python tools/bench_raster.py [--sequence data/bench/mustard_fast] [--baseline old_raster.py]
+    .venv/bin/python tools/bench_raster.py --texture 1   # the mesh with a printed texture, against it untextured
 
 ``--baseline`` takes a copy of the module, e.g. ``git show HEAD~1:torchevtrack/raster.py > /tmp/raster_old.py``.
 """
@@ -44,12 +45,13 @@ def windows(poses: torch.Tensor, camera, radius: float) -> list[tuple[int, int, 
     return [tuple(r) for r in torch.stack((u, v, w, h), -1).tolist()]
 
 
-def kernel_pass(module, mesh, poses, cams, outs) -> float:
+def kernel_pass(module, mesh, poses, cams, outs, texture=None) -> float:
     """CPU seconds of one kernel call per pose (into preallocated outputs)."""
+    extra = () if texture is None else (tuple(texture),)
     t0 = time.process_time()
     for p, cam, (depth, gray) in zip(poses, cams, outs):
         module._render_kernel(*mesh, p, cam.fx, cam.fy, cam.cx, cam.cy, 0.01, 20.0, LIGHT_DIRECTION, AMBIENT, 0.0,
-                              depth, gray)
+                              depth, gray, *extra)
     return time.process_time() - t0
 
 
@@ -65,7 +67,10 @@ def main(argv=None) -> int:
     ap.add_argument("--sequence", default="data/bench/mustard_fast")
     ap.add_argument("--step", type=int, default=10, help="every step-th ground-truth pose")
     ap.add_argument("--rounds", type=int, default=7)
-    ap.add_argument("--baseline", help="path of another raster.py to compare with")
+    group = ap.add_mutually_exclusive_group()
+    group.add_argument("--baseline", help="path of another raster.py to compare with")
+    group.add_argument("--texture", type=int, metavar="SEED",
+                       help="also time the mesh with torchevtrack.synth.texture.printed_texture(mesh, SEED)")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
     seq = Sequence.load(a.sequence)
@@ -74,20 +79,25 @@ def main(argv=None) -> int:
     rois = windows(poses, seq.camera, radius)
     cams = [seq.camera.crop(*r) for r in rois]
     np_poses = [p[None].numpy().copy() for p in poses]
-    modules = {"current": raster}
+    runs = {"current": (raster, seq.mesh)}
     if a.baseline:
-        modules["baseline"] = load_module(a.baseline)
+        runs["baseline"] = (load_module(a.baseline), seq.mesh)
+    if a.texture is not None:
+        from torchevtrack.synth.texture import printed_texture
+
+        runs["textured"] = (raster, printed_texture(seq.mesh, a.texture))
     results = {}
-    for name, module in modules.items():
-        mesh = module.raster_mesh(seq.mesh)
+    for name, (module, model) in runs.items():
+        renderer = module.RasterRenderer(model, seq.camera)
+        mesh, texture = renderer.raster_mesh, getattr(renderer, "raster_texture", None)
         outs = [(np.empty((1, c.height, c.width), np.float32), np.empty((1, c.height, c.width), np.float32))
                 for c in cams]
-        kernel_pass(module, mesh, np_poses, cams, outs)  # warm-up (compile or cache load)
-        results[name] = dict(module=module, mesh=mesh, outs=outs, kernel=[], render=[],
-                             renderer=module.RasterRenderer(seq.mesh, seq.camera))
+        kernel_pass(module, mesh, np_poses, cams, outs, texture)  # warm-up (compile or cache load)
+        results[name] = dict(module=module, mesh=mesh, texture=texture, outs=outs, kernel=[], render=[],
+                             renderer=renderer)
     for _ in range(a.rounds):
         for r in results.values():
-            r["kernel"].append(kernel_pass(r["module"], r["mesh"], np_poses, cams, r["outs"]))
+            r["kernel"].append(kernel_pass(r["module"], r["mesh"], np_poses, cams, r["outs"], r["texture"]))
             r["render"].append(render_pass(r["renderer"], poses, rois))
     n = len(poses)
     area = np.mean([c.width * c.height for c in cams])
