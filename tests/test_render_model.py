@@ -78,3 +78,25 @@ def test_bad_input(renderer):
         render_model_step(renderer, _pose(0.0, 0.0, 0.5, 0.1), radius, shaded=False)
     with pytest.raises(TypeError, match="RasterRenderer"):
         render_model_step(object(), _pose(0.0, 0.0, 0.5, 0.1), radius)
+
+
+def test_a_textured_mesh_renders_its_texture_into_the_template():
+    """The tracker's fused render of a printed mesh equals the rasteriser's textured render, and its template has the
+    print's inner edges (the oracle: the renderer's own render and template_model of it)."""
+    from torchevtrack.synth.texture import printed_texture
+
+    pose = _pose(0.0, 0.0, 0.45, 0.4)
+    plain = RasterRenderer(load_mesh("box"), CAM, background=0.25)
+    printed = RasterRenderer(printed_texture(load_mesh("box"), seed=3), CAM, background=0.25)
+    radius = _radius(printed)
+    energy, gradient = [], []
+    for r in (plain, printed):
+        got = render_model_step(r, pose, radius, margin_px=10, **OPTIONS)
+        u0, v0, w, h = got.window[0].tolist()
+        want = r.render(pose, roi=(u0, v0, w, h))
+        assert torch.equal(got.gray, want.gray)
+        energy.append(float(got.model.render_template.abs().sum()))
+        gradient.append(float(got.gray.diff(dim=1).abs().sum() + got.gray.diff(dim=2).abs().sum()))
+        r.close()
+    assert gradient[1] > 1.5 * gradient[0]  # the print's edges in the render
+    assert energy[1] > 1.1 * energy[0]  # and in the template built from it

@@ -85,11 +85,12 @@ def render_model_step(renderer: RasterRenderer, pose: torch.Tensor, radius: floa
 @numba.njit(cache=True, nogil=True)
 def _render_model_kernel(pose, radius, cam, W, H, margin, vertices, faces, planes, albedo, normals, znear, zfar, light,
                          ambient, background, shaded, model, box_margin, silhouette, edge_scale, g1, g2, pre, N, step,
-                         P, observed_box):
+                         P, observed_box, texture):
     """The window of ``pose`` (``(1, 4)``), its render there at its normalised copy (the renderers' rule,
     :func:`~torchevtrack.render._normalise_quaternions`), its float32 rounding ``pose32`` (the model's pose, as
     correction_step rounds it), and with ``model`` the template model's arrays at ``pose32`` (``box, K, gain,
-    render_template, depth, coef, points, valid``), its box also into ``observed_box`` as float64."""
+    render_template, depth, coef, points, valid``), its box also into ``observed_box`` as float64. ``texture``: the
+    mesh's :class:`~torchevtrack.raster.RasterTexture` as a tuple, or ``None`` (untextured)."""
     unit = pose.copy()
     _nb_normalise_quaternions(unit, np.empty(1))
     pose32 = pose.astype(np.float32).astype(np.float64)
@@ -100,7 +101,7 @@ def _render_model_kernel(pose, radius, cam, W, H, margin, vertices, faces, plane
     depth = np.empty((1, h, w), dtype=np.float32)
     gray = np.empty((1, h, w) if shaded else (1, 0, 0), dtype=np.float32)
     _render_kernel(vertices, faces, planes, albedo, normals, unit, fx, fy, cx - u0, cy - v0, znear, zfar, light,
-                   ambient, background, depth, gray)
+                   ambient, background, depth, gray, texture)
     box = np.empty((1, 3))
     gain = np.empty(1, dtype=np.float32)
     box32, K = np.empty((1, 3), dtype=np.float32), np.empty((1, 4), dtype=np.float32)
@@ -125,6 +126,11 @@ def bind_render_model(renderer: RasterRenderer, radius: float, *, margin_px: int
     (the tracker): a :class:`RenderModelBinding`."""
     return RenderModelBinding(renderer, radius, margin_px=margin_px, canvas=canvas, box_margin_px=box_margin_px,
                               edge_clip=edge_clip, silhouette=silhouette)
+
+
+def _texture_args(texture):
+    """The kernel's ``texture`` argument: a plain tuple of the texture's arrays, or ``None``."""
+    return None if texture is None else tuple(texture)
 
 
 class RenderModelBinding:
@@ -152,7 +158,7 @@ class RenderModelBinding:
                       float(margin_px), *mesh, renderer.znear, renderer.zfar, LIGHT_DIRECTION, AMBIENT,
                       renderer.background)
         self._model_args = (float(box_margin_px), silhouette, 0.125 / edge_clip, *_model_filters(canvas), canvas, step,
-                            points, self.observed_box)
+                            points, self.observed_box, _texture_args(renderer.raster_texture))
 
     def __call__(self, pose: np.ndarray, shaded: bool, model: bool) -> Rendered:
         return self.finish(self.kernel(*self.start(pose, shaded, model)))
