@@ -1,6 +1,6 @@
 """Does the re-localiser find the object from a pose far off, and what does a call cost?
 
-Feeds a sequence's events up to ``--at`` seconds into an EROS and a time surface (the tracker's defaults), then
+Feeds a sequence's events up to ``--at`` seconds into a time surface, then
 calls :class:`~torchevtrack.stages.relocalise.Relocaliser` from the true pose at that time moved by ``--dt-cm`` in
 a random direction and turned by ``--dr-deg`` about a random axis, ``--trials`` times, and prints each result's
 error against the truth, its clear flag and the call's time.
@@ -19,7 +19,7 @@ import torch
 from torchevtrack.config import TrackerConfig
 from torchevtrack.geometry import quat_conj, quat_exp, quat_log, quat_mul
 from torchevtrack.raster import RasterRenderer
-from torchevtrack.stages.eros import EROS, TimeSurface
+from torchevtrack.stages.eros import TimeSurface
 from torchevtrack.stages.relocalise import Relocaliser
 from torchevtrack.synth.sequence import Sequence
 
@@ -48,31 +48,27 @@ def main() -> None:
     cam, ev, cfg = seq.camera, seq.events, TrackerConfig()
     t_now = int(seq.gt_t_us[0]) + round(args.at * 1e6)
     n = int(torch.searchsorted(ev.t, torch.tensor(t_now)))
-    eros = EROS(cam.height, cam.width, cfg.eros.kernel_size, cfg.eros.decay)
     ts = TimeSurface(cam.height, cam.width)
     a = max(0, int(torch.searchsorted(ev.t, torch.tensor(t_now - 100_000))))  # the last 0.1 s suffice
-    eros(ev.x[a:n], ev.y[a:n])
     ts(ev.x[a:n], ev.y[a:n], ev.t[a:n])
     k = int(torch.searchsorted(seq.gt_t_us, torch.tensor(t_now)).clamp(max=len(seq.gt_t_us) - 1))
     truth = seq.gt_poses[k]
     radius = float(torch.as_tensor(seq.mesh.vertices).norm(dim=1).max())
-    reloc = Relocaliser(RasterRenderer(seq.mesh, cam), radius, max_age_us=cfg.eros.max_age_us,
-                        recency_us=cfg.eros.recency_us)
+    reloc = Relocaliser(RasterRenderer(seq.mesh, cam), radius)
     gen = torch.Generator().manual_seed(args.seed)
     t_arg = torch.tensor([t_now])
-    reloc(truth[None], eros.surface, ts.last_us[:, None], t_arg)  # compile
-    print(f"score of the truth: {reloc.score(truth[None], eros.surface, ts.last_us[:, None], t_arg):.1f}")
+    reloc(truth[None], ts.last_us, t_arg)  # compile
     ok = 0
     for i in range(args.trials):
         start = perturb(truth, args.dt_cm / 100, math.radians(args.dr_deg), gen)
         t0 = time.perf_counter()
-        out = reloc(start[None], eros.surface, ts.last_us[:, None], t_arg)
+        out = reloc(start[None], ts.last_us, t_arg)
         ms = (time.perf_counter() - t0) * 1e3
         te = float((out.pose[0, :3] - truth[:3]).norm()) * 100
         re = math.degrees(float(quat_log(quat_mul(out.pose[0, 3:], quat_conj(truth[3:]))).norm()))
         ok += te <= 1 and re <= 5
-        print(f"trial {i}: error {te:.2f} cm / {re:.2f} deg, score {float(out.score[0]):.1f}, runner-up "
-              f"{float(out.runner_up[0]):.1f}, clear {bool(out.clear[0])}, {ms:.0f} ms")
+        print(f"trial {i}: error {te:.2f} cm / {re:.2f} deg, cost {float(out.cost[0]):.2f}, runner-up "
+              f"{float(out.runner_up[0]):.2f}, clear {bool(out.clear[0])}, {ms:.0f} ms")
     print(f"{ok} of {args.trials} within 1 cm / 5 deg")
 
 

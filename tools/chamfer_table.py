@@ -7,7 +7,7 @@ combinations) with
 
 - the chamfer cost (:mod:`torchevtrack.chamfer`, full resolution, recent events within ``--window-ms``,
   a fixed region around the truth), lower better;
-- the tracker's template score (:meth:`torchevtrack.stages.relocalise.Relocaliser.score`), higher better.
+- the tracker's template score (its template of the pose's render against the EROS observation), higher better.
 
 Prints per offset magnitude how often the truth beats the offset pose under each score, and the worst margin.
 
@@ -27,7 +27,8 @@ from torchevtrack.config import TrackerConfig
 from torchevtrack.geometry import quat_exp, quat_mul
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.stages.eros import EROS, TimeSurface
-from torchevtrack.stages.relocalise import Relocaliser
+from torchevtrack.stages.eros import canvas_observation
+from torchevtrack.stages.template import template_model
 from torchevtrack.synth.sequence import Sequence
 
 
@@ -75,7 +76,6 @@ def main() -> None:
         cam, ev = seq.camera, seq.events
         renderer = RasterRenderer(seq.mesh, cam)
         radius = float(torch.as_tensor(seq.mesh.vertices).norm(dim=1).max())
-        reloc = Relocaliser(renderer, radius, max_age_us=cfg.eros.max_age_us, recency_us=cfg.eros.recency_us)
         for at in args.at:
             t_now = int(seq.gt_t_us[0]) + round(at * 1e6)
             n = int(torch.searchsorted(ev.t, torch.tensor(t_now)))
@@ -100,7 +100,12 @@ def main() -> None:
                 return chamfer(model_edges(r.depth[0].numpy(), r.gray[0].numpy()), ev_roi, dmap, args.cap)
 
             def tscore(p):
-                return reloc.score(p[None], eros.surface, ts.last_us[:, None], torch.tensor([t_now]))
+                r = renderer.render(p[None])
+                model = template_model(p[None], r.depth, r.gray, (0, 0), cam, canvas=cfg.template.canvas,
+                                       margin_px=cfg.template.margin_px)
+                o = canvas_observation(eros.surface, ts.last_us[:, None], model.box, cfg.template.canvas,
+                                       torch.tensor([t_now]), cfg.eros.max_age_us, cfg.eros.recency_us)
+                return float(model.fit_canvas(o.reshape(1, -1)).s0[0])
 
             c0, s0 = cost(truth), tscore(truth)
             rng = np.random.default_rng(int(at * 1000))

@@ -29,6 +29,9 @@ Example:
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
 import torch
 from scipy import ndimage
@@ -62,33 +65,92 @@ def recent_events(last_us: torch.Tensor, t_now_us: int, window_us: int, min_supp
 
 def model_edges(depth: np.ndarray, gray: np.ndarray | None = None, gray_step: float = 0.05,
                 depth_step: float = 0.05) -> np.ndarray:
-    """Edge pixels of renders: silhouette boundary (object pixels with a background 4-neighbour), and object
-    pixels whose depth differs from a 4-neighbour's by more than ``depth_step`` of its depth (occluding inner
-    contours) or whose grey differs by more than ``gray_step`` (creases, texture).
+    """Edge pixels of renders: object pixels with a 4-neighbour off the object (the silhouette's boundary),
+    whose depth differs from a 4-neighbour's by more than ``depth_step`` of its own (inner occluding contours) or
+    whose grey differs by more than ``gray_step`` (creases, texture).
 
     Shape: depth ``(..., h, w)`` float (0 off the object), gray the same or ``None`` -> ``(..., h, w)`` bool.
     """
-    obj = depth > 0
-    edge = np.zeros_like(obj)
-    for axis in (-1, -2):
-        for a, b in ((slice(1, None), slice(None, -1)), (slice(None, -1), slice(1, None))):
-            ia = [slice(None)] * depth.ndim
-            ib = [slice(None)] * depth.ndim
-            ia[axis], ib[axis] = a, b
-            ia, ib = tuple(ia), tuple(ib)
-            step = ~obj[ib] | (np.abs(depth[ia] - depth[ib]) > depth_step * depth[ia])
-            if gray is not None:
-                step |= np.abs(gray[ia] - gray[ib]) > gray_step
-            edge[ia] |= obj[ia] & step
-    return edge
+    d = np.ascontiguousarray(depth, dtype=np.float32)
+    flat = d.reshape(-1, *d.shape[-2:])
+    g = flat if gray is None else np.ascontiguousarray(gray, dtype=np.float32).reshape(flat.shape)
+    out = np.empty(flat.shape, np.bool_)
+    _edges_kernel(flat, g, gray is not None, np.float32(gray_step), np.float32(depth_step), out)
+    return out.reshape(d.shape)
+
+
+@numba.njit(cache=True)
+def _edges_kernel(depth, gray, shaded, gray_step, depth_step, out):
+    K, h, w = depth.shape
+    for k in range(K):
+        for i in range(h):
+            for j in range(w):
+                z = depth[k, i, j]
+                e = False
+                if z > 0:
+                    for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+                        ii, jj = i + di, j + dj
+                        if ii < 0 or ii >= h or jj < 0 or jj >= w:
+                            continue  # the image border is not an edge
+                        zn = depth[k, ii, jj]
+                        if zn <= 0 or abs(z - zn) > depth_step * z or \
+                                (shaded and abs(gray[k, i, j] - gray[k, ii, jj]) > gray_step):
+                            e = True
+                            break
+                out[k, i, j] = e
 
 
 def distance_map(mask: np.ndarray, cap: float) -> np.ndarray:
-    """Euclidean distance (pixels) from each pixel to the nearest ``True`` pixel of ``mask``, capped at ``cap``
-    (all ``cap`` if the mask is empty). Shape: ``(h, w)`` bool -> ``(h, w)`` float32."""
-    if not mask.any():
-        return np.full(mask.shape, cap, np.float32)
-    return np.minimum(ndimage.distance_transform_edt(~mask), cap).astype(np.float32)
+    """Distance (pixels) from each pixel to the nearest ``True`` pixel of its image, capped at ``cap`` (all
+    ``cap`` if the image has none).
+
+    A two-pass chamfer transform with the 5x5 neighbourhood's exact step lengths ``1, sqrt(2), sqrt(5)``
+    (Borgefors 1986): within 3 % of the Euclidean distance, at a few nanoseconds per pixel.
+
+    Shape: ``(..., h, w)`` bool -> ``(..., h, w)`` float32.
+    """
+    m = np.ascontiguousarray(mask, dtype=np.bool_)
+    flat = m.reshape(-1, *m.shape[-2:])
+    out = np.empty(flat.shape, np.float32)
+    _chamfer_kernel(flat, np.float32(cap), out)
+    return out.reshape(m.shape)
+
+
+_S2, _S5 = math.sqrt(2.0), math.sqrt(5.0)
+# forward-pass neighbours (di, dj, length): the half of the 5x5 neighbourhood visited before a pixel
+_FORWARD = np.array([(-2, -1, _S5), (-2, 1, _S5), (-1, -2, _S5), (-1, -1, _S2), (-1, 0, 1.0), (-1, 1, _S2),
+                     (-1, 2, _S5), (0, -1, 1.0)], np.float32)
+
+
+@numba.njit(cache=True)
+def _chamfer_kernel(mask, cap, out):
+    K, h, w = mask.shape
+    steps = _FORWARD
+    far = np.float32(1e30)
+    d = np.empty((h + 4, w + 4), np.float32)  # 2 pixels of border that no pass lowers
+    for k in range(K):
+        d[:] = far
+        for i in range(h):
+            for j in range(w):
+                if mask[k, i, j]:
+                    d[i + 2, j + 2] = 0.0
+        for i in range(2, h + 2):  # forward: top-left to bottom-right
+            for j in range(2, w + 2):
+                best = d[i, j]
+                for s in range(8):
+                    c = d[i + int(steps[s, 0]), j + int(steps[s, 1])] + steps[s, 2]
+                    best = min(best, c)
+                d[i, j] = best
+        for i in range(h + 1, 1, -1):  # backward: the mirrored neighbours
+            for j in range(w + 1, 1, -1):
+                best = d[i, j]
+                for s in range(8):
+                    c = d[i - int(steps[s, 0]), j - int(steps[s, 1])] + steps[s, 2]
+                    best = min(best, c)
+                d[i, j] = best
+        for i in range(h):
+            for j in range(w):
+                out[k, i, j] = min(d[i + 2, j + 2], cap)
 
 
 def chamfer(edges: np.ndarray, events: np.ndarray, events_distance: np.ndarray, cap: float) -> float:
