@@ -57,7 +57,8 @@ def offsets(rng: np.random.Generator):
     for cm, deg in ((2, 10), (5, 20)):
         for _ in range(12):
             u, w = rng.normal(size=3), rng.normal(size=3)
-            out.append((f"{cm} cm+{deg} deg", cm / 100 * u / np.linalg.norm(u), math.radians(deg) * w / np.linalg.norm(w)))
+            out.append((f"{cm} cm+{deg} deg", cm / 100 * u / np.linalg.norm(u),
+                        math.radians(deg) * w / np.linalg.norm(w)))
     return out
 
 
@@ -84,7 +85,8 @@ def main() -> None:
             ts = TimeSurface(cam.height, cam.width)
             eros(ev.x[a:n], ev.y[a:n])
             ts(ev.x[a:n], ev.y[a:n], ev.t[a:n])
-            truth = seq.gt_poses[int(torch.searchsorted(seq.gt_t_us, torch.tensor(t_now)).clamp(max=len(seq.gt_t_us) - 1))]
+            k = int(torch.searchsorted(seq.gt_t_us, torch.tensor(t_now)).clamp(max=len(seq.gt_t_us) - 1))
+            truth = seq.gt_poses[k]
             events = recent_events(ts.last_us[0], t_now, round(args.window_ms * 1000), min_support=1)
             z = float(truth[2])
             uc, vc = cam.fx * float(truth[0]) / z + cam.cx, cam.fy * float(truth[1]) / z + cam.cy

@@ -3,8 +3,7 @@
 When the tracker has lost the object (the loss detector, :mod:`torchevtrack.loss`), the local template search
 cannot reach it: it moves a few pixels / half degrees per update. :class:`Relocaliser` searches a neighbourhood of
 a pose (the last good one, extrapolated) of about +-10 cm and +-45 deg with the two-sided chamfer cost between the
-recent events and the rendered model's edges (:mod:`torchevtrack.chamfer`), which, unlike the template score, is
-lowest at the truth also for poses several centimetres and tens of degrees off (``tools/chamfer_table.py``).
+recent events and the rendered model's edges (:mod:`torchevtrack.chamfer`).
 
 1. **Observation**, once per call: the pixels of the time surface that fired within a window before ``t_now``
    and have a recent neighbour (:func:`~torchevtrack.chamfer.recent_events`). The window adapts to the motion: the
@@ -16,16 +15,22 @@ lowest at the truth also for poses several centimetres and tens of degrees off (
    one square region that holds every candidate and its image-plane shifts. The image-plane translation is not
    enumerated: the chamfer cost of every shift within the level's radius comes from two FFT correlations (model
    edges with the observation's distance map, the model's distance map with the event image), so a candidate
-   costs one low-resolution render, one distance transform and four small FFTs. The best shift becomes the
-   candidate's ``x, y`` (``dx = shift_px z / fx``). The best candidate is the next level's centre; rotation steps
-   halve from level to level, so the reach is ``30 + 15 + 7.5 + 3.75`` deg per axis and ``8 + 2 + 1 + 0.5`` cm
-   in depth.
-3. **Clear winner.** ``runner_up`` is the cost of the best first-level candidate farther than ``distinct_m`` /
-   ``distinct_deg`` from the result, searched again (its shifts) at the last level's scale; the result is
-   ``clear`` when the runner-up costs at least ``min_margin_px`` (full-resolution pixels) more.
+   costs one low-resolution render, one distance transform and two small FFTs. The best shift becomes the
+   candidate's ``x, y`` (``dx = shift_px z / fx``). The ``beam`` best pairwise-distinct first-level candidates
+   are each refined through the next levels (each level's best is the next one's centre) and polished (3.); while
+   none of them reaches ``max_cost_px``, the next-best distinct candidates are, up to ``max_seeds`` in all.
+3. **Polish** at full resolution: damped Gauss-Newton on the distances of the model's edge pixels to the nearest
+   recent event (their image Jacobian through the interaction matrix, depth from the render), a fresh render per
+   step, a step kept only when the two-sided cost falls (``polish_steps`` steps).
+4. **Clear winner.** The result is the refined seed of lowest full-resolution cost; ``runner_up`` is the lowest
+   cost of the other refined seeds that ended distinct from it (farther than ``distinct_m`` / ``distinct_deg``;
+   ``inf`` if none did). The result is ``clear`` when its cost is at most ``max_cost_px`` and the runner-up costs
+   at least ``min_margin_px`` more. A caller restarts tracking only at a clear result.
 
-Costs are in full-resolution pixels (lower is better). Batch elements are searched one after the other.
-``tools/bench_relocalise.py`` measures success rates and the cost of a call.
+Costs are in full-resolution pixels (lower is better). Batch elements are searched one after the other. The
+renderer may hold a decimated mesh (:func:`~torchevtrack.mesh.load_mesh` ``decimate``): the renders dominate the
+cost. ``tools/bench_relocalise.py`` measures success rates and the cost of a call, ``tools/chamfer_table.py``
+compares the chamfer cost with the template score at fixed offsets from the truth.
 """
 
 from __future__ import annotations
@@ -61,7 +66,6 @@ class Level(NamedTuple):
 LEVELS = (
     Level(30.0, (-0.08, -0.04, 0.0, 0.04, 0.08), 0.10, 0.25),
     Level(15.0, (-0.02, 0.0, 0.02), 0.03, 0.25),
-    Level(7.5, (-0.01, 0.0, 0.01), 0.015, 0.5),
 )
 
 
@@ -114,7 +118,9 @@ class Relocaliser(nn.Module):
         levels: the search levels (default :data:`LEVELS`).
         cap_px: distances are truncated at this many full-resolution pixels.
         min_window_us, max_window_us, events_per_edge: the observation's adaptive recency window.
-        min_margin_px, distinct_m, distinct_deg: the clear-winner rule.
+        beam, max_seeds: first-level candidates refined always / at most.
+        polish_steps: Gauss-Newton steps at full resolution per refined seed.
+        max_cost_px, min_margin_px, distinct_m, distinct_deg: the clear-winner rule (and the seeds' distinctness).
 
     ``forward(pose (B, 7), last_us (B, H, W) or (B, C, H, W) int64, t_now_us (B,) int64) -> Relocalisation``:
     ``last_us`` is a time surface (newest event per pixel and channel, microseconds), ``pose`` the centre of the
@@ -133,8 +139,8 @@ class Relocaliser(nn.Module):
 
     def __init__(self, renderer: RasterRenderer, radius: float, *, levels: tuple[Level, ...] = LEVELS,
                  cap_px: float = 20.0, min_window_us: int = 1000, max_window_us: int = 30000,
-                 events_per_edge: float = 1.0, beam: int = 3, polish_steps: int = 15, max_cost_px: float = 1.5,
-                 min_margin_px: float = 0.5,
+                 events_per_edge: float = 1.0, beam: int = 3, max_seeds: int = 6, polish_steps: int = 15,
+                 max_cost_px: float = 1.5, min_margin_px: float = 0.5,
                  distinct_m: float = 0.02, distinct_deg: float = 15.0):
         super().__init__()
         if not isinstance(renderer, RasterRenderer):
@@ -150,6 +156,7 @@ class Relocaliser(nn.Module):
         self.min_window_us, self.max_window_us = int(min_window_us), int(max_window_us)
         self.events_per_edge = float(events_per_edge)
         self.polish_steps, self.max_cost_px = int(polish_steps), float(max_cost_px)
+        self.max_seeds = max(int(max_seeds), int(beam))
         self.beam, self.min_margin_px, self.distinct_m = int(beam), float(min_margin_px), float(distinct_m)
         self.distinct_rad = math.radians(distinct_deg)
 
@@ -249,7 +256,7 @@ class Relocaliser(nn.Module):
         poses, costs = self._search(self._candidates(centre, first), self._region(centre, first, events), first)
         seeds = []  # the best first-level candidates, pairwise distinct
         for j in costs.argsort().tolist():
-            if len(seeds) == self.beam:
+            if len(seeds) == self.max_seeds:
                 break
             if all(bool(self._distinct(seed, poses[j:j + 1])[0]) for seed in seeds):
                 seeds.append(poses[j:j + 1])
@@ -257,7 +264,9 @@ class Relocaliser(nn.Module):
         frame[events[:, 1], events[:, 0]] = True
         obs = _FullRes(frame, distance_map(frame, self.cap_px), events)
         finals = []
-        for seed in seeds:
+        for seed in seeds:  # the first `beam` seeds, then more while none has reached a low cost
+            if len(finals) >= self.beam and min(c for c, _ in finals) <= self.max_cost_px:
+                break
             for level in self.levels[1:]:
                 p, c = self._search(self._candidates(seed, level), self._region(seed, level, events), level)
                 seed = p[int(c.argmin()):int(c.argmin()) + 1]
