@@ -6,6 +6,7 @@ a random direction and turned by ``--dr-deg`` about a random axis, ``--trials`` 
 error against the truth, its clear flag and the call's time.
 
     python tools/bench_relocalise.py SEQDIR [SEQDIR ...] [--at 0.3 ...] [--dt-cm 5] [--dr-deg 20] [--trials 5]
+        [--decimate FACES]
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import time
 import torch
 
 from torchevtrack.geometry import quat_conj, quat_exp, quat_log, quat_mul
+from torchevtrack.mesh import load_mesh
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.stages.eros import TimeSurface
 from torchevtrack.stages.relocalise import Relocaliser
@@ -41,6 +43,7 @@ def main() -> None:
     ap.add_argument("--dr-deg", type=float, default=20.0)
     ap.add_argument("--trials", type=int, default=5)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--decimate", type=int, help="render a mesh decimated to about this many faces")
     args = ap.parse_args()
     torch.set_num_threads(1)
     rows = []  # (found, clear, ms)
@@ -48,7 +51,8 @@ def main() -> None:
         seq = Sequence.load(seqdir)
         cam, ev = seq.camera, seq.events
         radius = float(torch.as_tensor(seq.mesh.vertices).norm(dim=1).max())
-        reloc = Relocaliser(RasterRenderer(seq.mesh, cam), radius)
+        mesh = seq.mesh if args.decimate is None else load_mesh(seq.mesh, decimate=args.decimate)
+        reloc = Relocaliser(RasterRenderer(mesh, cam), radius)
         gen = torch.Generator().manual_seed(args.seed)
         for at in args.at:
             t_now = int(seq.gt_t_us[0]) + round(at * 1e6)

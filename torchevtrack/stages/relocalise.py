@@ -317,7 +317,8 @@ class Relocaliser(nn.Module):
 
     def _polish(self, pose: torch.Tensor, obs: "_FullRes") -> tuple[float, torch.Tensor]:
         """Damped Gauss-Newton on the model edges' distances to the events (full resolution, a fresh render per
-        step, a step kept only if the two-sided cost falls): ``(cost, pose)``."""
+        step, a step kept only if the two-sided cost falls; at most ``polish_steps``, fewer once converged or after
+        three rejected steps in a row): ``(cost, pose)``."""
         cost = self._cost_full(pose, obs)
         D = obs.distance.astype(np.float64)
         H, W = D.shape
@@ -353,6 +354,10 @@ class Relocaliser(nn.Module):
             c = self._cost_full(trial, obs)
             if c < cost:
                 pose, cost, lam = trial, c, max(lam / 3, 1e-4)
+                if np.abs(step).max() < 1e-4:  # converged: 0.1 mm and 0.006 deg
+                    break
+            elif lam > 1.0:  # three rejected steps in a row
+                break
             else:
                 lam *= 10
         return cost, pose
