@@ -34,7 +34,7 @@ def main() -> None:
         cam, ev = seq.camera, seq.events
         radius = float(torch.as_tensor(seq.mesh.vertices).norm(dim=1).max())
         reloc = Relocaliser(RasterRenderer(seq.mesh, cam), radius, levels=(Level(0.0, (0.0,), 0.003, 1.0),),
-                            beam=1, max_seeds=1, polish_steps=30)
+                            beam=1, max_seeds=1, polish_steps=30, kick_deg=0.0)
         offsets = []
         for at in args.at:
             t_now = int(seq.gt_t_us[0]) + round(at * 1e6)

@@ -21,7 +21,8 @@ recent events and the rendered model's edges (:mod:`torchevtrack.chamfer`).
    none of them reaches ``max_cost_px``, the next-best distinct candidates are, up to ``max_seeds`` in all.
 3. **Polish** at full resolution: damped Gauss-Newton on the distances of the model's edge pixels to the nearest
    recent event (their image Jacobian through the interaction matrix, depth from the render), a fresh render per
-   step, a step kept only when the two-sided cost falls (``polish_steps`` steps).
+   step, a step kept only when the two-sided cost falls (``polish_steps`` steps). The best polished seed is
+   polished again from six starts turned by +-``kick_deg`` about each axis (out of a nearby local minimum).
 4. **Clear winner.** The result is the refined seed of lowest full-resolution cost; ``runner_up`` is the lowest
    cost of the other refined seeds that ended distinct from it (farther than ``distinct_m`` / ``distinct_deg``;
    ``inf`` if none did). The result is ``clear`` when its cost is at most ``max_cost_px`` and the runner-up costs
@@ -126,6 +127,8 @@ class Relocaliser(nn.Module):
         min_window_us, max_window_us, events_per_edge: the observation's adaptive recency window.
         beam, max_seeds: first-level candidates refined always / at most.
         polish_steps: Gauss-Newton steps at full resolution per refined seed.
+        kick_deg: the best result is polished again from six starts turned by +-``kick_deg`` about each camera
+            axis, and replaced by a lower-cost one (0: no restarts).
         max_cost_px, min_margin_px, distinct_m, distinct_deg: the clear-winner rule (and the seeds' distinctness).
 
     ``forward(pose (B, 7), last_us (B, H, W) or (B, C, H, W) int64, t_now_us (B,) int64) -> Relocalisation``:
@@ -146,6 +149,7 @@ class Relocaliser(nn.Module):
     def __init__(self, renderer: RasterRenderer, radius: float, *, levels: tuple[Level, ...] = LEVELS,
                  cap_px: float = 20.0, min_window_us: int = 1000, max_window_us: int = 30000,
                  events_per_edge: float = 1.0, beam: int = 3, max_seeds: int = 6, polish_steps: int = 15,
+                 kick_deg: float = 7.5,
                  max_cost_px: float = 1.5, min_margin_px: float = 0.5,
                  distinct_m: float = 0.02, distinct_deg: float = 15.0):
         super().__init__()
@@ -162,6 +166,7 @@ class Relocaliser(nn.Module):
         self.min_window_us, self.max_window_us = int(min_window_us), int(max_window_us)
         self.events_per_edge = float(events_per_edge)
         self.polish_steps, self.max_cost_px = int(polish_steps), float(max_cost_px)
+        self.kick_deg = float(kick_deg)
         self.max_seeds = max(int(max_seeds), int(beam))
         self.beam, self.min_margin_px, self.distinct_m = int(beam), float(min_margin_px), float(distinct_m)
         self.distinct_rad = math.radians(distinct_deg)
@@ -279,6 +284,14 @@ class Relocaliser(nn.Module):
             finals.append(self._polish(seed, obs))
         finals.sort(key=lambda cp: cp[0])
         cost, best = finals[0]
+        if self.kick_deg > 0:  # restarts turned by +-kick about each axis: out of a nearby local minimum
+            k = math.radians(self.kick_deg)
+            kicks = torch.tensor([[0, 0, 0] + [sg * k if i == ax else 0.0 for i in range(3)]
+                                  for ax in range(3) for sg in (-1, 1)], dtype=torch.float64)
+            for start in apply_steps(best, kicks[None])[0]:
+                c, p = self._polish(start[None], obs)
+                if c < cost:
+                    cost, best = c, p
         others = [c for c, p in finals[1:] if bool(self._distinct(best, p)[0])]
         return best[0], cost, min(others, default=math.inf)
 
