@@ -79,7 +79,7 @@ def model_edges(depth: np.ndarray, gray: np.ndarray | None = None, gray_step: fl
     return out.reshape(d.shape)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _edges_kernel(depth, gray, shaded, gray_step, depth_step, out):
     K, h, w = depth.shape
     for k in range(K):
@@ -122,7 +122,7 @@ _FORWARD = np.array([(-2, -1, _S5), (-2, 1, _S5), (-1, -2, _S5), (-1, -1, _S2), 
                      (-1, 2, _S5), (0, -1, 1.0)], np.float32)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _chamfer_kernel(mask, cap, out):
     K, h, w = mask.shape
     steps = _FORWARD

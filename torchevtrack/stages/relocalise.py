@@ -117,7 +117,9 @@ class _FullRes(NamedTuple):
 
 
 class Relocaliser(nn.Module):
-    """Wide coarse-to-fine pose search with the chamfer cost (module docstring). Stateless (no buffers).
+    """Wide coarse-to-fine pose search with the chamfer cost (module docstring). Stateless (no buffers), so one
+    instance may run in a worker thread (its compiled kernels release the GIL) on a snapshot of the time surface
+    (``last_us.clone()``: the search reads it throughout).
 
     Args:
         renderer: the object's :class:`~torchevtrack.raster.RasterRenderer` (its camera is the frame's).
