@@ -17,8 +17,8 @@ starting at its own first ground-truth pose and time). It writes into ``out_dir`
     overlays/<seq>.gif        the same over the first second, 50 ms steps
 
 Metrics are those of :func:`torchevtrack.metrics.evaluate`: RMSE and population sigma of the
-translation (cm) and rotation (deg) errors, ADD and ADD-S AUC on 0..10 cm (model points: at most 1000
-mesh vertices, an evenly spaced subsample), and the EDOPT failure rule.
+translation (cm) and rotation (deg) errors, ADD and ADD-S AUC on 0..10 cm (model points:
+:func:`torchevtrack.metrics.mesh_points`, the same as ``torchevtrack eval``), and the EDOPT failure rule.
 
 Start-pose robustness: with ``init_noise=(mm, deg)`` every sequence starts from its first ground-truth pose
 moved by exactly ``mm`` millimetres along a random direction and turned by exactly ``deg`` degrees about a random
@@ -60,10 +60,10 @@ import torchevtrack
 from torchevtrack.camera import Camera
 from torchevtrack.config import ABLATIONS, TrackerConfig
 from torchevtrack.geometry import perturb_pose
-from torchevtrack.io.poses import read_tum, write_tum
+from torchevtrack.io.poses import read_poses, read_tum, write_tum
 from torchevtrack.loss import compare_with_ground_truth
 from torchevtrack.mesh import hidden_symmetry_axis
-from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, evaluate, per_pose_errors
+from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, evaluate, mesh_points, per_pose_errors
 from torchevtrack.synth.sequence import SEQUENCE_FILES, Sequence
 from torchevtrack.tracker import EventPoseTracker
 
@@ -71,7 +71,6 @@ __all__ = [
     "METHODS",
     "METHOD_NAMES",
     "find_sequences",
-    "mesh_points",
     "run_benchmark",
     "table_markdown",
 ]
@@ -90,7 +89,6 @@ METHOD_NAMES = {
 
 _OBJECT_ORDER = ("mustard", "potted", "cracker", "tomato")  # the paper's column order within a group
 _GROUP_ORDER = ("regular", "fast")
-_MAX_MESH_POINTS = 1000
 _GIF_SPAN_US = 1_000_000
 _GIF_STEP_US = 50_000
 _GIF_FPS = 10.0  # 50 ms steps shown at half speed
@@ -117,21 +115,6 @@ def find_sequences(bench_dir: str | Path, only: Iterable[str] | None = None) -> 
     if not found:
         raise ValueError(f"{root} holds no sequence directory (each needs {', '.join(SEQUENCE_FILES)})")
     return list(found.values())
-
-
-def mesh_points(vertices, max_points: int = _MAX_MESH_POINTS) -> torch.Tensor:
-    """Model points for ADD / ADD-S: the vertices, or ``max_points`` of them at evenly spaced indices.
-
-    Shape: ``(V, 3) -> (min(V, max_points), 3)`` float64, metres. Deterministic.
-    """
-    v = torch.as_tensor(np.asarray(vertices), dtype=torch.float64)
-    if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] == 0:
-        raise ValueError(f"vertices must have shape (V, 3) with V >= 1, got {tuple(v.shape)}")
-    if max_points < 1:
-        raise ValueError(f"max_points must be >= 1, got {max_points}")
-    if v.shape[0] <= max_points:
-        return v
-    return v[torch.linspace(0, v.shape[0] - 1, max_points, dtype=torch.float64).round().long()]
 
 
 @dataclass
@@ -249,6 +232,45 @@ def _track(items: list[_Item], camera: Camera, cfg: TrackerConfig, progress: boo
     return out, run
 
 
+def _check_predictions(predictions, methods: list[str]) -> dict[str, Path]:
+    if predictions is None:
+        return {}
+    out = {}
+    for name, directory in dict(predictions).items():
+        if not isinstance(name, str) or not name or name in methods or name in ABLATIONS:
+            raise ValueError(f"prediction name {name!r} must be a non-empty name other than the package's methods "
+                             f"{sorted(ABLATIONS)}")
+        if not Path(directory).is_dir():
+            raise FileNotFoundError(f"predictions of {name!r}: directory not found: {directory}")
+        out[name] = Path(directory)
+    return out
+
+
+def _pose_file(directory: Path, name: str) -> Path:
+    """The one pose file of sequence ``name`` in ``directory``: ``name.txt``, ``name.csv`` or ``name.json``."""
+    found = [directory / f"{name}{ext}" for ext in (".txt", ".csv", ".json") if (directory / f"{name}{ext}").is_file()]
+    if len(found) != 1:
+        raise FileNotFoundError(f"{directory}: expected one pose file {name}.txt (or .csv, .json) for sequence "
+                                f"{name}, found {[p.name for p in found] or 'none'}")
+    return found[0]
+
+
+def _score_foreign(it: _Item, path: Path, crop: bool) -> tuple[dict, dict]:
+    """Score another tracker's poses of ``it`` in ``path`` as ``torchevtrack eval`` does (``crop``: without the
+    poses after ``it.t_end_us``); returns the :func:`evaluate` dict and the :func:`per_pose_errors` for the
+    plots."""
+    t_us, poses = read_poses(path)
+    if crop and t_us.numel() and int(t_us[-1]) > it.t_end_us:
+        keep = t_us <= it.t_end_us
+        t_us, poses = t_us[keep], poses[keep]
+    gt_t, gt = it.seq.gt_t_us, it.seq.gt_poses
+    try:
+        metrics = evaluate(t_us, poses, gt_t, gt, mesh_points=it.points, symmetry_axis=it.symmetry_axis)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
+    return metrics, per_pose_errors(t_us, poses, gt_t, gt)
+
+
 def _machine() -> dict:
     return {
         "cpu_count": os.cpu_count(),
@@ -274,6 +296,7 @@ def run_benchmark(
     init_noise: tuple[float, float] | None = None,
     trials: int = 1,
     seed: int = 0,
+    predictions: dict[str, str | Path] | None = None,
 ) -> dict:
     """Run the ablation benchmark and write its report (see the module docstring for the files).
 
@@ -292,6 +315,10 @@ def run_benchmark(
             exactly this much in random directions (module docstring); ``None``: from that pose.
         trials: draws of the start poses per method (``> 1`` needs ``init_noise``); seed: the first draw's
             generator seed (trial ``k`` uses ``seed + k``).
+        predictions: other trackers' poses, ``{name: directory}``: method ``name`` reads sequence ``S`` from
+            ``directory/S.txt`` (or ``S.csv``, ``S.json``: any format of :func:`torchevtrack.io.poses.read_poses`)
+            and is scored as ``torchevtrack eval`` scores that file (with ``duration_s``, its poses after the
+            tracked span are left out), in every table and plot.
 
     Returns:
         The dict written to ``results.json``: ``results[method][sequence]`` holds ``metrics`` (the
@@ -302,6 +329,7 @@ def run_benchmark(
         ADD-S AUC and failure flags.
     """
     methods = _check_methods(methods)
+    predictions = _check_predictions(predictions, methods)
     init_noise = _check_trials(init_noise, trials, seed)
     if duration_s is not None and not duration_s > 0:
         raise ValueError(f"duration_s must be positive seconds or None, got {duration_s!r}")
@@ -314,6 +342,7 @@ def run_benchmark(
     out.mkdir(parents=True, exist_ok=True)
 
     items = [_prepare(p, duration_s, base.period_us) for p in find_sequences(bench_dir, only)]
+    foreign = {name: {it.name: _pose_file(d, it.name) for it in items} for name, d in predictions.items()}
     by_camera: dict[Camera, list[_Item]] = {}
     for it in items:
         by_camera.setdefault(it.seq.camera, []).append(it)
@@ -381,6 +410,17 @@ def run_benchmark(
                 )
                 if method == overlay_method:
                     tracked[it.name] = (t_us, poses)
+
+    for name, files in foreign.items():
+        res["results"][name] = {}
+        for it in items:
+            path = files[it.name]
+            metrics, e = _score_foreign(it, path, crop=duration_s is not None)
+            res["results"][name][it.name] = {"metrics": metrics, "pose_file": str(path)}
+            curves[it.name][name] = (((e["t_us"] - it.t_start_us).double() / 1e6).numpy(), (e["te"] * 100.0).numpy(),
+                                     torch.rad2deg(e["re"]).numpy())
+    if predictions:
+        res["predictions"] = {name: str(Path(d).resolve()) for name, d in predictions.items()}
 
     from torchevtrack import viz
 
@@ -525,11 +565,12 @@ def table_markdown(results: dict) -> str:
     if results.get("trials"):
         lines += _trials_table(results, cols)
 
-    if all("loss" in r for m in rows for r in per_method[m].values()):
+    loss_rows = [m for m in rows if all("loss" in r for r in per_method[m].values())]  # other trackers: none
+    if loss_rows:
         lines += ["", "## Tracking loss: declared / failed (s)", ""]
         lines.append(_row(["Method"] + cols + ["detected", "missed", "false alarms"]))
         lines.append(_row(["---"] * (len(cols) + 4)))
-        for m in rows:
+        for m in loss_rows:
             cells = [METHOD_NAMES.get(m, m)]
             for c in cols:
                 r = per_method[m].get(c)

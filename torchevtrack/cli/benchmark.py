@@ -25,6 +25,13 @@ def _noise(text: str) -> tuple[float, float]:
     return mm, deg
 
 
+def _prediction(text: str) -> tuple[str, Path]:
+    name, sep, directory = text.partition("=")
+    if not sep or not name.strip() or not directory.strip():
+        raise argparse.ArgumentTypeError(f"expected NAME=DIR, got {text!r}")
+    return name.strip(), Path(directory.strip())
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "benchmark",
@@ -49,8 +56,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--trials", type=int, default=1,
                    help="draws of the perturbed start poses per method (default 1; > 1 needs --init-noise)")
     p.add_argument("--seed", type=int, default=0, help="seed of the first draw (trial k: SEED + k; default 0)")
+    p.add_argument("--pred", type=_prediction, action="append", default=[], metavar="NAME=DIR",
+                   help="add another tracker as method NAME: its poses of sequence S in DIR/S.txt (or .csv, .json; "
+                   "any format eval reads), scored as eval scores them (repeatable)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
+
+
+def _predictions(pairs: list[tuple[str, Path]]) -> dict[str, Path]:
+    names = [n for n, _ in pairs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValueError(f"--pred: method name(s) {dup} given more than once")
+    return dict(pairs)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -60,7 +78,8 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     res = run_benchmark(args.benchdir, args.out, methods=args.methods, only=args.only, duration_s=args.duration,
                         config=args.config, batch=not args.no_batch, overlays=not args.no_overlays,
-                        progress=not args.quiet, init_noise=args.init_noise, trials=args.trials, seed=args.seed)
+                        progress=not args.quiet, init_noise=args.init_noise, trials=args.trials, seed=args.seed,
+                        predictions=_predictions(args.pred))
     print(table_markdown(res), end="")
     print(f"\nwritten: {args.out / 'results.json'}, {args.out / 'table.md'}")
     return 0
