@@ -8,6 +8,7 @@ from pathlib import Path
 import torch
 
 from torchevtrack.benchmark import METHODS, run_benchmark, table_markdown
+from torchevtrack.cli.options import add_config_options, config_from_args
 
 
 def _names(text: str) -> list[str]:
@@ -46,7 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"comma-separated methods (default: {','.join(METHODS)})")
     p.add_argument("--only", type=_names, help="comma-separated sequence names (default: all)")
     p.add_argument("--duration", type=float, help="track only the first SECONDS of each sequence")
-    p.add_argument("--config", type=Path, help="tracker config YAML (default: the built-in defaults)")
+    add_config_options(p)
     p.add_argument("--no-overlays", action="store_true", help="skip the overlay PNGs and GIFs")
     p.add_argument("--no-batch", action="store_true", help="one run per sequence instead of one batch")
     p.add_argument("--threads", type=int, help="torch threads (default: torch's choice)")
@@ -77,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
     res = run_benchmark(args.benchdir, args.out, methods=args.methods, only=args.only, duration_s=args.duration,
-                        config=args.config, batch=not args.no_batch, overlays=not args.no_overlays,
+                        config=config_from_args(args), batch=not args.no_batch, overlays=not args.no_overlays,
                         progress=not args.quiet, init_noise=args.init_noise, trials=args.trials, seed=args.seed,
                         predictions=_predictions(args.pred))
     print(table_markdown(res), end="")

@@ -16,12 +16,13 @@ from pathlib import Path
 import torch
 
 from torchevtrack.camera import Camera
-from torchevtrack.config import ABLATIONS, TrackerConfig
+from torchevtrack.config import ABLATIONS
 from torchevtrack.distortion import Undistorter
 from torchevtrack.events import EventStream
 from torchevtrack.io.events_h5 import iter_events_h5, read_events_h5
 from torchevtrack.io.poses import read_tum, write_tum
 from torchevtrack.tracker import EventPoseTracker
+from torchevtrack.cli.options import add_config_options, config_from_args
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -33,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("seqdir", type=Path)
     p.add_argument("--out", type=Path, required=True, help="output TUM pose file")
-    p.add_argument("--config", type=Path, help="tracker config YAML (default: configs/default.yaml values)")
+    add_config_options(p, "configs/default.yaml values")
     p.add_argument("--ablation", choices=sorted(ABLATIONS), default="full", help="the paper's ablations")
     p.add_argument("--init", help='initial pose "tx ty tz qx qy qz qw" (default: first pose of gt_poses.txt)')
     p.add_argument("--mesh", help="mesh file or object name (default: SEQDIR/mesh.ply)")
@@ -89,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
         pose0, t0 = gt[0], int(gt_t[0])
     else:
         raise ValueError(f"{d} has no gt_poses.txt: give the initial pose with --init")
-    cfg = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
+    cfg = config_from_args(args)
     cfg = cfg.replace(**ABLATIONS[args.ablation])
     tracker = EventPoseTracker(camera, mesh, cfg)
     t_end = t0 + round(args.duration * 1e6) if args.duration else None
