@@ -59,6 +59,7 @@ from tqdm.auto import tqdm
 import torchevtrack
 from torchevtrack.camera import Camera
 from torchevtrack.config import ABLATIONS, TrackerConfig
+from torchevtrack.executor import Executor, SerialExecutor
 from torchevtrack.geometry import perturb_pose
 from torchevtrack.io.poses import read_poses, read_tum, write_tum
 from torchevtrack.loss import compare_with_ground_truth
@@ -271,6 +272,30 @@ def _score_foreign(it: _Item, path: Path, crop: bool) -> tuple[dict, dict]:
     return metrics, per_pose_errors(t_us, poses, gt_t, gt)
 
 
+@dataclass
+class _TrackTask:
+    """One tracking run of the benchmark: ``method``'s config on a batch of sequences, from the start poses of
+    draw ``trial``. Sent to an executor's workers without ``items``: they load the sequences from ``paths``."""
+
+    method: str
+    trial: int
+    paths: list[Path]
+    duration_s: float | None
+    config: TrackerConfig
+    starts: dict[str, torch.Tensor]
+    progress: bool
+    items: list[_Item] | None = None
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "items": None}
+
+
+def _run_task(task: _TrackTask):
+    """:func:`_track` of a task (in any process): per sequence ``(t_us, poses, lost)`` and the run's timing."""
+    items = task.items or [_prepare(p, task.duration_s, task.config.period_us) for p in task.paths]
+    return _track(items, items[0].seq.camera, task.config, task.progress, task.starts)
+
+
 def _machine() -> dict:
     return {
         "cpu_count": os.cpu_count(),
@@ -297,6 +322,7 @@ def run_benchmark(
     trials: int = 1,
     seed: int = 0,
     predictions: dict[str, str | Path] | None = None,
+    executor: Executor | None = None,
 ) -> dict:
     """Run the ablation benchmark and write its report (see the module docstring for the files).
 
@@ -319,6 +345,9 @@ def run_benchmark(
             ``directory/S.txt`` (or ``S.csv``, ``S.json``: any format of :func:`torchevtrack.io.poses.read_poses`)
             and is scored as ``torchevtrack eval`` scores that file (with ``duration_s``, its poses after the
             tracked span are left out), in every table and plot.
+        executor: where the tracking runs go (:mod:`torchevtrack.executor`; default serial in this process):
+            each (batch of sequences, method, draw) is one task, read from disk by the worker (on a cluster the
+            benchmark directory must be at the same path on every node). The results do not depend on it.
 
     Returns:
         The dict written to ``results.json``: ``results[method][sequence]`` holds ``metrics`` (the
@@ -330,6 +359,8 @@ def run_benchmark(
     """
     methods = _check_methods(methods)
     predictions = _check_predictions(predictions, methods)
+    if executor is not None and not isinstance(executor, Executor):
+        raise TypeError(f"executor must be a torchevtrack.executor.Executor or None, got {type(executor).__name__}")
     init_noise = _check_trials(init_noise, trials, seed)
     if duration_s is not None and not duration_s > 0:
         raise ValueError(f"duration_s must be positive seconds or None, got {duration_s!r}")
@@ -377,39 +408,42 @@ def run_benchmark(
     tracked: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
     overlay_method = "full" if "full" in methods else methods[0]
 
-    for method in tqdm(methods, desc="methods", unit="method", disable=not progress):
-        cfg = base.replace(**ABLATIONS[method])
-        res["runs"][method] = []
-        res["results"][method] = {}
-        for k, group in [(k, g) for k in range(trials) for g in batches]:
-            trajs, run = _track(group, group[0].seq.camera, cfg, progress, starts[k])
-            res["runs"][method].append(run)
-            for it, (t_us, poses, lost) in zip(group, trajs):
-                rel = Path("poses") / method / ("" if k == 0 else f"trial{k}") / f"{it.name}.txt"
-                (out / rel).parent.mkdir(parents=True, exist_ok=True)
-                write_tum(out / rel, t_us, poses)
-                t_us, poses = read_tum(out / rel)  # score exactly what was written
-                gt_t, gt = it.seq.gt_t_us, it.seq.gt_poses
-                metrics = evaluate(t_us, poses, gt_t, gt, mesh_points=it.points, symmetry_axis=it.symmetry_axis)
-                if init_noise is not None:
-                    res["trials"].setdefault(method, {}).setdefault(it.name, [None] * trials)[k] = \
-                        _trial_metrics(metrics)
-                if k > 0:  # the first trial gives the tables, plots and overlays
-                    continue
-                loss = compare_with_ground_truth(t_us, lost, poses, gt_t, gt)
-                timing = {key: run[key] for key in ("batch_size", "wall_s", "updates_per_s")}
-                timing["updates"] = int(t_us.numel())
-                timing["realtime_factor"] = timing["updates"] * cfg.period_us / 1e6 / run["wall_s"]
-                res["results"][method][it.name] = {"metrics": metrics, "loss": loss, "timing": timing,
-                                                   "pose_file": str(rel)}
-                e = per_pose_errors(t_us, poses, gt_t, gt)
-                curves[it.name][METHOD_NAMES[method]] = (
-                    ((e["t_us"] - it.t_start_us).double() / 1e6).numpy(),
-                    (e["te"] * 100.0).numpy(),
-                    torch.rad2deg(e["re"]).numpy(),
-                )
-                if method == overlay_method:
-                    tracked[it.name] = (t_us, poses)
+    ex = executor or SerialExecutor()
+    tasks = [_TrackTask(method, k, [it.path for it in group], duration_s, base.replace(**ABLATIONS[method]),
+                        {it.name: starts[k][it.name] for it in group}, progress and not ex.parallel, group)
+             for method in methods for k in range(trials) for group in batches]
+    outputs = ex.map(_run_task, tasks, desc="tracking runs", progress=progress)
+    for method in methods:
+        res["runs"][method], res["results"][method] = [], {}
+    for task, (trajs, run) in zip(tasks, outputs):
+        method, k, group, cfg = task.method, task.trial, task.items, task.config
+        res["runs"][method].append(run)
+        for it, (t_us, poses, lost) in zip(group, trajs):
+            rel = Path("poses") / method / ("" if k == 0 else f"trial{k}") / f"{it.name}.txt"
+            (out / rel).parent.mkdir(parents=True, exist_ok=True)
+            write_tum(out / rel, t_us, poses)
+            t_us, poses = read_tum(out / rel)  # score exactly what was written
+            gt_t, gt = it.seq.gt_t_us, it.seq.gt_poses
+            metrics = evaluate(t_us, poses, gt_t, gt, mesh_points=it.points, symmetry_axis=it.symmetry_axis)
+            if init_noise is not None:
+                res["trials"].setdefault(method, {}).setdefault(it.name, [None] * trials)[k] = \
+                    _trial_metrics(metrics)
+            if k > 0:  # the first trial gives the tables, plots and overlays
+                continue
+            loss = compare_with_ground_truth(t_us, lost, poses, gt_t, gt)
+            timing = {key: run[key] for key in ("batch_size", "wall_s", "updates_per_s")}
+            timing["updates"] = int(t_us.numel())
+            timing["realtime_factor"] = timing["updates"] * cfg.period_us / 1e6 / run["wall_s"]
+            res["results"][method][it.name] = {"metrics": metrics, "loss": loss, "timing": timing,
+                                               "pose_file": str(rel)}
+            e = per_pose_errors(t_us, poses, gt_t, gt)
+            curves[it.name][METHOD_NAMES[method]] = (
+                ((e["t_us"] - it.t_start_us).double() / 1e6).numpy(),
+                (e["te"] * 100.0).numpy(),
+                torch.rad2deg(e["re"]).numpy(),
+            )
+            if method == overlay_method:
+                tracked[it.name] = (t_us, poses)
 
     for name, files in foreign.items():
         res["results"][name] = {}

@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 
 from torchevtrack.benchmark import METHODS, run_benchmark, table_markdown
-from torchevtrack.cli.options import add_config_options, config_from_args
+from torchevtrack.cli.options import add_config_options, add_executor_options, config_from_args, executor_from_args
 
 
 def _names(text: str) -> list[str]:
@@ -60,6 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--pred", type=_prediction, action="append", default=[], metavar="NAME=DIR",
                    help="add another tracker as method NAME: its poses of sequence S in DIR/S.txt (or .csv, .json; "
                    "any format eval reads), scored as eval scores them (repeatable)")
+    add_executor_options(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
@@ -77,10 +78,12 @@ def run(args: argparse.Namespace) -> int:
         if args.threads < 1:
             raise ValueError(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
-    res = run_benchmark(args.benchdir, args.out, methods=args.methods, only=args.only, duration_s=args.duration,
-                        config=config_from_args(args), batch=not args.no_batch, overlays=not args.no_overlays,
-                        progress=not args.quiet, init_noise=args.init_noise, trials=args.trials, seed=args.seed,
-                        predictions=_predictions(args.pred))
+    cfg, predictions = config_from_args(args), _predictions(args.pred)
+    with executor_from_args(args) as executor:
+        res = run_benchmark(args.benchdir, args.out, methods=args.methods, only=args.only, duration_s=args.duration,
+                            config=cfg, batch=not args.no_batch, overlays=not args.no_overlays,
+                            progress=not args.quiet, init_noise=args.init_noise, trials=args.trials, seed=args.seed,
+                            predictions=predictions, executor=executor)
     print(table_markdown(res), end="")
     print(f"\nwritten: {args.out / 'results.json'}, {args.out / 'table.md'}")
     return 0
