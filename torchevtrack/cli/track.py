@@ -42,6 +42,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-undistort", action="store_true",
                    help="do not undistort the events of a camera with distortion coefficients")
     p.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest for one sequence)")
+    p.add_argument("--rerun", type=Path, metavar="FILE.rrd",
+                   help="log every update to this rerun recording (EROS, contours, mesh, trajectory, errors, timings; "
+                   "needs the rerun extra)")
+    p.add_argument("--rerun-spawn", action="store_true", help="stream the same to a rerun viewer started now")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -69,6 +73,16 @@ def undistorted_events(path: Path, camera: Camera, chunk: int = 1_000_000) -> Ev
     return events
 
 
+def rerun_logger(args: argparse.Namespace, camera: Camera, mesh, truth, tracker: EventPoseTracker):
+    """The :class:`~torchevtrack.watch.RerunLogger` of ``--rerun`` / ``--rerun-spawn`` attached to ``tracker``,
+    or None."""
+    if args.rerun is None and not args.rerun_spawn:
+        return None
+    from torchevtrack.watch import RerunLogger
+
+    return RerunLogger(camera, mesh, path=args.rerun, spawn=args.rerun_spawn, gt=truth).attach(tracker)
+
+
 def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     d = args.seqdir
@@ -83,21 +97,28 @@ def run(args: argparse.Namespace) -> int:
     mesh = args.mesh if args.mesh is not None else d / "mesh.ply"
     if args.mesh is None and not mesh.is_file():
         raise FileNotFoundError(f"{d} has no mesh.ply: give the object with --mesh")
+    truth = read_tum(d / "gt_poses.txt") if (d / "gt_poses.txt").is_file() else None
     if args.init is not None:
         pose0, t0 = parse_init(args.init), events.t_start
-    elif (d / "gt_poses.txt").is_file():
-        gt_t, gt = read_tum(d / "gt_poses.txt")
-        pose0, t0 = gt[0], int(gt_t[0])
+    elif truth is not None:
+        pose0, t0 = truth[1][0], int(truth[0][0])
     else:
         raise ValueError(f"{d} has no gt_poses.txt: give the initial pose with --init")
     cfg = config_from_args(args)
     cfg = cfg.replace(**ABLATIONS[args.ablation])
     tracker = EventPoseTracker(camera, mesh, cfg)
+    logger = rerun_logger(args, camera, mesh, truth, tracker)
     t_end = t0 + round(args.duration * 1e6) if args.duration else None
     start = time.perf_counter()
-    times, poses = tracker.track(events, pose0, t_start_us=t0, t_end_us=t_end, progress=not args.quiet)
+    try:
+        times, poses = tracker.track(events, pose0, t_start_us=t0, t_end_us=t_end, progress=not args.quiet)
+    finally:
+        if logger is not None:
+            logger.close()
     wall = time.perf_counter() - start
     tracker.close()
+    if args.rerun is not None:
+        print(f"rerun recording: {args.rerun} (open with: rerun {args.rerun})")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_tum(args.out, times[0], poses[0])
     n = times.shape[1]
