@@ -9,7 +9,7 @@ import os
 import sys
 
 # Subcommand modules, in the order shown by --help. A module missing here is not a command.
-COMMANDS = ("synth", "info", "track", "eval", "benchmark", "bench", "viz", "convert", "demo")
+COMMANDS = ("synth", "info", "track", "live", "eval", "benchmark", "bench", "viz", "convert", "demo")
 
 
 def build_parser() -> argparse.ArgumentParser:
