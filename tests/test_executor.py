@@ -66,13 +66,13 @@ def _strip(res: dict) -> dict:
 
 
 def test_ray_and_process_pool_results_equal_the_serial_ones(bench, tmp_path, capsys):
+    pytest.importorskip("ray", reason="the ray extra is not installed")
     from torchevtrack.cli import main
 
     kw = dict(methods=("full", "velocity_only"), batch=False, overlays=False, progress=False)
     start = time.perf_counter()
     serial = run_benchmark(bench, tmp_path / "serial", **kw)
     wall = {"serial": time.perf_counter() - start}
-    pytest.importorskip("ray", reason="the ray extra is not installed")
     for kind in ("process", "ray"):
         start = time.perf_counter()
         assert main(["benchmark", str(bench), "--out", str(tmp_path / kind), "--methods", "full,velocity_only",

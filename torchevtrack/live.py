@@ -17,12 +17,13 @@ time, i.e. the wall-clock time since the first event minus the stream time the p
 sources that deliver in real time: network, camera, ``realtime`` playback). dv-processing is needed for network
 streams and cameras (``pip install 'torchevtrack[live]'``).
 
-Example:
-    >>> from torchevtrack.live import LiveRunner, open_source           # doctest: +SKIP
-    >>> runner = LiveRunner(OnlineTracker(tracker), pose0)
-    >>> for chunk in open_source("tcp://127.0.0.1:7777"):
-    ...     runner.feed(chunk)
-    >>> t_us, poses = runner.trajectory()
+Example (with a server at that address)::
+
+    from torchevtrack.live import LiveRunner, open_source
+    runner = LiveRunner(OnlineTracker(tracker), pose0)
+    for chunk in open_source("tcp://127.0.0.1:7777"):
+        runner.feed(chunk)
+    t_us, poses = runner.trajectory()
 """
 
 from __future__ import annotations

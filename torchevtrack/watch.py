@@ -28,11 +28,12 @@ its events.
 
 rerun is an optional dependency: ``pip install 'torchevtrack[rerun]'``.
 
-Example:
-    >>> from torchevtrack.watch import RerunLogger                     # doctest: +SKIP
-    >>> logger = RerunLogger(camera, "can", path="run.rrd", gt=(gt_t_us, gt_poses)).attach(tracker)
-    >>> tracker.track(events, pose0)                                   # doctest: +SKIP
-    >>> logger.close()                                                 # doctest: +SKIP
+Example (``tracker`` an :class:`~torchevtrack.tracker.EventPoseTracker` of that camera and mesh)::
+
+    from torchevtrack.watch import RerunLogger
+    logger = RerunLogger(camera, "can", path="run.rrd", gt=(gt_t_us, gt_poses)).attach(tracker)
+    tracker.track(events, pose0)
+    logger.close()          # the recording is complete: rerun run.rrd
 """
 
 from __future__ import annotations
