@@ -38,7 +38,7 @@ def test_map_keeps_the_task_order_and_raises_the_first_failure():
 @pytest.mark.parametrize("kind, kw, message", [
     ("dask", {}, "executor must be one of serial, process, ray"),
     ("process", {"address": "auto"}, "--address is for --executor ray"),
-    ("serial", {"workers": 2}, "--workers is for"),
+    ("serial", {"workers": 2}, "--jobs is for"),
     ("process", {"workers": 0}, "workers must be a positive integer"),
 ])
 def test_bad_executor_arguments(kind, kw, message):
@@ -76,7 +76,7 @@ def test_ray_and_process_pool_results_equal_the_serial_ones(bench, tmp_path, cap
     for kind in ("process", "ray"):
         start = time.perf_counter()
         assert main(["benchmark", str(bench), "--out", str(tmp_path / kind), "--methods", "full,velocity_only",
-                     "--no-batch", "--no-overlays", "--quiet", "--executor", kind, "--workers", "2"]) == 0
+                     "--no-batch", "--no-overlays", "--quiet", "--executor", kind, "--jobs", "2"]) == 0
         wall[kind] = time.perf_counter() - start
         other = json.loads((tmp_path / kind / "results.json").read_text())
         assert len(other["runs"]["full"]) == 2  # one task per (sequence, method)

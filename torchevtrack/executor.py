@@ -135,8 +135,9 @@ class RayExecutor(Executor):
 
     def map(self, fn, tasks, *, desc="tasks", progress=True):
         ray = self._ray
-        remote = ray.remote(num_cpus=1, max_retries=0)(fn)
-        refs = [remote.remote(t) for t in tasks]
+        remote = ray.remote(num_cpus=1, max_retries=0)(_apply)
+        fn_ref = ray.put(fn)
+        refs = [remote.remote(fn_ref, t) for t in tasks]
         pending = list(refs)
         try:
             with tqdm(total=len(refs), desc=desc, unit="task", disable=not progress) as bar:
@@ -154,6 +155,11 @@ class RayExecutor(Executor):
         if self._started:
             self._ray.shutdown()
             self._started = False
+
+
+def _apply(fn: Callable[[Any], Any], task: Any) -> Any:
+    """``fn(task)``: the Ray task (any picklable callable, e.g. a ``functools.partial``)."""
+    return fn(task)
 
 
 def _python_path() -> dict[str, str]:
@@ -178,7 +184,7 @@ def make_executor(kind: str = "serial", *, workers: int | None = None, address: 
     if address is not None and kind != "ray":
         raise ValueError(f"--address is for --executor ray, not {kind}")
     if workers is not None and (kind == "serial" or address is not None):
-        raise ValueError("--workers is for --executor process or a local Ray (no --address)")
+        raise ValueError("--jobs is for --executor process or a local Ray (no --address)")
     if kind == "serial":
         return SerialExecutor()
     if kind == "process":

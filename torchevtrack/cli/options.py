@@ -24,20 +24,20 @@ def config_from_args(args: argparse.Namespace) -> TrackerConfig:
 
 
 def add_executor_options(p: argparse.ArgumentParser) -> None:
-    """Add ``--executor serial|process|ray``, ``--workers N`` and ``--address ADDR`` to parser ``p``."""
+    """Add ``--executor serial|process|ray``, ``--jobs N`` and ``--address ADDR`` to parser ``p``."""
     from torchevtrack.executor import EXECUTORS
 
     p.add_argument("--executor", choices=EXECUTORS, default="serial",
                    help="where the independent tasks run: one after the other here (default), a local process pool, "
                    "or Ray tasks (a local Ray without --address); the results are the same")
-    p.add_argument("--workers", type=int, help="processes of --executor process, CPUs of a local Ray "
+    p.add_argument("--jobs", type=int, help="processes of --executor process, CPUs of a local Ray "
                    "(default: the usable cores)")
     p.add_argument("--address", help="Ray cluster to run on with --executor ray: auto, HOST:6379 or ray://HOST:10001 "
                    "(default: start a local Ray)")
 
 
 def executor_from_args(args: argparse.Namespace):
-    """The :class:`~torchevtrack.executor.Executor` of ``--executor``, ``--workers`` and ``--address``."""
+    """The :class:`~torchevtrack.executor.Executor` of ``--executor``, ``--jobs`` and ``--address``."""
     from torchevtrack.executor import make_executor
 
-    return make_executor(args.executor, workers=args.workers, address=args.address)
+    return make_executor(args.executor, workers=args.jobs, address=args.address)
