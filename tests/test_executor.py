@@ -76,10 +76,10 @@ def test_ray_and_process_pool_results_equal_the_serial_ones(bench, tmp_path, cap
     for kind in ("process", "ray"):
         start = time.perf_counter()
         assert main(["benchmark", str(bench), "--out", str(tmp_path / kind), "--methods", "full,velocity_only",
-                     "--no-batch", "--no-overlays", "--quiet", "--executor", kind, "--jobs", "2"]) == 0
+                     "--no-overlays", "--quiet", "--executor", kind, "--jobs", "2"]) == 0
         wall[kind] = time.perf_counter() - start
         other = json.loads((tmp_path / kind / "results.json").read_text())
-        assert len(other["runs"]["full"]) == 2  # one task per (sequence, method)
+        assert len(other["runs"]["full"]) == 2  # one task per (sequence, method): no batches with a parallel executor
         assert _strip(other) == _strip(serial), kind
         for m in kw["methods"]:
             for name in SEQS:

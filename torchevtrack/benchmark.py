@@ -334,7 +334,8 @@ def run_benchmark(
         duration_s: track only the first seconds of each sequence (default: its whole ground truth).
         config: base :class:`TrackerConfig` or a YAML path; each method applies its ablation on top.
         batch: one batch per method and camera (default) or one run per sequence. Results agree to
-            float32 rounding; only the timing differs.
+            float32 rounding; only the timing differs. A parallel ``executor`` runs one sequence per task (no
+            batches), so that the sequences spread over its workers.
         overlays: write the overlay PNGs and GIFs (for ``"full"``, else the first method).
         progress: tqdm bars over methods and updates.
         init_noise: ``(mm, deg)``: start every sequence from its first ground-truth pose moved and turned by
@@ -377,6 +378,8 @@ def run_benchmark(
     by_camera: dict[Camera, list[_Item]] = {}
     for it in items:
         by_camera.setdefault(it.seq.camera, []).append(it)
+    ex = executor or SerialExecutor()
+    batch = batch and not ex.parallel
     batches = list(by_camera.values()) if batch else [[it] for it in items]
 
     res: dict = {
@@ -408,7 +411,6 @@ def run_benchmark(
     tracked: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
     overlay_method = "full" if "full" in methods else methods[0]
 
-    ex = executor or SerialExecutor()
     tasks = [_TrackTask(method, k, [it.path for it in group], duration_s, base.replace(**ABLATIONS[method]),
                         {it.name: starts[k][it.name] for it in group}, progress and not ex.parallel, group)
              for method in methods for k in range(trials) for group in batches]

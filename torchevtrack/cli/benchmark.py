@@ -37,9 +37,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "benchmark",
         help="run the ablation benchmark on a directory of sequences",
-        description="Track every sequence of BENCHDIR with each method (one batch per method and camera), then "
-        "write RESULTS/results.json, table.md (the paper's Table I), poses/, plots/ and overlays/, and print "
-        "the table.",
+        description="Track every sequence of BENCHDIR with each method (one batch per method and camera; with "
+        "--executor process or ray, one task per sequence, method and draw), score other trackers' pose files "
+        "(--pred) the same way, then write RESULTS/results.json, table.md (the paper's Table I), poses/, plots/ "
+        "and overlays/, and print the table.",
     )
     p.add_argument("benchdir", type=Path)
     p.add_argument("--out", type=Path, required=True, help="output directory")
