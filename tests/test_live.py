@@ -140,3 +140,32 @@ def test_ctrl_c_stops_a_realtime_playback_with_every_pose_written(seqdir, offlin
     assert 0 < n == len(t_us) < len(t_off)  # stopped part-way, every pose it made is in the file
     assert torch.equal(t_us, t_off[:n])
     assert float((poses[:, :3] - p_off[:n, :3]).norm(dim=-1).max()) < 0.01
+
+
+def test_runner_drops_late_and_off_sensor_events_and_counts_them(seqdir, offline):
+    from torchevtrack.cli.track import parse_init
+    from torchevtrack.events import EventStream
+    from torchevtrack.live import LiveRunner
+    from torchevtrack.online import OnlineTracker
+
+    seq = Sequence.load(seqdir)
+    tracker = EventPoseTracker(CAM, seqdir / "mesh.ply")
+    runner = LiveRunner(OnlineTracker(tracker), parse_init(_init(seq)[0]))
+    ev = seq.events
+    cuts = np.linspace(0, len(ev), 40).astype(int)
+    assert runner.feed(None) == [] and runner.trajectory()[0].numel() == 0  # nothing arrived yet
+    for k, (a, b) in enumerate(zip(cuts[:-1], cuts[1:])):
+        chunk = ev[int(a):int(b)]
+        if k == 10:  # an event from the past (late) and one outside the sensor, inside an otherwise good chunk
+            t_late, t_mid = int(ev.t[int(cuts[5])]), int(chunk.t[len(chunk) // 2])
+            extra = EventStream.from_arrays(x=[3, CAM.width + 5], y=[4, 2], t=[t_late, t_mid], p=[1, 0],
+                                            validate=False)
+            chunk = EventStream.concat([chunk[:len(chunk) // 2], extra, chunk[len(chunk) // 2:]])
+        runner.feed(chunk)
+    tracker.close()
+    status = runner.report()
+    assert (status.late, status.dropped, status.events) == (1, 1, len(ev))
+    t_us, poses = runner.trajectory()
+    t_off, p_off = offline
+    assert torch.equal(t_us, t_off) and status.poses == len(t_off)
+    np.testing.assert_allclose(poses.numpy(), p_off.numpy(), atol=1e-9)  # as if the bad events never came
