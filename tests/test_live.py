@@ -169,3 +169,27 @@ def test_runner_drops_late_and_off_sensor_events_and_counts_them(seqdir, offline
     t_off, p_off = offline
     assert torch.equal(t_us, t_off) and status.poses == len(t_off)
     np.testing.assert_allclose(poses.numpy(), p_off.numpy(), atol=1e-9)  # as if the bad events never came
+
+
+def test_a_recording_read_to_its_end_gives_the_offline_poses(seqdir, offline, tmp_path, capsys):
+    from torchevtrack.cli import main
+
+    out = tmp_path / "poses.txt"
+    text, _ = _init(Sequence.load(seqdir))
+    assert main(["live", str(seqdir / "events.h5"), "--camera", str(seqdir / "camera.json"), "--mesh",
+                 str(seqdir / "mesh.ply"), "--init", text, "--out", str(out), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    t_off, p_off = offline
+    assert f"end of stream: {len(t_off)} poses, written to {out}" in printed
+    t_us, poses = read_tum(out)
+    assert torch.equal(t_us, t_off)
+    assert float((poses[:, :3] - p_off[:, :3]).norm(dim=-1).max()) < 0.01
+    with pytest.raises(SystemExit):
+        main(["live", str(seqdir / "events.h5"), "--camera", str(seqdir / "camera.json"), "--mesh", "box"])
+    assert "--init" in capsys.readouterr().err
+    assert main(["live", "tcp://127.0.0.1", "--camera", str(seqdir / "camera.json"), "--mesh", "box", "--init",
+                 text]) == 2
+    assert "tcp://HOST:PORT" in capsys.readouterr().err
+    assert main(["live", str(tmp_path / "missing.h5"), "--camera", str(seqdir / "camera.json"), "--mesh", "box",
+                 "--init", text]) == 2
+    assert "camera[:NAME] or an existing file" in capsys.readouterr().err

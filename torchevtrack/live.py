@@ -39,7 +39,7 @@ import torch
 from torchevtrack.events import EventStream
 from torchevtrack.online import OnlineTracker
 
-__all__ = ["open_source", "LiveStatus", "LiveRunner"]
+__all__ = ["parse_source", "open_source", "LiveStatus", "LiveRunner"]
 
 _IDLE_S = 0.0005  # wait between polls of a source that has nothing new
 _REALTIME_CHUNK_US = 1000  # a paced recording is delivered in chunks of this many microseconds
@@ -112,35 +112,44 @@ class _FileSource:
                     yield chunk[a:b]
 
 
-def open_source(source: str, *, realtime: bool = False):
-    """An iterable event source (see the module docstring) with ``width`` and ``height`` (pixels, ``None`` when a
-    recording does not say). Raises ``ValueError`` / ``FileNotFoundError`` with a one-line message."""
+def parse_source(source: str, *, realtime: bool = False) -> tuple[str, object]:
+    """Check a source string without opening it: ``("tcp", (host, port))``, ``("camera", name)`` (``""``: the
+    first found) or ``("file", path)``. Raises ``ValueError`` / ``FileNotFoundError`` with a one-line message."""
     if source.startswith("tcp://"):
         host, sep, port = source[len("tcp://"):].rpartition(":")
         if not sep or not host or not port.isdigit():
             raise ValueError(f"network source must be tcp://HOST:PORT, got {source!r}")
         if realtime:
             raise ValueError("--realtime is for recording files: a network stream comes at its own pace")
-        dv = _dv()
-        try:
-            reader = dv.io.NetworkReader(host, int(port))
-        except RuntimeError as e:
-            raise ValueError(f"cannot connect to {source}: {e}") from None
-        return _DvSource(reader, source)
+        return "tcp", (host, int(port))
     if source == "camera" or source.startswith("camera:"):
         if realtime:
             raise ValueError("--realtime is for recording files: a camera comes at its own pace")
-        dv = _dv()
-        name = source.partition(":")[2]
-        try:
-            reader = dv.io.camera.open(name) if name else dv.io.camera.open()
-        except RuntimeError as e:
-            raise ValueError(f"cannot open camera {name or '(first found)'}: {e}") from None
-        return _DvSource(reader, f"camera {name}".strip())
+        return "camera", source.partition(":")[2]
     path = Path(source)
     if not path.is_file():
         raise FileNotFoundError(f"event source is not tcp://HOST:PORT, camera[:NAME] or an existing file: {source}")
-    return _FileSource(path, realtime)
+    return "file", path
+
+
+def open_source(source: str, *, realtime: bool = False):
+    """An iterable event source (see the module docstring and :func:`parse_source`) with ``width`` and ``height``
+    (pixels, ``None`` when a recording does not say)."""
+    kind, where = parse_source(source, realtime=realtime)
+    if kind == "file":
+        return _FileSource(where, realtime)
+    dv = _dv()
+    if kind == "tcp":
+        try:
+            reader = dv.io.NetworkReader(*where)
+        except RuntimeError as e:
+            raise ValueError(f"cannot connect to {source}: {e}") from None
+        return _DvSource(reader, source)
+    try:
+        reader = dv.io.camera.open(where) if where else dv.io.camera.open()
+    except RuntimeError as e:
+        raise ValueError(f"cannot open camera {where or '(first found)'}: {e}") from None
+    return _DvSource(reader, f"camera {where}".strip())
 
 
 @dataclass

@@ -78,10 +78,11 @@ def run(args: argparse.Namespace) -> int:
     from torchevtrack.camera import Camera
     from torchevtrack.cli.track import parse_init
     from torchevtrack.distortion import Undistorter
-    from torchevtrack.live import LiveRunner, open_source
+    from torchevtrack.live import LiveRunner, open_source, parse_source
     from torchevtrack.online import OnlineTracker
     from torchevtrack.tracker import EventPoseTracker
 
+    parse_source(args.source, realtime=args.realtime)  # a bad source fails now, not after the warm-up
     torch.set_num_threads(args.threads)
     camera = Camera.load(args.camera)
     pose0 = parse_init(args.init)
