@@ -117,10 +117,10 @@ def run(args: argparse.Namespace) -> int:
             logger.close()
     wall = time.perf_counter() - start
     tracker.close()
-    if args.rerun is not None:
-        print(f"rerun recording: {args.rerun} (open with: rerun {args.rerun})")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_tum(args.out, times[0], poses[0])
     n = times.shape[1]
     print(f"{args.out}: {n} poses, {n / wall:.0f} updates/s ({wall:.1f} s)")
+    if args.rerun is not None:
+        print(f"rerun recording: {args.rerun} (open with: rerun {args.rerun})")
     return 0
