@@ -181,7 +181,8 @@ class RerunLogger:
         if tracker is not None:
             quality = tracker.quality
             series.update({f"timing/{stage}_ms": float(ms) for stage, ms in tracker.stage_ms.items()})
-            series.update({"quality/score": float(quality.score[i]), "quality/flow_vectors": float(quality.flow_vectors[i]),
+            series.update({"quality/score": float(quality.score[i]),
+                           "quality/flow_vectors": float(quality.flow_vectors[i]),
                            "quality/events": float(quality.events[i]),
                            "quality/rejected": float(bool(quality.rejected[i]))})
             if tracker.lost is not None:

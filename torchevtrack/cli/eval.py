@@ -90,7 +90,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--gt", required=True, help="ground-truth pose file, or a sequence directory (gt_poses.txt, mesh.ply)")
     p.add_argument("--pred", required=True, help="predicted pose file (TUM .txt, CSV .csv, BOP .json)")
-    p.add_argument("--mesh", help=f"mesh file for ADD / ADD-S (vertices, at most {MESH_POINTS} points, as the benchmark)")
+    p.add_argument("--mesh", help=f"mesh file for ADD / ADD-S (vertices, at most {MESH_POINTS} points, as the "
+                   "benchmark)")
     p.add_argument("--symmetric", action="store_true", help="symmetric object: ADD(-S) (add_s_auc) uses ADD-S")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
     p.add_argument("--fps", type=float, help="frame rate giving the times of BOP scene_gt.json frames")
