@@ -57,7 +57,7 @@ def bench(tmp_path_factory):
 def _strip(res: dict) -> dict:
     """results.json without what depends on when and where it ran (timing, date, machine)."""
     res = json.loads(json.dumps(res))
-    for key in ("date", "machine", "runs"):
+    for key in ("date", "machine", "runs", "executor"):
         res.pop(key)
     for per_seq in res["results"].values():
         for r in per_seq.values():
@@ -79,6 +79,7 @@ def test_ray_and_process_pool_results_equal_the_serial_ones(bench, tmp_path, cap
                      "--no-overlays", "--quiet", "--executor", kind, "--jobs", "2"]) == 0
         wall[kind] = time.perf_counter() - start
         other = json.loads((tmp_path / kind / "results.json").read_text())
+        assert other["executor"] == kind and serial["executor"] == "serial"
         assert len(other["runs"]["full"]) == 2  # one task per (sequence, method): no batches with a parallel executor
         assert _strip(other) == _strip(serial), kind
         for m in kw["methods"]:

@@ -354,9 +354,10 @@ def run_benchmark(
         The dict written to ``results.json``: ``results[method][sequence]`` holds ``metrics`` (the
         :func:`~torchevtrack.metrics.evaluate` dict), ``loss`` (the
         :func:`~torchevtrack.loss.compare_with_ground_truth` dict), ``timing`` and ``pose_file``; ``runs[method]``
-        the batched runs; ``sequences``, ``config``, ``machine``, versions, date. With ``init_noise``, also
-        ``init_noise`` (with each trial's ``start_poses``) and ``trials[method][sequence]``: per trial the RMSEs,
-        ADD-S AUC and failure flags.
+        the batched runs; ``sequences``, ``config``, ``machine``, ``executor`` (its name), versions, date. With
+        ``init_noise``, also ``init_noise`` (with each trial's ``start_poses``) and ``trials[method][sequence]``: per
+        trial the RMSEs, ADD-S AUC and failure flags. With ``predictions``, ``results[name][sequence]`` holds
+        ``metrics`` and ``pose_file`` (no loss, no timing) and ``predictions`` their directories.
     """
     methods = _check_methods(methods)
     predictions = _check_predictions(predictions, methods)
@@ -389,6 +390,7 @@ def run_benchmark(
         "bench_dir": str(Path(bench_dir).resolve()),
         "duration_s": duration_s,
         "batch": batch,
+        "executor": ex.name,
         "methods": methods,
         "config": base.to_dict(),
         "ablations": {m: ABLATIONS[m] for m in methods},
