@@ -413,8 +413,9 @@ def run_benchmark(
     tracked: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
     overlay_method = "full" if "full" in methods else methods[0]
 
-    tasks = [_TrackTask(method, k, [it.path for it in group], duration_s, base.replace(**ABLATIONS[method]),
-                        {it.name: starts[k][it.name] for it in group}, progress and not ex.parallel, group)
+    tasks = [_TrackTask(method, k, [it.path.resolve() for it in group], duration_s,
+                        base.replace(**ABLATIONS[method]), {it.name: starts[k][it.name] for it in group},
+                        progress and not ex.parallel, group)
              for method in methods for k in range(trials) for group in batches]
     outputs = ex.map(_run_task, tasks, desc="tracking runs", progress=progress)
     for method in methods:
