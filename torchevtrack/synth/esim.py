@@ -12,6 +12,12 @@ exactly one threshold away from a constant level). An event closer than ``refrac
 event is dropped (``ref`` still advances). Events are sorted by time; ties keep pixel order
 (``y * W + x``) and then the order ``k`` within the pixel. Log intensity is ``L = log(I + 1e-3)``.
 
+Sensor effects of :class:`ESIM` beyond the contrast events: background-activity noise (a Poisson process of
+``noise_rate_hz`` per pixel, uniform polarity) and hot pixels (``hot_pixels`` fixed addresses, each a Poisson
+process of ``hot_pixel_rate_hz``). The refractory period applies to every event a pixel emits, whatever its
+source: contrast, noise and hot-pixel events of one frame interval are filtered together, in time order,
+against each pixel's last emitted event (:func:`refractory_filter`).
+
 Example:
     >>> import torch
     >>> sim = ESIM(1, 1, C=0.2, sigma_C=0.0)
@@ -28,7 +34,7 @@ from torch import nn
 
 from torchevtrack.events import EventStream
 
-__all__ = ["LOG_EPS", "log_intensity", "esim_step", "noise_events", "ESIM"]
+__all__ = ["LOG_EPS", "log_intensity", "esim_step", "noise_events", "hot_pixel_events", "refractory_filter", "ESIM"]
 
 LOG_EPS = 1e-3
 _NEVER = -(1 << 62)
@@ -129,6 +135,70 @@ def noise_events(
     return pix[order] % width, pix[order] // width, t[order], p[order]
 
 
+def hot_pixel_events(
+    pixels: torch.Tensor, t0_us: int, t1_us: int, rate_hz: float, generator: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Events of hot pixels in ``[t0, t1)``: each of ``pixels`` (flat indices ``y * W + x``, ``(K,)`` int64) fires a
+    Poisson count of mean ``rate_hz * dt``, at uniform times and polarities.
+
+    Returns flat pixel indices, ``t_us`` (int64) and ``p`` (int8), ``(N,)`` each, grouped by pixel (not sorted).
+    """
+    lam = torch.full((pixels.numel(),), rate_hz * (t1_us - t0_us) / 1e6, dtype=torch.float64)
+    counts = torch.poisson(lam, generator=generator).to(torch.int64)
+    pix = torch.repeat_interleave(pixels, counts)
+    t = t0_us + torch.randint(0, t1_us - t0_us, (pix.numel(),), generator=generator)
+    p = torch.randint(0, 2, (pix.numel(),), generator=generator).to(torch.int8)
+    return pix, t, p
+
+
+def refractory_filter(pix: torch.Tensor, t_us: torch.Tensor, last_t_us: torch.Tensor,
+                      refractory_us: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Which events a pixel emits when it cannot fire twice within ``refractory_us``.
+
+    Per pixel, in time order (ties in input order), an event is kept when it comes at least
+    ``refractory_us`` after the pixel's last kept event (``last_t_us`` before the first); a dropped event
+    does not restart the period.
+
+    Args:
+        pix: flat pixel index of each event ``(N,)`` int64; t_us: its time ``(N,)`` int64.
+        last_t_us: time of each pixel's last emitted event, ``(P,)`` int64 (very negative = never).
+        refractory_us: microseconds, ``>= 0``.
+
+    Returns:
+        ``keep (N,)`` bool and the updated ``last_t_us (P,)`` (a new tensor).
+
+    Example:
+        >>> keep, last = refractory_filter(torch.tensor([0, 0, 0]), torch.tensor([0, 5, 12]),
+        ...                                torch.full((1,), -100), 10)
+        >>> keep.tolist(), last.tolist()
+        ([True, False, True], [12])
+    """
+    last = last_t_us.clone()
+    n = pix.numel()
+    if n == 0:
+        return torch.zeros(0, dtype=torch.bool), last
+    if refractory_us <= 0:
+        last.scatter_reduce_(0, pix, t_us, reduce="amax")
+        return torch.ones(n, dtype=torch.bool), last
+    order = torch.sort(t_us, stable=True).indices
+    order = order[torch.sort(pix[order], stable=True).indices]  # by pixel, then time
+    sp, st = pix[order], t_us[order]
+    new_run = torch.ones(n, dtype=torch.bool)
+    new_run[1:] = sp[1:] != sp[:-1]
+    starts = torch.nonzero(new_run).squeeze(1)
+    run_len = torch.diff(torch.cat((starts, torch.tensor([n]))))
+    rank = torch.arange(n) - torch.repeat_interleave(starts, run_len)
+    keep_sorted = torch.zeros(n, dtype=torch.bool)
+    for j in range(int(run_len.max())):  # the j-th event of every pixel at once
+        idx = torch.nonzero(rank == j).squeeze(1)
+        idx = idx[st[idx] - last[sp[idx]] >= refractory_us]
+        keep_sorted[idx] = True
+        last[sp[idx]] = st[idx]
+    keep = torch.empty(n, dtype=torch.bool)
+    keep[order] = keep_sorted
+    return keep, last
+
+
 class ESIM(nn.Module):
     """Stateful event simulator: feed frames in time order, get the events since the previous frame.
 
@@ -138,14 +208,18 @@ class ESIM(nn.Module):
         sigma_C: per-pixel threshold spread; each pixel draws ``N(C, sigma_C)`` clipped to ``>= 0.01``.
         refractory_us: per-pixel refractory period, microseconds.
         noise_rate_hz: per-pixel rate of uniform noise events (they do not touch ``ref``).
-        seed: seeds the threshold map and the noise.
+        hot_pixels: number of hot pixels, distinct addresses drawn (seeded) after the threshold map.
+        hot_pixel_rate_hz: firing rate of each hot pixel, events / s.
+        seed: seeds the threshold map, the hot-pixel addresses and the noise.
 
     Buffers: ``ref (H, W)`` float64, ``C (H, W)`` float64, ``last_t_us (H, W)`` int64,
-    ``L_prev (H, W)`` float64, ``t_prev_us ()`` int64 (``-1`` before the first frame).
+    ``L_prev (H, W)`` float64, ``t_prev_us ()`` int64 (``-1`` before the first frame), ``hot_pix (K,)`` int64
+    (flat indices ``y * W + x`` of the hot pixels).
     """
 
     def __init__(self, height: int, width: int, C: float = 0.2, sigma_C: float = 0.03, refractory_us: int = 0,
-                 noise_rate_hz: float = 0.0, seed: int = 0) -> None:
+                 noise_rate_hz: float = 0.0, seed: int = 0, *, hot_pixels: int = 0,
+                 hot_pixel_rate_hz: float = 100.0) -> None:
         super().__init__()
         if height <= 0 or width <= 0:
             raise ValueError(f"sensor size must be positive, got {width}x{height}")
@@ -163,6 +237,18 @@ class ESIM(nn.Module):
         self.register_buffer("L_prev", torch.zeros(self.height, self.width, dtype=torch.float64))
         self.register_buffer("last_t_us", torch.full((self.height, self.width), _NEVER, dtype=torch.int64))
         self.register_buffer("t_prev_us", torch.tensor(-1, dtype=torch.int64))
+        if not 0 <= int(hot_pixels) <= self.height * self.width or hot_pixel_rate_hz < 0:
+            raise ValueError(f"need 0 <= hot_pixels <= {self.height * self.width} and hot_pixel_rate_hz >= 0, got "
+                             f"{hot_pixels}, {hot_pixel_rate_hz}")
+        self.hot_pixel_rate_hz = float(hot_pixel_rate_hz)
+        hot = torch.zeros(0, dtype=torch.int64)
+        if int(hot_pixels) > 0:
+            hot = torch.randperm(self.height * self.width, generator=self.generator)[: int(hot_pixels)]
+        self.register_buffer("hot_pix", hot)
+
+    def hot_pixel_coords(self) -> list[list[int]]:
+        """The hot pixels as ``[[x, y], ...]`` (the order of ``hot_pix``)."""
+        return [[int(i) % self.width, int(i) // self.width] for i in self.hot_pix]
 
     def reset(self) -> None:
         """Forget the previous frame and all event history (the threshold map is kept)."""
@@ -199,17 +285,34 @@ class ESIM(nn.Module):
             return EventStream.empty()
         if t_us <= t_prev:
             raise ValueError(f"frames must come in increasing time, got t={t_us} us after {t_prev} us")
+        extra = self.noise_rate_hz > 0 or (self.hot_pix.numel() > 0 and self.hot_pixel_rate_hz > 0)
         x, y, t, p, ref, last = esim_step(self.L_prev[win], L, t_prev, t_us, self.ref[win], self.C[win],
-                                          self.last_t_us[win], self.refractory_us)
+                                          self.last_t_us[win], 0 if extra else self.refractory_us)
         x, y = x + u0, y + v0
         self.ref[win] = ref
-        self.last_t_us[win] = last
         self.L_prev[win] = L
         self.t_prev_us.fill_(t_us)
+        if not extra:
+            self.last_t_us[win] = last
+            return EventStream(x.to(torch.int16), y.to(torch.int16), t, p)
+        # Contrast, noise and hot-pixel events share each pixel's refractory period.
+        pix = [y * self.width + x]
+        ts, ps = [t], [p]
         if self.noise_rate_hz > 0:
             nx, ny, nt, npol = noise_events(self.height, self.width, t_prev, t_us, self.noise_rate_hz,
                                             self.generator)
-            x, y, t, p = (torch.cat(a) for a in ((x, nx), (y, ny), (t, nt), (p, npol)))
-            order = torch.sort(t, stable=True).indices
-            x, y, t, p = x[order], y[order], t[order], p[order]
-        return EventStream(x.to(torch.int16), y.to(torch.int16), t, p)
+            pix.append(ny * self.width + nx)
+            ts.append(nt)
+            ps.append(npol)
+        if self.hot_pix.numel() > 0 and self.hot_pixel_rate_hz > 0:
+            hp, ht, hpol = hot_pixel_events(self.hot_pix, t_prev, t_us, self.hot_pixel_rate_hz, self.generator)
+            pix.append(hp)
+            ts.append(ht)
+            ps.append(hpol)
+        pix, t, p = torch.cat(pix), torch.cat(ts), torch.cat(ps)
+        keep, last = refractory_filter(pix, t, self.last_t_us.flatten(), self.refractory_us)
+        self.last_t_us.copy_(last.view_as(self.last_t_us))
+        pix, t, p = pix[keep], t[keep], p[keep]
+        order = torch.sort(t, stable=True).indices
+        pix, t, p = pix[order], t[order], p[order]
+        return EventStream((pix % self.width).to(torch.int16), (pix // self.width).to(torch.int16), t, p)
