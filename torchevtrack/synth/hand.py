@@ -7,10 +7,14 @@ saved mesh stay the object's. Geometry (metres, object frame, bounding box ``[-e
 * the grip axis ``a`` is the box's longest axis; the palm (a box 0.02 thick, up to 0.09 x 0.09) lies against
   the ``-a`` end face;
 * four fingers (capsules of radius 0.009, 0.02 apart) run along ``+a`` over the ``+c`` face (``c`` the
-  shortest axis), the thumb over the ``-c`` face; their length is 35 % of the object's extent along ``a``,
-  clipped to 0.03-0.08 m, so they hide a part of the silhouette whatever the object's size;
-* the forearm (a capsule of radius 0.03, 0.5 m long) leaves the palm along ``-a``, tilted 30 degrees
+  shortest axis), the thumb over the ``-c`` face; their length is 50 % of the object's extent along ``a``,
+  clipped to 0.04-0.10 m, so they hide a part of the silhouette whatever the object's size;
+* the forearm (a capsule of radius 0.025, 0.5 m long) leaves the palm along ``-a``, tilted 30 degrees
   towards ``-c``: at the working distances of the simulator it leaves the image.
+
+Seen from random directions at 0.7 m, the hand hides a median 6-41 % of an object's silhouette (median over
+the wide suite's 12 objects: 19 %; least for the large flat boxes); when the forearm points at the camera it
+hides nearly all of it. The simulator records the fraction per sequence.
 
 The hand carries its own grey (vertex colours of luminance ``HAND_ALBEDO``), darker than the default object
 albedo, so its edges against the object make events too.
@@ -19,7 +23,7 @@ Example:
     >>> import trimesh
     >>> hand = make_hand(trimesh.creation.box((0.06, 0.08, 0.2)))
     >>> hand.forearm_radius, round(float(hand.forearm_segment[1, 2] - hand.forearm_segment[0, 2]), 3)
-    (0.03, -0.433)
+    (0.025, -0.433)
 """
 
 from __future__ import annotations
@@ -39,7 +43,7 @@ _SKIN = np.array([0.58, 0.40, 0.33])  # luminance 0.45 (0.299 R + 0.587 G + 0.11
 _FINGER_RADIUS = 0.009
 _FINGER_PITCH = 0.02
 _PALM = (0.02, 0.09)  # thickness, largest side
-_FOREARM_RADIUS = 0.03
+_FOREARM_RADIUS = 0.025
 _FOREARM_LENGTH = 0.5
 _FOREARM_TILT = math.radians(30.0)
 
@@ -103,7 +107,7 @@ def make_hand(obj: trimesh.Trimesh) -> Hand:
     palm = trimesh.creation.box(extents=palm_extent)
     palm.apply_translation(along(centre[a] - ea / 2 - thick / 2, centre[b], centre[c]))
     parts.append(palm)
-    length = float(np.clip(0.35 * ea, 0.03, 0.08))
+    length = float(np.clip(0.5 * ea, 0.04, 0.1))
     start, end = centre[a] - ea / 2 - thick / 2, centre[a] - ea / 2 + length
     r = _FINGER_RADIUS
     for k in range(4):

@@ -39,7 +39,8 @@ from tqdm import tqdm
 from torchevtrack.camera import Camera
 
 __all__ = ["BENCHMARK_MOTIONS", "BENCHMARK_OBJECTS", "CAMERA_PRESETS", "MOTIONS", "SPLIT_SEED_BASE", "SUITES",
-           "WIDE_OBJECTS", "benchmark_seed", "generate_entry", "generate_suite", "read_suite_json", "standard_suite",
+           "WIDE_OBJECTS", "benchmark_seed", "generate_entry", "generate_suite", "read_suite_json", "size_class",
+           "standard_suite",
            "wide_suite", "write_suite_json"]
 
 # The paper's synthetic benchmark: 4 YCB objects x 2 motion groups, named like the paper's tables.
@@ -76,7 +77,14 @@ WIDE_OBJECTS = {
     "003_cracker_box": "large", "021_bleach_cleanser": "large", "035_power_drill": "large",
     "022_windex_bottle": "large",
 }
-"""The wide suite's objects and their size class (bounding-box diagonal < 0.16 m, < 0.24 m, larger)."""
+"""The wide suite's objects and their :func:`size_class`."""
+
+
+def size_class(extents) -> str:
+    """``"small"``, ``"medium"`` or ``"large"``: bounding-box diagonal below 0.16 m, below 0.24 m, or larger.
+    ``extents``: the box's three side lengths, metres."""
+    diag = float(np.linalg.norm(np.asarray(extents, dtype=np.float64)))
+    return "small" if diag < 0.16 else "medium" if diag < 0.24 else "large"
 
 _WIDE_SIZE = 32
 _WIDE_DURATION_S = 4.0
