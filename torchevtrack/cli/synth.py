@@ -125,8 +125,8 @@ def run_benchmark(args: argparse.Namespace) -> int:
         print(f"{path}: {len(entries)} sequences (dry run, nothing generated)")
         return 0
     todo = [e for e in entries if not only or e["name"] in only]
-    print(f"generating {len(todo)} sequences into {out} with {args.jobs or 'all'} worker process(es); a 4 s "
-          "sequence takes about 10 s (slow, small camera) to several minutes (fast, hd) of one core")
+    print(f"generating {len(todo)} sequence(s) into {out}; a 4 s sequence takes about 10 s (slow, small camera) to "
+          "several minutes (fast, hd) of one core")
     start = time.perf_counter()
     results = generate_suite(todo, out, jobs=args.jobs, progress=not args.quiet)
     took = time.perf_counter() - start

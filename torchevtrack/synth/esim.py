@@ -29,6 +29,8 @@ Example:
 
 from __future__ import annotations
 
+import numba
+import numpy as np
 import torch
 from torch import nn
 
@@ -151,52 +153,51 @@ def hot_pixel_events(
     return pix, t, p
 
 
-def refractory_filter(pix: torch.Tensor, t_us: torch.Tensor, last_t_us: torch.Tensor,
-                      refractory_us: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Which events a pixel emits when it cannot fire twice within ``refractory_us``.
+@numba.njit(cache=True, nogil=True)
+def _nb_refractory(pix: np.ndarray, t: np.ndarray, last: np.ndarray, refractory: int, keep: np.ndarray) -> None:
+    for i in range(pix.shape[0]):
+        p = pix[i]
+        if t[i] - last[p] >= refractory:
+            keep[i] = True
+            last[p] = t[i]
+        else:
+            keep[i] = False
 
-    Per pixel, in time order (ties in input order), an event is kept when it comes at least
-    ``refractory_us`` after the pixel's last kept event (``last_t_us`` before the first); a dropped event
-    does not restart the period.
+
+def refractory_filter(pix: torch.Tensor, t_us: torch.Tensor, last_t_us: torch.Tensor,
+                      refractory_us: int) -> torch.Tensor:
+    """Which events a pixel emits when it cannot fire twice within ``refractory_us``; updates ``last_t_us``.
+
+    Events come in time order. Per pixel, an event is kept when it comes at least ``refractory_us`` after the
+    pixel's last kept event (``last_t_us`` before the first); a dropped event does not restart the period.
+    One compiled pass over the events.
 
     Args:
-        pix: flat pixel index of each event ``(N,)`` int64; t_us: its time ``(N,)`` int64.
-        last_t_us: time of each pixel's last emitted event, ``(P,)`` int64 (very negative = never).
+        pix: flat pixel index of each event ``(N,)`` int64; t_us: its time ``(N,)`` int64, non-decreasing.
+        last_t_us: time of each pixel's last emitted event, ``(P,)`` contiguous int64 (very negative = never);
+            updated in place.
         refractory_us: microseconds, ``>= 0``.
 
     Returns:
-        ``keep (N,)`` bool and the updated ``last_t_us (P,)`` (a new tensor).
+        ``keep (N,)`` bool.
 
     Example:
-        >>> keep, last = refractory_filter(torch.tensor([0, 0, 0]), torch.tensor([0, 5, 12]),
-        ...                                torch.full((1,), -100), 10)
-        >>> keep.tolist(), last.tolist()
+        >>> last = torch.full((1,), -100)
+        >>> refractory_filter(torch.tensor([0, 0, 0]), torch.tensor([0, 5, 12]), last, 10).tolist(), last.tolist()
         ([True, False, True], [12])
     """
-    last = last_t_us.clone()
-    n = pix.numel()
-    if n == 0:
-        return torch.zeros(0, dtype=torch.bool), last
-    if refractory_us <= 0:
-        last.scatter_reduce_(0, pix, t_us, reduce="amax")
-        return torch.ones(n, dtype=torch.bool), last
-    order = torch.sort(t_us, stable=True).indices
-    order = order[torch.sort(pix[order], stable=True).indices]  # by pixel, then time
-    sp, st = pix[order], t_us[order]
-    new_run = torch.ones(n, dtype=torch.bool)
-    new_run[1:] = sp[1:] != sp[:-1]
-    starts = torch.nonzero(new_run).squeeze(1)
-    run_len = torch.diff(torch.cat((starts, torch.tensor([n]))))
-    rank = torch.arange(n) - torch.repeat_interleave(starts, run_len)
-    keep_sorted = torch.zeros(n, dtype=torch.bool)
-    for j in range(int(run_len.max())):  # the j-th event of every pixel at once
-        idx = torch.nonzero(rank == j).squeeze(1)
-        idx = idx[st[idx] - last[sp[idx]] >= refractory_us]
-        keep_sorted[idx] = True
-        last[sp[idx]] = st[idx]
-    keep = torch.empty(n, dtype=torch.bool)
-    keep[order] = keep_sorted
-    return keep, last
+    if pix.shape != t_us.shape or pix.ndim != 1:
+        raise ValueError(f"pix and t_us must be (N,) each, got {tuple(pix.shape)} and {tuple(t_us.shape)}")
+    if last_t_us.dtype != torch.int64 or last_t_us.ndim != 1 or not last_t_us.is_contiguous():
+        raise ValueError("last_t_us must be a contiguous (P,) int64 tensor")
+    if refractory_us < 0:
+        raise ValueError(f"refractory_us must be >= 0, got {refractory_us}")
+    if t_us.numel() > 1 and bool((t_us[1:] < t_us[:-1]).any()):
+        raise ValueError("events must come in time order")
+    keep = np.empty(pix.numel(), dtype=np.bool_)
+    _nb_refractory(pix.to(torch.int64).numpy(), t_us.to(torch.int64).numpy(), last_t_us.numpy(), int(refractory_us),
+                   keep)
+    return torch.from_numpy(keep)
 
 
 class ESIM(nn.Module):
@@ -310,9 +311,8 @@ class ESIM(nn.Module):
             ts.append(ht)
             ps.append(hpol)
         pix, t, p = torch.cat(pix), torch.cat(ts), torch.cat(ps)
-        keep, last = refractory_filter(pix, t, self.last_t_us.flatten(), self.refractory_us)
-        self.last_t_us.copy_(last.view_as(self.last_t_us))
-        pix, t, p = pix[keep], t[keep], p[keep]
         order = torch.sort(t, stable=True).indices
         pix, t, p = pix[order], t[order], p[order]
+        keep = refractory_filter(pix, t, self.last_t_us.view(-1), self.refractory_us)
+        pix, t, p = pix[keep], t[keep], p[keep]
         return EventStream((pix % self.width).to(torch.int16), (pix // self.width).to(torch.int16), t, p)

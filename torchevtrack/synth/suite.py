@@ -238,10 +238,11 @@ def generate_suite(entries: list[dict], out_dir: str | Path, *, jobs: int | None
     jobs = (os.cpu_count() or 1) if jobs is None else int(jobs)
     if jobs < 1:
         raise ValueError(f"jobs must be >= 1, got {jobs}")
+    jobs = min(jobs, len(entries))  # a single sequence runs here, without starting a worker
     order = sorted(entries, key=_cost, reverse=True)
     results = {}
     bar = tqdm(total=len(entries), desc="sequences", unit="seq", disable=not progress)
-    if jobs == 1:
+    if jobs <= 1:
         for e in order:
             results[e["name"]] = generate_entry(e, out)
             bar.update()
