@@ -126,7 +126,9 @@ def generate_sequence(
         C, sigma_C, refractory_us, noise_rate_hz, hot_pixels, hot_pixel_rate_hz:
             :class:`torchevtrack.synth.esim.ESIM` parameters (the refractory period applies to every event).
         occluder: ``"none"`` or ``"hand"`` (:mod:`torchevtrack.synth.hand`).
-        texture: ``"none"`` or ``"random"`` (a seeded printed texture on the object).
+        texture: ``"none"`` or ``"random"``: a printed texture (seeded by ``seed``) on the rendered object; the
+            saved mesh stays untextured (regenerate the textured model with
+            ``printed_texture(load_mesh(object_name), seed)``).
         depth_range: ``(min, max)`` object distance, metres (raised for objects too large to fit).
         background: grey level of the static background, in ``[0, 1]``.
         max_px_per_frame: largest image motion between two rendered frames, pixels.
@@ -152,11 +154,10 @@ def generate_sequence(
         raise ValueError(f"gt_rate_hz must divide 10 kHz evenly (e.g. 500, 1000), got {gt_rate_hz}")
     mesh = load_mesh(object_name)
     render_mesh = mesh if render_faces is None else load_mesh(object_name, decimate=render_faces)
-    if texture == "random":
+    if texture == "random":  # rendered only: the saved mesh stays the object's geometry, as a CAD model
         from torchevtrack.synth.texture import printed_texture
 
-        mesh = printed_texture(mesh, seed)
-        render_mesh = mesh if render_faces is None else printed_texture(render_mesh, seed)
+        render_mesh = printed_texture(render_mesh, seed)
     t_us, poses = make_trajectory(motion, duration_s, seed, camera, mesh, dt_us=dt_us, depth_range=depth_range)
     hand = make_hand(mesh) if occluder == "hand" else None
     # Frames follow the object and the hand's grip; the forearm (long, leaving the image) only widens the windows.

@@ -126,11 +126,51 @@ def make_hand(obj: trimesh.Trimesh) -> Hand:
 
 
 def with_hand(obj: trimesh.Trimesh, hand: Hand) -> trimesh.Trimesh:
-    """Object and hand as one vertex-coloured mesh for rendering (an uncoloured object gets the renderers'
-    default grey ``DEFAULT_ALBEDO``)."""
+    """Object and hand as one mesh for rendering.
+
+    A textured object (``TextureVisuals`` with UVs and an image) keeps its texture: the hand is mapped onto a
+    band of skin colour added below the image (the object's UVs are rescaled to the old part). Otherwise the
+    result is vertex-coloured, an uncoloured object getting the renderers' default grey ``DEFAULT_ALBEDO``.
+    """
+    if obj.visual.kind == "texture":
+        return _textured_with_hand(obj, hand)
     body = obj.copy()
     if body.visual.kind != "vertex":
         grey = np.full((len(body.vertices), 4), 255, dtype=np.uint8)
         grey[:, :3] = round(DEFAULT_ALBEDO * 255)
         body.visual = trimesh.visual.ColorVisuals(body, vertex_colors=grey)
     return trimesh.util.concatenate([body, hand.grip, hand.forearm])
+
+
+_BAND_PX = 16
+
+
+def _texture_image(visual) -> np.ndarray:
+    """The RGB texture image of ``TextureVisuals`` as ``(H, W, 3)`` uint8 (SimpleMaterial or PBRMaterial)."""
+    mat = visual.material
+    image = getattr(mat, "image", None)
+    if image is None:
+        image = getattr(mat, "baseColorTexture", None)
+    if image is None:
+        raise ValueError("a textured mesh needs a texture image")
+    return np.asarray(image.convert("RGB"), dtype=np.uint8)
+
+
+def _textured_with_hand(obj: trimesh.Trimesh, hand: Hand) -> trimesh.Trimesh:
+    from PIL import Image
+
+    img = _texture_image(obj.visual)
+    h, w = img.shape[:2]
+    band = np.empty((_BAND_PX, w, 3), dtype=np.uint8)
+    band[:] = np.round(_SKIN * 255.0).astype(np.uint8)
+    image = np.concatenate((img, band), axis=0)  # the band at the bottom: v (from the bottom) in [0, band / H']
+    total = h + _BAND_PX
+    uv = np.asarray(obj.visual.uv, dtype=np.float64).copy()
+    uv[:, 1] = (_BAND_PX + uv[:, 1] * h) / total
+    parts = [hand.grip, hand.forearm]
+    n_hand = sum(len(m.vertices) for m in parts)
+    hand_uv = np.tile([0.5, 0.5 * _BAND_PX / total], (n_hand, 1))
+    geometry = trimesh.util.concatenate([trimesh.Trimesh(obj.vertices, obj.faces, process=False)]
+                                        + [trimesh.Trimesh(m.vertices, m.faces, process=False) for m in parts])
+    geometry.visual = trimesh.visual.TextureVisuals(uv=np.concatenate((uv, hand_uv)), image=Image.fromarray(image))
+    return geometry
