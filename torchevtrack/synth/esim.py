@@ -85,42 +85,64 @@ def esim_step(
     if refractory_us < 0:
         raise ValueError(f"refractory_us must be >= 0, got {refractory_us}")
     W = L0.shape[1]
-    L0, L1, ref, C = (a.to(torch.float64) for a in (L0, L1, ref, C))
-    delta = L1 - ref
-    n = torch.floor(delta.abs() / C).to(torch.int64).flatten()
-    pol = torch.sign(delta).flatten()
-    new_ref = (ref.flatten() + pol * n.to(torch.float64) * C.flatten()).view_as(ref)
-
-    pix = torch.nonzero(n > 0).squeeze(1)
-    counts = n[pix]
-    ev_pix = torch.repeat_interleave(pix, counts)
-    # k = 1..n within each pixel, in pixel order.
-    starts = torch.cumsum(counts, 0) - counts
-    k = torch.arange(ev_pix.numel(), dtype=torch.int64) - torch.repeat_interleave(starts, counts) + 1
-    ev_pol = pol[ev_pix]
-    level = ref.flatten()[ev_pix] + ev_pol * k.to(torch.float64) * C.flatten()[ev_pix]
-    l0 = L0.flatten()[ev_pix]
-    span = L1.flatten()[ev_pix] - l0
-    # span == 0: ref sat a whole threshold (up to rounding) off a constant level; the event fires at t0.
-    tau = torch.where(span != 0, (level - l0) / torch.where(span != 0, span, 1.0), 0.0).clamp(0.0, 1.0)
-    t = t0_us + torch.floor(tau * (t1_us - t0_us)).to(torch.int64)
-
-    last = last_t_us.flatten().clone()
-    if refractory_us > 0 and ev_pix.numel():
-        keep = torch.zeros(ev_pix.numel(), dtype=torch.bool)
-        for j in range(1, int(counts.max()) + 1):  # j-th event of every pixel at once
-            idx = torch.nonzero(k == j).squeeze(1)
-            ok = t[idx] - last[ev_pix[idx]] >= refractory_us
-            idx = idx[ok]
-            keep[idx] = True
-            last[ev_pix[idx]] = t[idx]
-        ev_pix, t, ev_pol = ev_pix[keep], t[keep], ev_pol[keep]
-    elif ev_pix.numel():
-        last.scatter_reduce_(0, ev_pix, t, reduce="amax")
-
+    arrays = [np.ascontiguousarray(a.to(torch.float64).numpy()) for a in (L0, L1, ref, C)]
+    last = last_t_us.numpy().copy()
+    new_ref = np.empty_like(arrays[0])
+    ev_pix, t, ev_pol = _nb_esim_step(*arrays, last, t0_us, t1_us, int(refractory_us), new_ref)
+    ev_pix, t, ev_pol = torch.from_numpy(ev_pix), torch.from_numpy(t), torch.from_numpy(ev_pol)
     order = torch.sort(t, stable=True).indices
     ev_pix, t, ev_pol = ev_pix[order], t[order], ev_pol[order]
-    return ev_pix % W, ev_pix // W, t, (ev_pol > 0).to(torch.int8), new_ref, last.view_as(last_t_us)
+    return ev_pix % W, ev_pix // W, t, ev_pol, torch.from_numpy(new_ref), torch.from_numpy(last)
+
+
+@numba.njit(cache=True, nogil=True)
+def _nb_esim_step(L0, L1, ref, C, last, t0, t1, refractory, new_ref):
+    """The events of :func:`esim_step` in pixel order, then ``k`` (not yet sorted by time): flat pixel index,
+    time and polarity (int8 0/1); fills ``new_ref`` and updates ``last`` in place. All float arithmetic in
+    float64, in the order the module docstring's formulas give."""
+    H, W = L0.shape
+    n = np.zeros(H * W, dtype=np.int64)
+    total = 0
+    for i in range(H):
+        for j in range(W):
+            d = L1[i, j] - ref[i, j]
+            c = C[i, j]
+            m = np.int64(np.floor(abs(d) / c))
+            pol = 1.0 if d > 0 else (-1.0 if d < 0 else 0.0)
+            new_ref[i, j] = ref[i, j] + pol * np.float64(m) * c
+            n[i * W + j] = m
+            total += m
+    pix = np.empty(total, dtype=np.int64)
+    t = np.empty(total, dtype=np.int64)
+    p = np.empty(total, dtype=np.int8)
+    dt = np.float64(t1 - t0)
+    e = 0
+    for q in range(H * W):
+        m = n[q]
+        if m == 0:
+            continue
+        i, j = q // W, q % W
+        d = L1[i, j] - ref[i, j]
+        pol = 1.0 if d > 0 else -1.0
+        l0 = L0[i, j]
+        span = L1[i, j] - l0
+        for k in range(1, m + 1):
+            level = ref[i, j] + pol * np.float64(k) * C[i, j]
+            # span == 0: ref sat a whole threshold (up to rounding) off a constant level; the event fires at t0
+            tau = (level - l0) / span if span != 0 else 0.0
+            tau = min(max(tau, 0.0), 1.0)
+            tk = t0 + np.int64(np.floor(tau * dt))
+            if refractory > 0:
+                if tk - last[i, j] < refractory:
+                    continue
+                last[i, j] = tk
+            elif tk > last[i, j]:
+                last[i, j] = tk
+            pix[e] = q
+            t[e] = tk
+            p[e] = 1 if pol > 0 else 0
+            e += 1
+    return pix[:e], t[:e], p[:e]
 
 
 def noise_events(
