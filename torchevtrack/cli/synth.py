@@ -130,8 +130,6 @@ def run_benchmark(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     results = generate_suite(todo, out, jobs=args.jobs, progress=not args.quiet)
     took = time.perf_counter() - start
-    for r in results:
-        print(f"{out / r['name']}: {r['events']} events, {r['frames']} frames, {r['seconds']:.1f} s")
     print(f"{len(results)} sequences in {took:.1f} s wall ({sum(r['seconds'] for r in results):.1f} s of workers)")
     return 0
 

@@ -252,7 +252,8 @@ def generate_suite(entries: list[dict], out_dir: str | Path, *, jobs: int | None
     bar = tqdm(total=len(entries), desc="sequences", unit="seq", disable=not progress)
     if jobs <= 1:
         for e in order:
-            results[e["name"]] = generate_entry(e, out)
+            r = results[e["name"]] = generate_entry(e, out)
+            bar.write(f"{out / r['name']}: {r['events']} events, {r['frames']} frames, {r['seconds']:.1f} s")
             bar.update()
     else:
         # spawn: fresh interpreters (no forked OpenGL or numba thread state)
@@ -261,7 +262,7 @@ def generate_suite(entries: list[dict], out_dir: str | Path, *, jobs: int | None
             for f in as_completed(futures):
                 r = f.result()
                 results[r["name"]] = r
-                bar.set_postfix_str(f"{r['name']} {r['seconds']:.0f} s")
+                bar.write(f"{out / r['name']}: {r['events']} events, {r['frames']} frames, {r['seconds']:.1f} s")
                 bar.update()
     bar.close()
     return [results[e["name"]] for e in entries]
