@@ -211,6 +211,10 @@ def test_cli_prints_the_table(bench, tmp_path, capsys):
     rows = _table(printed, "## Pose error")
     assert rows[0] == ["Method", "tomato_fast", "Mean"] and rows[2][0] == METHOD_NAMES["velocity_only"]
     assert not (tmp_path / "overlays").exists() and (tmp_path / "plots" / "tomato_fast.png").is_file()
+    # the per-factor report follows the table (factors read from the sequence's own files)
+    factors = (tmp_path / "factors.md").read_text()
+    assert factors in printed and "## Motion group" in factors and "| fast | velocity_only | 1 |" in factors
+    assert (tmp_path / "plots" / "suite_errors.png").read_bytes()[:4] == b"\x89PNG"
 
 
 def test_bad_arguments_are_rejected(bench, tmp_path, capsys):

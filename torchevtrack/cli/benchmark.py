@@ -86,5 +86,10 @@ def run(args: argparse.Namespace) -> int:
                             progress=not args.quiet, init_noise=args.init_noise, trials=args.trials, seed=args.seed,
                             predictions=predictions, executor=executor)
     print(table_markdown(res), end="")
-    print(f"\nwritten: {args.out / 'results.json'}, {args.out / 'table.md'}")
+    from torchevtrack.report import write_suite_report
+
+    factors, plot = write_suite_report(res, args.benchdir, args.out)
+    print()
+    print(factors.read_text(), end="")
+    print(f"\nwritten: {args.out / 'results.json'}, {args.out / 'table.md'}, {factors}, {plot}")
     return 0
