@@ -89,3 +89,23 @@ def test_ray_and_process_pool_results_equal_the_serial_ones(bench, tmp_path, cap
                 assert np.array_equal(a[1].numpy(), b[1].numpy()) and np.array_equal(a[0].numpy(), b[0].numpy())
     capsys.readouterr()
     print("wall s:", {k: round(v, 1) for k, v in wall.items()})  # shown with -s
+
+
+def test_synth_benchmark_on_ray_writes_the_serial_sequences(tmp_path, capsys):
+    pytest.importorskip("ray", reason="the ray extra is not installed")
+    from torchevtrack.cli import main
+    from torchevtrack.synth.sequence import Sequence
+
+    names = ["potted_regular", "tomato_fast"]
+    for kind, extra in (("serial", []), ("ray", ["--jobs", "2"])):
+        assert main(["synth-benchmark", "--out", str(tmp_path / kind), "--duration", "0.01", "--only", *names,
+                     "--quiet", "--executor", kind, *extra]) == 0
+    printed = capsys.readouterr().out
+    assert printed.count("potted_regular: ") == 2 and printed.count("tomato_fast: ") == 2  # each as it completes
+    for name in names:
+        a, b = Sequence.load(tmp_path / "serial" / name), Sequence.load(tmp_path / "ray" / name)
+        assert len(a.events) > 0
+        for f in "xytp":
+            assert np.array_equal(getattr(a.events, f).numpy(), getattr(b.events, f).numpy()), (name, f)
+        assert np.array_equal(a.gt_poses.numpy(), b.gt_poses.numpy()) and a.meta == b.meta
+    assert (tmp_path / "ray" / "suite.json").read_text() == (tmp_path / "serial" / "suite.json").read_text()

@@ -5,8 +5,8 @@ finish in; the function and the tasks must be picklable for ``"process"`` and ``
 function, plain data). The benchmark commands run each (sequence, method, draw) as one task, so the three
 executors give the same results and differ only in where the work runs.
 
-* ``"serial"``: one task after the other in this process (the default; the only one that shows per-task
-  progress bars of the tasks themselves).
+* ``"serial"``: one task after the other in this process (the default; the only one that shows the tasks' own
+  progress bars).
 * ``"process"``: a local pool of ``workers`` processes (default: the usable cores), started with ``spawn``;
   each worker runs torch on one thread.
 * ``"ray"``: Ray tasks of one CPU each. Without ``address``, a local Ray is started on this machine with
@@ -51,9 +51,10 @@ class Executor:
     name = "serial"
     parallel = False
 
-    def map(self, fn: Callable[[Any], Any], tasks: Sequence[Any], *, desc: str = "tasks",
-            progress: bool = True) -> list:
-        """``[fn(t) for t in tasks]``, in task order; a tqdm bar over finished tasks when ``progress``.
+    def map(self, fn: Callable[[Any], Any], tasks: Sequence[Any], *, desc: str = "tasks", progress: bool = True,
+            on_done: Callable[[int, Any], None] | None = None) -> list:
+        """``[fn(t) for t in tasks]``, in task order; a tqdm bar over finished tasks when ``progress``, and
+        ``on_done(index, result)`` called in this process as each task finishes (in the order they finish).
 
         The first task that raises stops the run and its exception propagates.
         """
@@ -72,8 +73,13 @@ class Executor:
 class SerialExecutor(Executor):
     """Every task in the calling process, one after the other."""
 
-    def map(self, fn, tasks, *, desc="tasks", progress=True):
-        return [fn(t) for t in tqdm(tasks, desc=desc, unit="task", disable=not progress)]
+    def map(self, fn, tasks, *, desc="tasks", progress=True, on_done=None):
+        out = []
+        for i, t in enumerate(tqdm(tasks, desc=desc, unit="task", disable=not progress)):
+            out.append(fn(t))
+            if on_done is not None:
+                on_done(i, out[-1])
+        return out
 
 
 def _one_thread() -> None:
@@ -93,12 +99,15 @@ class ProcessExecutor(Executor):
         self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
                                          initializer=_one_thread)
 
-    def map(self, fn, tasks, *, desc="tasks", progress=True):
+    def map(self, fn, tasks, *, desc="tasks", progress=True, on_done=None):
         futures = [self._pool.submit(fn, t) for t in tasks]
+        index = {f: i for i, f in enumerate(futures)}
         try:
             with tqdm(total=len(futures), desc=desc, unit="task", disable=not progress) as bar:
                 for f in as_completed(futures):
-                    f.result()  # the first failure stops the run
+                    r = f.result()  # the first failure stops the run
+                    if on_done is not None:
+                        on_done(index[f], r)
                     bar.update()
         except BaseException:
             for f in futures:
@@ -133,17 +142,20 @@ class RayExecutor(Executor):
         self.address = address
         self.cpus = int(ray.cluster_resources().get("CPU", 0))
 
-    def map(self, fn, tasks, *, desc="tasks", progress=True):
+    def map(self, fn, tasks, *, desc="tasks", progress=True, on_done=None):
         ray = self._ray
         remote = ray.remote(num_cpus=1, max_retries=0)(_apply)
         fn_ref = ray.put(fn)
         refs = [remote.remote(fn_ref, t) for t in tasks]
+        index = {r: i for i, r in enumerate(refs)}
         pending = list(refs)
         try:
             with tqdm(total=len(refs), desc=desc, unit="task", disable=not progress) as bar:
                 while pending:
                     done, pending = ray.wait(pending, num_returns=1)
-                    ray.get(done)  # the first failure stops the run
+                    r = ray.get(done[0])  # the first failure stops the run
+                    if on_done is not None:
+                        on_done(index[done[0]], r)
                     bar.update(len(done))
         except BaseException:
             for r in pending:

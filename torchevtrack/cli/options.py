@@ -23,13 +23,14 @@ def config_from_args(args: argparse.Namespace) -> TrackerConfig:
     return cfg.override(args.set) if args.set else cfg
 
 
-def add_executor_options(p: argparse.ArgumentParser) -> None:
-    """Add ``--executor serial|process|ray``, ``--jobs N`` and ``--address ADDR`` to parser ``p``."""
+def add_executor_options(p: argparse.ArgumentParser, default: str = "serial") -> None:
+    """Add ``--executor serial|process|ray`` (default ``default``), ``--jobs N`` and ``--address ADDR`` to
+    parser ``p``."""
     from torchevtrack.executor import EXECUTORS
 
-    p.add_argument("--executor", choices=EXECUTORS, default="serial",
-                   help="where the independent tasks run: one after the other here (default), a local process pool, "
-                   "or Ray tasks (a local Ray without --address); the results are the same")
+    p.add_argument("--executor", choices=EXECUTORS, default=default,
+                   help=f"where the independent tasks run: one after the other here, a local process pool, or Ray "
+                   f"tasks (a local Ray without --address); the results are the same (default: {default})")
     p.add_argument("--jobs", type=int, help="processes of --executor process, CPUs of a local Ray "
                    "(default: the usable cores)")
     p.add_argument("--address", help="Ray cluster to run on with --executor ray: auto, HOST:6379 or ray://HOST:10001 "

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from torchevtrack.camera import Camera
+from torchevtrack.cli.options import add_executor_options, executor_from_args
 from torchevtrack.synth.suite import CAMERA_PRESETS, MOTIONS
 
 
@@ -128,7 +129,11 @@ def run_benchmark(args: argparse.Namespace) -> int:
     print(f"generating {len(todo)} sequence(s) into {out}; a 4 s sequence takes about 10 s (slow, small camera) to "
           "several minutes (fast, hd) of one core")
     start = time.perf_counter()
-    results = generate_suite(todo, out, jobs=args.jobs, progress=not args.quiet)
+    if args.executor == "process" and args.address is None:  # the suite's own pool, sized to the work
+        results = generate_suite(todo, out, jobs=args.jobs, progress=not args.quiet)
+    else:
+        with executor_from_args(args) as executor:
+            results = generate_suite(todo, out, executor=executor, progress=not args.quiet)
     took = time.perf_counter() - start
     print(f"{len(results)} sequences in {took:.1f} s wall ({sum(r['seconds'] for r in results):.1f} s of workers)")
     return 0
@@ -175,6 +180,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument("--duration", type=float, help="seconds per sequence (default 4)")
     b.add_argument("--only", nargs="+", metavar="NAME", help="generate only these sequences (e.g. mustard_fast)")
     b.add_argument("--dry-run", action="store_true", help="write only --out/suite.json")
-    b.add_argument("--jobs", type=int, help="worker processes (default: the CPU count)")
+    add_executor_options(b, default="process")
     _add_common(b)
     b.set_defaults(func=run_benchmark)

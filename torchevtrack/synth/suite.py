@@ -31,8 +31,7 @@ import json
 import os
 import shutil
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from multiprocessing import get_context
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -236,33 +235,33 @@ def _cost(entry: dict) -> float:
     return entry["duration"] * speed * scale * (1.5 if entry["occluder"] != "none" else 1.0)
 
 
-def generate_suite(entries: list[dict], out_dir: str | Path, *, jobs: int | None = None,
+def generate_suite(entries: list[dict], out_dir: str | Path, *, executor=None, jobs: int | None = None,
                    progress: bool = True) -> list[dict]:
-    """Generate ``entries`` into ``out_dir`` with ``jobs`` worker processes (default: the CPU count), longest
-    first, one sequence per task. Returns the per-sequence results of :func:`generate_entry` in entry order.
-    A failing sequence stops the run (the others already written stay)."""
+    """Generate ``entries`` into ``out_dir``, longest first, one sequence per task of ``executor``
+    (:mod:`torchevtrack.executor`; on a Ray cluster ``out_dir`` must be a path every node writes to), by default
+    a local pool of ``jobs`` processes (default: the usable cores; one sequence or ``jobs=1``: in this process).
+    Prints each sequence as it completes. Returns the per-sequence results of :func:`generate_entry` in entry
+    order. A failing sequence stops the run (the others already written stay)."""
+    from torchevtrack.executor import ProcessExecutor, SerialExecutor
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = (os.cpu_count() or 1) if jobs is None else int(jobs)
-    if jobs < 1:
+    if jobs is not None and (isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1):
         raise ValueError(f"jobs must be >= 1, got {jobs}")
-    jobs = min(jobs, len(entries))  # a single sequence runs here, without starting a worker
     order = sorted(entries, key=_cost, reverse=True)
-    results = {}
-    bar = tqdm(total=len(entries), desc="sequences", unit="seq", disable=not progress)
-    if jobs <= 1:
-        for e in order:
-            r = results[e["name"]] = generate_entry(e, out)
-            bar.write(f"{out / r['name']}: {r['events']} events, {r['frames']} frames, {r['seconds']:.1f} s")
-            bar.update()
-    else:
-        # spawn: fresh interpreters (no forked OpenGL or numba thread state)
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
-            futures = {pool.submit(generate_entry, e, out): e["name"] for e in order}
-            for f in as_completed(futures):
-                r = f.result()
-                results[r["name"]] = r
-                bar.write(f"{out / r['name']}: {r['events']} events, {r['frames']} frames, {r['seconds']:.1f} s")
-                bar.update()
-    bar.close()
+    own = None
+    if executor is None:
+        workers = min(jobs or os.cpu_count() or 1, len(entries))
+        executor = own = SerialExecutor() if workers <= 1 else ProcessExecutor(workers)
+
+    def done(i: int, r: dict) -> None:
+        tqdm.write(f"{out / r['name']}: {r['events']} events, {r['frames']} frames, {r['seconds']:.1f} s")
+
+    try:
+        finished = executor.map(partial(generate_entry, out_dir=out), order, desc="sequences", progress=progress,
+                                on_done=done)
+    finally:
+        if own is not None:
+            own.close()
+    results = {r["name"]: r for r in finished}
     return [results[e["name"]] for e in entries]
