@@ -377,6 +377,7 @@ def test_foreign_predictions_are_scored_as_eval_scores_them(bench, tmp_path, cap
     assert "learned" in rows and CELL.match(rows["learned"][1].rstrip("†"))
     assert "learned" in {r[0] for r in _table(printed, "## ADD-S AUC")}
     assert "learned" not in {r[0] for r in _table(printed, "## Tracking loss")}
+    assert "| learned |" in (out / "factors.md").read_text()  # the per-factor tables too
 
 
 def test_foreign_prediction_errors(bench, tmp_path, capsys):
