@@ -258,3 +258,31 @@ def test_sequence_factors_from_suite_json_and_meta(tmp_path):
     f = sequence_factors(d, ["extra"])["extra"]
     assert f == {"motion": "turn", "camera": "96x72", "noise": "high", "hand": "hand", "texture": "none",
                  "size": size_class(trimesh.load(d / "extra" / "mesh.ply").extents)}
+
+
+def _inside_events(seq, erode: int = 3) -> int:
+    """Events well inside the object's silhouette (eroded by ``erode`` px) at the ground-truth pose nearest each
+    event's time."""
+    from scipy.ndimage import binary_erosion
+
+    ev = seq.events
+    idx = np.clip(np.searchsorted(seq.gt_t_us.numpy(), ev.t.numpy()), 0, len(seq.gt_t_us) - 1)
+    with make_renderer(seq.mesh, seq.camera, "raster") as r:
+        masks = r.render(seq.gt_poses, shaded=False).depth.numpy() > 0
+    masks = np.stack([binary_erosion(m, iterations=erode) for m in masks])
+    return int(masks[idx, ev.y.numpy().astype(int), ev.x.numpy().astype(int)].sum())
+
+
+@pytest.mark.parametrize("backend", ["pyrender", "raster"])
+def test_texture_makes_events_inside_the_silhouette(tmp_path, backend):
+    path = tmp_path / "plain_box.ply"  # no colours: without a texture only its shading changes inside
+    trimesh.creation.box((0.06, 0.08, 0.1)).export(path)
+    cam = Camera(160, 120, 150.0, 150.0, 80.0, 60.0)
+    kw = dict(camera=cam, render_backend=backend, progress=False)
+    plain = generate_sequence(str(path), "regular", 0.1, 4, **kw)
+    printed = generate_sequence(str(path), "regular", 0.1, 4, texture="random", **kw)
+    assert torch.equal(plain.gt_poses, printed.gt_poses)
+    assert printed.meta["texture"] == {"kind": "random", "seed": 4} and "texture" not in plain.meta
+    assert printed.mesh.visual.kind is None  # the saved mesh stays the geometry
+    n_plain, n_printed = _inside_events(plain), _inside_events(printed)
+    assert n_printed > 3 * max(n_plain, 100)

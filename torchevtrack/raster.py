@@ -75,7 +75,7 @@ from torchevtrack.render import (
     _unit_poses,
 )
 
-__all__ = ["RasterMesh", "RasterRenderer", "raster_mesh", "rasterise"]
+__all__ = ["RasterMesh", "RasterRenderer", "RasterTexture", "raster_arrays", "raster_mesh", "rasterise"]
 
 
 class RasterMesh(NamedTuple):
@@ -96,20 +96,67 @@ class RasterMesh(NamedTuple):
     normals: np.ndarray
 
 
+class RasterTexture(NamedTuple):
+    """The texture of a textured mesh as the rasteriser samples it (:func:`raster_arrays`): the luminance image
+    and its mipmaps (2 x 2 means, rounded to 8 bits as OpenGL's), every level's rows top-down, one after another.
+
+    Shape:
+        uv: ``(V, 2)`` float32 texture coordinates of the :class:`RasterMesh` vertices (``v`` up, repeating).
+        texels: ``(N,)`` float32 in ``[0, 1]``, all levels flattened.
+        levels: ``(L, 3)`` int64 ``(offset into texels, width, height)`` of each level, level 0 the image.
+    """
+
+    uv: np.ndarray
+    texels: np.ndarray
+    levels: np.ndarray
+
+
 def raster_mesh(mesh: trimesh.Trimesh) -> RasterMesh:
     """The triangles and shading attributes of the pyrender backend (crease-split vertices, albedo from the
-    vertex colours), with the face planes used for back-face culling."""
-    vertices, faces, albedo, normals = _shading_mesh(mesh)
+    vertex or face colours), with the face planes used for back-face culling."""
+    return raster_arrays(mesh)[0]
+
+
+def raster_arrays(mesh: trimesh.Trimesh) -> tuple[RasterMesh, RasterTexture | None]:
+    """:func:`raster_mesh` and, for a textured mesh (``TextureVisuals`` with UVs and an image), its
+    :class:`RasterTexture` (else ``None``), from one preparation of the mesh."""
+    shading = _shading_mesh(mesh)
+    vertices, faces = shading.vertices, shading.faces
     corners = vertices[faces]
     n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     planes = np.concatenate((n, np.einsum("fk,fk->f", n, corners[:, 0])[:, None]), axis=1).T
-    return RasterMesh(vertices, faces.astype(np.uint32), np.ascontiguousarray(planes), albedo.astype(np.float32),
-                      normals.astype(np.float32))
+    arrays = RasterMesh(vertices, faces.astype(np.uint32), np.ascontiguousarray(planes),
+                        shading.albedo.astype(np.float32), shading.normals.astype(np.float32))
+    if shading.texture is None:
+        return arrays, None
+    return arrays, RasterTexture(np.ascontiguousarray(shading.uv, dtype=np.float32), *_mipmaps(shading.texture))
+
+
+def _mipmaps(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The ``texels`` and ``levels`` of :class:`RasterTexture` of a uint8 image ``(h, w)`` (powers of two): each
+    level the 2 x 2 mean of the previous one (1-wide sides averaged in pairs along the other), down to 1 x 1."""
+    level = image.astype(np.float64)
+    flat, levels, offset = [], [], 0
+    while True:
+        h, w = level.shape
+        flat.append((level / 255.0).astype(np.float32).reshape(-1))
+        levels.append((offset, w, h))
+        offset += w * h
+        if w == 1 and h == 1:
+            break
+        if h > 1:
+            level = (level[0::2] + level[1::2]) / 2
+        if w > 1:
+            level = (level[:, 0::2] + level[:, 1::2]) / 2
+        level = np.floor(level + 0.5)
+    return np.concatenate(flat), np.asarray(levels, dtype=np.int64)
 
 
 def rasterise(mesh: RasterMesh, poses: np.ndarray, camera: Camera, *, znear: float = 0.01, zfar: float = 20.0,
-              background: float = 0.0, shaded: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
-    """Depth and Lambert grey of a mesh at each pose, seen by ``camera`` (see the module docstring).
+              background: float = 0.0, shaded: bool = True,
+              texture: RasterTexture | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """Depth and Lambert grey of a mesh at each pose, seen by ``camera`` (see the module docstring); with
+    ``texture`` (the mesh's, :func:`raster_arrays`) the albedo is the texture's, sampled trilinearly.
 
     Shape:
         poses: ``(B, 7)`` float64 ``[t (m), unit q (w, x, y, z)]``, object in the OpenCV camera frame.
@@ -119,8 +166,12 @@ def rasterise(mesh: RasterMesh, poses: np.ndarray, camera: Camera, *, znear: flo
     """
     depth = np.empty((len(poses), camera.height, camera.width), dtype=np.float32)
     gray = np.empty_like(depth) if shaded else np.empty((len(poses), 0, 0), dtype=np.float32)
-    _render_kernel(*mesh, poses, camera.fx, camera.fy, camera.cx, camera.cy, znear, zfar, LIGHT_DIRECTION, AMBIENT,
-                   background, depth, gray)
+    if texture is None:
+        _render_kernel(*mesh, poses, camera.fx, camera.fy, camera.cx, camera.cy, znear, zfar, LIGHT_DIRECTION,
+                       AMBIENT, background, depth, gray)
+    else:
+        _render_kernel(*mesh, poses, camera.fx, camera.fy, camera.cx, camera.cy, znear, zfar, LIGHT_DIRECTION,
+                       AMBIENT, background, depth, gray, tuple(texture))
     return depth, gray if shaded else None
 
 
@@ -130,8 +181,9 @@ _FLUSH = 2048  # pixel wins shaded at a time
 
 @numba.njit(cache=True, nogil=True)
 def _render_kernel(vertices, faces, planes, albedo, normals, poses, fx, fy, cx, cy, znear, zfar, light, ambient,
-                   background, depth, gray):
-    """Rasterise pose ``b`` into ``depth[b]`` and, unless ``gray`` has no pixels, shade it into ``gray[b]``."""
+                   background, depth, gray, texture=None):
+    """Rasterise pose ``b`` into ``depth[b]`` and, unless ``gray`` has no pixels, shade it into ``gray[b]``;
+    ``texture``: ``None`` or the tuple ``(uv, texels, levels)`` of the mesh's :class:`RasterTexture`."""
     B, H, W = depth.shape
     proj = np.empty(5 * vertices.shape[0])
     front, seen = np.empty(faces.shape[0], dtype=np.int64), np.empty(faces.shape[0], dtype=np.bool_)
@@ -153,16 +205,17 @@ def _render_kernel(vertices, faces, planes, albedo, normals, poses, fx, fy, cx, 
                      R[0, 1] * light[0] + R[1, 1] * light[1] + R[2, 1] * light[2],
                      R[0, 2] * light[0] + R[1, 2] * light[1] + R[2, 2] * light[2])
         shading = (albedo, normals, light_obj, ambient, gray[b].reshape(-1))
-        _draw(proj, faces, front[:n], znear, zfar, depth[b], shading, box, edges, wins, weights)
+        _draw(proj, faces, front[:n], znear, zfar, depth[b], shading, box, edges, wins, weights, texture)
 
 
 @numba.njit(cache=True, nogil=True)
-def _draw(proj, faces, front, znear, zfar, depth, shading, box, edges, wins, weights):
+def _draw(proj, faces, front, znear, zfar, depth, shading, box, edges, wins, weights, texture):
     """Z-buffer pass of the faces ``front`` over an all-zero ``depth`` ``(h, w)``: for each pixel, the camera
     ``z`` (metres) of the nearest of them in ``[znear, zfar]`` and, unless the grey image (the last of the
     ``shading`` arguments of :func:`_shade`) has no pixels, its Lambert grey. Per chunk of ``_CHUNK`` faces:
     :func:`_face_setups`, then :func:`_cover` per face, queueing the pixels won in ``wins, weights``, which
-    are shaded at the end of the chunk or before ``_FLUSH`` would be passed."""
+    are shaded at the end of the chunk or before ``_FLUSH`` would be passed (:func:`_shade_textured` with a
+    ``texture``)."""
     H, W = depth.shape
     depth = depth.reshape(-1)
     shaded = shading[-1].size != 0
@@ -172,11 +225,11 @@ def _draw(proj, faces, front, znear, zfar, depth, shading, box, edges, wins, wei
         for r in range(k):
             if m + (box[r, 1] - box[r, 0] + 1) * (box[r, 3] - box[r, 2] + 1) > _FLUSH:
                 if shaded:
-                    _shade(box, wins[:m], weights, *shading)
+                    _shade_chunk(box, edges, wins[:m], weights, W, shading, texture)
                 m = 0
             m = _cover(box[r], edges[r], r, W, znear, zfar, depth, wins, weights, m)
         if shaded:
-            _shade(box, wins[:m], weights, *shading)
+            _shade_chunk(box, edges, wins[:m], weights, W, shading, texture)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -296,6 +349,16 @@ def _cover(box, e, r, W, znear, zfar, depth, wins, weights, m):
 
 
 @numba.njit(cache=True, nogil=True)
+def _shade_chunk(box, edges, wins, weights, W, shading, texture):
+    """:func:`_shade` the queued pixels, or :func:`_shade_textured` them with a ``texture`` (a ``None``
+    texture compiles to the untextured call alone)."""
+    if texture is None:
+        _shade(box, wins, weights, *shading)
+    else:
+        _shade_textured(box, edges, wins, weights, W, texture[0], texture[1], texture[2], *shading)
+
+
+@numba.njit(cache=True, nogil=True)
 def _shade(box, wins, weights, albedo, normals, light, ambient, gray):
     """Lambert grey at the pixels ``wins[:, 0]`` of the window (``gray`` flattened), in order, from the albedo
     and normal interpolated at ``weights`` over the vertices of the records ``wins[:, 1]``, in float32 (the
@@ -314,6 +377,61 @@ def _shade(box, wins, weights, albedo, normals, light, ambient, gray):
         n2 = w0 * normals[i0, 2] + w1 * normals[i1, 2] + w2 * normals[i2, 2]
         cos = (n0 * l0 + n1 * l1 + n2 * l2) / max(math.sqrt(n0 * n0 + n1 * n1 + n2 * n2), tiny)
         gray[p] = alb * (amb + (one - amb) * max(cos, zero))
+
+
+@numba.njit(cache=True, nogil=True)
+def _shade_textured(box, edges, wins, weights, W, uv, texels, levels, albedo, normals, light, ambient, gray):
+    """:func:`_shade` with the albedo sampled from the texture (``texels, levels`` of :class:`RasterTexture`) at
+    the perspective-correct ``uv``, trilinearly as OpenGL's ``LINEAR_MIPMAP_LINEAR`` (repeating): the level of
+    detail is ``log2`` of the larger pixel footprint in texels, from the exact derivatives of ``uv`` along the
+    window's x and y (``uv = sum e_i uv_i / sum e_i`` with the face's edge functions ``e_i``)."""
+    f4 = np.float32
+    l0, l1, l2, amb = f4(light[0]), f4(light[1]), f4(light[2]), f4(ambient)
+    one, tiny, zero = f4(1.0), f4(1e-6), f4(0.0)
+    W0, H0, top = levels[0, 1], levels[0, 2], levels.shape[0] - 1
+    for j in range(wins.shape[0]):
+        p, r = wins[j, 0], wins[j, 1]
+        i0, i1, i2 = box[r, 4], box[r, 5], box[r, 6]
+        w0, w1 = weights[j, 0], weights[j, 1]
+        w2 = one - w0 - w1
+        u = w0 * uv[i0, 0] + w1 * uv[i1, 0] + w2 * uv[i2, 0]
+        v = w0 * uv[i0, 1] + w1 * uv[i1, 1] + w2 * uv[i2, 1]
+        # d(uv)/dx = (sum a_i uv_i - uv sum a_i) / S, S = sum e_i at the pixel (the same for y with b_i)
+        e = edges[r]
+        x, y = p % W, p // W
+        a, b = e[0] + e[3] + e[6], e[1] + e[4] + e[7]
+        S = a * x + b * y + e[2] + e[5] + e[8]
+        dudx = (e[0] * uv[i0, 0] + e[3] * uv[i1, 0] + e[6] * uv[i2, 0] - u * a) / S
+        dvdx = (e[0] * uv[i0, 1] + e[3] * uv[i1, 1] + e[6] * uv[i2, 1] - v * a) / S
+        dudy = (e[1] * uv[i0, 0] + e[4] * uv[i1, 0] + e[7] * uv[i2, 0] - u * b) / S
+        dvdy = (e[1] * uv[i0, 1] + e[4] * uv[i1, 1] + e[7] * uv[i2, 1] - v * b) / S
+        rho2 = max((dudx * W0) ** 2 + (dvdx * H0) ** 2, (dudy * W0) ** 2 + (dvdy * H0) ** 2)
+        lod = 0.5 * math.log2(rho2) if rho2 > 1.0 else 0.0
+        lo = min(int(lod), top)
+        t = lod - lo if lo < top else 0.0
+        alb = _bilinear(texels, levels[lo], u, v)
+        if t > 0.0:
+            alb = (1.0 - t) * alb + t * _bilinear(texels, levels[lo + 1], u, v)
+        n0 = w0 * normals[i0, 0] + w1 * normals[i1, 0] + w2 * normals[i2, 0]
+        n1 = w0 * normals[i0, 1] + w1 * normals[i1, 1] + w2 * normals[i2, 1]
+        n2 = w0 * normals[i0, 2] + w1 * normals[i1, 2] + w2 * normals[i2, 2]
+        cos = (n0 * l0 + n1 * l1 + n2 * l2) / max(math.sqrt(n0 * n0 + n1 * n1 + n2 * n2), tiny)
+        gray[p] = f4(alb) * (amb + (one - amb) * max(cos, zero))
+
+
+@numba.njit(cache=True, nogil=True)
+def _bilinear(texels, level, u, v):
+    """Bilinear sample (repeating) of one mipmap ``level`` ``(offset, width, height)`` at ``(u, v)`` (``v`` up;
+    texel centres at half-integers, as OpenGL's)."""
+    offset, w, h = level[0], level[1], level[2]
+    x, y = u * w - 0.5, (1.0 - v) * h - 0.5
+    fx, fy = math.floor(x), math.floor(y)
+    ax, ay = x - fx, y - fy
+    c0, r0 = int(fx) % w, int(fy) % h
+    c1, r1 = (c0 + 1) % w, (r0 + 1) % h
+    top = (1.0 - ax) * texels[offset + r0 * w + c0] + ax * texels[offset + r0 * w + c1]
+    bottom = (1.0 - ax) * texels[offset + r1 * w + c0] + ax * texels[offset + r1 * w + c1]
+    return (1.0 - ay) * top + ay * bottom
 
 
 class RasterRenderer:
@@ -343,11 +461,13 @@ class RasterRenderer:
         self.camera = camera
         self.znear, self.zfar = float(znear), float(zfar)
         self.background = float(background)
-        self._mesh: RasterMesh | None = raster_mesh(mesh)
+        self._mesh: RasterMesh | None
+        self._texture: RasterTexture | None
+        self._mesh, self._texture = raster_arrays(mesh)
 
     def close(self) -> None:
-        """Drop the mesh (the renderer can no longer be used)."""
-        self._mesh = None
+        """Drop the mesh and its texture (the renderer can no longer be used)."""
+        self._mesh = self._texture = None
 
     @property
     def raster_mesh(self) -> RasterMesh:
@@ -355,6 +475,13 @@ class RasterRenderer:
         if self._mesh is None:
             raise RuntimeError("renderer is closed")
         return self._mesh
+
+    @property
+    def raster_texture(self) -> RasterTexture | None:
+        """The mesh's texture as the kernel samples it, ``None`` for an untextured mesh (:func:`raster_arrays`)."""
+        if self._mesh is None:
+            raise RuntimeError("renderer is closed")
+        return self._texture
 
     def __enter__(self) -> "RasterRenderer":
         return self
@@ -384,4 +511,4 @@ class RasterRenderer:
         crop of it; returns depth and grey (or ``None``) ``(B, h, w)`` float32 (for a caller whose poses are valid,
         such as the tracker)."""
         return rasterise(self._mesh, poses, camera, znear=self.znear, zfar=self.zfar, background=self.background,
-                         shaded=shaded)
+                         shaded=shaded, texture=self._texture)

@@ -49,10 +49,12 @@ import ctypes.util
 import math
 import os
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
 import trimesh
+from PIL import Image
 
 from torchevtrack.camera import Camera
 from torchevtrack.geometry import _nb_normalise_quaternions, pose_to_matrix
@@ -290,9 +292,13 @@ class _GLTarget:
                 program.set_uniform("material.base_color_factor", material.baseColorFactor)
                 program.set_uniform("material.metallic_factor", material.metallicFactor)
                 program.set_uniform("material.roughness_factor", material.roughnessFactor)
+                if material.baseColorTexture is not None:
+                    program.set_uniform("material.base_color_texture", 0)  # texture unit 0, bound by draw()
             self._programs[shaded] = (program._program_id, GL.glGetUniformLocation(program._program_id, "M"),
                                       GL.glGetUniformLocation(program._program_id, "P"))
         GL.glUseProgram(0)
+        texture = self._primitive.material.baseColorTexture
+        self._texture = None if texture is None else texture._texid
         self._framebuffer = GL.glGenFramebuffers(1)
         self._buffers = GL.glGenRenderbuffers(2)
         self._size = (0, 0)
@@ -332,6 +338,9 @@ class _GLTarget:
         GL.glEnable(GL.GL_BLEND)
         GL.glBlendFunc(GL.GL_ONE, GL.GL_ZERO)
         GL.glPolygonMode(GL.GL_FRONT_AND_BACK, GL.GL_FILL)
+        if shaded and self._texture is not None:
+            GL.glActiveTexture(GL.GL_TEXTURE0)
+            GL.glBindTexture(GL.GL_TEXTURE_2D, self._texture)
         primitive = self._primitive
         primitive._bind()
         GL.glDrawElementsInstanced(primitive.mode, primitive.indices.size, GL.GL_UNSIGNED_INT, ctypes.c_void_p(0), 1)
@@ -390,33 +399,118 @@ def _shade(rgba: np.ndarray, mask: np.ndarray, R: np.ndarray, background: float)
     return gray
 
 
-def _shading_mesh(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+class _ShadingMesh(NamedTuple):
+    """The triangles and per-vertex shading attributes every backend interpolates (:func:`_shading_mesh`).
+
+    Shape:
+        vertices: ``(V, 3)`` float64 metres; faces: ``(F, 3)`` int64, counter-clockwise seen from outside.
+        albedo: ``(V,)`` float64 in ``[0, 1]`` (1 on a textured mesh: the texture is its albedo).
+        normals: ``(V, 3)`` float64 unit object-frame normals.
+        uv: ``(V, 2)`` float64 texture coordinates (``v`` up; repeating outside ``[0, 1]``) or ``None``.
+        texture: ``(h, w)`` uint8 luminance image (rows top-down, ``h`` and ``w`` powers of two) or ``None``.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    albedo: np.ndarray
+    normals: np.ndarray
+    uv: np.ndarray | None
+    texture: np.ndarray | None
+
+
+def _shading_mesh(mesh: trimesh.Trimesh) -> _ShadingMesh:
     """The triangles and per-vertex shading attributes every backend interpolates: normals are smooth
     except across creases sharper than 30 degrees, where vertices are split.
 
-    Shape: returns vertices ``(V, 3)`` float64 metres, faces ``(F, 3)`` int64, albedo ``(V,)`` float64
-    in ``[0, 1]`` and unit object-frame normals ``(V, 3)`` float64.
+    Albedo: the luminance of a texture image (``TextureVisuals`` with UVs and an image), of the face colours,
+    of the vertex colours, or :data:`DEFAULT_ALBEDO`. Textured and face-coloured meshes are shaded as one
+    surface: their vertices are merged by position for the normals, then split wherever the faces around a
+    vertex need different UVs or albedos.
     """
+    texture = _texture_of(mesh)
+    if texture is not None:
+        uv, image = texture
+        vertices, faces, normals, uv = _split_shading(mesh, uv[mesh.faces])
+        return _ShadingMesh(vertices, faces, np.ones(len(vertices)), normals, uv, image)
+    if mesh.visual.kind == "face":
+        face_albedo = np.asarray(mesh.visual.face_colors[:, :3], dtype=np.float64) @ _LUMA / 255.0
+        vertices, faces, normals, albedo = _split_shading(mesh, np.repeat(face_albedo[:, None, None], 3, axis=1))
+        return _ShadingMesh(vertices, faces, albedo[:, 0], normals, None, None)
     smooth = trimesh.graph.smooth_shade(mesh, angle=_CREASE_ANGLE)
     if smooth.visual.kind == "vertex":
         albedo = np.asarray(smooth.visual.vertex_colors[:, :3], dtype=np.float64) @ _LUMA / 255.0
     else:
         albedo = np.full(len(smooth.vertices), DEFAULT_ALBEDO)
-    return (np.asarray(smooth.vertices, dtype=np.float64), np.asarray(smooth.faces, dtype=np.int64), albedo,
-            np.asarray(smooth.vertex_normals, dtype=np.float64))
+    return _ShadingMesh(np.asarray(smooth.vertices, dtype=np.float64), np.asarray(smooth.faces, dtype=np.int64),
+                        albedo, np.asarray(smooth.vertex_normals, dtype=np.float64), None, None)
+
+
+def _texture_of(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray] | None:
+    """UVs ``(V, 2)`` float64 and luminance image ``(h, w)`` uint8 of a textured mesh, else ``None``. The image
+    is resized to powers of two (nearest, at most 4096) so both backends build the same mipmaps."""
+    visual = mesh.visual
+    if visual.kind != "texture" or getattr(visual, "uv", None) is None or len(visual.uv) != len(mesh.vertices):
+        return None
+    material = visual.material
+    image = getattr(material, "image", None)
+    if image is None:
+        image = getattr(material, "baseColorTexture", None)
+    if image is None:
+        return None
+    if not isinstance(image, Image.Image):
+        image = Image.fromarray(np.asarray(image))
+    rgb = image.convert("RGB")
+    size = tuple(min(4096, 2 ** max(0, round(math.log2(n)))) for n in rgb.size)
+    if size != rgb.size:
+        rgb = rgb.resize(size, Image.BILINEAR)
+    luminance = np.asarray(rgb, dtype=np.float64) @ _LUMA
+    return np.asarray(visual.uv, dtype=np.float64), np.clip(np.rint(luminance), 0, 255).astype(np.uint8)
+
+
+def _split_shading(mesh: trimesh.Trimesh, corner: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                       np.ndarray]:
+    """Crease-split smooth shading of ``mesh``'s geometry (vertices merged by position) with the per-corner
+    attributes ``corner`` ``(F, 3, k)``: vertices ``(V, 3)``, faces ``(F, 3)`` (``mesh``'s faces, reordered),
+    unit normals ``(V, 3)`` and attributes ``(V, k)``, a vertex per distinct (smooth vertex, attribute)."""
+    positions, merged = np.unique(np.asarray(mesh.vertices, dtype=np.float64), axis=0, return_inverse=True)
+    geometry = trimesh.Trimesh(positions, merged.reshape(-1)[mesh.faces], process=False)
+    smooth = trimesh.graph.smooth_shade(geometry, angle=_CREASE_ANGLE)
+    # smooth_shade regroups the faces: match them to the input's by their corner positions
+    n = len(mesh.faces)
+    a = geometry.vertices[geometry.faces].reshape(n, 9)
+    b = np.asarray(smooth.vertices)[smooth.faces].reshape(n, 9)
+    order = np.empty(n, dtype=np.int64)
+    order[np.lexsort(b.T[::-1])] = np.lexsort(a.T[::-1])
+    if not np.array_equal(a[order], b):
+        raise ValueError("mesh could not be prepared for shading (faces changed by smoothing)")
+    k = corner.shape[-1]
+    keys = np.concatenate((np.asarray(smooth.faces, dtype=np.float64).reshape(-1, 1),
+                           corner[order].reshape(-1, k)), axis=1)
+    unique, inverse = np.unique(keys, axis=0, return_inverse=True)
+    vid = unique[:, 0].astype(np.int64)
+    return (np.asarray(smooth.vertices, dtype=np.float64)[vid], inverse.reshape(n, 3).astype(np.int64),
+            np.asarray(smooth.vertex_normals, dtype=np.float64)[vid], unique[:, 1:])
 
 
 def _pyrender_mesh(mesh: trimesh.Trimesh) -> pyrender.Mesh:
     """pyrender mesh of :func:`_shading_mesh` whose vertex colours carry (albedo, normal * 0.5 + 0.5) for
-    the flat pass."""
-    vertices, faces, albedo, normals = _shading_mesh(mesh)
-    attributes = np.concatenate((albedo[:, None], normals * 0.5 + 0.5), axis=1)
-    material = pyrender.MetallicRoughnessMaterial(baseColorFactor=(1.0, 1.0, 1.0, 1.0), alphaMode="OPAQUE")
+    the flat pass; a texture becomes the base colour texture (luminance in red, 1 in green, blue and alpha),
+    which the flat pass multiplies into those colours (trilinear mipmapped sampling, repeating)."""
+    shading = _shading_mesh(mesh)
+    attributes = np.concatenate((shading.albedo[:, None], shading.normals * 0.5 + 0.5), axis=1)
+    texture = None
+    if shading.texture is not None:
+        rgba = np.full((*shading.texture.shape, 4), 255, dtype=np.uint8)
+        rgba[..., 0] = shading.texture
+        texture = pyrender.Texture(source=rgba, source_channels="RGBA")
+    material = pyrender.MetallicRoughnessMaterial(baseColorFactor=(1.0, 1.0, 1.0, 1.0), alphaMode="OPAQUE",
+                                                  baseColorTexture=texture)
     primitive = pyrender.Primitive(
-        positions=vertices.astype(np.float32),
-        normals=normals.astype(np.float32),
+        positions=shading.vertices.astype(np.float32),
+        normals=shading.normals.astype(np.float32),
+        texcoord_0=None if shading.uv is None else shading.uv.astype(np.float32),
         color_0=attributes.astype(np.float32),
-        indices=faces.astype(np.uint32),
+        indices=shading.faces.astype(np.uint32),
         material=material,
         mode=pyrender.constants.GLTF.TRIANGLES,
     )

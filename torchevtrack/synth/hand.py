@@ -128,8 +128,9 @@ def make_hand(obj: trimesh.Trimesh) -> Hand:
 def with_hand(obj: trimesh.Trimesh, hand: Hand) -> trimesh.Trimesh:
     """Object and hand as one mesh for rendering.
 
-    A textured object (``TextureVisuals`` with UVs and an image) keeps its texture: the hand is mapped onto a
-    band of skin colour added below the image (the object's UVs are rescaled to the old part). Otherwise the
+    A textured object (``TextureVisuals`` with UVs and an image) keeps its texture: the image moves into the
+    top-left quarter of one twice its size whose rest is skin, where the hand's UVs point (the object's UVs are
+    halved accordingly). Otherwise the
     result is vertex-coloured, an uncoloured object getting the renderers' default grey ``DEFAULT_ALBEDO``.
     """
     if obj.visual.kind == "texture":
@@ -140,9 +141,6 @@ def with_hand(obj: trimesh.Trimesh, hand: Hand) -> trimesh.Trimesh:
         grey[:, :3] = round(DEFAULT_ALBEDO * 255)
         body.visual = trimesh.visual.ColorVisuals(body, vertex_colors=grey)
     return trimesh.util.concatenate([body, hand.grip, hand.forearm])
-
-
-_BAND_PX = 16
 
 
 def _texture_image(visual) -> np.ndarray:
@@ -157,19 +155,19 @@ def _texture_image(visual) -> np.ndarray:
 
 
 def _textured_with_hand(obj: trimesh.Trimesh, hand: Hand) -> trimesh.Trimesh:
+    """The object's image in the top-left quarter of one twice as large (powers of two stay powers of two, so
+    mipmaps stay exact), the rest skin; the hand's UVs point into the skin."""
     from PIL import Image
 
     img = _texture_image(obj.visual)
     h, w = img.shape[:2]
-    band = np.empty((_BAND_PX, w, 3), dtype=np.uint8)
-    band[:] = np.round(_SKIN * 255.0).astype(np.uint8)
-    image = np.concatenate((img, band), axis=0)  # the band at the bottom: v (from the bottom) in [0, band / H']
-    total = h + _BAND_PX
-    uv = np.asarray(obj.visual.uv, dtype=np.float64).copy()
-    uv[:, 1] = (_BAND_PX + uv[:, 1] * h) / total
+    image = np.empty((2 * h, 2 * w, 3), dtype=np.uint8)
+    image[:] = np.round(_SKIN * 255.0).astype(np.uint8)
+    image[:h, :w] = img
+    uv = 0.5 * np.asarray(obj.visual.uv, dtype=np.float64)
+    uv[:, 1] += 0.5  # v points up: the image's top rows are v in [0.5, 1]
     parts = [hand.grip, hand.forearm]
-    n_hand = sum(len(m.vertices) for m in parts)
-    hand_uv = np.tile([0.5, 0.5 * _BAND_PX / total], (n_hand, 1))
+    hand_uv = np.tile([0.75, 0.25], (sum(len(m.vertices) for m in parts), 1))
     geometry = trimesh.util.concatenate([trimesh.Trimesh(obj.vertices, obj.faces, process=False)]
                                         + [trimesh.Trimesh(m.vertices, m.faces, process=False) for m in parts])
     geometry.visual = trimesh.visual.TextureVisuals(uv=np.concatenate((uv, hand_uv)), image=Image.fromarray(image))
