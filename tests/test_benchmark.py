@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 import torch
 
-from torchevtrack.benchmark import METHOD_NAMES, mesh_points, run_benchmark, table_markdown
+from torchevtrack.benchmark import METHOD_NAMES, run_benchmark, table_markdown
 from torchevtrack.camera import Camera
 from torchevtrack.cli import main
 from torchevtrack.config import ABLATIONS, TrackerConfig
 from torchevtrack.io.poses import read_tum
-from torchevtrack.metrics import evaluate
+from torchevtrack.metrics import evaluate, mesh_points
 from torchevtrack.synth.generate import generate_sequence
 from torchevtrack.synth.sequence import Sequence
 from torchevtrack.tracker import EventPoseTracker
@@ -47,8 +47,8 @@ def run(bench, tmp_path_factory):
 
 def _independent_points(mesh):
     v = np.asarray(mesh.vertices, dtype=np.float64)
-    if len(v) > 1000:  # the documented rule: 1000 vertices at evenly spaced indices
-        v = v[np.round(np.linspace(0, len(v) - 1, 1000)).astype(int)]
+    if len(v) > 2000:  # the documented rule: 2000 vertices at evenly spaced indices
+        v = v[np.round(np.linspace(0, len(v) - 1, 2000)).astype(int)]
     return torch.from_numpy(v)
 
 
@@ -62,7 +62,7 @@ def test_results_json_has_every_method_and_sequence(run):
     assert on_disk["torchevtrack_version"] and on_disk["date"]
     assert set(on_disk["sequences"]) == set(SEQS)
     assert on_disk["sequences"]["tomato_fast"]["group"] == "fast"
-    assert on_disk["sequences"]["cracker_regular"]["mesh_points"] == 1000  # the box has > 1000 vertices
+    assert on_disk["sequences"]["cracker_regular"]["mesh_points"] == 2000  # the box has > 2000 vertices
     for m in METHODS:
         assert len(on_disk["runs"][m]) == 1 and on_disk["runs"][m][0]["batch_size"] == 2  # one batch per method
         assert set(on_disk["results"][m]) == set(SEQS)
@@ -211,6 +211,10 @@ def test_cli_prints_the_table(bench, tmp_path, capsys):
     rows = _table(printed, "## Pose error")
     assert rows[0] == ["Method", "tomato_fast", "Mean"] and rows[2][0] == METHOD_NAMES["velocity_only"]
     assert not (tmp_path / "overlays").exists() and (tmp_path / "plots" / "tomato_fast.png").is_file()
+    # the per-factor report follows the table (factors read from the sequence's own files)
+    factors = (tmp_path / "factors.md").read_text()
+    assert factors in printed and "## Motion group" in factors and "| fast | velocity_only | 1 |" in factors
+    assert (tmp_path / "plots" / "suite_errors.png").read_bytes()[:4] == b"\x89PNG"
 
 
 def test_bad_arguments_are_rejected(bench, tmp_path, capsys):
@@ -232,10 +236,11 @@ def test_bad_arguments_are_rejected(bench, tmp_path, capsys):
 
 def test_mesh_points_subsample_evenly():
     v = np.random.default_rng(0).normal(size=(2500, 3))
-    p = mesh_points(v)
+    p = mesh_points(v, 1000)
     assert p.shape == (1000, 3) and p.dtype == torch.float64
     rows = {tuple(r) for r in v.tolist()}
     assert all(tuple(r) in rows for r in p.tolist()) and len({tuple(r) for r in p.tolist()}) == 1000
+    assert mesh_points(v).shape == (2000, 3)
     assert torch.equal(p[0], torch.from_numpy(v[0])) and torch.equal(p[-1], torch.from_numpy(v[-1]))
     assert torch.equal(mesh_points(v[:10]), torch.from_numpy(v[:10]))
     with pytest.raises(ValueError, match="vertices"):
@@ -332,3 +337,58 @@ def test_trial_arguments_are_checked(bench, tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_:
         main(["benchmark", str(bench), "--out", str(tmp_path), "--init-noise", "1"])
     assert exit_.value.code == 2 and "MM,DEG" in capsys.readouterr().err
+
+
+def _foreign_poses(seq: Sequence, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Another tracker's output: the ground truth at 100 Hz, off by a few mm and a degree or two, from before the
+    sequence start (those poses are dropped) to its end."""
+    g = torch.Generator().manual_seed(seed)
+    t = torch.arange(int(seq.gt_t_us[0]) - 20_000, int(seq.gt_t_us[-1]) + 1, 10_000)
+    from torchevtrack.geometry import interpolate_poses, quat_exp, quat_mul
+
+    gt = interpolate_poses(seq.gt_t_us, seq.gt_poses, t.clamp(int(seq.gt_t_us[0]), int(seq.gt_t_us[-1])))
+    dq = quat_exp(torch.randn(len(t), 3, generator=g, dtype=torch.float64) * 0.02)
+    return t, torch.cat((gt[:, :3] + 0.004 * torch.randn(len(t), 3, generator=g, dtype=torch.float64),
+                         quat_mul(dq, gt[:, 3:])), dim=-1)
+
+
+def test_foreign_predictions_are_scored_as_eval_scores_them(bench, tmp_path, capsys):
+    from torchevtrack.io.poses import write_poses
+
+    learned = tmp_path / "learned"
+    learned.mkdir()
+    for i, (name, ext) in enumerate((("cracker_regular", ".txt"), ("tomato_fast", ".csv"))):
+        write_poses(learned / f"{name}{ext}", *_foreign_poses(Sequence.load(bench / name), i))
+    out = tmp_path / "out"
+    assert main(["benchmark", str(bench), "--out", str(out), "--methods", "velocity_only", "--no-overlays", "--quiet",
+                 "--pred", f"learned={learned}"]) == 0
+    printed = capsys.readouterr().out
+    res = json.loads((out / "results.json").read_text())
+    assert set(res["results"]) == {"velocity_only", "learned"}
+    for name, ext in (("cracker_regular", ".txt"), ("tomato_fast", ".csv")):
+        assert main(["eval", "--gt", str(bench / name), "--pred", str(learned / f"{name}{ext}"), "--json"]) == 0
+        by_eval = json.loads(capsys.readouterr().out)
+        got = res["results"]["learned"][name]["metrics"]
+        assert by_eval["n_dropped"] == 2 and by_eval["n_mesh_points"] == res["sequences"][name]["mesh_points"]
+        for k, v in by_eval.items():  # every key eval prints, with the same value
+            if k != "n_mesh_points":
+                assert got[k] == v, (name, k)
+    rows = {r[0]: r for r in _table(printed, "## Pose error")}
+    assert "learned" in rows and CELL.match(rows["learned"][1].rstrip("†"))
+    assert "learned" in {r[0] for r in _table(printed, "## ADD-S AUC")}
+    assert "learned" not in {r[0] for r in _table(printed, "## Tracking loss")}
+    assert "| learned |" in (out / "factors.md").read_text()  # the per-factor tables too
+
+
+def test_foreign_prediction_errors(bench, tmp_path, capsys):
+    with pytest.raises(FileNotFoundError, match="cracker_regular.txt"):
+        run_benchmark(bench, tmp_path, methods=["velocity_only"], duration_s=0.01, overlays=False, progress=False,
+                      predictions={"learned": tmp_path})
+    with pytest.raises(ValueError, match="prediction name"):
+        run_benchmark(bench, tmp_path, methods=["velocity_only"], predictions={"full": tmp_path})
+    with pytest.raises(SystemExit):
+        main(["benchmark", str(bench), "--out", str(tmp_path), "--pred", "learned"])
+    assert "NAME=DIR" in capsys.readouterr().err
+    assert main(["benchmark", str(bench), "--out", str(tmp_path), "--pred", f"a={tmp_path}", "--pred",
+                 f"a={tmp_path}"]) == 2
+    assert "more than once" in capsys.readouterr().err

@@ -102,7 +102,7 @@ def test_events_only_where_the_object_was(grey_box_sequence):
 def test_benchmark_names_and_seeds(tmp_path):
     assert main(["synth-benchmark", "--out", str(tmp_path), "--duration", "0.01", "--only", "potted_regular",
                  "--quiet"]) == 0
-    assert [p.name for p in tmp_path.iterdir()] == ["potted_regular"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["potted_regular", "suite.json"]
     meta = json.loads((tmp_path / "potted_regular" / "meta.json").read_text())
     assert meta["object"] == "010_potted_meat_can" and meta["motion"] == "regular"
     assert json.loads((tmp_path / "potted_regular" / "camera.json").read_text())["width"] == 640

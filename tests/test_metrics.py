@@ -335,7 +335,7 @@ def test_cli_eval_bop_gt_and_mesh_subsampling(tmp_path, capsys):
     import trimesh
 
     from torchevtrack.cli import main
-    from torchevtrack.cli.eval import load_mesh_points
+    from torchevtrack.metrics import load_mesh_points
     from torchevtrack.io.poses import write_poses
 
     t = torch.tensor([round(k * 1e6 / 50) for k in range(40)])
@@ -419,3 +419,23 @@ def test_symmetry_axis_of_meshes():
     squashed = trimesh.creation.cylinder(radius=0.03, height=0.1, sections=48)
     squashed.apply_scale([1.0, 1.3, 1.0])  # an elliptic cylinder has no continuous symmetry
     assert symmetry_axis(squashed) is None
+
+
+def test_batched_evaluate_equals_one_call_per_element():
+    t = torch.arange(0, 300_000, 2000)
+    gt = torch.stack([_traj(t), _traj(t, v=(0.0, 0.1, 0.0))])  # (2, N, 7): own ground truth per element
+    pred = gt.clone()
+    pred[0, :, 0] += 0.01
+    pred[1, :, 3:] = g.quat_mul(g.quat_exp(torch.tensor([0.05, 0.0, 0.0], dtype=torch.float64)), gt[1, :, 3:])
+    pts = torch.from_numpy(RNG.normal(size=(2, 50, 3)) * 0.05)
+    got = m.evaluate(t.expand(2, -1), pred, t.expand(2, -1), gt, mesh_points=pts)
+    assert isinstance(got, list) and len(got) == 2
+    for i in range(2):
+        assert got[i] == m.evaluate(t, pred[i], t, gt[i], mesh_points=pts[i])
+    shared = m.evaluate(t.expand(2, -1), pred, t, gt[0], mesh_points=pts[0])  # ground truth and points shared
+    assert shared[0] == m.evaluate(t, pred[0], t, gt[0], mesh_points=pts[0])
+    assert shared[1]["rmse_t_cm"] > 1.0
+    with pytest.raises(ValueError, match="pred_t_us"):
+        m.evaluate(t, pred, t, gt)
+    with pytest.raises(ValueError, match="mesh_points"):
+        m.evaluate(t.expand(2, -1), pred, t, gt[0], mesh_points=pts[:, None])

@@ -17,8 +17,8 @@ starting at its own first ground-truth pose and time). It writes into ``out_dir`
     overlays/<seq>.gif        the same over the first second, 50 ms steps
 
 Metrics are those of :func:`torchevtrack.metrics.evaluate`: RMSE and population sigma of the
-translation (cm) and rotation (deg) errors, ADD and ADD-S AUC on 0..10 cm (model points: at most 1000
-mesh vertices, an evenly spaced subsample), and the EDOPT failure rule.
+translation (cm) and rotation (deg) errors, ADD and ADD-S AUC on 0..10 cm (model points:
+:func:`torchevtrack.metrics.mesh_points`, the same as ``torchevtrack eval``), and the EDOPT failure rule.
 
 Start-pose robustness: with ``init_noise=(mm, deg)`` every sequence starts from its first ground-truth pose
 moved by exactly ``mm`` millimetres along a random direction and turned by exactly ``deg`` degrees about a random
@@ -59,12 +59,13 @@ from tqdm.auto import tqdm
 import torchevtrack
 from torchevtrack.camera import Camera
 from torchevtrack.config import ABLATIONS, TrackerConfig
+from torchevtrack.executor import Executor, SerialExecutor
 from torchevtrack.geometry import perturb_pose
 from torchevtrack.io.atomic import write_text
-from torchevtrack.io.poses import read_tum, write_tum
+from torchevtrack.io.poses import read_poses, read_tum, write_tum
 from torchevtrack.loss import compare_with_ground_truth
 from torchevtrack.mesh import hidden_symmetry_axis
-from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, evaluate, per_pose_errors
+from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, evaluate, mesh_points, per_pose_errors
 from torchevtrack.synth.sequence import SEQUENCE_FILES, Sequence
 from torchevtrack.tracker import EventPoseTracker
 
@@ -72,7 +73,6 @@ __all__ = [
     "METHODS",
     "METHOD_NAMES",
     "find_sequences",
-    "mesh_points",
     "run_benchmark",
     "table_markdown",
 ]
@@ -91,7 +91,6 @@ METHOD_NAMES = {
 
 _OBJECT_ORDER = ("mustard", "potted", "cracker", "tomato")  # the paper's column order within a group
 _GROUP_ORDER = ("regular", "fast")
-_MAX_MESH_POINTS = 1000
 _GIF_SPAN_US = 1_000_000
 _GIF_STEP_US = 50_000
 _GIF_FPS = 10.0  # 50 ms steps shown at half speed
@@ -118,21 +117,6 @@ def find_sequences(bench_dir: str | Path, only: Iterable[str] | None = None) -> 
     if not found:
         raise ValueError(f"{root} holds no sequence directory (each needs {', '.join(SEQUENCE_FILES)})")
     return list(found.values())
-
-
-def mesh_points(vertices, max_points: int = _MAX_MESH_POINTS) -> torch.Tensor:
-    """Model points for ADD / ADD-S: the vertices, or ``max_points`` of them at evenly spaced indices.
-
-    Shape: ``(V, 3) -> (min(V, max_points), 3)`` float64, metres. Deterministic.
-    """
-    v = torch.as_tensor(np.asarray(vertices), dtype=torch.float64)
-    if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] == 0:
-        raise ValueError(f"vertices must have shape (V, 3) with V >= 1, got {tuple(v.shape)}")
-    if max_points < 1:
-        raise ValueError(f"max_points must be >= 1, got {max_points}")
-    if v.shape[0] <= max_points:
-        return v
-    return v[torch.linspace(0, v.shape[0] - 1, max_points, dtype=torch.float64).round().long()]
 
 
 @dataclass
@@ -250,6 +234,69 @@ def _track(items: list[_Item], camera: Camera, cfg: TrackerConfig, progress: boo
     return out, run
 
 
+def _check_predictions(predictions, methods: list[str]) -> dict[str, Path]:
+    if predictions is None:
+        return {}
+    out = {}
+    for name, directory in dict(predictions).items():
+        if not isinstance(name, str) or not name or name in methods or name in ABLATIONS:
+            raise ValueError(f"prediction name {name!r} must be a non-empty name other than the package's methods "
+                             f"{sorted(ABLATIONS)}")
+        if not Path(directory).is_dir():
+            raise FileNotFoundError(f"predictions of {name!r}: directory not found: {directory}")
+        out[name] = Path(directory)
+    return out
+
+
+def _pose_file(directory: Path, name: str) -> Path:
+    """The one pose file of sequence ``name`` in ``directory``: ``name.txt``, ``name.csv`` or ``name.json``."""
+    found = [directory / f"{name}{ext}" for ext in (".txt", ".csv", ".json") if (directory / f"{name}{ext}").is_file()]
+    if len(found) != 1:
+        raise FileNotFoundError(f"{directory}: expected one pose file {name}.txt (or .csv, .json) for sequence "
+                                f"{name}, found {[p.name for p in found] or 'none'}")
+    return found[0]
+
+
+def _score_foreign(it: _Item, path: Path, crop: bool) -> tuple[dict, dict]:
+    """Score another tracker's poses of ``it`` in ``path`` as ``torchevtrack eval`` does (``crop``: without the
+    poses after ``it.t_end_us``); returns the :func:`evaluate` dict and the :func:`per_pose_errors` for the
+    plots."""
+    t_us, poses = read_poses(path)
+    if crop and t_us.numel() and int(t_us[-1]) > it.t_end_us:
+        keep = t_us <= it.t_end_us
+        t_us, poses = t_us[keep], poses[keep]
+    gt_t, gt = it.seq.gt_t_us, it.seq.gt_poses
+    try:
+        metrics = evaluate(t_us, poses, gt_t, gt, mesh_points=it.points, symmetry_axis=it.symmetry_axis)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
+    return metrics, per_pose_errors(t_us, poses, gt_t, gt)
+
+
+@dataclass
+class _TrackTask:
+    """One tracking run of the benchmark: ``method``'s config on a batch of sequences, from the start poses of
+    draw ``trial``. Sent to an executor's workers without ``items``: they load the sequences from ``paths``."""
+
+    method: str
+    trial: int
+    paths: list[Path]
+    duration_s: float | None
+    config: TrackerConfig
+    starts: dict[str, torch.Tensor]
+    progress: bool
+    items: list[_Item] | None = None
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "items": None}
+
+
+def _run_task(task: _TrackTask):
+    """:func:`_track` of a task (in any process): per sequence ``(t_us, poses, lost)`` and the run's timing."""
+    items = task.items or [_prepare(p, task.duration_s, task.config.period_us) for p in task.paths]
+    return _track(items, items[0].seq.camera, task.config, task.progress, task.starts)
+
+
 def _machine() -> dict:
     return {
         "cpu_count": os.cpu_count(),
@@ -275,6 +322,8 @@ def run_benchmark(
     init_noise: tuple[float, float] | None = None,
     trials: int = 1,
     seed: int = 0,
+    predictions: dict[str, str | Path] | None = None,
+    executor: Executor | None = None,
 ) -> dict:
     """Run the ablation benchmark and write its report (see the module docstring for the files).
 
@@ -286,23 +335,35 @@ def run_benchmark(
         duration_s: track only the first seconds of each sequence (default: its whole ground truth).
         config: base :class:`TrackerConfig` or a YAML path; each method applies its ablation on top.
         batch: one batch per method and camera (default) or one run per sequence. Results agree to
-            float32 rounding; only the timing differs.
+            float32 rounding; only the timing differs. A parallel ``executor`` runs one sequence per task (no
+            batches), so that the sequences spread over its workers.
         overlays: write the overlay PNGs and GIFs (for ``"full"``, else the first method).
         progress: tqdm bars over methods and updates.
         init_noise: ``(mm, deg)``: start every sequence from its first ground-truth pose moved and turned by
             exactly this much in random directions (module docstring); ``None``: from that pose.
         trials: draws of the start poses per method (``> 1`` needs ``init_noise``); seed: the first draw's
             generator seed (trial ``k`` uses ``seed + k``).
+        predictions: other trackers' poses, ``{name: directory}``: method ``name`` reads sequence ``S`` from
+            ``directory/S.txt`` (or ``S.csv``, ``S.json``: any format of :func:`torchevtrack.io.poses.read_poses`)
+            and is scored as ``torchevtrack eval`` scores that file (with ``duration_s``, its poses after the
+            tracked span are left out), in every table and plot.
+        executor: where the tracking runs go (:mod:`torchevtrack.executor`; default serial in this process):
+            each (batch of sequences, method, draw) is one task, read from disk by the worker (on a cluster the
+            benchmark directory must be at the same path on every node). The results do not depend on it.
 
     Returns:
         The dict written to ``results.json``: ``results[method][sequence]`` holds ``metrics`` (the
         :func:`~torchevtrack.metrics.evaluate` dict), ``loss`` (the
         :func:`~torchevtrack.loss.compare_with_ground_truth` dict), ``timing`` and ``pose_file``; ``runs[method]``
-        the batched runs; ``sequences``, ``config``, ``machine``, versions, date. With ``init_noise``, also
-        ``init_noise`` (with each trial's ``start_poses``) and ``trials[method][sequence]``: per trial the RMSEs,
-        ADD-S AUC and failure flags.
+        the batched runs; ``sequences``, ``config``, ``machine``, ``executor`` (its name), versions, date. With
+        ``init_noise``, also ``init_noise`` (with each trial's ``start_poses``) and ``trials[method][sequence]``: per
+        trial the RMSEs, ADD-S AUC and failure flags. With ``predictions``, ``results[name][sequence]`` holds
+        ``metrics`` and ``pose_file`` (no loss, no timing) and ``predictions`` their directories.
     """
     methods = _check_methods(methods)
+    predictions = _check_predictions(predictions, methods)
+    if executor is not None and not isinstance(executor, Executor):
+        raise TypeError(f"executor must be a torchevtrack.executor.Executor or None, got {type(executor).__name__}")
     init_noise = _check_trials(init_noise, trials, seed)
     if duration_s is not None and not duration_s > 0:
         raise ValueError(f"duration_s must be positive seconds or None, got {duration_s!r}")
@@ -315,9 +376,12 @@ def run_benchmark(
     out.mkdir(parents=True, exist_ok=True)
 
     items = [_prepare(p, duration_s, base.period_us) for p in find_sequences(bench_dir, only)]
+    foreign = {name: {it.name: _pose_file(d, it.name) for it in items} for name, d in predictions.items()}
     by_camera: dict[Camera, list[_Item]] = {}
     for it in items:
         by_camera.setdefault(it.seq.camera, []).append(it)
+    ex = executor or SerialExecutor()
+    batch = batch and not ex.parallel
     batches = list(by_camera.values()) if batch else [[it] for it in items]
 
     res: dict = {
@@ -327,6 +391,7 @@ def run_benchmark(
         "bench_dir": str(Path(bench_dir).resolve()),
         "duration_s": duration_s,
         "batch": batch,
+        "executor": ex.name,
         "methods": methods,
         "config": base.to_dict(),
         "ablations": {m: ABLATIONS[m] for m in methods},
@@ -349,39 +414,53 @@ def run_benchmark(
     tracked: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
     overlay_method = "full" if "full" in methods else methods[0]
 
-    for method in tqdm(methods, desc="methods", unit="method", disable=not progress):
-        cfg = base.replace(**ABLATIONS[method])
-        res["runs"][method] = []
-        res["results"][method] = {}
-        for k, group in [(k, g) for k in range(trials) for g in batches]:
-            trajs, run = _track(group, group[0].seq.camera, cfg, progress, starts[k])
-            res["runs"][method].append(run)
-            for it, (t_us, poses, lost) in zip(group, trajs):
-                rel = Path("poses") / method / ("" if k == 0 else f"trial{k}") / f"{it.name}.txt"
-                (out / rel).parent.mkdir(parents=True, exist_ok=True)
-                write_tum(out / rel, t_us, poses)
-                t_us, poses = read_tum(out / rel)  # score exactly what was written
-                gt_t, gt = it.seq.gt_t_us, it.seq.gt_poses
-                metrics = evaluate(t_us, poses, gt_t, gt, mesh_points=it.points, symmetry_axis=it.symmetry_axis)
-                if init_noise is not None:
-                    res["trials"].setdefault(method, {}).setdefault(it.name, [None] * trials)[k] = \
-                        _trial_metrics(metrics)
-                if k > 0:  # the first trial gives the tables, plots and overlays
-                    continue
-                loss = compare_with_ground_truth(t_us, lost, poses, gt_t, gt)
-                timing = {key: run[key] for key in ("batch_size", "wall_s", "updates_per_s")}
-                timing["updates"] = int(t_us.numel())
-                timing["realtime_factor"] = timing["updates"] * cfg.period_us / 1e6 / run["wall_s"]
-                res["results"][method][it.name] = {"metrics": metrics, "loss": loss, "timing": timing,
-                                                   "pose_file": str(rel)}
-                e = per_pose_errors(t_us, poses, gt_t, gt)
-                curves[it.name][METHOD_NAMES[method]] = (
-                    ((e["t_us"] - it.t_start_us).double() / 1e6).numpy(),
-                    (e["te"] * 100.0).numpy(),
-                    torch.rad2deg(e["re"]).numpy(),
-                )
-                if method == overlay_method:
-                    tracked[it.name] = (t_us, poses)
+    tasks = [_TrackTask(method, k, [it.path.resolve() for it in group], duration_s,
+                        base.replace(**ABLATIONS[method]), {it.name: starts[k][it.name] for it in group},
+                        progress and not ex.parallel, group)
+             for method in methods for k in range(trials) for group in batches]
+    outputs = ex.map(_run_task, tasks, desc="tracking runs", progress=progress)
+    for method in methods:
+        res["runs"][method], res["results"][method] = [], {}
+    for task, (trajs, run) in zip(tasks, outputs):
+        method, k, group, cfg = task.method, task.trial, task.items, task.config
+        res["runs"][method].append(run)
+        for it, (t_us, poses, lost) in zip(group, trajs):
+            rel = Path("poses") / method / ("" if k == 0 else f"trial{k}") / f"{it.name}.txt"
+            (out / rel).parent.mkdir(parents=True, exist_ok=True)
+            write_tum(out / rel, t_us, poses)
+            t_us, poses = read_tum(out / rel)  # score exactly what was written
+            gt_t, gt = it.seq.gt_t_us, it.seq.gt_poses
+            metrics = evaluate(t_us, poses, gt_t, gt, mesh_points=it.points, symmetry_axis=it.symmetry_axis)
+            if init_noise is not None:
+                res["trials"].setdefault(method, {}).setdefault(it.name, [None] * trials)[k] = \
+                    _trial_metrics(metrics)
+            if k > 0:  # the first trial gives the tables, plots and overlays
+                continue
+            loss = compare_with_ground_truth(t_us, lost, poses, gt_t, gt)
+            timing = {key: run[key] for key in ("batch_size", "wall_s", "updates_per_s")}
+            timing["updates"] = int(t_us.numel())
+            timing["realtime_factor"] = timing["updates"] * cfg.period_us / 1e6 / run["wall_s"]
+            res["results"][method][it.name] = {"metrics": metrics, "loss": loss, "timing": timing,
+                                               "pose_file": str(rel)}
+            e = per_pose_errors(t_us, poses, gt_t, gt)
+            curves[it.name][METHOD_NAMES[method]] = (
+                ((e["t_us"] - it.t_start_us).double() / 1e6).numpy(),
+                (e["te"] * 100.0).numpy(),
+                torch.rad2deg(e["re"]).numpy(),
+            )
+            if method == overlay_method:
+                tracked[it.name] = (t_us, poses)
+
+    for name, files in foreign.items():
+        res["results"][name] = {}
+        for it in items:
+            path = files[it.name]
+            metrics, e = _score_foreign(it, path, crop=duration_s is not None)
+            res["results"][name][it.name] = {"metrics": metrics, "pose_file": str(path)}
+            curves[it.name][name] = (((e["t_us"] - it.t_start_us).double() / 1e6).numpy(), (e["te"] * 100.0).numpy(),
+                                     torch.rad2deg(e["re"]).numpy())
+    if predictions:
+        res["predictions"] = {name: str(Path(d).resolve()) for name, d in predictions.items()}
 
     from torchevtrack import viz
 
@@ -526,11 +605,12 @@ def table_markdown(results: dict) -> str:
     if results.get("trials"):
         lines += _trials_table(results, cols)
 
-    if all("loss" in r for m in rows for r in per_method[m].values()):
+    loss_rows = [m for m in rows if all("loss" in r for r in per_method[m].values())]  # other trackers: none
+    if loss_rows:
         lines += ["", "## Tracking loss: declared / failed (s)", ""]
         lines.append(_row(["Method"] + cols + ["detected", "missed", "false alarms"]))
         lines.append(_row(["---"] * (len(cols) + 4)))
-        for m in rows:
+        for m in loss_rows:
             cells = [METHOD_NAMES.get(m, m)]
             for c in cols:
                 r = per_method[m].get(c)

@@ -179,12 +179,90 @@ class TrackerConfig:
             raise ValueError(f"{path}: expected a mapping at the top level")
         return _build(cls, d, str(path))
 
+    def override(self, assignments: list[str]) -> "TrackerConfig":
+        """A copy with single settings changed by ``"dotted.key=value"`` strings (the CLI's ``--set``).
+
+        Each value is read as YAML and must fit the type the schema gives its key: ``int``, ``float`` (an
+        integer is accepted), ``bool`` (``true`` / ``false``), ``str``, ``list[str]`` (``[a, b]`` or ``a,b``),
+        ``None`` where the key allows it (``null``). Later assignments win. Raises ``ValueError`` with a
+        one-line message on a malformed assignment, an unknown key or a value of the wrong type.
+
+        Example:
+            >>> cfg = TrackerConfig().override(["ukf.enabled=false", "rate_hz=250", "velocity.feedback_axes=vz,wx"])
+            >>> cfg.ukf.enabled, cfg.rate_hz, cfg.velocity.feedback_axes
+            (False, 250.0, ['vz', 'wx'])
+        """
+        d = self.to_dict()
+        for text in assignments:
+            key, sep, raw = str(text).partition("=")
+            key = key.strip()
+            if not sep or not key:
+                raise ValueError(f"--set expects KEY=VALUE (e.g. ukf.enabled=false), got {text!r}")
+            cls, section, parts = TrackerConfig, d, key.split(".")
+            for i, name in enumerate(parts):
+                fields = {f.name: f for f in dataclasses.fields(cls)}
+                where = ".".join(parts[:i]) or "the config"
+                if name not in fields:
+                    raise ValueError(f"unknown config key {key!r}: {where} has {', '.join(sorted(fields))}")
+                sub = fields[name].default_factory
+                nested = sub is not dataclasses.MISSING and dataclasses.is_dataclass(sub)
+                if i < len(parts) - 1:
+                    if not nested:
+                        raise ValueError(f"unknown config key {key!r}: {'.'.join(parts[:i + 1])} is not a section")
+                    cls, section = sub, section[name]
+                elif nested:
+                    raise ValueError(f"config key {key!r} is a section: set one of its keys, e.g. {key}."
+                                     f"{dataclasses.fields(sub)[0].name}=...")
+                else:
+                    section[name] = _typed(key, raw.strip(), _field_type(cls, name))
+        return TrackerConfig.from_dict(d)
+
     def replace(self, **changes: dict) -> "TrackerConfig":
         """A copy with some sections changed, e.g. ``cfg.replace(ukf={"enabled": False})``."""
         d = self.to_dict()
         for k, v in changes.items():
             d[k] = {**d[k], **v} if isinstance(v, dict) else v
         return TrackerConfig.from_dict(d)
+
+
+def _field_type(cls, name: str) -> str:
+    """The annotation of field ``name`` of dataclass ``cls``, as written in the source (e.g. ``"int | None"``)."""
+    ann = next(f.type for f in dataclasses.fields(cls) if f.name == name)
+    return ann if isinstance(ann, str) else getattr(ann, "__name__", str(ann))
+
+
+def _typed(key: str, raw: str, ann: str):
+    """``raw`` read as YAML and checked against the annotation ``ann`` (int, float, bool, str, list[str], X | None)."""
+    try:
+        value = yaml.safe_load(raw) if raw else None
+    except yaml.YAMLError:
+        value = raw
+    if isinstance(value, str):  # YAML 1.1 reads 1e-3 as text; Python reads it as a number
+        for number in (int, float):
+            try:
+                value = number(raw)
+                break
+            except ValueError:
+                pass
+    kinds = [k.strip() for k in ann.split("|")]
+    if value is None and "None" in kinds:
+        return None
+    for kind in kinds:
+        if kind == "bool" and isinstance(value, bool):
+            return value
+        if kind == "int" and isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if kind == "float" and isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        if kind == "str" and isinstance(value, str):
+            return value
+        if kind == "str" and isinstance(value, (int, float)) and not isinstance(value, bool):
+            return raw  # a name that reads as a number stays the text given
+        if kind == "list[str]":
+            items = value if isinstance(value, list) else [s.strip() for s in raw.strip("[]").split(",") if s.strip()]
+            if all(isinstance(v, str) for v in items):
+                return items
+    raise ValueError(f"config key {key!r} expects {ann}, got {raw!r}")
 
 
 def _build(cls, d: dict, where: str):

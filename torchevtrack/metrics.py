@@ -9,6 +9,8 @@ package convention (object in the camera frame, ``[tx, ty, tz, qw, qx, qy, qz]``
   rotation vector of ``R R_gt^T`` (camera frame);
 * ADD ``mean_x ||(R x + t) - (R_gt x + t_gt)||`` and ADD-S ``mean_x min_y ||(R x + t) - (R_gt y + t_gt)||``
   over model points ``x, y`` (m);
+* model points for ADD / ADD-S: the mesh vertices, or :data:`MESH_POINTS` of them at evenly spaced
+  indices (:func:`mesh_points`, :func:`load_mesh_points`): ``eval`` and ``benchmark`` score with the same points;
 * AUC of ADD / ADD-S on 0..10 cm: the area under the accuracy-threshold curve normalised to 1,
   computed as the exact integral ``mean(clip(1 - e / 0.1, 0, 1))`` (the limit of the YCB-Video
   ``linspace(0, 0.1, N)`` sum; the discrete version differs by ``O(1 / N)``);
@@ -34,7 +36,9 @@ Example:
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
+import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
@@ -62,11 +66,15 @@ __all__ = [
     "twists_from_poses",
     "velocity_errors",
     "align_to_gt",
+    "mesh_points",
+    "load_mesh_points",
     "per_pose_errors",
     "evaluate",
 ]
 
 AUC_MAX_M = 0.10
+MESH_POINTS = 2000
+"""Model points of ADD / ADD-S: at most this many mesh vertices (:func:`mesh_points`)."""
 FAIL_T_M = 0.07
 FAIL_R_DEG = 40.0
 FAIL_WINDOW = 50
@@ -201,6 +209,43 @@ def adds_error(pred: torch.Tensor, gt: torch.Tensor, points: torch.Tensor, chunk
         dist, _ = tree.query(local.reshape(-1, 3).numpy(), k=1, workers=-1)
         out.append(torch.from_numpy(dist).reshape(local.shape[:2]).mean(dim=-1))
     return torch.cat(out) if out else pred.new_zeros(0)
+
+
+def mesh_points(vertices, max_points: int = MESH_POINTS) -> torch.Tensor:
+    """Model points for ADD / ADD-S: the vertices, or ``max_points`` of them at evenly spaced indices.
+
+    Shape: ``(V, 3) -> (min(V, max_points), 3)`` float64, the vertices' units (metres). Deterministic.
+
+    Example:
+        >>> mesh_points(torch.arange(30.0).reshape(10, 3), max_points=3)[:, 0].tolist()
+        [0.0, 12.0, 27.0]
+    """
+    v = torch.as_tensor(np.asarray(vertices), dtype=torch.float64)
+    if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] == 0:
+        raise ValueError(f"vertices must have shape (V, 3) with V >= 1, got {tuple(v.shape)}")
+    if max_points < 1:
+        raise ValueError(f"max_points must be >= 1, got {max_points}")
+    if v.shape[0] <= max_points:
+        return v
+    return v[torch.linspace(0, v.shape[0] - 1, max_points, dtype=torch.float64).round().long()]
+
+
+def load_mesh_points(path: str | Path, max_points: int = MESH_POINTS) -> torch.Tensor:
+    """:func:`mesh_points` of a mesh file's vertices, in file order (read as the sequence reader reads
+    ``mesh.ply``: no vertex merging). Shape: ``-> (M, 3)`` float64, ``M <= max_points``."""
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as e:  # trimesh raises many types for unreadable files
+        raise ValueError(f"{path}: cannot load mesh ({e})") from None
+    v = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    if v.ndim != 2 or v.shape[0] == 0:
+        raise ValueError(f"{path}: mesh has no vertices")
+    return mesh_points(v, max_points)
 
 
 def auc(errors: torch.Tensor, max_threshold: float = AUC_MAX_M) -> float:
@@ -378,7 +423,7 @@ def evaluate(
     symmetry_axis: torch.Tensor | None = None,
     pred_twists: torch.Tensor | None = None,
     gt_twists: torch.Tensor | None = None,
-) -> dict:
+) -> dict | list[dict]:
     """Sequence metrics of a predicted trajectory against the ground truth.
 
     Args:
@@ -400,7 +445,25 @@ def evaluate(
     ``failed``, ``first_failure_index`` (into the evaluated poses) and ``first_failure_s``
     (prediction timestamp in seconds) by the EDOPT rule, ``None`` when not failed; with twists also
     ``rmse_v_cm_s`` and ``rmse_w_deg_s``.
+
+    Batched: with ``pred_t_us (B, N)`` and ``pred_poses (B, N, 7)`` (e.g. the output of
+    :meth:`~torchevtrack.tracker.EventPoseTracker.track`), a list of ``B`` such dicts, element ``i`` scored
+    against its own ground truth ``gt_t_us[i] (G,)``, ``gt_poses[i] (G, 7)`` when those have a leading ``B``,
+    else the shared ``(G,)``, ``(G, 7)``; likewise ``mesh_points`` ``(B, M, 3)`` or ``(M, 3)``,
+    ``symmetry_axis`` ``(B, 3)`` or ``(3,)``, ``pred_twists`` ``(B, N, 6)`` and ``gt_twists`` ``(B, G, 6)`` or
+    ``(G, 6)``. Each dict equals the unbatched call on that element.
+
+    Example (batched):
+        >>> t = torch.arange(0, 100_000, 1000)
+        >>> gt = torch.tensor([0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0], dtype=torch.float64).expand(100, 7)
+        >>> pred = torch.stack([gt, gt + torch.tensor([0.02, 0, 0, 0, 0, 0, 0])])
+        >>> [round(r["rmse_t_cm"], 6) for r in evaluate(t.expand(2, 100), pred, t, gt)]
+        [0.0, 2.0]
     """
+    if torch.as_tensor(pred_poses).ndim == 3:
+        return _evaluate_batch(pred_t_us, pred_poses, gt_t_us, gt_poses, mesh_points=mesh_points,
+                               symmetric=symmetric, symmetry_axis=symmetry_axis, pred_twists=pred_twists,
+                               gt_twists=gt_twists)
     e = per_pose_errors(
         pred_t_us, pred_poses, gt_t_us, gt_poses, mesh_points=mesh_points, symmetry_axis=symmetry_axis,
         pred_twists=pred_twists, gt_twists=gt_twists
@@ -436,3 +499,34 @@ def evaluate(
         out["rmse_v_cm_s"] = rmse(e["ev"]) * 100.0
         out["rmse_w_deg_s"] = rmse(e["ew"]) * deg
     return out
+
+
+def _evaluate_batch(pred_t_us, pred_poses, gt_t_us, gt_poses, *, mesh_points, symmetric, symmetry_axis,
+                    pred_twists, gt_twists) -> list[dict]:
+    """:func:`evaluate` of each batch element (see its batched form)."""
+    pred_t_us, pred_poses = torch.as_tensor(pred_t_us), torch.as_tensor(pred_poses)
+    B = pred_poses.shape[0]
+    if pred_t_us.shape != pred_poses.shape[:2]:
+        raise ValueError(f"batched pred_t_us must have shape {tuple(pred_poses.shape[:2])} like pred_poses (B, N, 7), "
+                         f"got {tuple(pred_t_us.shape)}")
+
+    def per(value, ndim: int, name: str):
+        """Element i of a batched argument (leading B) or the shared one."""
+        if value is None:
+            return [None] * B
+        value = torch.as_tensor(value)
+        if value.ndim == ndim:
+            return [value] * B
+        if value.ndim != ndim + 1 or value.shape[0] != B:
+            raise ValueError(f"{name} must be shared ({ndim} dims) or batched with a leading B={B}, "
+                             f"got {tuple(value.shape)}")
+        return list(value)
+
+    if pred_twists is not None and torch.as_tensor(pred_twists).ndim != 3:
+        raise ValueError(f"batched pred_twists must have shape ({B}, N, 6)")
+    args = zip(per(gt_t_us, 1, "gt_t_us"), per(gt_poses, 2, "gt_poses"), per(mesh_points, 2, "mesh_points"),
+               per(symmetry_axis, 1, "symmetry_axis"), per(pred_twists, 2, "pred_twists"),
+               per(gt_twists, 2, "gt_twists"))
+    return [evaluate(pred_t_us[i], pred_poses[i], gt_t, gt, mesh_points=pts, symmetric=symmetric, symmetry_axis=axis,
+                     pred_twists=pt, gt_twists=gtw)
+            for i, (gt_t, gt, pts, axis, pt, gtw) in enumerate(args)]

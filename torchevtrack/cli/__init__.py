@@ -15,9 +15,10 @@ import sys
 COMMANDS: dict[str, tuple[str, str]] = {
     "objects": ("objects", "list the object names (built-in and YCB) that --object / --mesh accept"),
     "synth": ("synth", "simulate one synthetic event sequence"),
-    "synth-benchmark": ("synth", "simulate the standard 8 benchmark sequences"),
+    "synth-benchmark": ("synth", "simulate the standard 8 benchmark sequences or a split of the wide suite"),
     "info": ("info", "summarise a sequence directory or an event file"),
     "track": ("track", "track the object of a sequence directory"),
+    "live": ("live", "track a live event source (network stream, camera, paced recording)"),
     "eval": ("eval", "score predicted poses against ground truth"),
     "benchmark": ("benchmark", "run the ablation benchmark on a directory of sequences"),
     "bench": ("bench", "measure the tracker's speed on one sequence"),

@@ -38,6 +38,7 @@ from torchevtrack.events import EventStream
 from torchevtrack.online import OnlineTracker
 from torchevtrack.synth.sequence import Sequence
 from torchevtrack.tracker import EventPoseTracker
+from torchevtrack.cli.options import add_config_options, config_from_args
 
 STAGES = ("eros", "flow", "velocity", "render", "correction", "ukf")
 
@@ -54,7 +55,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--batch", type=int, default=4, help="batch size B of the batched measurement (1: skip it)")
     p.add_argument("--duration", type=float, help="track only the first SECONDS (default: the whole sequence)")
     p.add_argument("--ablation", choices=sorted(ABLATIONS), default="full", help="the paper's ablations")
-    p.add_argument("--config", type=Path, help="tracker config YAML (default: the built-in defaults)")
+    add_config_options(p)
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     p.add_argument("--chunk-us", type=int, default=1000, help="events per streaming push, microseconds (default 1000)")
     p.add_argument("--warmup", type=int, default=10, help="untimed updates before each measurement (default 10)")
@@ -74,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--duration must be positive, got {args.duration}")
     torch.set_num_threads(args.threads)
     seq = Sequence.load(args.seqdir)
-    cfg = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
+    cfg = config_from_args(args)
     cfg = cfg.replace(**ABLATIONS[args.ablation])
     result = bench(seq, cfg, batch=args.batch, duration_s=args.duration, chunk_us=args.chunk_us,
                    warmup=args.warmup, repeat=args.repeat)

@@ -8,6 +8,7 @@ from pathlib import Path
 import torch
 
 from torchevtrack.benchmark import METHODS, run_benchmark, table_markdown
+from torchevtrack.cli.options import add_config_options, add_executor_options, config_from_args, executor_from_args
 
 
 def _names(text: str) -> list[str]:
@@ -25,13 +26,21 @@ def _noise(text: str) -> tuple[float, float]:
     return mm, deg
 
 
+def _prediction(text: str) -> tuple[str, Path]:
+    name, sep, directory = text.partition("=")
+    if not sep or not name.strip() or not directory.strip():
+        raise argparse.ArgumentTypeError(f"expected NAME=DIR, got {text!r}")
+    return name.strip(), Path(directory.strip())
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "benchmark",
         help="run the ablation benchmark on a directory of sequences",
-        description="Track every sequence of BENCHDIR with each method (one batch per method and camera), then "
-        "write RESULTS/results.json, table.md (the paper's Table I), poses/, plots/ and overlays/, and print "
-        "the table.",
+        description="Track every sequence of BENCHDIR with each method (one batch per method and camera; with "
+        "--executor process or ray, one task per sequence, method and draw), score other trackers' pose files "
+        "(--pred) the same way, then write RESULTS/results.json, table.md (the paper's Table I), poses/, plots/ "
+        "and overlays/, and print the table.",
     )
     p.add_argument("benchdir", type=Path)
     p.add_argument("--out", type=Path, required=True, help="output directory")
@@ -39,7 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"comma-separated methods (default: {','.join(METHODS)})")
     p.add_argument("--only", type=_names, help="comma-separated sequence names (default: all)")
     p.add_argument("--duration", type=float, help="track only the first SECONDS of each sequence")
-    p.add_argument("--config", type=Path, help="tracker config YAML (default: the built-in defaults)")
+    add_config_options(p)
     p.add_argument("--no-overlays", action="store_true", help="skip the overlay PNGs and GIFs")
     p.add_argument("--no-batch", action="store_true", help="one run per sequence instead of one batch")
     p.add_argument("--threads", type=int, help="torch threads (default: torch's choice)")
@@ -49,8 +58,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--trials", type=int, default=1,
                    help="draws of the perturbed start poses per method (default 1; > 1 needs --init-noise)")
     p.add_argument("--seed", type=int, default=0, help="seed of the first draw (trial k: SEED + k; default 0)")
+    p.add_argument("--pred", type=_prediction, action="append", default=[], metavar="NAME=DIR",
+                   help="add another tracker as method NAME: its poses of sequence S in DIR/S.txt (or .csv, .json; "
+                   "any format eval reads), scored as eval scores them (repeatable)")
+    add_executor_options(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
+
+
+def _predictions(pairs: list[tuple[str, Path]]) -> dict[str, Path]:
+    names = [n for n, _ in pairs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValueError(f"--pred: method name(s) {dup} given more than once")
+    return dict(pairs)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -58,9 +79,17 @@ def run(args: argparse.Namespace) -> int:
         if args.threads < 1:
             raise ValueError(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
-    res = run_benchmark(args.benchdir, args.out, methods=args.methods, only=args.only, duration_s=args.duration,
-                        config=args.config, batch=not args.no_batch, overlays=not args.no_overlays,
-                        progress=not args.quiet, init_noise=args.init_noise, trials=args.trials, seed=args.seed)
+    cfg, predictions = config_from_args(args), _predictions(args.pred)
+    with executor_from_args(args) as executor:
+        res = run_benchmark(args.benchdir, args.out, methods=args.methods, only=args.only, duration_s=args.duration,
+                            config=cfg, batch=not args.no_batch, overlays=not args.no_overlays,
+                            progress=not args.quiet, init_noise=args.init_noise, trials=args.trials, seed=args.seed,
+                            predictions=predictions, executor=executor)
     print(table_markdown(res), end="")
-    print(f"\nwritten: {args.out / 'results.json'}, {args.out / 'table.md'}")
+    from torchevtrack.report import write_suite_report
+
+    factors, plot = write_suite_report(res, args.benchdir, args.out)
+    print()
+    print(factors.read_text(), end="")
+    print(f"\nwritten: {args.out / 'results.json'}, {args.out / 'table.md'}, {factors}, {plot}")
     return 0

@@ -14,36 +14,10 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from torchevtrack.io.poses import FORMATS, detect_format, read_poses
-from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, evaluate
-
-MAX_MESH_POINTS = 2000
-
-
-def load_mesh_points(path: str | Path, max_points: int = MAX_MESH_POINTS) -> torch.Tensor:
-    """Model points of a mesh file for ADD / ADD-S: its vertices, evenly subsampled by index
-    (deterministic) to at most ``max_points``. Units are those of the file (metres expected).
-
-    Shape: ``-> (M, 3)`` float64, ``M <= max_points``.
-    """
-    import trimesh
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"mesh file not found: {path}")
-    try:
-        mesh = trimesh.load(path, force="mesh")
-    except Exception as e:  # trimesh raises many types for unreadable files
-        raise ValueError(f"{path}: cannot load mesh ({e})") from None
-    v = np.asarray(mesh.vertices, dtype=np.float64)
-    if v.ndim != 2 or v.shape[0] == 0:
-        raise ValueError(f"{path}: mesh has no vertices")
-    if v.shape[0] > max_points:
-        v = v[np.linspace(0, v.shape[0] - 1, max_points).round().astype(np.int64)]
-    return torch.from_numpy(np.ascontiguousarray(v))
+from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, MESH_POINTS, evaluate, load_mesh_points
 
 
 TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}  # seconds per unit of a pose file's time column
@@ -153,7 +127,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--gt", required=True, help="ground-truth pose file, or a sequence directory (gt_poses.txt, mesh.ply)")
     p.add_argument("--pred", required=True, help="predicted pose file (TUM .txt, CSV .csv, BOP .json)")
-    p.add_argument("--mesh", help=f"mesh file for ADD / ADD-S (vertices, at most {MAX_MESH_POINTS} points)")
+    p.add_argument("--mesh", help=f"mesh file for ADD / ADD-S (vertices, at most {MESH_POINTS} points, as the "
+                   "benchmark)")
     p.add_argument("--symmetric", action="store_true", help="symmetric object: ADD(-S) (add_s_auc) uses ADD-S")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
     p.add_argument("--fps", type=float, help="frame rate giving the times of BOP scene_gt.json frames")

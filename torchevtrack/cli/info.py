@@ -51,7 +51,29 @@ def sequence_info(directory: str | Path) -> dict:
     if (d / "meta.json").is_file():
         meta = json.loads((d / "meta.json").read_text())
         info["meta"] = {k: meta[k] for k in ("object", "motion", "seed") if k in meta}
+        info["effects"] = sensor_effects(meta)
     return info
+
+
+def sensor_effects(meta: dict) -> dict:
+    """The simulated world of a generated sequence from its ``meta.json``: contrast threshold and its spread,
+    noise rate, refractory period, hot pixels (count, rate), hand (occluded silhouette fraction), texture,
+    depth range. Effects the generator did not record (older or standard sequences) take their off values."""
+    gen = meta.get("generator", {})
+    esim = gen.get("esim", {})
+    occ = meta.get("occluder")
+    return {
+        "contrast_threshold": esim.get("C"),
+        "sigma_c": esim.get("sigma_C"),
+        "noise_rate_hz": esim.get("noise_rate_hz", 0.0),
+        "refractory_us": esim.get("refractory_us", 0),
+        "hot_pixels": esim.get("hot_pixels", 0),
+        "hot_pixel_rate_hz": esim.get("hot_pixel_rate_hz"),
+        "occluder": "none" if occ is None else occ["kind"],
+        "occluded_fraction": None if occ is None else occ["occluded_fraction"],
+        "texture": (meta.get("texture") or {}).get("kind", "none"),
+        "depth_range_m": gen.get("depth_range_m", [0.3, 0.7]),
+    }
 
 
 def _fmt_stats(s: dict, unit: str) -> str:
@@ -86,6 +108,15 @@ def run(args: argparse.Namespace) -> int:
     print(f"sequence   {info['directory']}")
     if "meta" in info:
         print("generated  " + ", ".join(f"{k} {v}" for k, v in info["meta"].items()))
+        e = info["effects"]
+        hot = f"{e['hot_pixels']} hot pixels" + (f" at {e['hot_pixel_rate_hz']:g} Hz" if e["hot_pixels"] else "")
+        print(f"sensor     C {e['contrast_threshold']}, sigma_C {e['sigma_c']}, noise {e['noise_rate_hz']:g} Hz/pixel, "
+              f"refractory {e['refractory_us']} us, {hot}")
+        occ = e["occluded_fraction"]
+        hand = "none" if occ is None else (f"{e['occluder']}, hides {100 * occ['median']:.0f} % of the silhouette "
+                                           f"(median; {100 * occ['min']:.0f}-{100 * occ['max']:.0f} %)")
+        lo, hi = e["depth_range_m"]
+        print(f"world      occluder {hand}; texture {e['texture']}; depth range {lo:g}-{hi:g} m")
     print(f"camera     {c['width']}x{c['height']}, fx {c['fx']:g}, fy {c['fy']:g}, cx {c['cx']:g}, cy {c['cy']:g}")
     print(f"events     {info['events']} over {info['events_duration_s']:.3f} s "
           f"({info['events_per_s'] / 1e6:.3f} Mev/s)")

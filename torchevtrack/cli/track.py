@@ -22,12 +22,13 @@ from pathlib import Path
 import torch
 
 from torchevtrack.camera import Camera
-from torchevtrack.config import ABLATIONS, TrackerConfig
+from torchevtrack.config import ABLATIONS
 from torchevtrack.distortion import Undistorter
 from torchevtrack.events import EventStream
 from torchevtrack.io.events_h5 import iter_events_h5, read_events_h5
 from torchevtrack.io.poses import read_tum, write_tum
 from torchevtrack.tracker import EventPoseTracker
+from torchevtrack.cli.options import add_config_options, config_from_args
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -39,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("seqdir", type=Path)
     p.add_argument("--out", type=Path, required=True, help="output TUM pose file")
-    p.add_argument("--config", type=Path, help="tracker config YAML (default: configs/default.yaml values)")
+    add_config_options(p, "configs/default.yaml values")
     p.add_argument("--ablation", choices=sorted(ABLATIONS), default="full", help="the paper's ablations")
     p.add_argument("--init", help='initial pose "tx ty tz qx qy qz qw": metres, then a unit quaternion with qw '
                    "LAST (TUM order; the Python API's pose is [t, qw, qx, qy, qz]); default: first pose of gt_poses.txt")
@@ -48,6 +49,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-undistort", action="store_true",
                    help="do not undistort the events of a camera with distortion coefficients")
     p.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest for one sequence)")
+    p.add_argument("--rerun", type=Path, metavar="FILE.rrd",
+                   help="log every update to this rerun recording (EROS, contours, mesh, trajectory, errors, timings; "
+                   "needs the rerun extra)")
+    p.add_argument("--rerun-spawn", action="store_true", help="stream the same to a rerun viewer started now")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -102,6 +107,16 @@ def undistorted_events(path: Path, camera: Camera, chunk: int = 1_000_000) -> Ev
     return events
 
 
+def rerun_logger(args: argparse.Namespace, camera: Camera, mesh, truth, tracker: EventPoseTracker):
+    """The :class:`~torchevtrack.watch.RerunLogger` of ``--rerun`` / ``--rerun-spawn`` attached to ``tracker``,
+    or None."""
+    if args.rerun is None and not args.rerun_spawn:
+        return None
+    from torchevtrack.watch import RerunLogger
+
+    return RerunLogger(camera, mesh, path=args.rerun, spawn=args.rerun_spawn, gt=truth).attach(tracker)
+
+
 def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     d = args.seqdir
@@ -120,14 +135,14 @@ def run(args: argparse.Namespace) -> int:
     mesh = args.mesh if args.mesh is not None else d / "mesh.ply"
     if args.mesh is None and not mesh.is_file():
         raise FileNotFoundError(f"{d} has no mesh.ply: give the object with --mesh")
+    truth = read_tum(d / "gt_poses.txt") if (d / "gt_poses.txt").is_file() else None
     if args.init is not None:
         pose0, t0 = parse_init(args.init), events.t_start
-    elif (d / "gt_poses.txt").is_file():
-        gt_t, gt = read_tum(d / "gt_poses.txt")
-        pose0, t0 = gt[0], int(gt_t[0])
+    elif truth is not None:
+        pose0, t0 = truth[1][0], int(truth[0][0])
     else:
         raise ValueError(f"{d} has no gt_poses.txt: give the initial pose with --init")
-    cfg = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
+    cfg = config_from_args(args)
     cfg = cfg.replace(**ABLATIONS[args.ablation])
     t_end = t0 + round(args.duration * 1e6) if args.duration else events.t_end
     n_events = len(events.slice_time(t0, t_end + 1))
@@ -139,13 +154,20 @@ def run(args: argparse.Namespace) -> int:
         print(f"torchevtrack track: warning: {warning}", file=sys.stderr)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     tracker = EventPoseTracker(camera, mesh, cfg)
+    logger = rerun_logger(args, camera, mesh, truth, tracker)
     start = time.perf_counter()
-    times, poses = tracker.track(events, pose0, t_start_us=t0, t_end_us=t_end, progress=not args.quiet)
+    try:
+        times, poses = tracker.track(events, pose0, t_start_us=t0, t_end_us=t_end, progress=not args.quiet)
+    finally:
+        if logger is not None:
+            logger.close()
     wall = time.perf_counter() - start
     tracker.close()
     write_tum(args.out, times[0], poses[0])
     n = times.shape[1]
     print(f"{args.out}: {n} poses from {n_events} events, {n / wall:.0f} updates/s ({wall:.1f} s)")
+    if args.rerun is not None:
+        print(f"rerun recording: {args.rerun} (open with: rerun {args.rerun})")
     if n and torch.allclose(poses[0], pose0.to(poses.dtype).expand_as(poses[0]), rtol=0.0, atol=1e-12):
         print(f"torchevtrack track: warning: the pose never moved from the start pose in {n} updates: check that "
               "the object is in view and the events are of it", file=sys.stderr)

@@ -12,6 +12,12 @@ exactly one threshold away from a constant level). An event closer than ``refrac
 event is dropped (``ref`` still advances). Events are sorted by time; ties keep pixel order
 (``y * W + x``) and then the order ``k`` within the pixel. Log intensity is ``L = log(I + 1e-3)``.
 
+Sensor effects of :class:`ESIM` beyond the contrast events: background-activity noise (a Poisson process of
+``noise_rate_hz`` per pixel, uniform polarity) and hot pixels (``hot_pixels`` fixed addresses, each a Poisson
+process of ``hot_pixel_rate_hz``). The refractory period applies to every event a pixel emits, whatever its
+source: contrast, noise and hot-pixel events of one frame interval are filtered together, in time order,
+against each pixel's last emitted event (:func:`refractory_filter`).
+
 Example:
     >>> import torch
     >>> sim = ESIM(1, 1, C=0.2, sigma_C=0.0)
@@ -23,12 +29,14 @@ Example:
 
 from __future__ import annotations
 
+import numba
+import numpy as np
 import torch
 from torch import nn
 
 from torchevtrack.events import EventStream
 
-__all__ = ["LOG_EPS", "log_intensity", "esim_step", "noise_events", "ESIM"]
+__all__ = ["LOG_EPS", "log_intensity", "esim_step", "noise_events", "hot_pixel_events", "refractory_filter", "ESIM"]
 
 LOG_EPS = 1e-3
 _NEVER = -(1 << 62)
@@ -77,42 +85,64 @@ def esim_step(
     if refractory_us < 0:
         raise ValueError(f"refractory_us must be >= 0, got {refractory_us}")
     W = L0.shape[1]
-    L0, L1, ref, C = (a.to(torch.float64) for a in (L0, L1, ref, C))
-    delta = L1 - ref
-    n = torch.floor(delta.abs() / C).to(torch.int64).flatten()
-    pol = torch.sign(delta).flatten()
-    new_ref = (ref.flatten() + pol * n.to(torch.float64) * C.flatten()).view_as(ref)
-
-    pix = torch.nonzero(n > 0).squeeze(1)
-    counts = n[pix]
-    ev_pix = torch.repeat_interleave(pix, counts)
-    # k = 1..n within each pixel, in pixel order.
-    starts = torch.cumsum(counts, 0) - counts
-    k = torch.arange(ev_pix.numel(), dtype=torch.int64) - torch.repeat_interleave(starts, counts) + 1
-    ev_pol = pol[ev_pix]
-    level = ref.flatten()[ev_pix] + ev_pol * k.to(torch.float64) * C.flatten()[ev_pix]
-    l0 = L0.flatten()[ev_pix]
-    span = L1.flatten()[ev_pix] - l0
-    # span == 0: ref sat a whole threshold (up to rounding) off a constant level; the event fires at t0.
-    tau = torch.where(span != 0, (level - l0) / torch.where(span != 0, span, 1.0), 0.0).clamp(0.0, 1.0)
-    t = t0_us + torch.floor(tau * (t1_us - t0_us)).to(torch.int64)
-
-    last = last_t_us.flatten().clone()
-    if refractory_us > 0 and ev_pix.numel():
-        keep = torch.zeros(ev_pix.numel(), dtype=torch.bool)
-        for j in range(1, int(counts.max()) + 1):  # j-th event of every pixel at once
-            idx = torch.nonzero(k == j).squeeze(1)
-            ok = t[idx] - last[ev_pix[idx]] >= refractory_us
-            idx = idx[ok]
-            keep[idx] = True
-            last[ev_pix[idx]] = t[idx]
-        ev_pix, t, ev_pol = ev_pix[keep], t[keep], ev_pol[keep]
-    elif ev_pix.numel():
-        last.scatter_reduce_(0, ev_pix, t, reduce="amax")
-
+    arrays = [np.ascontiguousarray(a.to(torch.float64).numpy()) for a in (L0, L1, ref, C)]
+    last = last_t_us.numpy().copy()
+    new_ref = np.empty_like(arrays[0])
+    ev_pix, t, ev_pol = _nb_esim_step(*arrays, last, t0_us, t1_us, int(refractory_us), new_ref)
+    ev_pix, t, ev_pol = torch.from_numpy(ev_pix), torch.from_numpy(t), torch.from_numpy(ev_pol)
     order = torch.sort(t, stable=True).indices
     ev_pix, t, ev_pol = ev_pix[order], t[order], ev_pol[order]
-    return ev_pix % W, ev_pix // W, t, (ev_pol > 0).to(torch.int8), new_ref, last.view_as(last_t_us)
+    return ev_pix % W, ev_pix // W, t, ev_pol, torch.from_numpy(new_ref), torch.from_numpy(last)
+
+
+@numba.njit(cache=True, nogil=True)
+def _nb_esim_step(L0, L1, ref, C, last, t0, t1, refractory, new_ref):
+    """The events of :func:`esim_step` in pixel order, then ``k`` (not yet sorted by time): flat pixel index,
+    time and polarity (int8 0/1); fills ``new_ref`` and updates ``last`` in place. All float arithmetic in
+    float64, in the order the module docstring's formulas give."""
+    H, W = L0.shape
+    n = np.zeros(H * W, dtype=np.int64)
+    total = 0
+    for i in range(H):
+        for j in range(W):
+            d = L1[i, j] - ref[i, j]
+            c = C[i, j]
+            m = np.int64(np.floor(abs(d) / c))
+            pol = 1.0 if d > 0 else (-1.0 if d < 0 else 0.0)
+            new_ref[i, j] = ref[i, j] + pol * np.float64(m) * c
+            n[i * W + j] = m
+            total += m
+    pix = np.empty(total, dtype=np.int64)
+    t = np.empty(total, dtype=np.int64)
+    p = np.empty(total, dtype=np.int8)
+    dt = np.float64(t1 - t0)
+    e = 0
+    for q in range(H * W):
+        m = n[q]
+        if m == 0:
+            continue
+        i, j = q // W, q % W
+        d = L1[i, j] - ref[i, j]
+        pol = 1.0 if d > 0 else -1.0
+        l0 = L0[i, j]
+        span = L1[i, j] - l0
+        for k in range(1, m + 1):
+            level = ref[i, j] + pol * np.float64(k) * C[i, j]
+            # span == 0: ref sat a whole threshold (up to rounding) off a constant level; the event fires at t0
+            tau = (level - l0) / span if span != 0 else 0.0
+            tau = min(max(tau, 0.0), 1.0)
+            tk = t0 + np.int64(np.floor(tau * dt))
+            if refractory > 0:
+                if tk - last[i, j] < refractory:
+                    continue
+                last[i, j] = tk
+            elif tk > last[i, j]:
+                last[i, j] = tk
+            pix[e] = q
+            t[e] = tk
+            p[e] = 1 if pol > 0 else 0
+            e += 1
+    return pix[:e], t[:e], p[:e]
 
 
 def noise_events(
@@ -129,6 +159,69 @@ def noise_events(
     return pix[order] % width, pix[order] // width, t[order], p[order]
 
 
+def hot_pixel_events(
+    pixels: torch.Tensor, t0_us: int, t1_us: int, rate_hz: float, generator: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Events of hot pixels in ``[t0, t1)``: each of ``pixels`` (flat indices ``y * W + x``, ``(K,)`` int64) fires a
+    Poisson count of mean ``rate_hz * dt``, at uniform times and polarities.
+
+    Returns flat pixel indices, ``t_us`` (int64) and ``p`` (int8), ``(N,)`` each, grouped by pixel (not sorted).
+    """
+    lam = torch.full((pixels.numel(),), rate_hz * (t1_us - t0_us) / 1e6, dtype=torch.float64)
+    counts = torch.poisson(lam, generator=generator).to(torch.int64)
+    pix = torch.repeat_interleave(pixels, counts)
+    t = t0_us + torch.randint(0, t1_us - t0_us, (pix.numel(),), generator=generator)
+    p = torch.randint(0, 2, (pix.numel(),), generator=generator).to(torch.int8)
+    return pix, t, p
+
+
+@numba.njit(cache=True, nogil=True)
+def _nb_refractory(pix: np.ndarray, t: np.ndarray, last: np.ndarray, refractory: int, keep: np.ndarray) -> None:
+    for i in range(pix.shape[0]):
+        p = pix[i]
+        if t[i] - last[p] >= refractory:
+            keep[i] = True
+            last[p] = t[i]
+        else:
+            keep[i] = False
+
+
+def refractory_filter(pix: torch.Tensor, t_us: torch.Tensor, last_t_us: torch.Tensor,
+                      refractory_us: int) -> torch.Tensor:
+    """Which events a pixel emits when it cannot fire twice within ``refractory_us``; updates ``last_t_us``.
+
+    Events come in time order. Per pixel, an event is kept when it comes at least ``refractory_us`` after the
+    pixel's last kept event (``last_t_us`` before the first); a dropped event does not restart the period.
+    One compiled pass over the events.
+
+    Args:
+        pix: flat pixel index of each event ``(N,)`` int64; t_us: its time ``(N,)`` int64, non-decreasing.
+        last_t_us: time of each pixel's last emitted event, ``(P,)`` contiguous int64 (very negative = never);
+            updated in place.
+        refractory_us: microseconds, ``>= 0``.
+
+    Returns:
+        ``keep (N,)`` bool.
+
+    Example:
+        >>> last = torch.full((1,), -100)
+        >>> refractory_filter(torch.tensor([0, 0, 0]), torch.tensor([0, 5, 12]), last, 10).tolist(), last.tolist()
+        ([True, False, True], [12])
+    """
+    if pix.shape != t_us.shape or pix.ndim != 1:
+        raise ValueError(f"pix and t_us must be (N,) each, got {tuple(pix.shape)} and {tuple(t_us.shape)}")
+    if last_t_us.dtype != torch.int64 or last_t_us.ndim != 1 or not last_t_us.is_contiguous():
+        raise ValueError("last_t_us must be a contiguous (P,) int64 tensor")
+    if refractory_us < 0:
+        raise ValueError(f"refractory_us must be >= 0, got {refractory_us}")
+    if t_us.numel() > 1 and bool((t_us[1:] < t_us[:-1]).any()):
+        raise ValueError("events must come in time order")
+    keep = np.empty(pix.numel(), dtype=np.bool_)
+    _nb_refractory(pix.to(torch.int64).numpy(), t_us.to(torch.int64).numpy(), last_t_us.numpy(), int(refractory_us),
+                   keep)
+    return torch.from_numpy(keep)
+
+
 class ESIM(nn.Module):
     """Stateful event simulator: feed frames in time order, get the events since the previous frame.
 
@@ -138,14 +231,18 @@ class ESIM(nn.Module):
         sigma_C: per-pixel threshold spread; each pixel draws ``N(C, sigma_C)`` clipped to ``>= 0.01``.
         refractory_us: per-pixel refractory period, microseconds.
         noise_rate_hz: per-pixel rate of uniform noise events (they do not touch ``ref``).
-        seed: seeds the threshold map and the noise.
+        hot_pixels: number of hot pixels, distinct addresses drawn (seeded) after the threshold map.
+        hot_pixel_rate_hz: firing rate of each hot pixel, events / s.
+        seed: seeds the threshold map, the hot-pixel addresses and the noise.
 
     Buffers: ``ref (H, W)`` float64, ``C (H, W)`` float64, ``last_t_us (H, W)`` int64,
-    ``L_prev (H, W)`` float64, ``t_prev_us ()`` int64 (``-1`` before the first frame).
+    ``L_prev (H, W)`` float64, ``t_prev_us ()`` int64 (``-1`` before the first frame), ``hot_pix (K,)`` int64
+    (flat indices ``y * W + x`` of the hot pixels).
     """
 
     def __init__(self, height: int, width: int, C: float = 0.2, sigma_C: float = 0.03, refractory_us: int = 0,
-                 noise_rate_hz: float = 0.0, seed: int = 0) -> None:
+                 noise_rate_hz: float = 0.0, seed: int = 0, *, hot_pixels: int = 0,
+                 hot_pixel_rate_hz: float = 100.0) -> None:
         super().__init__()
         if height <= 0 or width <= 0:
             raise ValueError(f"sensor size must be positive, got {width}x{height}")
@@ -163,6 +260,18 @@ class ESIM(nn.Module):
         self.register_buffer("L_prev", torch.zeros(self.height, self.width, dtype=torch.float64))
         self.register_buffer("last_t_us", torch.full((self.height, self.width), _NEVER, dtype=torch.int64))
         self.register_buffer("t_prev_us", torch.tensor(-1, dtype=torch.int64))
+        if not 0 <= int(hot_pixels) <= self.height * self.width or hot_pixel_rate_hz < 0:
+            raise ValueError(f"need 0 <= hot_pixels <= {self.height * self.width} and hot_pixel_rate_hz >= 0, got "
+                             f"{hot_pixels}, {hot_pixel_rate_hz}")
+        self.hot_pixel_rate_hz = float(hot_pixel_rate_hz)
+        hot = torch.zeros(0, dtype=torch.int64)
+        if int(hot_pixels) > 0:
+            hot = torch.randperm(self.height * self.width, generator=self.generator)[: int(hot_pixels)]
+        self.register_buffer("hot_pix", hot)
+
+    def hot_pixel_coords(self) -> list[list[int]]:
+        """The hot pixels as ``[[x, y], ...]`` (the order of ``hot_pix``)."""
+        return [[int(i) % self.width, int(i) // self.width] for i in self.hot_pix]
 
     def reset(self) -> None:
         """Forget the previous frame and all event history (the threshold map is kept)."""
@@ -199,17 +308,33 @@ class ESIM(nn.Module):
             return EventStream.empty()
         if t_us <= t_prev:
             raise ValueError(f"frames must come in increasing time, got t={t_us} us after {t_prev} us")
+        extra = self.noise_rate_hz > 0 or (self.hot_pix.numel() > 0 and self.hot_pixel_rate_hz > 0)
         x, y, t, p, ref, last = esim_step(self.L_prev[win], L, t_prev, t_us, self.ref[win], self.C[win],
-                                          self.last_t_us[win], self.refractory_us)
+                                          self.last_t_us[win], 0 if extra else self.refractory_us)
         x, y = x + u0, y + v0
         self.ref[win] = ref
-        self.last_t_us[win] = last
         self.L_prev[win] = L
         self.t_prev_us.fill_(t_us)
+        if not extra:
+            self.last_t_us[win] = last
+            return EventStream(x.to(torch.int16), y.to(torch.int16), t, p)
+        # Contrast, noise and hot-pixel events share each pixel's refractory period.
+        pix = [y * self.width + x]
+        ts, ps = [t], [p]
         if self.noise_rate_hz > 0:
             nx, ny, nt, npol = noise_events(self.height, self.width, t_prev, t_us, self.noise_rate_hz,
                                             self.generator)
-            x, y, t, p = (torch.cat(a) for a in ((x, nx), (y, ny), (t, nt), (p, npol)))
-            order = torch.sort(t, stable=True).indices
-            x, y, t, p = x[order], y[order], t[order], p[order]
-        return EventStream(x.to(torch.int16), y.to(torch.int16), t, p)
+            pix.append(ny * self.width + nx)
+            ts.append(nt)
+            ps.append(npol)
+        if self.hot_pix.numel() > 0 and self.hot_pixel_rate_hz > 0:
+            hp, ht, hpol = hot_pixel_events(self.hot_pix, t_prev, t_us, self.hot_pixel_rate_hz, self.generator)
+            pix.append(hp)
+            ts.append(ht)
+            ps.append(hpol)
+        pix, t, p = torch.cat(pix), torch.cat(ts), torch.cat(ps)
+        order = torch.sort(t, stable=True).indices
+        pix, t, p = pix[order], t[order], p[order]
+        keep = refractory_filter(pix, t, self.last_t_us.view(-1), self.refractory_us)
+        pix, t, p = pix[keep], t[keep], p[keep]
+        return EventStream((pix % self.width).to(torch.int16), (pix // self.width).to(torch.int16), t, p)

@@ -9,12 +9,14 @@ Construction (all draws from one ``numpy.random.Generator(PCG64(seed))``, so a s
   random smooth closed-form curve (a sum of sinusoids per axis, normalised into a box that keeps the
   whole object in view at the nearest depth). The curve is re-parametrised by arc length so that the
   centroid image speed follows a smooth random profile inside the group's range
-  (``regular``: 100-300 px/s, ``fast``: 600-1500 px/s).
+  (``regular``: 100-300 px/s, ``fast``: 600-1500 px/s, ``turn``: 50-350 px/s, ``mixed``: 600-1500 px/s).
 * **Depth.** ``z(t)`` is an independent smooth curve inside ``[0.3, 0.7]`` m (raised for objects too
   large to fit at 0.3 m).
 * **Rotation.** A smooth random angular velocity (camera frame, sum of sinusoids per axis) scaled so its
   peak over a 20 s window is 80-100 % of the group's limit (``regular``: 60 deg/s, ``fast``:
-  250 deg/s), integrated exactly from a random initial orientation with
+  250 deg/s), or, for the hand-held groups, so that its median over the trajectory is a uniform draw in the
+  group's range (``turn``: 240-440 deg/s, ``mixed``: 200-400 deg/s; the turning axis wanders through all
+  directions, out-of-plane turns included), integrated exactly from a random initial orientation with
   ``q(t + dt) = exp(w dt) (x) q(t)`` (a parallel prefix product).
 
 Random curves are normalised over a 20 s reference window, so a short trajectory is a piece of a long
@@ -62,22 +64,32 @@ class MotionGroup:
 
     Attributes:
         speed_px_s: (min, max) centroid image speed, pixels / s.
-        max_rot_deg_s: peak angular speed, degrees / s.
+        max_rot_deg_s: peak angular speed, degrees / s (``None`` when ``rot_median_deg_s`` sets the speed).
         rot_freq_hz: (min, max) frequencies of the angular-velocity sinusoids, Hz.
         speed_freq_hz: (min, max) frequencies of the image-speed profile, Hz.
         depth_freq_hz: (min, max) frequencies of the depth curve, Hz.
+        rot_median_deg_s: (min, max) of the median angular speed, degrees / s, or ``None`` (then
+            ``max_rot_deg_s`` sets the peak). Exactly one of the two is set.
     """
 
     speed_px_s: tuple[float, float]
-    max_rot_deg_s: float
+    max_rot_deg_s: float | None
     rot_freq_hz: tuple[float, float]
     speed_freq_hz: tuple[float, float]
     depth_freq_hz: tuple[float, float]
+    rot_median_deg_s: tuple[float, float] | None = None
+
+    def __post_init__(self) -> None:
+        if (self.max_rot_deg_s is None) == (self.rot_median_deg_s is None):
+            raise ValueError("a motion group sets exactly one of max_rot_deg_s and rot_median_deg_s")
 
 
 MOTION_GROUPS: dict[str, MotionGroup] = {
     "regular": MotionGroup((100.0, 300.0), 60.0, (0.2, 0.8), (0.2, 0.8), (0.1, 0.4)),
     "fast": MotionGroup((600.0, 1500.0), 250.0, (0.5, 2.0), (0.5, 2.0), (0.3, 1.0)),
+    # hand-held: turned fast about wandering axes while the centre moves slowly (turn) or fast (mixed)
+    "turn": MotionGroup((50.0, 350.0), None, (0.3, 1.2), (0.2, 0.8), (0.1, 0.4), rot_median_deg_s=(240.0, 440.0)),
+    "mixed": MotionGroup((600.0, 1500.0), None, (0.5, 2.0), (0.5, 2.0), (0.3, 1.0), rot_median_deg_s=(200.0, 400.0)),
 }
 
 _N_SINES = 3
@@ -158,7 +170,7 @@ def make_trajectory(
     """Seeded smooth random 6D trajectory of ``mesh`` fully in view of ``camera``.
 
     Args:
-        motion: ``"regular"`` or ``"fast"`` (see :data:`MOTION_GROUPS`).
+        motion: ``"regular"``, ``"fast"``, ``"turn"`` or ``"mixed"`` (see :data:`MOTION_GROUPS`).
         duration_s: length in seconds (> 0).
         seed: integer seed; the same arguments give bit-identical output.
         camera: the pinhole camera.
@@ -208,7 +220,10 @@ def make_trajectory(
     depth = _smooth_unit(rng, t_s, *group.depth_freq_hz, 1)[0][:, 0]
     t_mid = t_s[:-1] + 0.5 * np.diff(t_s)
     omega, omega_ref = _smooth_unit(rng, t_mid, *group.rot_freq_hz, 3)
-    omega *= rng.uniform(0.8, 1.0) * math.radians(group.max_rot_deg_s) / np.linalg.norm(omega_ref, axis=1).max()
+    if group.rot_median_deg_s is None:
+        omega *= rng.uniform(0.8, 1.0) * math.radians(group.max_rot_deg_s) / np.linalg.norm(omega_ref, axis=1).max()
+    else:
+        omega *= math.radians(rng.uniform(*group.rot_median_deg_s)) / np.median(np.linalg.norm(omega, axis=1))
     q0 = quat_canonical(torch.from_numpy(rng.normal(size=4)))
 
     z = z_lo + 0.5 * (depth + 1.0) * (z_hi - z_lo)

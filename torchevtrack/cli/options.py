@@ -1,0 +1,44 @@
+"""Command-line options shared by the commands that run the tracker: ``--config`` and ``--set``; ``--executor``
+and ``--address`` for those that run many independent tracking tasks."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from torchevtrack.config import TrackerConfig
+
+
+def add_config_options(p: argparse.ArgumentParser, default: str = "the built-in defaults") -> None:
+    """Add ``--config YAML`` and the repeatable ``--set KEY=VALUE`` to parser ``p``."""
+    p.add_argument("--config", type=Path, help=f"tracker config YAML (default: {default})")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="set",
+                   help="change one config setting, dotted key typed by the config schema, e.g. --set "
+                   "ukf.enabled=false --set eros.kernel_size=9 (repeatable; applied after --config)")
+
+
+def config_from_args(args: argparse.Namespace) -> TrackerConfig:
+    """The :class:`TrackerConfig` of ``--config`` (or the defaults) with the ``--set`` changes applied."""
+    cfg = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
+    return cfg.override(args.set) if args.set else cfg
+
+
+def add_executor_options(p: argparse.ArgumentParser, default: str = "serial") -> None:
+    """Add ``--executor serial|process|ray`` (default ``default``), ``--jobs N`` and ``--address ADDR`` to
+    parser ``p``."""
+    from torchevtrack.executor import EXECUTORS
+
+    p.add_argument("--executor", choices=EXECUTORS, default=default,
+                   help=f"where the independent tasks run: one after the other here, a local process pool, or Ray "
+                   f"tasks (a local Ray without --address); the results are the same (default: {default})")
+    p.add_argument("--jobs", type=int, help="processes of --executor process, CPUs of a local Ray "
+                   "(default: the usable cores)")
+    p.add_argument("--address", help="Ray cluster to run on with --executor ray: auto, HOST:6379 or ray://HOST:10001 "
+                   "(default: start a local Ray)")
+
+
+def executor_from_args(args: argparse.Namespace):
+    """The :class:`~torchevtrack.executor.Executor` of ``--executor``, ``--jobs`` and ``--address``."""
+    from torchevtrack.executor import make_executor
+
+    return make_executor(args.executor, workers=args.jobs, address=args.address)

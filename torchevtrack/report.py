@@ -1,0 +1,194 @@
+"""Per-factor report of a benchmark run on a suite: how the error depends on motion, camera, noise, hand, texture
+and object size, and every sequence's error against time in one figure.
+
+:func:`sequence_factors` reads each sequence's factors from the suite's ``suite.json``
+(:func:`torchevtrack.synth.suite.write_suite_json`) or, without it, from the sequences' ``meta.json`` and
+``camera.json``. :func:`factor_tables` groups the results of :func:`torchevtrack.benchmark.run_benchmark` by
+each factor: per value and method, the number of sequences, the mean translation and rotation RMSE, the mean
+ADD-S AUC and the failed sequences (EDOPT rule). :func:`write_suite_report` writes ``factors.md`` and
+``plots/suite_errors.png`` next to the benchmark's own report.
+
+Example:
+    >>> res = {"results": {"full": {"a": {"metrics": {"rmse_t_cm": 1.0, "rmse_r_deg": 2.0, "adds_auc": 0.9,
+    ...                                                "failed": False}}}}}
+    >>> print(factor_tables(res, {"a": {"motion": "turn"}}, factors=("motion",)).splitlines()[2])
+    ## Overall
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["FACTORS", "factor_tables", "noise_level", "sequence_factors", "suite_error_plot", "write_suite_report"]
+
+FACTORS = {
+    "motion": "motion group",
+    "camera": "camera",
+    "noise": "noise level",
+    "hand": "hand",
+    "texture": "texture",
+    "size": "object size",
+}
+"""The factors of the report (key: heading)."""
+
+_CAMERA_NAMES = {(346, 260): "davis346", (640, 480): "vga", (1280, 720): "hd"}
+
+
+def noise_level(rate_hz: float) -> str:
+    """Bucket of a background-noise rate (events per pixel per second): ``none`` (0), ``low`` (<= 0.2 Hz,
+    a sensor in good light), ``medium`` (<= 1 Hz), ``high`` (above)."""
+    if rate_hz <= 0:
+        return "none"
+    return "low" if rate_hz <= 0.2 else "medium" if rate_hz <= 1.0 else "high"
+
+
+def sequence_factors(bench_dir: str | Path, names) -> dict[str, dict]:
+    """``{name: {factor: value}}`` for the sequences ``names`` of ``bench_dir`` (keys of :data:`FACTORS`).
+
+    From ``bench_dir/suite.json`` when it lists the sequence, else from its ``meta.json`` (motion, noise, hand,
+    texture) and ``camera.json`` (camera preset name, or ``WxH``) and the mesh's bounding box (size).
+    """
+    from torchevtrack.synth.suite import read_suite_json, size_class
+
+    root = Path(bench_dir)
+    suite = read_suite_json(root)
+    listed = {e["name"]: e for e in (suite or {}).get("sequences", [])}
+    out = {}
+    for name in names:
+        e = listed.get(name)
+        if e is not None:
+            out[name] = {"motion": e["motion"], "camera": e["camera"], "noise": noise_level(e["noise_rate"]),
+                         "hand": e["occluder"], "texture": e["texture"], "size": e.get("size") or "?"}
+            continue
+        d = root / name
+        meta = json.loads((d / "meta.json").read_text()) if (d / "meta.json").is_file() else {}
+        cam = json.loads((d / "camera.json").read_text()) if (d / "camera.json").is_file() else {}
+        size = "?"
+        if (d / "mesh.ply").is_file():
+            import trimesh
+
+            size = size_class(trimesh.load(d / "mesh.ply", force="mesh", process=False).extents)
+        wh = (cam.get("width"), cam.get("height"))
+        out[name] = {
+            "motion": meta.get("motion", "?"),
+            "camera": _CAMERA_NAMES.get(wh, f"{wh[0]}x{wh[1]}"),
+            "noise": noise_level(meta.get("generator", {}).get("esim", {}).get("noise_rate_hz", 0.0)),
+            "hand": (meta.get("occluder") or {}).get("kind", "none"),
+            "texture": (meta.get("texture") or {}).get("kind", "none"),
+            "size": size,
+        }
+    return out
+
+
+def _row(cells) -> str:
+    return "| " + " | ".join(str(c) for c in cells) + " |"
+
+
+def _summary(rows: list[dict]) -> list[str]:
+    t = [r["rmse_t_cm"] for r in rows]
+    return [f"{np.mean(t):.2f}", f"{np.median(t):.2f}", f"{np.mean([r['rmse_r_deg'] for r in rows]):.2f}",
+            f"{100 * np.mean([r['adds_auc'] for r in rows]):.1f}", f"{sum(bool(r['failed']) for r in rows)}/{len(rows)}"]
+
+
+def factor_tables(results: dict, factors: dict[str, dict], *, factors_order=tuple(FACTORS)) -> str:
+    """Markdown: an overall table, then one table per factor (rows: the factor's values, sorted; per method
+    the mean and median e_p RMSE (cm), mean e_r RMSE (deg), mean ADD-S AUC (%) and failed / sequences).
+
+    Args:
+        results: the dict of :func:`torchevtrack.benchmark.run_benchmark` (only ``results[method][seq]
+            ["metrics"]`` is read: ``rmse_t_cm``, ``rmse_r_deg``, ``adds_auc``, ``failed``).
+        factors: ``{sequence: {factor: value}}`` (:func:`sequence_factors`); sequences without results are
+            skipped.
+        factors_order: the factors to tabulate, in order (keys of :data:`FACTORS` or any key of ``factors``).
+    """
+    per_method = results.get("results") if isinstance(results, dict) else None
+    if not isinstance(per_method, dict) or not per_method:
+        raise ValueError("results must be the dict of run_benchmark (a non-empty 'results')")
+    methods = list(per_method)
+    head = ["mean e_p (cm)", "median e_p (cm)", "mean e_r (deg)", "ADD-S AUC (%)", "failed"]
+    lines = ["# Results by factor", ""]
+
+    def table(title: str, groups: dict[str, list[str]]) -> None:
+        lines.extend([f"## {title}", ""])
+        lines.append(_row(["value", "method", "sequences"] + head))
+        lines.append(_row(["---"] * (3 + len(head))))
+        for value in sorted(groups, key=str):
+            for m in methods:
+                rows = [per_method[m][s]["metrics"] for s in groups[value] if s in per_method[m]]
+                if rows:
+                    lines.append(_row([value, m, len(rows)] + _summary(rows)))
+        lines.append("")
+
+    names = [s for s in factors if any(s in per_method[m] for m in methods)]
+    table("Overall", {"all": names})
+    for f in factors_order:
+        groups: dict[str, list[str]] = {}
+        for s in names:
+            groups.setdefault(str(factors[s].get(f, "?")), []).append(s)
+        table(FACTORS.get(f, f).capitalize(), groups)
+    lines.append("e_p, e_r: RMSE of the translation (cm) and rotation (deg) error over a sequence's updates, averaged "
+                 "over the sequences of the row; failed: sequences failed by the EDOPT rule. Noise level: none 0, low "
+                 "<= 0.2, medium <= 1, high > 1 events per pixel per second.")
+    return "\n".join(lines) + "\n"
+
+
+def suite_error_plot(curves: dict[str, tuple], path: str | Path, *, title: str | None = None) -> Path:
+    """One small panel per sequence: translation error (cm, left axis) and rotation error (deg, right axis)
+    against time (s). ``curves``: ``{sequence: (t_s (N,), te_cm (N,), re_deg (N,))}``. Returns the PNG path."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    path = Path(path)
+    if not curves:
+        raise ValueError("curves is empty")
+    n = len(curves)
+    cols = min(4, n)
+    rows = -(-n // cols)
+    fig = Figure(figsize=(3.2 * cols, 2.0 * rows + 0.6), dpi=90, layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).ravel()
+    for ax, (name, (t, te, re)) in zip(axes, sorted(curves.items())):
+        ax.plot(t, te, lw=0.8, color="tab:blue")
+        ax.set_title(name, fontsize=7)
+        ax.tick_params(labelsize=6)
+        ax.set_ylabel("cm", fontsize=6, color="tab:blue")
+        ax2 = ax.twinx()
+        ax2.plot(t, re, lw=0.8, color="tab:red")
+        ax2.tick_params(labelsize=6)
+        ax2.set_ylabel("deg", fontsize=6, color="tab:red")
+    for ax in axes[n:]:
+        ax.set_visible(False)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    return path
+
+
+def write_suite_report(results: dict, bench_dir: str | Path, out_dir: str | Path,
+                       method: str | None = None) -> tuple[Path, Path]:
+    """Write ``out_dir/factors.md`` (:func:`factor_tables`) and ``out_dir/plots/suite_errors.png`` (every
+    sequence's error against time for ``method``, default ``"full"`` when run, else the first method), from a
+    finished run's ``results`` and its ``poses/`` files. Returns the two paths."""
+    from torchevtrack.io.poses import read_tum
+    from torchevtrack.metrics import per_pose_errors
+
+    out = Path(out_dir)
+    per_method = results["results"]
+    names = sorted({s for m in per_method.values() for s in m})
+    factors = sequence_factors(bench_dir, names)
+    md = out / "factors.md"
+    md.write_text(factor_tables(results, factors))
+    method = method or ("full" if "full" in per_method else next(iter(per_method)))
+    curves = {}
+    for name, r in per_method[method].items():
+        t_us, poses = read_tum(out / r["pose_file"])
+        gt_t, gt = read_tum(Path(bench_dir) / name / "gt_poses.txt")
+        e = per_pose_errors(t_us, poses, gt_t, gt)
+        curves[name] = (((e["t_us"] - gt_t[0]).double() / 1e6).numpy(), (e["te"] * 100.0).numpy(),
+                        np.degrees(e["re"].numpy()))
+    png = suite_error_plot(curves, out / "plots" / "suite_errors.png", title=f"error against time ({method})")
+    return md, png
