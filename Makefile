@@ -12,7 +12,7 @@ $(BIN)/torchevtrack: pyproject.toml constraints.txt
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(if $(TORCH_INDEX),$(BIN)/pip install -q -c constraints.txt torch --index-url $(TORCH_INDEX))
-	$(BIN)/pip install -q -c constraints.txt -e ".[dev,gl,ycb,viz,io]"
+	$(BIN)/pip install -q -c constraints.txt -e ".[dev,gl,ycb,viz,io,ray,rerun,live]"
 	touch $@
 
 .PHONY: install demo test bench
