@@ -11,7 +11,7 @@ ADD-S AUC and the failed sequences (EDOPT rule). :func:`write_suite_report` writ
 Example:
     >>> res = {"results": {"full": {"a": {"metrics": {"rmse_t_cm": 1.0, "rmse_r_deg": 2.0, "adds_auc": 0.9,
     ...                                                "failed": False}}}}}
-    >>> print(factor_tables(res, {"a": {"motion": "turn"}}, factors=("motion",)).splitlines()[2])
+    >>> print(factor_tables(res, {"a": {"motion": "turn"}}, factors_order=("motion",)).splitlines()[2])
     ## Overall
 """
 
