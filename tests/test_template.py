@@ -770,21 +770,3 @@ def test_shift_px_is_the_largest_image_motion_of_object_points(scenes):
         Xm = g.quat_rotate(g.quat_exp(d[0, :, 3:]).expand(len(X), 4), X - POSE[:, :3]) + moved[:, :3]
         exact = float((CAM.project(Xm) - uv).norm(dim=-1).max())
         assert float(model.shift_px(moved)) == pytest.approx(exact, rel=0.1)
-
-
-def test_the_search_small_linear_algebra_matches_lapack():
-    """The Newton search's 6 x 6 algebra (the largest eigenvalue by Jacobi rotations; the damped system solved by
-    the filters' Cholesky helpers) against numpy's LAPACK on symmetric matrices of mixed signs and scales."""
-    rng = np.random.default_rng(3)
-    for _ in range(200):
-        Q = rng.normal(size=(6, 6)) * 10.0 ** rng.uniform(-3, 6, size=(1, 6))
-        S = Q @ Q.T * rng.choice([-1.0, 1.0]) + np.diag(rng.normal(size=6))
-        S = (S + S.T) / 2
-        eig = np.linalg.eigvalsh(S)
-        assert tm._largest_eigenvalue(S, np.empty((6, 6))) == pytest.approx(eig[-1], abs=1e-13 * np.abs(eig).max())
-        A = (max(eig[-1], 0.0) + 0.5 * np.abs(np.diag(S)).mean() + 1e-12) * np.eye(6) - S
-        b = rng.normal(size=6)
-        L, x = np.empty((6, 6)), np.empty(6)
-        assert g._nb_cholesky(A, L)
-        g._nb_cholesky_solve(L, b, x)
-        np.testing.assert_allclose(A @ x, b, rtol=0, atol=1e-10 * np.abs(A).max() * np.abs(x).max())

@@ -114,9 +114,10 @@ from torch import nn
 
 from torchevtrack.camera import Camera
 from torchevtrack.config import RULES, TemplateConfig
-from torchevtrack.geometry import (_nb_cholesky, _nb_cholesky_solve, _nb_quat_canonical, _nb_quat_exp, _nb_quat_mul,
+from torchevtrack.geometry import (_nb_quat_canonical, _nb_quat_exp, _nb_quat_mul,
                                   _nb_quat_to_matrix, quat_canonical, quat_conj, quat_exp, quat_log, quat_mul,
                                   quat_rotate, quat_to_matrix)
+from torchevtrack.linalg import cholesky, cholesky_solve, eigh
 from torchevtrack.stages import canvas_taps
 
 __all__ = [
@@ -982,41 +983,6 @@ def _apply_step(pose, delta):
 
 
 @numba.njit(cache=True, nogil=True)
-def _largest_eigenvalue(S, work):
-    """The largest eigenvalue of a symmetric matrix ``S`` ``(n, n)`` by cyclic Jacobi rotations on ``work`` (a
-    scratch copy), to float64 precision: a 6 x 6 costs a fraction of a LAPACK call's overhead."""
-    n = S.shape[0]
-    work[:] = S
-    for _ in range(50):
-        off = scale = 0.0
-        for i in range(n):
-            scale += work[i, i] * work[i, i]
-            for j in range(i + 1, n):
-                off += work[i, j] * work[i, j]
-        if off <= 1e-32 * (scale + 2.0 * off) or off == 0.0:
-            break
-        for p in range(n - 1):
-            for q in range(p + 1, n):
-                apq = work[p, q]
-                if apq == 0.0:
-                    continue
-                theta = (work[q, q] - work[p, p]) / (2.0 * apq)
-                t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
-                c = 1.0 / math.sqrt(t * t + 1.0)
-                sn = t * c
-                for k in range(n):  # columns p, q
-                    akp, akq = work[k, p], work[k, q]
-                    work[k, p], work[k, q] = c * akp - sn * akq, sn * akp + c * akq
-                for k in range(n):  # rows p, q
-                    apk, aqk = work[p, k], work[q, k]
-                    work[p, k], work[q, k] = c * apk - sn * aqk, sn * apk + c * aqk
-    top = work[0, 0]
-    for i in range(1, n):
-        top = max(top, work[i, i])
-    return top
-
-
-@numba.njit(cache=True, nogil=True)
 def _newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, iterations, damping, max_step,
                    out_pose, out_score, out_scores, out_moved):
     """The ``"newton"`` rule of :func:`search` on the exact second-order model, per element (:func:`newton_search`).
@@ -1036,7 +1002,8 @@ def _newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta,
         moved = 0
         o, X = _observed_points(Z[b], K[b], obs[b])
         gu, step, delta = np.empty(6), np.empty(6), np.empty(6)
-        Hu, A, L, work = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
+        Hu, A, L, work, vecs = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
+        eig = np.empty(6)
         for it in range(iterations):
             s0, g, M = _quadratic_terms(coef[b], K[b], render_pose[b], cur, o, X)
             un = unit.copy()
@@ -1055,14 +1022,16 @@ def _newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta,
             mean_curv = 0.0
             for i in range(6):
                 mean_curv += abs(Hu[i, i])
-            lam = max(_largest_eigenvalue(Hu, work), 0.0) + damping * mean_curv / 6 + 1e-12
+            work[:] = Hu
+            eigh(work, eig, vecs)
+            lam = max(eig.max(), 0.0) + damping * mean_curv / 6 + 1e-12
             for i in range(6):  # lambda I - Hu, from Hu's lower triangle (all that its Cholesky factor reads)
                 for j in range(i + 1):
                     A[i, j] = A[j, i] = -Hu[i, j]
                 A[i, i] += lam
-            if not _nb_cholesky(A, L):  # positive definite by construction, unless the terms are not finite
+            if not cholesky(A, L):  # positive definite by construction, unless the terms are not finite
                 break
-            _nb_cholesky_solve(L, gu, step)
+            cholesky_solve(L, gu, step)
             for i in range(6):
                 delta[i] = min(max(step[i], -max_step), max_step) * un[i]
             gd = dMd = 0.0  # g . delta and delta^T M delta (small loops: no BLAS calls)
