@@ -121,8 +121,8 @@ def lu_solve(A, Bm, out):
 
 @numba.njit(cache=True, nogil=True)
 def eigh(a, d, v):
-    """Eigen-decomposition of the symmetric ``a`` ``(n, n)`` float64 (overwritten) by cyclic Jacobi rotations
-    (Numerical Recipes' ``jacobi``), until the off-diagonal part vanishes in float64.
+    """Eigen-decomposition of the symmetric ``a`` ``(n, n)`` float64 (overwritten) by cyclic Jacobi rotations, until
+    the off-diagonal part is below float64 rounding of the diagonal.
 
     Outputs: ``d`` ``(n,)`` the eigenvalues (unsorted) and ``v`` ``(n, n)`` the unit eigenvectors as columns
     (``a_in v[:, i] = d[i] v[:, i]``). Accurate to rounding like :func:`numpy.linalg.eigh`, without a LAPACK call.
@@ -131,54 +131,30 @@ def eigh(a, d, v):
     v[:] = 0.0
     for i in range(n):
         v[i, i] = 1.0
-    bb = np.empty(n)
-    z = np.zeros(n)
-    for i in range(n):
-        d[i] = bb[i] = a[i, i]
-    for sweep in range(50):
-        sm = 0.0
-        for p in range(n - 1):
-            for q in range(p + 1, n):
-                sm += abs(a[p, q])
-        if sm == 0.0:
-            break
-        tresh = 0.2 * sm / (n * n) if sweep < 3 else 0.0
-        for p in range(n - 1):
-            for q in range(p + 1, n):
-                g = 100.0 * abs(a[p, q])
-                if sweep > 3 and abs(d[p]) + g == abs(d[p]) and abs(d[q]) + g == abs(d[q]):
-                    a[p, q] = 0.0
-                elif abs(a[p, q]) > tresh:
-                    h = d[q] - d[p]
-                    if abs(h) + g == abs(h):
-                        t = a[p, q] / h
-                    else:
-                        theta = 0.5 * h / a[p, q]
-                        t = 1.0 / (abs(theta) + np.sqrt(1.0 + theta * theta))
-                        if theta < 0.0:
-                            t = -t
-                    c = 1.0 / np.sqrt(1.0 + t * t)
-                    s = t * c
-                    tau = s / (1.0 + c)
-                    h = t * a[p, q]
-                    z[p] -= h
-                    z[q] += h
-                    d[p] -= h
-                    d[q] += h
-                    a[p, q] = 0.0
-                    for j in range(p):
-                        g, h = a[j, p], a[j, q]
-                        a[j, p], a[j, q] = g - s * (h + g * tau), h + s * (g - h * tau)
-                    for j in range(p + 1, q):
-                        g, h = a[p, j], a[j, q]
-                        a[p, j], a[j, q] = g - s * (h + g * tau), h + s * (g - h * tau)
-                    for j in range(q + 1, n):
-                        g, h = a[p, j], a[q, j]
-                        a[p, j], a[q, j] = g - s * (h + g * tau), h + s * (g - h * tau)
-                    for j in range(n):
-                        g, h = v[j, p], v[j, q]
-                        v[j, p], v[j, q] = g - s * (h + g * tau), h + s * (g - h * tau)
+    for _ in range(50):
+        off = scale = 0.0
         for i in range(n):
-            bb[i] += z[i]
-            d[i] = bb[i]
-            z[i] = 0.0
+            scale += a[i, i] * a[i, i]
+            for j in range(i + 1, n):
+                off += a[i, j] * a[i, j]
+        if off <= 1e-32 * (scale + 2.0 * off) or off == 0.0:
+            break
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                apq = a[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
+                t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+                c = 1.0 / np.sqrt(t * t + 1.0)
+                sn = t * c
+                for k in range(n):  # columns p, q of a and v
+                    akp, akq = a[k, p], a[k, q]
+                    a[k, p], a[k, q] = c * akp - sn * akq, sn * akp + c * akq
+                    vkp, vkq = v[k, p], v[k, q]
+                    v[k, p], v[k, q] = c * vkp - sn * vkq, sn * vkp + c * vkq
+                for k in range(n):  # rows p, q of a
+                    apk, aqk = a[p, k], a[q, k]
+                    a[p, k], a[q, k] = c * apk - sn * aqk, sn * apk + c * aqk
+    for i in range(n):
+        d[i] = a[i, i]
