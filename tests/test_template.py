@@ -10,6 +10,7 @@ from torchevtrack import geometry as g
 from torchevtrack.camera import Camera
 from torchevtrack.mesh import load_mesh
 from torchevtrack.render import Renderer
+from torchevtrack import reference
 from torchevtrack.stages import template as tm
 
 CAM = Camera.default()
@@ -38,12 +39,12 @@ def scenes():
 
 
 def _steps(pose, render, roi):
-    return tm.hypothesis_steps(pose, CAM, tm.radial_gain(render.depth, roi[:2], CAM))
+    return tm.hypothesis_steps(pose, CAM, reference.radial_gain(render.depth, roi[:2], CAM))
 
 
 def _edges(render):
     """Synthetic EROS: binary edges (grey + silhouette) of a render at full resolution."""
-    return (tm.edge_map(render.gray, (render.depth > 0).float()) > 0.5).float()
+    return (reference.edge_map(render.gray, (render.depth > 0).float()) > 0.5).float()
 
 
 def _ncc(a, b):
@@ -59,7 +60,7 @@ def test_doctests():
 def test_translation_steps_move_the_projected_centre_by_dp(scenes):
     _, roi, base = scenes["box"]
     for dp in (1.0, 2.5):
-        hyp = tm.apply_steps(POSE, tm.hypothesis_steps(POSE, CAM, tm.radial_gain(base.depth, roi[:2], CAM), dp))[0]
+        hyp = tm.apply_steps(POSE, tm.hypothesis_steps(POSE, CAM, reference.radial_gain(base.depth, roi[:2], CAM), dp))[0]
         uv = CAM.project(hyp[:, :3])
         d = uv - uv[0]
         expected = torch.tensor([[dp, 0], [-dp, 0], [0, dp], [0, -dp]], dtype=d.dtype)
@@ -108,20 +109,20 @@ def test_warped_templates_match_rerendered_templates(scenes, name):
     N = 128
     hyp = tm.apply_steps(POSE, _steps(POSE, base, roi))
     renders = r.render(hyp[0].float(), roi=roi)
-    cr0 = tm.prepare_canvas(base.depth, base.gray, roi[:2], CAM, N, 20)
-    direct_cr = tm.prepare_canvas(renders.depth, renders.gray, roi[:2], CAM, N, box=cr0.box.expand(13, 3))
-    direct = tm.dog(tm.edge_map(direct_cr.gray, direct_cr.mask), N)
+    cr0 = reference.prepare_canvas(base.depth, base.gray, roi[:2], CAM, N, 20)
+    direct_cr = reference.prepare_canvas(renders.depth, renders.gray, roi[:2], CAM, N, box=cr0.box.expand(13, 3))
+    direct = reference.dog(reference.edge_map(direct_cr.gray, direct_cr.mask), N)
     direct = direct * 0.5 / direct[0].abs().max()
     obs = tm.to_canvas(_edges(renders), cr0.box.expand(13, 3), N, roi[:2])  # observation at each hypothesis
     for warp, min_diff_ncc in (("template", 0.7), ("image", 0.6)):
-        warped = tm.hypothesis_templates(cr0, POSE, hyp, warp=warp)[0]
+        warped = reference.hypothesis_templates(cr0, POSE, hyp, warp=warp)[0]
         for k in range(13):
             assert _ncc(warped[k], direct[k]) > 0.95
         # the change a step makes to the template is reproduced, not just the template itself
         for k in range(1, 13):
             assert _ncc(warped[k] - warped[0], direct[k] - direct[0]) > min_diff_ncc, (warp, k)
-        s_warp = tm.score(warped[None].expand(13, -1, -1, -1), obs)
-        s_direct = tm.score(direct[None].expand(13, -1, -1, -1), obs)
+        s_warp = reference.score(warped[None].expand(13, -1, -1, -1), obs)
+        s_direct = reference.score(direct[None].expand(13, -1, -1, -1), obs)
         assert torch.equal(s_warp.argmax(1), s_direct.argmax(1)), warp
         assert torch.equal(s_warp.argmax(1), torch.arange(13)), warp
 
@@ -304,7 +305,7 @@ def test_batch_equals_separate_runs(scenes, rule):
 
 
 # -- regions, templates and inputs ------------------------------------------------------------
-def test_render_window_contains_the_object_and_correct_render_accepts_a_render(scenes):
+def test_render_window_contains_the_object_and_a_window_corrects_as_the_full_frame(scenes):
     r, roi, base = scenes["box"]
     full = r.render(POSE.float())
     v, u = torch.nonzero(full.depth[0] > 0, as_tuple=True)
@@ -313,15 +314,15 @@ def test_render_window_contains_the_object_and_correct_render_accepts_a_render(s
     crop = full.depth[0, roi[1] : roi[1] + roi[3], roi[0] : roi[0] + roi[2]]
     assert torch.equal(base.depth[0] > 0, crop > 0) and torch.allclose(base.depth[0], crop, atol=1e-4)
     # the box of a window render equals the box of the full frame, and so does the correction
-    box_w = tm.canvas_box(base.depth, roi[:2], 20)
-    box_f = tm.canvas_box(full.depth, (0, 0), 20)
+    box_w = reference.canvas_box(base.depth, roi[:2], 20)
+    box_f = reference.canvas_box(full.depth, (0, 0), 20)
     assert torch.equal(box_w, box_f)
     assert float(box_f[0, 2]) == max(int(u.max() - u.min()), int(v.max() - v.min())) + 1 + 40
     obs = torch.zeros(1, CAM.height, CAM.width)
     obs[0, roi[1] : roi[1] + roi[3], roi[0] : roi[0] + roi[2]] = _edges(base)[0]
     corr = tm.TemplateCorrector(CAM, rule="argmax", iterations=1)
-    a = corr.correct_render(POSE, base, roi[:2], obs)
-    b = corr.correct_render(POSE, full, (0, 0), obs)
+    a = corr(POSE, base.depth, base.gray, roi[:2], obs)
+    b = corr(POSE, full.depth, full.gray, (0, 0), obs)
     # (the renderer's window and full-frame grey differ by up to ~2/255 on a few % of pixels)
     assert torch.allclose(a.scores, b.scores, rtol=2e-3) and int(a.index) == 0
 
@@ -375,8 +376,8 @@ def test_template_is_dog_of_edges_scaled_to_half():
     disk = (((xx - 64) ** 2 + (yy - 64) ** 2) < 30**2).float()[None]
     depth = disk * 0.4
     cam = Camera(128, 128, 200.0, 200.0, 63.5, 63.5)
-    cr = tm.prepare_canvas(depth, disk * 0.6, (0, 0), cam, 128, 34)
-    t = tm.hypothesis_templates(cr, POSE.float(), POSE.float()[:, None])[0, 0]
+    cr = reference.prepare_canvas(depth, disk * 0.6, (0, 0), cam, 128, 34)
+    t = reference.hypothesis_templates(cr, POSE.float(), POSE.float()[:, None])[0, 0]
     assert float(t.max()) == pytest.approx(0.5, abs=1e-4) and float(t.min()) < -0.05 and float(t.min()) >= -0.5
     r = ((xx - 63.5) ** 2 + (yy - 63.5) ** 2).sqrt()
     on_edge = t[(r - 30).abs() < 1].mean()
@@ -392,9 +393,7 @@ def test_bad_inputs(scenes):
     with pytest.raises(ValueError, match="rule"):
         tm.correct(*args, rule="best")
     with pytest.raises(ValueError, match="warp"):
-        tm.correct(*args, warp="flow")
-    with pytest.raises(ValueError, match="scoring"):
-        tm.correct(*args, scoring="fast")
+        reference.correct_warp(*args, warp="flow")
     model = tm.template_model(POSE, base.depth, base.gray, roi[:2], CAM)
     with pytest.raises(ValueError, match="pose"):
         tm.correct_model(model, POSE.repeat(2, 1), obs, CAM)
@@ -435,7 +434,7 @@ def dense_spline_derivatives(img):
     val, d1, d2 = (torch.tensor(k, dtype=img.dtype) for k in ((1 / 6, 4 / 6, 1 / 6), (-0.5, 0.0, 0.5), (1.0, -2.0, 1.0)))
     kern = torch.stack((torch.outer(val, d1), torch.outer(d1, val), torch.outer(val, d2), torch.outer(d1, d1),
                         torch.outer(d2, val)))[:, None]  # rows: v kernel, columns: u kernel
-    return torch.nn.functional.conv2d(tm._spline_prefilter(img[:, None]), kern, padding=1)
+    return torch.nn.functional.conv2d(reference._spline_prefilter(img[:, None]), kern, padding=1)
 
 
 def dense_canvas_jacobian(depth, K, pose):
@@ -474,7 +473,7 @@ def dense_quadratic(template, depth, K, pose, obs):
     return s0, g_, M
 
 
-# -- (f) second-order score model (scoring="taylor") against the exact warp -------------------
+# -- (f) second-order score model against the exact warp (reference) -------------------
 def test_dog_and_edges_match_kornia_filters():
     from kornia.filters import gaussian_blur2d, spatial_gradient
 
@@ -485,11 +484,11 @@ def test_dog_and_edges_match_kornia_filters():
         s = 0.3 * ((k - 1) / 2 - 1) + 0.8
         b = gaussian_blur2d(x[:, None], (k, k), (s, s), border_type="constant")[:, 0]
         ref = b if ref is None else ref + sign * b
-    assert torch.allclose(tm.dog(x, 96), ref, atol=1e-6)
+    assert torch.allclose(reference.dog(x, 96), ref, atol=1e-6)
     gray, mask = torch.rand(2, 40, 50), (torch.rand(2, 40, 50) > 0.5).float()
     gk = spatial_gradient(torch.stack((gray, mask), 1), mode="sobel", order=1, normalized=True)
     edges = (gk.square().sum(2).sqrt().amax(1) / 0.1).clamp(max=1.0)
-    assert torch.allclose(tm.edge_map(gray, mask, 0.1), edges, atol=1e-6)
+    assert torch.allclose(reference.edge_map(gray, mask, 0.1), edges, atol=1e-6)
 
 
 def test_canvas_box_and_radial_gain_match_their_definitions():
@@ -497,7 +496,7 @@ def test_canvas_box_and_radial_gain_match_their_definitions():
     depth = (torch.rand(3, 30, 41, generator=gen) + 0.3) * (torch.rand(3, 30, 41, generator=gen) > 0.97)
     depth[2] = 0.0  # no object pixels
     origin = torch.tensor([[5.0, 7.0], [100.0, 20.0], [0.0, 0.0]])
-    box, gain = tm.canvas_box(depth, origin, 4.0), tm.radial_gain(depth, origin, CAM)
+    box, gain = reference.canvas_box(depth, origin, 4.0), reference.radial_gain(depth, origin, CAM)
     for b in range(3):
         v, u = torch.nonzero(depth[b] > 0, as_tuple=True)
         if len(u) == 0:
@@ -519,15 +518,15 @@ def test_template_model_is_the_template_of_the_canvas_render(scenes, name, grey,
     origin = torch.tensor([roi[:2], [roi[0] - 3, roi[1] + 5]])  # the second window seen at another place
     pose = POSE.expand(2, 7)
     model = tm.template_model(pose, depth, gray, origin, CAM, silhouette=silhouette)
-    cr = tm.prepare_canvas(depth, gray, origin, CAM, 128, 20.0)
-    edges = tm.dog(tm.edge_map(cr.gray, cr.mask if silhouette else None, 0.1), 128)[:, None]
-    T = tm._scale(edges, edges)[:, 0]
+    cr = reference.prepare_canvas(depth, gray, origin, CAM, 128, 20.0)
+    edges = reference.dog(reference.edge_map(cr.gray, cr.mask if silhouette else None, 0.1), 128)[:, None]
+    T = reference._scale(edges, edges)[:, 0]
     assert torch.equal(model.box, cr.box) and torch.allclose(model.K, cr.K, rtol=1e-6)  # K: float64, then rounded
-    assert torch.allclose(model.gain, tm.radial_gain(depth, origin, CAM))
+    assert torch.allclose(model.gain, reference.radial_gain(depth, origin, CAM))
     assert torch.allclose(model.render_template, T, atol=1e-5)
-    assert torch.allclose(model.coef, torch.nn.functional.pad(tm._spline_prefilter(T[:, None])[:, 0], (3,) * 4),
+    assert torch.allclose(model.coef, torch.nn.functional.pad(reference._spline_prefilter(T[:, None])[:, 0], (3,) * 4),
                           atol=1e-5)
-    assert torch.allclose(model.depth, tm._fill_depth(cr.depth, pose[:, 2], 8), atol=1e-6)
+    assert torch.allclose(model.depth, reference._fill_depth(cr.depth, pose[:, 2], 8), atol=1e-6)
     assert (model.render_template.abs() > 0.1).any()  # a template, not an empty canvas
 
 
@@ -535,7 +534,7 @@ def test_fill_depth_matches_a_pixel_loop():
     torch.manual_seed(4)
     depth = torch.zeros(1, 20, 24, dtype=torch.float64)
     depth[0, 5:12, 6:15] = 0.4 + 0.1 * torch.rand(7, 9, dtype=torch.float64)
-    out = tm._fill_depth(depth, torch.tensor([0.7], dtype=torch.float64), 3)
+    out = reference._fill_depth(depth, torch.tensor([0.7], dtype=torch.float64), 3)
     for v in range(20):
         for u in range(24):
             win = depth[0, max(v - 3, 0) : v + 4, max(u - 3, 0) : u + 4]
@@ -546,15 +545,15 @@ def test_fill_depth_matches_a_pixel_loop():
 
 def test_spline_derivatives_are_those_of_the_warp_interpolant():
     torch.manual_seed(5)
-    img = tm.dog((torch.rand(1, 48, 48) > 0.85).float(), 64).double()
+    img = reference.dog((torch.rand(1, 48, 48) > 0.85).float(), 64).double()
     D = dense_spline_derivatives(img)[0]
-    coef = tm._spline_prefilter(img[:, None])
+    coef = reference._spline_prefilter(img[:, None])
     v, u = torch.meshgrid(torch.arange(48.0), torch.arange(48.0), indexing="ij")
     uv = torch.stack((u, v)).double()[None]
     h = 1e-3
 
     def at(du, dv):
-        return tm._spline_sample(coef, uv + torch.tensor([du, dv], dtype=uv.dtype).view(1, 2, 1, 1))[0, 0]
+        return reference._spline_sample(coef, uv + torch.tensor([du, dv], dtype=uv.dtype).view(1, 2, 1, 1))[0, 0]
 
     fd = torch.stack((
         (at(h, 0) - at(-h, 0)) / (2 * h),
@@ -571,12 +570,12 @@ def test_spline_derivatives_are_those_of_the_warp_interpolant():
 def test_canvas_jacobian_is_the_first_order_warp_displacement(scenes, name):
     _, roi, base = scenes[name]
     N = 128
-    cr = tm.prepare_canvas(base.depth.double(), base.gray.double(), roi[:2], CAM, N, 20)
-    Z = tm._fill_depth(cr.depth, POSE[:, 2], N // 16)
+    cr = reference.prepare_canvas(base.depth.double(), base.gray.double(), roi[:2], CAM, N, 20)
+    Z = reference._fill_depth(cr.depth, POSE[:, 2], N // 16)
     steps = _steps(POSE, base, roi)[0, 1:] * 0.02  # (12, 6): 2 % of the hypothesis steps
     v, u = torch.meshgrid(torch.arange(float(N)), torch.arange(float(N)), indexing="ij")
     coords = torch.stack((u, v))[None].double()
-    w = tm.warp_canvas(coords, Z, cr.K, POSE, tm.apply_steps(POSE, torch.cat((steps, -steps))[None]))[0]
+    w = reference.warp_canvas(coords, Z, cr.K, POSE, tm.apply_steps(POSE, torch.cat((steps, -steps))[None]))[0]
     disp = (w[:12] - w[12:]).reshape(12, 2, -1) / 2  # central difference of the source coordinates
     J = dense_canvas_jacobian(Z, cr.K, POSE)[0]  # (6, 2, N * N)
     pred = -torch.einsum("jrn,kj->krn", J, steps)  # the source of pixel q is q - J delta
@@ -616,7 +615,7 @@ def test_quadratic_score_away_from_the_render_is_the_taylor_model_of_the_warp(sc
     quad = model.at(centre).fit_canvas(obs)
 
     def warp_score(deltas):  # the reference: the render's template warped to centre (+) delta, then scored
-        t = tm.warp_canvas(model.render_template[:, None].double(), model.depth.double(), model.K, POSE,
+        t = reference.warp_canvas(model.render_template[:, None].double(), model.depth.double(), model.K, POSE,
                            tm.apply_steps(centre, deltas[None]))[0, :, 0]
         return (t * obs.view(1, N, N).double()).flatten(1).sum(1)
 
@@ -638,10 +637,10 @@ def _both_scores(r, roi, start, obs):
     """Warp and taylor scores of the 13 hypotheses around ``start`` (B, 7) from a render there."""
     rd = r.render(start.float(), roi=roi)
     B = start.shape[0]
-    cr = tm.prepare_canvas(rd.depth, rd.gray, roi[:2], CAM, 128, 20)
-    steps = tm.hypothesis_steps(start, CAM, tm.radial_gain(rd.depth, roi[:2], CAM))
+    cr = reference.prepare_canvas(rd.depth, rd.gray, roi[:2], CAM, 128, 20)
+    steps = tm.hypothesis_steps(start, CAM, reference.radial_gain(rd.depth, roi[:2], CAM))
     o = tm.to_canvas(obs.expand(B, -1, -1), cr.box, 128, roi[:2])
-    warp = tm.score(tm.hypothesis_templates(cr, start.float(), tm.apply_steps(start, steps).float()), o)
+    warp = reference.score(reference.hypothesis_templates(cr, start.float(), tm.apply_steps(start, steps).float()), o)
     model = tm.template_model(start, rd.depth, rd.gray, roi[:2], CAM)
     return warp.double(), model.fit(obs.expand(B, -1, -1), roi[:2]).scores(start, steps), model
 
@@ -695,8 +694,8 @@ def test_correct_taylor_equals_warp_on_one_step_offsets(scenes, rule):
     obs = _edges(base)
     starts = tm.apply_steps(POSE, -_steps(POSE, base, roi)[:, SIX])[0]
     rd = r.render(starts.float(), roi=roi)
-    outs = [tm.correct(starts, rd.depth, rd.gray, roi[:2], obs.expand(6, -1, -1), CAM, observation_origin=roi[:2],
-                       rule=rule, scoring=s) for s in ("taylor", "warp")]
+    outs = [f(starts, rd.depth, rd.gray, roi[:2], obs.expand(6, -1, -1), CAM, observation_origin=roi[:2], rule=rule)
+            for f in (tm.correct, reference.correct_warp)]
     assert torch.equal(outs[0].index, outs[1].index) and torch.equal(outs[0].applied, outs[1].applied)
     assert torch.allclose(outs[0].pose, outs[1].pose, atol=1e-6)
     # argmax: the score of one hypothesis step; group: of up to four composed steps, where the
@@ -770,21 +769,3 @@ def test_shift_px_is_the_largest_image_motion_of_object_points(scenes):
         Xm = g.quat_rotate(g.quat_exp(d[0, :, 3:]).expand(len(X), 4), X - POSE[:, :3]) + moved[:, :3]
         exact = float((CAM.project(Xm) - uv).norm(dim=-1).max())
         assert float(model.shift_px(moved)) == pytest.approx(exact, rel=0.1)
-
-
-def test_the_search_small_linear_algebra_matches_lapack():
-    """The Newton search's 6 x 6 algebra (the largest eigenvalue by Jacobi rotations; the damped system solved by
-    the filters' Cholesky helpers) against numpy's LAPACK on symmetric matrices of mixed signs and scales."""
-    rng = np.random.default_rng(3)
-    for _ in range(200):
-        Q = rng.normal(size=(6, 6)) * 10.0 ** rng.uniform(-3, 6, size=(1, 6))
-        S = Q @ Q.T * rng.choice([-1.0, 1.0]) + np.diag(rng.normal(size=6))
-        S = (S + S.T) / 2
-        eig = np.linalg.eigvalsh(S)
-        assert tm._largest_eigenvalue(S, np.empty((6, 6))) == pytest.approx(eig[-1], abs=1e-13 * np.abs(eig).max())
-        A = (max(eig[-1], 0.0) + 0.5 * np.abs(np.diag(S)).mean() + 1e-12) * np.eye(6) - S
-        b = rng.normal(size=6)
-        L, x = np.empty((6, 6)), np.empty(6)
-        assert g._nb_cholesky(A, L)
-        g._nb_cholesky_solve(L, b, x)
-        np.testing.assert_allclose(A @ x, b, rtol=0, atol=1e-10 * np.abs(A).max() * np.abs(x).max())

@@ -10,7 +10,7 @@ z, up to ``--max-deg`` about a random axis), renders there and scores the 13 hyp
 Prints per case: median / minimum Pearson correlation of the 13 scores, argmax agreement, the
 score the model's choice loses against the exact best (in units of the spread of the 13 exact
 scores), and agreement of the group rule's applied sets. Then per-call timings (1 thread, B = 1,
-canvas 128): min and median ms of ``correct`` with ``scoring="warp"`` and ``"taylor"`` and of its parts.
+canvas 128): min and median ms of ``reference.correct_warp`` and ``template.correct`` and of its parts.
 With ``--reuse`` also the render-reuse path (a model of the render at P_ref scoring hypotheses
 around P_ref + delta, by its quadratic at P_ref or re-centred there) against re-rendering at the new pose.
 
@@ -33,6 +33,7 @@ from torchevtrack import geometry as g  # noqa: E402
 from torchevtrack.camera import Camera  # noqa: E402
 from torchevtrack.mesh import load_mesh  # noqa: E402
 from torchevtrack.render import Renderer  # noqa: E402
+from torchevtrack import reference as ref
 from torchevtrack.stages import template as tm  # noqa: E402
 
 CAM = Camera.default()
@@ -45,7 +46,7 @@ def _pose(v) -> torch.Tensor:
 
 
 def _edges(render) -> torch.Tensor:
-    return (tm.edge_map(render.gray, (render.depth > 0).float()) > 0.5).float()
+    return (ref.edge_map(render.gray, (render.depth > 0).float()) > 0.5).float()
 
 
 def _radius(mesh) -> float:
@@ -66,11 +67,11 @@ def scores_both(renderer, roi, start, obs, obs_origin):
     """Exact (warp) and model (taylor) scores of the 13 hypotheses around ``start``; steps."""
     rd = renderer.render(start.float(), roi=roi)
     pose = start.float()
-    cr = tm.prepare_canvas(rd.depth, rd.gray, roi[:2], CAM, 128, 20)
-    steps = tm.hypothesis_steps(pose, CAM, tm.radial_gain(rd.depth, roi[:2], CAM))
+    cr = ref.prepare_canvas(rd.depth, rd.gray, roi[:2], CAM, 128, 20)
+    steps = tm.hypothesis_steps(pose, CAM, ref.radial_gain(rd.depth, roi[:2], CAM))
     hyp = tm.apply_steps(pose, steps)
     o = tm.to_canvas(obs, cr.box, 128, obs_origin)
-    exact = tm.score(tm.hypothesis_templates(cr, pose, hyp), o)[0].double()
+    exact = ref.score(ref.hypothesis_templates(cr, pose, hyp), o)[0].double()
     model = tm.template_model(pose, rd.depth, rd.gray, roi[:2], CAM)
     fast = model.fit(obs, obs_origin).scores(pose, steps)[0]
     return exact, fast, steps, model, rd
@@ -135,7 +136,7 @@ def accuracy(args, rng):
                 o, origin = _edges(base), roi[:2]
             else:
                 o, origin = obs, (0, 0)
-            off = random_offset(truth, float(tm.radial_gain(base.depth, roi[:2], CAM)), rng, args.max_px, args.max_deg)
+            off = random_offset(truth, float(ref.radial_gain(base.depth, roi[:2], CAM)), rng, args.max_px, args.max_deg)
             start = tm.apply_steps(truth, off[:, None])[:, 0]
             exact, fast, steps, model, _ = scores_both(r, roi, start, o, origin)
             trials.append((exact, fast, steps))
@@ -179,9 +180,9 @@ def speed(args):
     print(f"  render window {roi[2]}x{roi[3]}; render itself: {'%.2f / %.2f' % timeit(lambda: r.render(start, roi=roi), 10)}")
     for rule in ("argmax", "group"):
         for it in (1, 3):
-            for scoring in ("warp", "taylor"):
-                corr = tm.TemplateCorrector(CAM, rule=rule, iterations=it, scoring=scoring)
-                t = timeit(lambda: corr(start, rd.depth, rd.gray, roi[:2], obs, roi[:2]), args.runs)
+            for scoring, correct in (("warp", ref.correct_warp), ("taylor", tm.correct)):
+                t = timeit(lambda: correct(start, rd.depth, rd.gray, roi[:2], obs, CAM, observation_origin=roi[:2],
+                                           rule=rule, iterations=it), args.runs)
                 print(f"  correct {scoring:6s} rule={rule:6s} iterations={it}: {t[0]:7.2f} / {t[1]:7.2f}")
     corr = tm.TemplateCorrector(CAM)
     model = corr.template_model(start, rd.depth, rd.gray, roi[:2])

@@ -29,7 +29,7 @@ path (:func:`template_model`, :func:`quadratic_score`, :func:`newton_search`) ru
    ``dz = dp / mean_i(|(u_i - cx, v_i - cy)| / Z_i)`` over the object's pixels (Eq. 10 with the
    per-pixel depth ``Z_i``; for a fronto-parallel object it is ``z dp / pbar``), rotations
    ``dtheta``.
-4. **Warp** (:func:`warp_canvas`): one render gives all 13 templates. For each canvas pixel ``q`` of a
+4. **Warp** (:func:`~torchevtrack.reference.warp_canvas`): one render gives all 13 templates. For each canvas pixel ``q`` of a
    hypothesis image, ``q`` is back-projected with the *base* depth at ``q``, moved by the inverse of
    the hypothesis' rigid motion ``T_h T_0^-1`` and projected: that is where ``q``'s content came from
    (inverse warp, ``grid_sample``). Using the base depth instead of the (unknown) hypothesis
@@ -39,17 +39,11 @@ path (:func:`template_model`, :func:`quadratic_score`, :func:`newton_search`) ru
    depth, so silhouettes and their negative band move with the object. Disocclusions of a 0.5 deg
    rotation are not modelled. Sampling is **cubic B-spline** interpolation (prefiltered, evaluated
    with four bilinear fetches): the null hypothesis samples the base exactly while a step samples
-   between canvas pixels, so the interpolator must neither blur nor sharpen. Bilinear blurs a
-   sub-pixel sample by a few % of the peak and biased every score toward the null (in development it
-   lost all 12 one-step offsets of a rendered box to the null); torch's bicubic (``a = -0.75``)
-   sharpens by about 1 %, which let 0.5 deg rotations beat the null on an observation at the null
-   pose. The B-spline is flat to ~1e-4 in the band of the template. By default
-   (``warp="template"``) the finished template (DoG output) is warped: Sobel and DoG then run once
-   per batch element instead of 13 times, and interpolating the smooth DoG is more accurate than
-   interpolating the sharp grey image (measured against re-rendered templates). The DoG is
-   isotropic, so it commutes exactly with the translation and roll warps and up to the scale change
-   (``dp / pbar``, ~1 %) with the others. ``warp="image"`` warps grey and mask and filters each
-   hypothesis instead.
+   between canvas pixels, so the interpolator must neither blur nor sharpen (bilinear blurs and biases
+   scores toward the null, torch's bicubic sharpens by about 1 %); the B-spline is flat to ~1e-4 in the
+   band of the template. The finished template (DoG output) is warped: the DoG is isotropic, so it
+   commutes exactly with the translation and roll warps and up to the scale change (``dp / pbar``, ~1 %)
+   with the others.
 5. **Update** (:func:`select`): ``"argmax"`` (the paper) applies the best of the 13 (the null wins
    ties). ``"group"`` (EDOPT) takes, in each group ``{tx, ry}, {ty, rx}, {rz}, {tz}``, the best of its
    hypotheses and applies it if it beats the null score; the applied steps are composed in that group
@@ -61,8 +55,8 @@ path (:func:`template_model`, :func:`quadratic_score`, :func:`newton_search`) ru
    a step. With ``iterations > 1``
    the correction repeats around the new pose while the score of the corrected pose keeps improving,
    re-warping the same render (a first-order warp, accurate for a few pixels of cumulative motion).
-6. **Scores without warping** (``scoring="taylor"``, the default; ``scoring="warp"`` is item 4,
-   kept as the reference). Around a centre pose ``P`` a step ``delta = [dt, phi]`` moves canvas
+6. **Scores without warping** (the production path; item 4 is its torch reference, :mod:`torchevtrack.reference`).
+   Around a centre pose ``P`` a step ``delta = [dt, phi]`` moves canvas
    pixel ``q`` by ``J(q) delta`` to first order (the interaction matrix of the canvas intrinsics at
    the render's depth, with the twist ``v = dt - phi x t``, ``w = phi`` of a rotation about the
    object origin ``t``), so the template at ``P (+) delta`` is ``T_P(q - J delta)`` and to second order
@@ -73,8 +67,7 @@ path (:func:`template_model`, :func:`quadratic_score`, :func:`newton_search`) ru
    ``Dw = dp / dq`` and ``grad T``, ``Hess T`` the exact derivatives of the B-spline interpolant at ``p``.
    :func:`quadratic_score` sums these terms in one compiled pass over the pixels where ``|O| >= 1e-4``
    (about a seventh of the canvas on EROS weighed by event age), evaluating the warp, the spline (4 x 4 coefficients) and
-   ``J`` on the fly: about 0.1 ms for a 128 px canvas, against 2-3 ms for the dense per-pixel tensors it
-   replaced, so every iteration re-centres exactly on its pose (:meth:`TemplateModel.at` only moves the
+   ``J`` on the fly (about 0.1 ms for a 128 px canvas), so every iteration re-centres exactly on its pose (:meth:`TemplateModel.at` only moves the
    centre). One render gives a :class:`TemplateModel` (template, its spline coefficients, depth);
    an observation contracts it into a :class:`QuadraticScore`, which scores any pose near its centre in
    microseconds. The model is the Taylor expansion of the warp of item 4 up to the second-order terms of
@@ -114,9 +107,10 @@ from torch import nn
 
 from torchevtrack.camera import Camera
 from torchevtrack.config import RULES, TemplateConfig
-from torchevtrack.geometry import (_nb_cholesky, _nb_cholesky_solve, _nb_quat_canonical, _nb_quat_exp, _nb_quat_mul,
+from torchevtrack.geometry import (_nb_quat_canonical, _nb_quat_exp, _nb_quat_mul,
                                   _nb_quat_to_matrix, quat_canonical, quat_conj, quat_exp, quat_log, quat_mul,
-                                  quat_rotate, quat_to_matrix)
+                                  quat_rotate)
+from torchevtrack.linalg import cholesky, cholesky_solve, eigh
 from torchevtrack.stages import canvas_taps
 
 __all__ = [
@@ -129,19 +123,10 @@ __all__ = [
     "Correction",
     "render_window",
     "window_of",
-    "canvas_box",
     "canvas_intrinsics",
     "to_canvas",
-    "edge_map",
-    "dog",
-    "radial_gain",
     "hypothesis_steps",
     "apply_steps",
-    "warp_canvas",
-    "CanvasRender",
-    "prepare_canvas",
-    "hypothesis_templates",
-    "score",
     "pose_delta",
     "QuadraticScore",
     "quadratic_score",
@@ -236,57 +221,6 @@ def _window_kernel(t, radius, fx, fy, cx, cy, margin, W, H, clip, out):
             out[b, 0], out[b, 1] = min(max(out[b, 0], 0), W - out[b, 2]), min(max(out[b, 1], 0), H - out[b, 3])
 
 
-def canvas_box(depth: torch.Tensor, origin, margin_px: float = 20.0) -> torch.Tensor:
-    """Square region of interest ``[cu, cv, side]`` (frame pixels) around the object in a render.
-
-    The bounding box of the ``depth > 0`` pixels, grown by ``margin_px`` on each side and made square
-    about its centre. A render without object pixels gives the window itself (centre, longer side).
-
-    Args:
-        depth: ``(B, h, w)`` render (metres, 0 = background) of the window whose top-left pixel is ``origin``.
-        origin: ``(B, 2)`` or ``(2,)`` window origin ``(u0, v0)`` in frame pixels.
-        margin_px: margin in frame pixels.
-
-    Shape: ``(B, h, w), (B, 2) -> (B, 3)``.
-    """
-    depth = _check_images(depth, "depth")
-    return _box_of(_object_extent(depth, origin), depth, origin, margin_px)
-
-
-def _box_of(extent: torch.Tensor, depth: torch.Tensor, origin, margin_px: float) -> torch.Tensor:
-    """:func:`canvas_box` from the :func:`_object_extent` of the render ``depth``."""
-    B, h, w = depth.shape
-    origin = _origin(origin, B, depth.dtype)
-    e = extent.to(depth.dtype)
-    umin, umax, vmin, vmax = e[:, 0], e[:, 1], e[:, 2], e[:, 3]
-    empty = e[:, 5] == 0
-    cu = torch.where(empty, (w - 1) / 2.0, (umin + umax) / 2) + origin[:, 0]
-    cv = torch.where(empty, (h - 1) / 2.0, (vmin + vmax) / 2) + origin[:, 1]
-    side = torch.where(empty, float(max(h, w)), torch.maximum(umax - umin, vmax - vmin) + 1 + 2 * margin_px)
-    return torch.stack((cu, cv, side), -1)
-
-
-def _object_extent(depth: torch.Tensor, origin, camera: Camera | None = None) -> torch.Tensor:
-    """One compiled pass over the ``depth > 0`` pixels of renders ``(B, h, w)`` (window at ``origin``).
-
-    Returns ``(B, 6)`` float64: the window-pixel bounds ``umin, umax, vmin, vmax`` (0 without object pixels),
-    the sum of ``|(u - cx, v - cy)| / Z`` over the object pixels (frame pixels ``u, v``; 0 without a
-    ``camera``) and their count.
-    """
-    B = depth.shape[0]
-    o = _origin(origin, B, torch.float64)
-    c = (0.0, 0.0) if camera is None else (camera.cx, camera.cy)
-    out = torch.empty(B, 6, dtype=torch.float64)
-    _extent_kernel(depth.detach().numpy(), o.numpy(), c[0], c[1], camera is not None, out.numpy())
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
-def _extent_kernel(depth, origin, cx, cy, gain, out):
-    for b in range(depth.shape[0]):
-        out[b] = _extent(depth[b], origin[b, 0], origin[b, 1], cx, cy, gain)
-
-
 @numba.njit(cache=True, nogil=True, fastmath=True)
 def _extent(depth, u0, v0, cx, cy, gain):
     """:func:`_object_extent` of one window ``(h, w)`` at ``(u0, v0)``: a 6-tuple."""
@@ -334,7 +268,7 @@ def to_canvas(image: torch.Tensor, box: torch.Tensor, canvas: int, origin=(0, 0)
 
     Args:
         image: ``(B, h, w)`` or ``(B, C, h, w)``, the window of the frame with top-left ``origin``.
-        box: ``(B, 3)`` ``[cu, cv, side]`` in frame pixels (:func:`canvas_box`).
+        box: ``(B, 3)`` ``[cu, cv, side]`` in frame pixels (:func:`~torchevtrack.reference.canvas_box`).
         canvas: output size in pixels.
         origin: ``(B, 2)`` or ``(2,)`` frame coordinates of the image's pixel ``(0, 0)``.
 
@@ -359,29 +293,6 @@ def to_canvas(image: torch.Tensor, box: torch.Tensor, canvas: int, origin=(0, 0)
 
 
 # -- templates --------------------------------------------------------------------------------
-def edge_map(gray: torch.Tensor | None, mask: torch.Tensor | None, edge_clip: float = 0.1) -> torch.Tensor:
-    """Truncated edge strength in ``[0, 1]``: ``min(max(|grad gray|, |grad mask|) / edge_clip, 1)``.
-
-    Gradients are the normalised Sobel (``/ 8``, replicated border; as kornia's ``spatial_gradient``;
-    a step of height ``c`` peaks near ``c / 2``). Either
-    input may be ``None`` (grey only or silhouette only), not both.
-
-    Shape: ``(B, H, W), (B, H, W) -> (B, H, W)``.
-    """
-    if gray is None and mask is None:
-        raise ValueError("edge_map needs a grey image, a mask or both")
-    if not edge_clip > 0:
-        raise ValueError(f"edge_clip must be positive, got {edge_clip}")
-    imgs = torch.stack([x for x in (gray, mask) if x is not None], 1)  # (B, 1 or 2, H, W)
-    p = F.pad(imgs, (1, 1, 1, 1), mode="replicate")
-    du = p[..., 2:] - p[..., :-2]  # Sobel as [1, 2, 1] smoothing of central differences
-    dv = p[..., 2:, :] - p[..., :-2, :]
-    gu = du[..., :-2, :] + 2 * du[..., 1:-1, :] + du[..., 2:, :]
-    gv = dv[..., :-2] + 2 * dv[..., 1:-1] + dv[..., 2:]
-    mag = (gu * gu + gv * gv).amax(1).sqrt()  # 8 x the normalised Sobel magnitude
-    return (mag * (0.125 / edge_clip)).clamp(max=1.0)
-
-
 def _odd(n: float) -> int:
     k = max(3, round(n))
     return k if k % 2 else k + 1
@@ -397,57 +308,7 @@ def _gaussian(k: int, dtype: torch.dtype) -> torch.Tensor:
     return (g / g.sum()).to(dtype)
 
 
-@functools.lru_cache(maxsize=16)
-def _blur_matrix(k: int, n: int, dtype: torch.dtype) -> torch.Tensor:
-    """``(n, n)`` matrix of the 1-D blur with :func:`_gaussian` ``k`` and zero padding (``A @ x``).
-
-    Cached (a constant of ``k, n, dtype``; never modified in place).
-    """
-    i = torch.arange(n)
-    off = i[None, :] - i[:, None] + k // 2  # column j contributes to row i with tap j - i + k // 2
-    g = _gaussian(k, dtype)
-    return torch.where((off >= 0) & (off < k), g[off.clamp(0, k - 1)], torch.zeros((), dtype=dtype))
-
-
-def dog(edges: torch.Tensor, canvas: int) -> torch.Tensor:
-    """Difference of Gaussians of an edge map, kernel sizes ``odd(canvas / 20)`` and ``odd(canvas / 8)``.
-
-    Sigma per kernel size ``k``: ``0.3 ((k - 1) / 2 - 1) + 0.8`` (OpenCV's default). Zero padding.
-    Each separable blur is a product with banded matrices: ``G_v X G_u^T``.
-
-    Shape: ``(B, H, W) -> (B, H, W)``.
-    """
-    _, H, W = edges.shape
-    out = None
-    for sign, k in ((1.0, _odd(canvas / 20)), (-1.0, _odd(canvas / 8))):
-        blur = _blur_matrix(k, H, edges.dtype) @ edges @ _blur_matrix(k, W, edges.dtype).T
-        out = blur if out is None else out + sign * blur
-    return out
-
-
-def _scale(d: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-    """Scale DoG maps ``(B, K, H, W)`` by ``0.5 / max|ref|`` per batch element, clip to ``[-0.5, 0.5]``."""
-    peak = ref.abs().flatten(1).amax(1).clamp_min(1e-12)
-    return (d * (0.5 / peak)[:, None, None, None]).clamp(-0.5, 0.5)
-
-
 # -- hypotheses -------------------------------------------------------------------------------
-def radial_gain(depth: torch.Tensor, origin, camera: Camera) -> torch.Tensor:
-    """``mean_i |(u_i - cx, v_i - cy)| / Z_i`` over the object pixels of a render (pixels per metre).
-
-    This is the mean image displacement per metre of motion along z (Eq. 9); 0 without object pixels.
-
-    Shape: ``(B, h, w), (B, 2) -> (B,)``.
-    """
-    depth = _check_images(depth, "depth")
-    return _gain_of(_object_extent(depth, origin, camera), depth.dtype)
-
-
-def _gain_of(extent: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    """:func:`radial_gain` from an :func:`_object_extent` with a camera."""
-    return (extent[:, 4] / extent[:, 5].clamp_min(1)).to(dtype)
-
-
 def hypothesis_steps(
     pose: torch.Tensor, camera: Camera, gain: torch.Tensor, dp_px: float = 1.0, dtheta_deg: float = 0.5
 ) -> torch.Tensor:
@@ -456,7 +317,7 @@ def hypothesis_steps(
     Args:
         pose: ``(B, 7)`` poses; ``z = tz`` sets the x / y step.
         camera: frame camera (``fx``, ``fy``).
-        gain: ``(B,)`` :func:`radial_gain` of the object (``dz = dp / gain``; 0 gives ``dz = 0``).
+        gain: ``(B,)`` :func:`~torchevtrack.reference.radial_gain` of the object (``dz = dp / gain``; 0 gives ``dz = 0``).
         dp_px: image motion of a translation step, pixels.
         dtheta_deg: rotation step, degrees.
 
@@ -484,23 +345,9 @@ def apply_steps(pose: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
 
 
 # -- warping and scoring ----------------------------------------------------------------------
-def _fill_depth(depth: torch.Tensor, fallback: torch.Tensor, radius: int) -> torch.Tensor:
-    """Background pixels (depth 0) get the mean object depth within ``radius`` or ``fallback`` (B,)."""
-    out = depth.clone(memory_format=torch.contiguous_format)
-    _fill_kernel(out.numpy(), fallback.double().expand(depth.shape[0]).contiguous().numpy(), radius)
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
-def _fill_kernel(depth, fallback, r):
-    """:func:`_fill_depth` in place."""
-    for b in range(depth.shape[0]):
-        _fill(depth[b], fallback[b], r)
-
-
 @numba.njit(cache=True, nogil=True)
 def _fill(depth, fallback, r):
-    """:func:`_fill_depth` of one image ``(h, w)`` in place, from float64 box sums of the object depths and counts:
+    """:func:`~torchevtrack.reference._fill_depth` of one image ``(h, w)`` in place, from float64 box sums of the object depths and counts:
     running sums over ``2 r + 1`` rows, then prefix sums along the rows (zero-padded by ``r``, so the window
     of pixel ``u`` is ``P[u + 2 r + 1] - P[u]``)."""
     h, w = depth.shape
@@ -545,221 +392,6 @@ def _prefilter_kernel(dtype: torch.dtype) -> torch.Tensor:
     """FIR taps of the B-spline prefilter (cached constant, never modified in place)."""
     k = torch.arange(-_PREFILTER_RADIUS, _PREFILTER_RADIUS + 1, dtype=torch.float64)
     return ((-6 * _POLE / (1 - _POLE**2)) * _POLE ** k.abs()).to(dtype)
-
-
-def _spline_prefilter(x: torch.Tensor) -> torch.Tensor:
-    """B-spline coefficients of images (separable FIR inverse of ``[1, 4, 1] / 6``, zero outside).
-
-    Shape: ``(B, C, H, W) -> (B, C, H, W)``.
-    """
-    kern = _prefilter_kernel(x.dtype)
-    B, C, H, W = x.shape
-    y = F.conv2d(x.reshape(B * C, 1, H, W), kern.view(1, 1, 1, -1), padding=(0, _PREFILTER_RADIUS))
-    y = F.conv2d(y, kern.view(1, 1, -1, 1), padding=(_PREFILTER_RADIUS, 0))
-    return y.reshape(B, C, H, W)
-
-
-def _spline_sample(coef: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    """Evaluate the cubic B-spline with coefficients ``coef`` at pixel coordinates ``uv``.
-
-    Per axis the 4 spline weights fold into 2 linear fetches with positive weights, so a point
-    costs 4 bilinear fetches, all in one ``grid_sample`` call.
-
-    Shape: ``(M, C, H, W), (M, 2, h, w) -> (M, C, h, w)`` with ``uv[:, 0] = u``, ``uv[:, 1] = v``.
-    """
-    M, C, H, W = coef.shape
-    h, w = uv.shape[2:]
-    i = torch.floor(uv)
-    t = uv - i
-    s = 1 - t
-    t2 = t * t
-    w0, w1, w3 = s * s * s / 6, 2 / 3 - t2 + t2 * t / 2, t2 * t / 6  # w2 = 1 - w0 - w1 - w3
-    g0 = w0 + w1
-    g = torch.stack((g0, 1 - g0), 1)  # (M, 2 fetches, 2 axes, h, w)
-    pos = torch.stack((i - 1 + w1 / g0, i + 1 + w3 / (1 - g0)), 1)
-    size = torch.tensor([W, H], dtype=uv.dtype).view(1, 1, 2, 1, 1)
-    pos = (2 * pos + 1) / size - 1
-    ex = (M, 2, 2, h, w)  # (y fetch, x fetch)
-    grid = torch.stack((pos[:, None, :, 0].expand(ex), pos[:, :, None, 1].expand(ex)), -1).reshape(M, 4 * h, w, 2)
-    out = F.grid_sample(coef, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
-    weights = (g[:, :, None, 1] * g[:, None, :, 0]).reshape(M, 1, 4, h, w)  # (y fetch, x fetch) order
-    return (out.reshape(M, C, 4, h, w) * weights).sum(2)
-
-
-def warp_canvas(
-    images: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, base_pose: torch.Tensor, poses: torch.Tensor
-) -> torch.Tensor:
-    """Predict canvas images at other poses from one canvas rendered at ``base_pose`` (inverse warp).
-
-    Canvas pixel ``q`` of the image at pose ``T`` samples the base image at
-    ``project(T_0 T^-1 backproject(q, Z(q)))`` with ``Z`` the base depth (background filled from the
-    object's neighbourhood): see the module docstring, item 4.
-
-    Args:
-        images: ``(B, C, N, N)`` canvas images at ``base_pose``.
-        depth: ``(B, N, N)`` canvas depth at ``base_pose`` (metres, 0 = background).
-        K: ``(B, 4)`` canvas intrinsics ``[fx, fy, cx, cy]`` (:func:`canvas_intrinsics`).
-        base_pose: ``(B, 7)``.
-        poses: ``(B, P, 7)`` target poses.
-
-    Shape: returns ``(B, P, C, N, N)``.
-    """
-    B, C, N, _ = images.shape
-    P = poses.shape[1]
-    uv = _warp_sources(depth, K, base_pose, poses, images.dtype)
-    coef = _spline_prefilter(images)[:, None].expand(B, P, C, N, N).reshape(B * P, C, N, N)
-    return _spline_sample(coef, uv).reshape(B, P, C, N, N)
-
-
-def _warp_sources(depth: torch.Tensor, K: torch.Tensor, base_pose: torch.Tensor, poses: torch.Tensor,
-                  dt: torch.dtype) -> torch.Tensor:
-    """Where each canvas pixel of the images at ``poses`` ``(B, P, 7)`` samples the base canvas (:func:`warp_canvas`):
-    ``(B * P, 2, N, N)`` canvas coordinates ``(u, v)`` in ``dt``."""
-    B, N, _ = depth.shape
-    P = poses.shape[1]
-    H, e = _warp_homography(K, base_pose, poses)
-    Z = _fill_depth(depth.to(dt), base_pose[:, 2], max(1, N // 16)).reshape(B, 1, 1, N * N)
-    p = Z * (H.to(dt) @ _homogeneous_grid(N, dt)) + e.to(dt)[..., None]  # (B, P, 3, N * N)
-    return (p[:, :, :2] / p[:, :, 2:].clamp_min(1e-9)).reshape(B * P, 2, N, N)
-
-
-def _warp_homography(K: torch.Tensor, base_pose: torch.Tensor, poses: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The inverse warp from the canvas at ``poses`` ``(B, P, 7)`` to the base canvas at ``base_pose`` ``(B, 7)``:
-    pixel ``q`` with base depth ``Z(q)`` samples ``p = Z(q) H q + e`` (homogeneous canvas pixels).
-
-    ``H = Kc A Kc^-1`` and ``e = Kc b``, with ``X = A X' + b`` the base-frame position of a point ``X'`` of the
-    object at the target pose and ``Kc`` the canvas intrinsics ``K`` ``(B, 4)``.
-
-    Shape: returns ``H`` ``(B, P, 3, 3)`` and ``e`` ``(B, P, 3)``, in ``base_pose``'s dtype.
-    """
-    B = K.shape[0]
-    R0 = quat_to_matrix(base_pose[:, 3:])  # (B, 3, 3)
-    R = quat_to_matrix(poses[..., 3:])  # (B, P, 3, 3)
-    A = R0[:, None] @ R.transpose(-1, -2)
-    b = base_pose[:, None, :3] - (A @ poses[..., :3, None])[..., 0]
-    Kc = torch.zeros(B, 3, 3, dtype=A.dtype)
-    Kc[:, 0, 0], Kc[:, 1, 1], Kc[:, 0, 2], Kc[:, 1, 2], Kc[:, 2, 2] = K[:, 0], K[:, 1], K[:, 2], K[:, 3], 1.0
-    H = Kc[:, None] @ A @ torch.linalg.inv(Kc)[:, None]
-    return H, (Kc[:, None] @ b[..., None])[..., 0]
-
-
-@functools.lru_cache(maxsize=8)
-def _homogeneous_grid(N: int, dtype: torch.dtype) -> torch.Tensor:
-    """``(3, N * N)`` homogeneous pixel coordinates ``(u, v, 1)`` of an ``N x N`` canvas, row-major (cached
-    constant, never modified in place)."""
-    v, u = torch.meshgrid(torch.arange(N, dtype=dtype), torch.arange(N, dtype=dtype), indexing="ij")
-    return torch.stack((u.flatten(), v.flatten(), torch.ones(N * N, dtype=dtype)))
-
-
-class CanvasRender(NamedTuple):
-    """A render resampled into the canvas (:func:`prepare_canvas`).
-
-    Attributes:
-        box: ``(B, 3)`` ``[cu, cv, side]`` frame pixels of the canvas region.
-        K: ``(B, 4)`` canvas intrinsics ``[fx, fy, cx, cy]``.
-        depth: ``(B, N, N)`` metres, 0 = background (object depths only, no blending with 0).
-        mask: ``(B, N, N)`` object coverage in ``[0, 1]`` (bilinear).
-        gray: ``(B, N, N)`` shaded grey or ``None``.
-    """
-
-    box: torch.Tensor
-    K: torch.Tensor
-    depth: torch.Tensor
-    mask: torch.Tensor
-    gray: torch.Tensor | None
-
-
-def _crop_to_boxes(depth: torch.Tensor, gray: torch.Tensor | None, origin, box: torch.Tensor):
-    """The part of a render window that the canvas boxes ``(B, 3)`` sample (union over the batch).
-
-    Returns ``(depth, gray, origin)`` of the crop; resampling it gives the same canvas as the window.
-    """
-    B, h, w = depth.shape
-    o = _origin(origin, B, box.dtype)
-    half = box[:, 2] / 2
-    lo = torch.stack((box[:, 0] - half - o[:, 0], box[:, 1] - half - o[:, 1]), -1).amin(0).floor() - 1
-    hi = torch.stack((box[:, 0] + half - o[:, 0], box[:, 1] + half - o[:, 1]), -1).amax(0).ceil() + 2
-    (u0, v0), (u1, v1) = lo.long().tolist(), hi.long().tolist()
-    u0, v0 = min(max(u0, 0), w - 1), min(max(v0, 0), h - 1)
-    u1, v1 = max(min(u1, w), u0 + 1), max(min(v1, h), v0 + 1)
-    if (u0, v0, u1, v1) == (0, 0, w, h):
-        return depth, gray, o
-    crop = (slice(None), slice(v0, v1), slice(u0, u1))
-    return depth[crop], None if gray is None else gray[crop], o + torch.tensor([u0, v0], dtype=o.dtype)
-
-
-def _canvas_and_gain(depth, gray, origin, camera: Camera, canvas: int, margin_px: float):
-    """:func:`prepare_canvas` and :func:`radial_gain` of a render, both from the crop the canvas samples."""
-    depth = _check_images(depth, "depth")
-    extent = _object_extent(depth, origin, camera)  # the crop below holds every object pixel: same gain
-    box = _box_of(extent, depth, origin, margin_px)
-    depth, gray, origin = _crop_to_boxes(depth, gray, origin, box)
-    return prepare_canvas(depth, gray, origin, camera, canvas, margin_px, box), _gain_of(extent, depth.dtype)
-
-
-def prepare_canvas(
-    depth: torch.Tensor,
-    gray: torch.Tensor | None,
-    origin,
-    camera: Camera,
-    canvas: int = 128,
-    margin_px: float = 20.0,
-    box: torch.Tensor | None = None,
-) -> CanvasRender:
-    """Resample a render (window at ``origin``) into the canvas; ``box`` defaults to :func:`canvas_box`
-    (and then only the part of the window under the box is read).
-
-    Shape: ``(B, h, w), (B, h, w) or None, (B, 2) -> CanvasRender`` with ``N = canvas``.
-    """
-    depth = _check_images(depth, "depth")
-    if box is None:
-        box = canvas_box(depth, origin, margin_px)
-        depth, gray, origin = _crop_to_boxes(depth, gray, origin, box)
-    mask = depth > 0
-    chans = (torch.where(mask, depth, 0.0), mask.to(depth.dtype)) + (() if gray is None else (gray.to(depth.dtype),))
-    chans = torch.stack(chans, 1)
-    c = to_canvas(chans, box, canvas, origin)
-    c_mask = c[:, 1]
-    c_depth = c[:, 0] / c_mask.clamp_min(1e-6) * (c_mask > 1e-6)
-    return CanvasRender(box, canvas_intrinsics(box, camera, canvas), c_depth, c_mask, None if gray is None else c[:, 2])
-
-
-def hypothesis_templates(
-    cr: CanvasRender,
-    base_pose: torch.Tensor,
-    poses: torch.Tensor,
-    *,
-    edge_clip: float = 0.1,
-    silhouette: bool = True,
-    warp: str = "template",
-) -> torch.Tensor:
-    """Templates at ``poses`` predicted from the canvas render ``cr`` made at ``base_pose``.
-
-    ``warp="template"``: Sobel + DoG of the base canvas, scaled to ``[-0.5, 0.5]``, then warped.
-    ``warp="image"``: grey and mask warped, then Sobel + DoG per pose, all scaled by the base
-    template's peak. See the module docstring (items 2 and 4).
-
-    Shape: ``CanvasRender, (B, 7), (B, P, 7) -> (B, P, N, N)``.
-    """
-    sil = cr.mask if silhouette else None
-    if cr.gray is None and sil is None:
-        raise ValueError("without a grey render the template needs silhouette=True")
-    N = cr.mask.shape[-1]
-    base = dog(edge_map(cr.gray, sil, edge_clip), N)[:, None]
-    if warp == "template":
-        return warp_canvas(_scale(base, base), cr.depth, cr.K, base_pose, poses)[:, :, 0]
-    if warp != "image":
-        raise ValueError(f"warp must be 'template' or 'image', got {warp!r}")
-    w = warp_canvas(torch.stack([x for x in (cr.gray, sil) if x is not None], 1), cr.depth, cr.K, base_pose, poses)
-    B, P = w.shape[:2]
-    g = None if cr.gray is None else w[:, :, 0].flatten(0, 1)
-    m = None if sil is None else w[:, :, -1].flatten(0, 1)
-    return _scale(dog(edge_map(g, m, edge_clip), N).reshape(B, P, N, N), base)
-
-
-def score(templates: torch.Tensor, observation: torch.Tensor) -> torch.Tensor:
-    """``sum(template * observation)`` over the canvas. Shape: ``(B, K, N, N), (B, N, N) -> (B, K)``."""
-    return torch.einsum("bkhw,bhw->bk", templates, observation.to(templates.dtype))
 
 
 # -- second-order score model (module docstring, item 6) --------------------------------------
@@ -982,41 +614,6 @@ def _apply_step(pose, delta):
 
 
 @numba.njit(cache=True, nogil=True)
-def _largest_eigenvalue(S, work):
-    """The largest eigenvalue of a symmetric matrix ``S`` ``(n, n)`` by cyclic Jacobi rotations on ``work`` (a
-    scratch copy), to float64 precision: a 6 x 6 costs a fraction of a LAPACK call's overhead."""
-    n = S.shape[0]
-    work[:] = S
-    for _ in range(50):
-        off = scale = 0.0
-        for i in range(n):
-            scale += work[i, i] * work[i, i]
-            for j in range(i + 1, n):
-                off += work[i, j] * work[i, j]
-        if off <= 1e-32 * (scale + 2.0 * off) or off == 0.0:
-            break
-        for p in range(n - 1):
-            for q in range(p + 1, n):
-                apq = work[p, q]
-                if apq == 0.0:
-                    continue
-                theta = (work[q, q] - work[p, p]) / (2.0 * apq)
-                t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
-                c = 1.0 / math.sqrt(t * t + 1.0)
-                sn = t * c
-                for k in range(n):  # columns p, q
-                    akp, akq = work[k, p], work[k, q]
-                    work[k, p], work[k, q] = c * akp - sn * akq, sn * akp + c * akq
-                for k in range(n):  # rows p, q
-                    apk, aqk = work[p, k], work[q, k]
-                    work[p, k], work[q, k] = c * apk - sn * aqk, sn * apk + c * aqk
-    top = work[0, 0]
-    for i in range(1, n):
-        top = max(top, work[i, i])
-    return top
-
-
-@numba.njit(cache=True, nogil=True)
 def _newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, iterations, damping, max_step,
                    out_pose, out_score, out_scores, out_moved):
     """The ``"newton"`` rule of :func:`search` on the exact second-order model, per element (:func:`newton_search`).
@@ -1036,7 +633,8 @@ def _newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta,
         moved = 0
         o, X = _observed_points(Z[b], K[b], obs[b])
         gu, step, delta = np.empty(6), np.empty(6), np.empty(6)
-        Hu, A, L, work = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
+        Hu, A, L, work, vecs = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
+        eig = np.empty(6)
         for it in range(iterations):
             s0, g, M = _quadratic_terms(coef[b], K[b], render_pose[b], cur, o, X)
             un = unit.copy()
@@ -1055,14 +653,19 @@ def _newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta,
             mean_curv = 0.0
             for i in range(6):
                 mean_curv += abs(Hu[i, i])
-            lam = max(_largest_eigenvalue(Hu, work), 0.0) + damping * mean_curv / 6 + 1e-12
+            work[:] = Hu
+            eigh(work, eig, vecs)
+            top = eig[0]
+            for i in range(1, 6):
+                top = max(top, eig[i])
+            lam = max(top, 0.0) + damping * mean_curv / 6 + 1e-12
             for i in range(6):  # lambda I - Hu, from Hu's lower triangle (all that its Cholesky factor reads)
                 for j in range(i + 1):
                     A[i, j] = A[j, i] = -Hu[i, j]
                 A[i, i] += lam
-            if not _nb_cholesky(A, L):  # positive definite by construction, unless the terms are not finite
+            if not cholesky(A, L):  # positive definite by construction, unless the terms are not finite
                 break
-            _nb_cholesky_solve(L, gu, step)
+            cholesky_solve(L, gu, step)
             for i in range(6):
                 delta[i] = min(max(step[i], -max_step), max_step) * un[i]
             gd = dMd = 0.0  # g . delta and delta^T M delta (small loops: no BLAS calls)
@@ -1086,7 +689,7 @@ def quadratic_score(coef: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, re
                     pose: torch.Tensor, obs: torch.Tensor) -> "QuadraticScore":
     """Second-order model of the template score around ``pose``, from a render's template made at ``render_pose``.
 
-    The template at ``pose`` is the render's template warped there (:func:`warp_canvas`), evaluated on the fly
+    The template at ``pose`` is the render's template warped there (:func:`~torchevtrack.reference.warp_canvas`), evaluated on the fly
     at the observed pixels only (compiled; module docstring, item 6).
 
     Args:
@@ -1162,9 +765,9 @@ class TemplateModel(NamedTuple):
         pose: ``(B, 7)`` float64 centre pose of the terms below (the render's pose, or see :meth:`at`).
         render_pose: ``(B, 7)`` float64 pose of the render.
         box: ``(B, 3)`` canvas region ``[cu, cv, side]``, frame pixels; K: ``(B, 4)`` canvas intrinsics.
-        gain: ``(B,)`` :func:`radial_gain` of the render (sets the z step).
+        gain: ``(B,)`` :func:`~torchevtrack.reference.radial_gain` of the render (sets the z step).
         render_template: ``(B, N, N)`` template (scaled DoG) of the render.
-        depth: ``(B, N, N)`` canvas depth of the render, background filled (:func:`_fill_depth`).
+        depth: ``(B, N, N)`` canvas depth of the render, background filled (:func:`~torchevtrack.reference._fill_depth`).
         coef: ``(B, N + 6, N + 6)`` cubic B-spline coefficients of ``render_template`` (the warp's interpolant),
             zero-padded by 3 pixels (the taps of a point up to 2 pixels outside the canvas).
         points: ``(B, P, 3)`` object points of the render (camera frame, metres); valid: ``(B, P)`` bool.
@@ -1275,8 +878,8 @@ def _edges(x, y, scale, E):
 @numba.njit(cache=True, nogil=True)
 def _box_kernel(depth, origin, cam, margin, box, gain):
     """The first part of :func:`template_model`: the object's extent in each window ``depth`` ``(B, h, w)`` at
-    ``origin`` gives the canvas ``box`` ``(B, 3)`` float64 (:func:`canvas_box`) and the ``gain``
-    (:func:`radial_gain`); :func:`_model_kernel` makes the rest in that box."""
+    ``origin`` gives the canvas ``box`` ``(B, 3)`` float64 (:func:`~torchevtrack.reference.canvas_box`) and the ``gain``
+    (:func:`~torchevtrack.reference.radial_gain`); :func:`_model_kernel` makes the rest in that box."""
     B, h, w = depth.shape
     cx, cy = cam[2], cam[3]
     for b in range(B):
@@ -1297,9 +900,9 @@ def _model_kernel(depth, gray, origin, box64, cam, z_fallback, use_gray, use_mas
     ``box64`` (:func:`_box_kernel`), in one pass per element.
 
     The box (also into ``box``, in its dtype) gives the canvas intrinsics ``K`` (:func:`canvas_intrinsics`); the
-    window resampled into the box (:func:`prepare_canvas`) gives the template (Sobel edges, DoG, scale and clip: the
-    template of :func:`hypothesis_templates`), its B-spline coefficients ``coef`` (zero-padded by 3), the object points
-    of every ``point_step``-th canvas pixel and the background-filled depth ``Z`` (:func:`_fill_depth`).
+    window resampled into the box (:func:`~torchevtrack.reference.prepare_canvas`) gives the template (Sobel edges, DoG, scale and clip: the
+    template of :func:`~torchevtrack.reference.hypothesis_templates`), its B-spline coefficients ``coef`` (zero-padded by 3), the object points
+    of every ``point_step``-th canvas pixel and the background-filled depth ``Z`` (:func:`~torchevtrack.reference._fill_depth`).
     """
     B = depth.shape[0]
     N = T.shape[-1]
@@ -1525,13 +1128,9 @@ def newton_step(score_steps, unit: torch.Tensor, max_step: float = NEWTON_MAX_ST
 
 
 # -- the stage --------------------------------------------------------------------------------
-def _check_options(rule, iterations, scoring, warp) -> None:
+def _check_options(rule, iterations) -> None:
     if rule not in RULES:
         raise ValueError(f"rule must be one of {RULES}, got {rule!r}")
-    if scoring not in ("taylor", "warp"):
-        raise ValueError(f"scoring must be 'taylor' or 'warp', got {scoring!r}")
-    if warp not in ("template", "image"):
-        raise ValueError(f"warp must be 'template' or 'image', got {warp!r}")
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
         raise ValueError(f"iterations must be an integer >= 1, got {iterations!r}")
 
@@ -1554,7 +1153,7 @@ def search(
         scorer: callable ``centre (B, 7) -> (score_steps, score_poses)``, called once per iteration
             with the current poses: ``score_steps`` maps steps ``(B, K, 6)`` to the scores ``(B, K)``
             of ``apply_steps(centre, steps)``, ``score_poses`` poses ``(B, P, 7)`` to scores.
-        gain: ``(B,)`` :func:`radial_gain` (sets the z step).
+        gain: ``(B,)`` :func:`~torchevtrack.reference.radial_gain` (sets the z step).
         camera, dp_px, dtheta_deg, rule, iterations: see :func:`correct`.
 
     Shape: ``(B, 7) -> Correction``.
@@ -1613,8 +1212,6 @@ def correct(
     iterations: int = 1,
     edge_clip: float = 0.1,
     silhouette: bool = True,
-    scoring: str = "taylor",
-    warp: str = "template",
 ) -> Correction:
     """Correct propagated poses by matching templates predicted from one render against the observation.
 
@@ -1632,50 +1229,20 @@ def correct(
         dp_px, dtheta_deg: translation step (image pixels) and rotation step (degrees).
         rule: ``"argmax"`` (the paper), ``"group"`` (EDOPT) or ``"newton"`` (all axes, sub-step; item 5).
         iterations: maximum corrections per call; repeats while the score keeps improving.
-        edge_clip: Sobel magnitude at which edges saturate (:func:`edge_map`).
+        edge_clip: Sobel magnitude at which edges saturate (:func:`~torchevtrack.reference.edge_map`).
         silhouette: add the mask's edges to the grey edges.
-        scoring: ``"taylor"`` (second-order score model, item 6) or ``"warp"`` (warped templates).
-        warp: with ``scoring="warp"``: ``"template"`` (warp the finished template) or ``"image"``
-            (warp grey and mask, then filter each hypothesis).
 
     Returns:
         :class:`Correction`.
 
     Shape: ``(B, 7), (B, h, w), (B, h, w), (B, 2), (B, H, W) -> Correction``.
     """
-    pose = _check_poses(pose, "pose")
-    depth = _check_images(depth, "depth")
-    B = pose.shape[0]
-    if depth.shape[0] != B:
-        raise ValueError(f"depth must have one image per pose ({B}), got {tuple(depth.shape)}")
-    if gray is not None:
-        gray = _check_images(gray, "gray")
-        if gray.shape != depth.shape:
-            raise ValueError(f"gray must match depth {tuple(depth.shape)}, got {tuple(gray.shape)}")
-    elif not silhouette:
-        raise ValueError("without a grey render the template needs silhouette=True")
-    observation = _check_images(observation, "observation")
-    if observation.shape[0] != B:
-        raise ValueError(f"observation must have one image per pose ({B}), got {tuple(observation.shape)}")
-    _check_options(rule, iterations, scoring, warp)
-    if isinstance(canvas, bool) or not isinstance(canvas, int) or canvas < 16:
-        raise ValueError(f"canvas must be an integer >= 16 pixels, got {canvas!r}")
-    opts = dict(dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
-
-    if scoring == "taylor":
-        model = template_model(pose, depth, gray, origin, camera, canvas=canvas, margin_px=margin_px,
-                               edge_clip=edge_clip, silhouette=silhouette)
-        return correct_model(model, pose, observation, camera, observation_origin=observation_origin, **opts)
-
-    cr, gain = _canvas_and_gain(depth, gray, origin, camera, canvas, margin_px)
-    obs = to_canvas(observation.to(depth.dtype), cr.box, canvas, observation_origin)
-
-    def score_poses(poses: torch.Tensor) -> torch.Tensor:
-        t = hypothesis_templates(cr, pose, poses, edge_clip=edge_clip, silhouette=silhouette, warp=warp)
-        return score(t, obs)
-
-    return search(pose, lambda centre: (lambda steps: score_poses(apply_steps(centre, steps)), score_poses), gain,
-                  camera, **opts)
+    _check_correct(pose, depth, gray, observation, canvas=canvas, rule=rule, iterations=iterations,
+                   silhouette=silhouette)
+    model = template_model(pose, depth, gray, origin, camera, canvas=canvas, margin_px=margin_px,
+                           edge_clip=edge_clip, silhouette=silhouette)
+    return correct_model(model, pose, observation, camera, observation_origin=observation_origin, dp_px=dp_px,
+                         dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
 
 
 def correct_model(
@@ -1721,7 +1288,7 @@ def correct_canvas(
     Shape: ``TemplateModel, (B, 7), (B, N, N) or (B, N * N) -> Correction``.
     """
     pose = _check_poses(pose, "pose")
-    _check_options(rule, iterations, "taylor", "template")
+    _check_options(rule, iterations)
     B, N = model.pose.shape[0], model.depth.shape[-1]
     if pose.shape[0] != B:
         raise ValueError(f"pose must have one row per model element ({B}), got {tuple(pose.shape)}")
@@ -1731,7 +1298,7 @@ def correct_canvas(
     if rule == "newton":
         return newton_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, iterations=iterations)
 
-    dtype = model.depth.dtype  # scores in the render's dtype, as with scoring="warp"
+    dtype = model.depth.dtype  # scores in the render's dtype
 
     def scorer(centre: torch.Tensor):
         quad = model.at(centre).fit_canvas(obs)
@@ -1773,19 +1340,27 @@ def newton_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, c
 
 
 class TemplateCorrector(nn.Module):
-    """Local template correction (configuration holder around :func:`correct`).
+    """Stage 5, local template correction: the options of :func:`correct` bound to a camera.
 
     Args:
         camera: the frame camera.
-        canvas, margin_px, dp_px, dtheta_deg, rule, iterations, edge_clip, silhouette, scoring, warp:
-            see :func:`correct`.
+        canvas, margin_px, dp_px, dtheta_deg, rule, iterations, edge_clip, silhouette: see :func:`correct`
+            (defaults: the config section ``template``, :class:`~torchevtrack.config.TemplateConfig`).
 
-    ``forward(pose, depth, gray, origin, observation, observation_origin=(0, 0)) -> Correction``;
-    ``correct_render(pose, render, origin, observation)`` takes a
-    :class:`torchevtrack.render.Render` of the window at ``origin``. To reuse a render over several
-    updates: ``model = corrector.template_model(pose, depth, gray, origin)`` once, then
-    ``corrector.correct_model(model, pose, observation, observation_origin)`` while
-    ``model.shift_px(pose)`` stays below about a pixel.
+    Calls:
+        ``forward(pose, depth, gray, origin, observation, observation_origin=(0, 0)) -> Correction``:
+        :func:`correct`. To reuse one render over several updates, ``model = template_model(pose, depth, gray,
+        origin)`` once, then ``correct_model(model, pose, observation, observation_origin)`` (or
+        ``correct_canvas(model, pose, obs)`` with the observation already in the model's canvas) while
+        ``model.shift_px(pose)`` stays below about a pixel.
+
+    Shape: ``(B, 7) float, (B, h, w), (B, h, w) or None, (B, 2) or (2,), (B, H, W) -> Correction`` of ``B`` poses;
+    poses in metres and unit quaternions, depth in metres (0 = background), observation in ``[0, 1]``.
+
+    Example:
+        >>> from torchevtrack.camera import Camera
+        >>> TemplateCorrector(Camera(64, 64, 80.0, 80.0, 31.5, 31.5)).options["rule"]
+        'newton'
     """
 
     def __init__(
@@ -1799,19 +1374,17 @@ class TemplateCorrector(nn.Module):
         iterations: int = TemplateConfig.iterations,
         edge_clip: float = 0.1,
         silhouette: bool = True,
-        scoring: str = "taylor",
-        warp: str = "template",
     ) -> None:
         super().__init__()
         if not isinstance(camera, Camera):
             raise TypeError(f"camera must be a torchevtrack Camera, got {type(camera).__name__}")
-        _check_options(rule, iterations, scoring, warp)
+        _check_options(rule, iterations)
         if not (dp_px > 0 and dtheta_deg > 0 and margin_px >= 0 and edge_clip > 0):
             raise ValueError("dp_px, dtheta_deg and edge_clip must be positive and margin_px non-negative")
         self.camera = camera
         self.options = dict(
             canvas=canvas, margin_px=margin_px, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule,
-            iterations=iterations, edge_clip=edge_clip, silhouette=silhouette, scoring=scoring, warp=warp,
+            iterations=iterations, edge_clip=edge_clip, silhouette=silhouette,
         )
 
     @classmethod
@@ -1824,10 +1397,6 @@ class TemplateCorrector(nn.Module):
         return correct(
             pose, depth, gray, origin, observation, self.camera, observation_origin=observation_origin, **self.options
         )
-
-    def correct_render(self, pose, render, origin, observation, observation_origin=(0, 0)) -> Correction:
-        """:meth:`forward` with a render result (``.depth``, ``.gray``) of the window at ``origin``."""
-        return self(pose, render.depth, render.gray, origin, observation, observation_origin)
 
     def template_model(self, pose, depth, gray, origin) -> TemplateModel:
         """:func:`template_model` of a render (window at ``origin``) made at ``pose``."""
@@ -1851,6 +1420,24 @@ class TemplateCorrector(nn.Module):
 
 
 # -- input checks -----------------------------------------------------------------------------
+def _check_correct(pose, depth, gray, observation, *, canvas, rule, iterations, silhouette, **_) -> None:
+    """The checks of :func:`correct`'s inputs and options (one line each)."""
+    _check_poses(pose, "pose")
+    B = _check_images(depth, "depth").shape[0]
+    if B != pose.shape[0]:
+        raise ValueError(f"depth must have one image per pose ({pose.shape[0]}), got {tuple(depth.shape)}")
+    if gray is not None:
+        if _check_images(gray, "gray").shape != depth.shape:
+            raise ValueError(f"gray must match depth {tuple(depth.shape)}, got {tuple(gray.shape)}")
+    elif not silhouette:
+        raise ValueError("without a grey render the template needs silhouette=True")
+    if _check_images(observation, "observation").shape[0] != B:
+        raise ValueError(f"observation must have one image per pose ({B}), got {tuple(observation.shape)}")
+    _check_options(rule, iterations)
+    if isinstance(canvas, bool) or not isinstance(canvas, int) or canvas < 16:
+        raise ValueError(f"canvas must be an integer >= 16 pixels, got {canvas!r}")
+
+
 def _check_poses(pose, name: str) -> torch.Tensor:
     if not isinstance(pose, torch.Tensor) or not pose.is_floating_point():
         raise TypeError(f"{name} must be a floating-point tensor (B, 7), got {type(pose).__name__}")

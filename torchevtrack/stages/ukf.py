@@ -44,9 +44,7 @@ import torch
 from torch import nn
 
 from torchevtrack.geometry import (
-    _nb_cholesky,
     _nb_cross,
-    _nb_lu_solve,
     _nb_quat_canonical,
     _nb_quat_exp,
     _nb_quat_log,
@@ -58,6 +56,7 @@ from torchevtrack.geometry import (
     quat_mul,
 )
 from torchevtrack.config import UKFConfig
+from torchevtrack.linalg import cholesky, eigh, lu_solve
 from torchevtrack.stages import batch_mask
 
 __all__ = [
@@ -150,7 +149,7 @@ def _nb_sigma_points(x, P, spread, X, S, L):
     for i in range(12):
         for j in range(12):
             S[i, j] = h * (P[i, j] + P[j, i])
-    if not _nb_cholesky(S, L):
+    if not cholesky(S, L):
         return False
     zero = np.zeros(12)
     _nb_boxplus(x, zero, 1.0, X[0])
@@ -172,74 +171,13 @@ def _nb_quat_mean(X, Wm, out):
             a = X[s, 9 + i] * Wm[s]
             for j in range(4):
                 M[i, j] += a * X[s, 9 + j]
-    V = _nb_jacobi_eigh(M)
-    out[0], out[1], out[2], out[3] = _nb_quat_canonical(V[0], V[1], V[2], V[3])
-
-
-@numba.njit(cache=True, nogil=True)
-def _nb_jacobi_eigh(a):
-    """Eigenvector of the largest eigenvalue of the symmetric ``a`` ``(n, n)`` (overwritten), by cyclic Jacobi
-    rotations until the off-diagonal part vanishes in float64 (Numerical Recipes' ``jacobi``): accurate to
-    rounding like :func:`torch.linalg.eigh`, without its LAPACK call (a 4 x 4 takes a few sweeps)."""
-    n = a.shape[0]
-    v = np.eye(n)
-    d = np.empty(n)
-    bb = np.empty(n)
-    z = np.zeros(n)
-    for i in range(n):
-        d[i] = bb[i] = a[i, i]
-    for sweep in range(50):
-        sm = 0.0
-        for p in range(n - 1):
-            for q in range(p + 1, n):
-                sm += abs(a[p, q])
-        if sm == 0.0:
-            break
-        tresh = 0.2 * sm / (n * n) if sweep < 3 else 0.0
-        for p in range(n - 1):
-            for q in range(p + 1, n):
-                g = 100.0 * abs(a[p, q])
-                if sweep > 3 and abs(d[p]) + g == abs(d[p]) and abs(d[q]) + g == abs(d[q]):
-                    a[p, q] = 0.0
-                elif abs(a[p, q]) > tresh:
-                    h = d[q] - d[p]
-                    if abs(h) + g == abs(h):
-                        t = a[p, q] / h
-                    else:
-                        theta = 0.5 * h / a[p, q]
-                        t = 1.0 / (abs(theta) + np.sqrt(1.0 + theta * theta))
-                        if theta < 0.0:
-                            t = -t
-                    c = 1.0 / np.sqrt(1.0 + t * t)
-                    s = t * c
-                    tau = s / (1.0 + c)
-                    h = t * a[p, q]
-                    z[p] -= h
-                    z[q] += h
-                    d[p] -= h
-                    d[q] += h
-                    a[p, q] = 0.0
-                    for j in range(p):
-                        g, h = a[j, p], a[j, q]
-                        a[j, p], a[j, q] = g - s * (h + g * tau), h + s * (g - h * tau)
-                    for j in range(p + 1, q):
-                        g, h = a[p, j], a[j, q]
-                        a[p, j], a[j, q] = g - s * (h + g * tau), h + s * (g - h * tau)
-                    for j in range(q + 1, n):
-                        g, h = a[p, j], a[q, j]
-                        a[p, j], a[q, j] = g - s * (h + g * tau), h + s * (g - h * tau)
-                    for j in range(n):
-                        g, h = v[j, p], v[j, q]
-                        v[j, p], v[j, q] = g - s * (h + g * tau), h + s * (g - h * tau)
-        for i in range(n):
-            bb[i] += z[i]
-            d[i] = bb[i]
-            z[i] = 0.0
+    d, V = np.empty(4), np.empty((4, 4))
+    eigh(M, d, V)
     top = 0
-    for i in range(1, n):
+    for i in range(1, 4):
         if d[i] > d[top]:
             top = i
-    return v[:, top].copy()
+    out[0], out[1], out[2], out[3] = _nb_quat_canonical(V[0, top], V[1, top], V[2, top], V[3, top])
 
 
 @numba.njit(cache=True, nogil=True)
@@ -352,7 +290,7 @@ def _ukf_update_kernel(x, P, z, R, r_diag, Wm, Wc, spread, x_out, P_out):
         for i in range(6):
             for j in range(6):
                 S[i, j] += (R[0, i] if i == j else 0.0) if r_diag else R[i, j]
-        if not _nb_lu_solve(S, Pzx, Kt):  # K^T = S^-1 Pxz^T
+        if not lu_solve(S, Pzx, Kt):  # K^T = S^-1 Pxz^T
             return b
         for i in range(3):
             nu[i] = z[b, i] - zp[i]

@@ -55,7 +55,7 @@ from torch import nn
 
 from torchevtrack.camera import Camera
 from torchevtrack.config import TWIST_AXES, VelocityConfig
-from torchevtrack.geometry import _nb_cholesky, _nb_cholesky_inverse, _nb_cholesky_solve
+from torchevtrack.linalg import cholesky, cholesky_inverse, cholesky_solve
 from torchevtrack.stages import batch_mask
 
 __all__ = [
@@ -204,9 +204,9 @@ def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, 
                 Hs[r, 3] = (a1 * c2 - a2 * c1) + Hs[r, 3]
                 Hs[r, 4] = (a2 * c0 - a0 * c2) + Hs[r, 4]
                 Hs[r, 5] = (a0 * c1 - a1 * c0) + Hs[r, 5]
-        if not _nb_cholesky(P[b], L):
+        if not cholesky(P[b], L):
             return b
-        _nb_cholesky_inverse(L, Y0)
+        cholesky_inverse(L, Y0)
         n_ok_rows = M // rows
         for i in range(n_ok_rows):
             w[i] = 1.0
@@ -238,9 +238,9 @@ def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, 
                 for m in range(j + 1):
                     A[j, m] += Y0[j, m]
                     A[m, j] = A[j, m]
-            if not _nb_cholesky(A, L):
+            if not cholesky(A, L):
                 return b
-            _nb_cholesky_solve(L, rhs, step)
+            cholesky_solve(L, rhs, step)
             for j in range(6):
                 xp[j] = x[b, j] + step[j]
             for i in range(n_ok_rows):
@@ -252,7 +252,7 @@ def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, 
                         e -= Hs[r, j] * xp[j]
                     s += e * e
                 res[i] = np.sqrt(s)
-        _nb_cholesky_inverse(L, P_out[b])
+        cholesky_inverse(L, P_out[b])
         for j in range(6):
             x_out[b, j] = xp[j]
         i_ok = 0

@@ -1,0 +1,429 @@
+"""Torch reference implementations of the template correction: warp scoring (dense, per-pixel tensors).
+
+The tracker's correction (:mod:`torchevtrack.stages.template`) scores hypotheses with a second-order model of the
+warp, in compiled loops. This module is the dense torch form of the same steps (module docstring of
+:mod:`torchevtrack.stages.template`, items 1-4): canvas box and crop (:func:`prepare_canvas`), template
+(:func:`edge_map`, :func:`dog`), the warp of one render to 13 hypothesis templates (:func:`warp_canvas`,
+:func:`hypothesis_templates`, cubic B-spline sampling) and the score (:func:`score`). Tests use it as the oracle of
+the compiled kernels; ``tools/bench_template.py`` compares the two. :func:`correct_warp` is the full correction with
+warped templates, a drop-in for :func:`torchevtrack.stages.template.correct`.
+
+Conventions as in :mod:`torchevtrack.stages.template`: poses ``(B, 7)`` ``[t (m), q]``, renders ``(B, h, w)``
+depth in metres (0 = background) of a window whose top-left frame pixel is ``origin``, canvases ``(B, N, N)``.
+
+Example:
+    >>> import torch
+    >>> from torchevtrack.reference import dog, edge_map
+    >>> mask = torch.zeros(1, 32, 32); mask[:, 8:24, 8:24] = 1
+    >>> t = dog(edge_map(None, mask), 32)
+    >>> tuple(t.shape), float(t.abs().max()) <= 0.5
+    ((1, 32, 32), True)
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+from typing import NamedTuple
+
+import numba
+import torch
+import torch.nn.functional as F
+
+from torchevtrack.camera import Camera
+from torchevtrack.geometry import quat_conj, quat_mul, quat_rotate, quat_to_matrix
+from torchevtrack.stages.template import (_PREFILTER_RADIUS, Correction, _check_correct, _check_images, _extent, _fill,
+                                          _gaussian, _odd, _origin, _prefilter_kernel, apply_steps, canvas_intrinsics,
+                                          correct, search, to_canvas)
+
+__all__ = ["canvas_box", "edge_map", "dog", "radial_gain", "warp_canvas", "CanvasRender", "prepare_canvas",
+           "hypothesis_templates", "score", "correct_warp"]
+
+
+def canvas_box(depth: torch.Tensor, origin, margin_px: float = 20.0) -> torch.Tensor:
+    """Square region of interest ``[cu, cv, side]`` (frame pixels) around the object in a render.
+
+    The bounding box of the ``depth > 0`` pixels, grown by ``margin_px`` on each side and made square
+    about its centre. A render without object pixels gives the window itself (centre, longer side).
+
+    Args:
+        depth: ``(B, h, w)`` render (metres, 0 = background) of the window whose top-left pixel is ``origin``.
+        origin: ``(B, 2)`` or ``(2,)`` window origin ``(u0, v0)`` in frame pixels.
+        margin_px: margin in frame pixels.
+
+    Shape: ``(B, h, w), (B, 2) -> (B, 3)``.
+    """
+    depth = _check_images(depth, "depth")
+    return _box_of(_object_extent(depth, origin), depth, origin, margin_px)
+
+
+def _box_of(extent: torch.Tensor, depth: torch.Tensor, origin, margin_px: float) -> torch.Tensor:
+    """:func:`canvas_box` from the :func:`_object_extent` of the render ``depth``."""
+    B, h, w = depth.shape
+    origin = _origin(origin, B, depth.dtype)
+    e = extent.to(depth.dtype)
+    umin, umax, vmin, vmax = e[:, 0], e[:, 1], e[:, 2], e[:, 3]
+    empty = e[:, 5] == 0
+    cu = torch.where(empty, (w - 1) / 2.0, (umin + umax) / 2) + origin[:, 0]
+    cv = torch.where(empty, (h - 1) / 2.0, (vmin + vmax) / 2) + origin[:, 1]
+    side = torch.where(empty, float(max(h, w)), torch.maximum(umax - umin, vmax - vmin) + 1 + 2 * margin_px)
+    return torch.stack((cu, cv, side), -1)
+
+
+def _object_extent(depth: torch.Tensor, origin, camera: Camera | None = None) -> torch.Tensor:
+    """One compiled pass over the ``depth > 0`` pixels of renders ``(B, h, w)`` (window at ``origin``).
+
+    Returns ``(B, 6)`` float64: the window-pixel bounds ``umin, umax, vmin, vmax`` (0 without object pixels),
+    the sum of ``|(u - cx, v - cy)| / Z`` over the object pixels (frame pixels ``u, v``; 0 without a
+    ``camera``) and their count.
+    """
+    B = depth.shape[0]
+    o = _origin(origin, B, torch.float64)
+    c = (0.0, 0.0) if camera is None else (camera.cx, camera.cy)
+    out = torch.empty(B, 6, dtype=torch.float64)
+    _extent_kernel(depth.detach().numpy(), o.numpy(), c[0], c[1], camera is not None, out.numpy())
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _extent_kernel(depth, origin, cx, cy, gain, out):
+    for b in range(depth.shape[0]):
+        out[b] = _extent(depth[b], origin[b, 0], origin[b, 1], cx, cy, gain)
+
+
+def edge_map(gray: torch.Tensor | None, mask: torch.Tensor | None, edge_clip: float = 0.1) -> torch.Tensor:
+    """Truncated edge strength in ``[0, 1]``: ``min(max(|grad gray|, |grad mask|) / edge_clip, 1)``.
+
+    Gradients are the normalised Sobel (``/ 8``, replicated border; as kornia's ``spatial_gradient``;
+    a step of height ``c`` peaks near ``c / 2``). Either
+    input may be ``None`` (grey only or silhouette only), not both.
+
+    Shape: ``(B, H, W), (B, H, W) -> (B, H, W)``.
+    """
+    if gray is None and mask is None:
+        raise ValueError("edge_map needs a grey image, a mask or both")
+    if not edge_clip > 0:
+        raise ValueError(f"edge_clip must be positive, got {edge_clip}")
+    imgs = torch.stack([x for x in (gray, mask) if x is not None], 1)  # (B, 1 or 2, H, W)
+    p = F.pad(imgs, (1, 1, 1, 1), mode="replicate")
+    du = p[..., 2:] - p[..., :-2]  # Sobel as [1, 2, 1] smoothing of central differences
+    dv = p[..., 2:, :] - p[..., :-2, :]
+    gu = du[..., :-2, :] + 2 * du[..., 1:-1, :] + du[..., 2:, :]
+    gv = dv[..., :-2] + 2 * dv[..., 1:-1] + dv[..., 2:]
+    mag = (gu * gu + gv * gv).amax(1).sqrt()  # 8 x the normalised Sobel magnitude
+    return (mag * (0.125 / edge_clip)).clamp(max=1.0)
+
+
+@functools.lru_cache(maxsize=16)
+def _blur_matrix(k: int, n: int, dtype: torch.dtype) -> torch.Tensor:
+    """``(n, n)`` matrix of the 1-D blur with :func:`_gaussian` ``k`` and zero padding (``A @ x``).
+
+    Cached (a constant of ``k, n, dtype``; never modified in place).
+    """
+    i = torch.arange(n)
+    off = i[None, :] - i[:, None] + k // 2  # column j contributes to row i with tap j - i + k // 2
+    g = _gaussian(k, dtype)
+    return torch.where((off >= 0) & (off < k), g[off.clamp(0, k - 1)], torch.zeros((), dtype=dtype))
+
+
+def dog(edges: torch.Tensor, canvas: int) -> torch.Tensor:
+    """Difference of Gaussians of an edge map, kernel sizes ``odd(canvas / 20)`` and ``odd(canvas / 8)``.
+
+    Sigma per kernel size ``k``: ``0.3 ((k - 1) / 2 - 1) + 0.8`` (OpenCV's default). Zero padding.
+    Each separable blur is a product with banded matrices: ``G_v X G_u^T``.
+
+    Shape: ``(B, H, W) -> (B, H, W)``.
+    """
+    _, H, W = edges.shape
+    out = None
+    for sign, k in ((1.0, _odd(canvas / 20)), (-1.0, _odd(canvas / 8))):
+        blur = _blur_matrix(k, H, edges.dtype) @ edges @ _blur_matrix(k, W, edges.dtype).T
+        out = blur if out is None else out + sign * blur
+    return out
+
+
+def _scale(d: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """Scale DoG maps ``(B, K, H, W)`` by ``0.5 / max|ref|`` per batch element, clip to ``[-0.5, 0.5]``."""
+    peak = ref.abs().flatten(1).amax(1).clamp_min(1e-12)
+    return (d * (0.5 / peak)[:, None, None, None]).clamp(-0.5, 0.5)
+
+
+def radial_gain(depth: torch.Tensor, origin, camera: Camera) -> torch.Tensor:
+    """``mean_i |(u_i - cx, v_i - cy)| / Z_i`` over the object pixels of a render (pixels per metre).
+
+    This is the mean image displacement per metre of motion along z (Eq. 9); 0 without object pixels.
+
+    Shape: ``(B, h, w), (B, 2) -> (B,)``.
+    """
+    depth = _check_images(depth, "depth")
+    return _gain_of(_object_extent(depth, origin, camera), depth.dtype)
+
+
+def _gain_of(extent: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """:func:`radial_gain` from an :func:`_object_extent` with a camera."""
+    return (extent[:, 4] / extent[:, 5].clamp_min(1)).to(dtype)
+
+
+def _fill_depth(depth: torch.Tensor, fallback: torch.Tensor, radius: int) -> torch.Tensor:
+    """Background pixels (depth 0) get the mean object depth within ``radius`` or ``fallback`` (B,)."""
+    out = depth.clone(memory_format=torch.contiguous_format)
+    _fill_kernel(out.numpy(), fallback.double().expand(depth.shape[0]).contiguous().numpy(), radius)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _fill_kernel(depth, fallback, r):
+    """:func:`_fill_depth` in place."""
+    for b in range(depth.shape[0]):
+        _fill(depth[b], fallback[b], r)
+
+
+def _spline_prefilter(x: torch.Tensor) -> torch.Tensor:
+    """B-spline coefficients of images (separable FIR inverse of ``[1, 4, 1] / 6``, zero outside).
+
+    Shape: ``(B, C, H, W) -> (B, C, H, W)``.
+    """
+    kern = _prefilter_kernel(x.dtype)
+    B, C, H, W = x.shape
+    y = F.conv2d(x.reshape(B * C, 1, H, W), kern.view(1, 1, 1, -1), padding=(0, _PREFILTER_RADIUS))
+    y = F.conv2d(y, kern.view(1, 1, -1, 1), padding=(_PREFILTER_RADIUS, 0))
+    return y.reshape(B, C, H, W)
+
+
+def _spline_sample(coef: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Evaluate the cubic B-spline with coefficients ``coef`` at pixel coordinates ``uv``.
+
+    Per axis the 4 spline weights fold into 2 linear fetches with positive weights, so a point
+    costs 4 bilinear fetches, all in one ``grid_sample`` call.
+
+    Shape: ``(M, C, H, W), (M, 2, h, w) -> (M, C, h, w)`` with ``uv[:, 0] = u``, ``uv[:, 1] = v``.
+    """
+    M, C, H, W = coef.shape
+    h, w = uv.shape[2:]
+    i = torch.floor(uv)
+    t = uv - i
+    s = 1 - t
+    t2 = t * t
+    w0, w1, w3 = s * s * s / 6, 2 / 3 - t2 + t2 * t / 2, t2 * t / 6  # w2 = 1 - w0 - w1 - w3
+    g0 = w0 + w1
+    g = torch.stack((g0, 1 - g0), 1)  # (M, 2 fetches, 2 axes, h, w)
+    pos = torch.stack((i - 1 + w1 / g0, i + 1 + w3 / (1 - g0)), 1)
+    size = torch.tensor([W, H], dtype=uv.dtype).view(1, 1, 2, 1, 1)
+    pos = (2 * pos + 1) / size - 1
+    ex = (M, 2, 2, h, w)  # (y fetch, x fetch)
+    grid = torch.stack((pos[:, None, :, 0].expand(ex), pos[:, :, None, 1].expand(ex)), -1).reshape(M, 4 * h, w, 2)
+    out = F.grid_sample(coef, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+    weights = (g[:, :, None, 1] * g[:, None, :, 0]).reshape(M, 1, 4, h, w)  # (y fetch, x fetch) order
+    return (out.reshape(M, C, 4, h, w) * weights).sum(2)
+
+
+def warp_canvas(
+    images: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, base_pose: torch.Tensor, poses: torch.Tensor
+) -> torch.Tensor:
+    """Predict canvas images at other poses from one canvas rendered at ``base_pose`` (inverse warp).
+
+    Canvas pixel ``q`` of the image at pose ``T`` samples the base image at
+    ``project(T_0 T^-1 backproject(q, Z(q)))`` with ``Z`` the base depth (background filled from the
+    object's neighbourhood): see :mod:`torchevtrack.stages.template`, item 4.
+
+    Args:
+        images: ``(B, C, N, N)`` canvas images at ``base_pose``.
+        depth: ``(B, N, N)`` canvas depth at ``base_pose`` (metres, 0 = background).
+        K: ``(B, 4)`` canvas intrinsics ``[fx, fy, cx, cy]`` (:func:`canvas_intrinsics`).
+        base_pose: ``(B, 7)``.
+        poses: ``(B, P, 7)`` target poses.
+
+    Shape: returns ``(B, P, C, N, N)``.
+    """
+    B, C, N, _ = images.shape
+    P = poses.shape[1]
+    uv = _warp_sources(depth, K, base_pose, poses, images.dtype)
+    coef = _spline_prefilter(images)[:, None].expand(B, P, C, N, N).reshape(B * P, C, N, N)
+    return _spline_sample(coef, uv).reshape(B, P, C, N, N)
+
+
+def _warp_sources(depth: torch.Tensor, K: torch.Tensor, base_pose: torch.Tensor, poses: torch.Tensor,
+                  dt: torch.dtype) -> torch.Tensor:
+    """Where each canvas pixel of the images at ``poses`` ``(B, P, 7)`` samples the base canvas (:func:`warp_canvas`):
+    ``(B * P, 2, N, N)`` canvas coordinates ``(u, v)`` in ``dt``."""
+    B, N, _ = depth.shape
+    P = poses.shape[1]
+    H, e = _warp_homography(K, base_pose, poses)
+    Z = _fill_depth(depth.to(dt), base_pose[:, 2], max(1, N // 16)).reshape(B, 1, 1, N * N)
+    p = Z * (H.to(dt) @ _homogeneous_grid(N, dt)) + e.to(dt)[..., None]  # (B, P, 3, N * N)
+    return (p[:, :, :2] / p[:, :, 2:].clamp_min(1e-9)).reshape(B * P, 2, N, N)
+
+
+def _warp_homography(K: torch.Tensor, base_pose: torch.Tensor, poses: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The inverse warp from the canvas at ``poses`` ``(B, P, 7)`` to the base canvas at ``base_pose`` ``(B, 7)``:
+    pixel ``q`` with base depth ``Z(q)`` samples ``p = Z(q) H q + e`` (homogeneous canvas pixels).
+
+    ``H = Kc A Kc^-1`` and ``e = Kc b``, with ``X = A X' + b`` the base-frame position of a point ``X'`` of the
+    object at the target pose and ``Kc`` the canvas intrinsics ``K`` ``(B, 4)``.
+
+    Shape: returns ``H`` ``(B, P, 3, 3)`` and ``e`` ``(B, P, 3)``, in ``base_pose``'s dtype.
+    """
+    B = K.shape[0]
+    R0 = quat_to_matrix(base_pose[:, 3:])  # (B, 3, 3)
+    R = quat_to_matrix(poses[..., 3:])  # (B, P, 3, 3)
+    A = R0[:, None] @ R.transpose(-1, -2)
+    b = base_pose[:, None, :3] - (A @ poses[..., :3, None])[..., 0]
+    Kc = torch.zeros(B, 3, 3, dtype=A.dtype)
+    Kc[:, 0, 0], Kc[:, 1, 1], Kc[:, 0, 2], Kc[:, 1, 2], Kc[:, 2, 2] = K[:, 0], K[:, 1], K[:, 2], K[:, 3], 1.0
+    H = Kc[:, None] @ A @ torch.linalg.inv(Kc)[:, None]
+    return H, (Kc[:, None] @ b[..., None])[..., 0]
+
+
+@functools.lru_cache(maxsize=8)
+def _homogeneous_grid(N: int, dtype: torch.dtype) -> torch.Tensor:
+    """``(3, N * N)`` homogeneous pixel coordinates ``(u, v, 1)`` of an ``N x N`` canvas, row-major (cached
+    constant, never modified in place)."""
+    v, u = torch.meshgrid(torch.arange(N, dtype=dtype), torch.arange(N, dtype=dtype), indexing="ij")
+    return torch.stack((u.flatten(), v.flatten(), torch.ones(N * N, dtype=dtype)))
+
+
+class CanvasRender(NamedTuple):
+    """A render resampled into the canvas (:func:`prepare_canvas`).
+
+    Attributes:
+        box: ``(B, 3)`` ``[cu, cv, side]`` frame pixels of the canvas region.
+        K: ``(B, 4)`` canvas intrinsics ``[fx, fy, cx, cy]``.
+        depth: ``(B, N, N)`` metres, 0 = background (object depths only, no blending with 0).
+        mask: ``(B, N, N)`` object coverage in ``[0, 1]`` (bilinear).
+        gray: ``(B, N, N)`` shaded grey or ``None``.
+    """
+
+    box: torch.Tensor
+    K: torch.Tensor
+    depth: torch.Tensor
+    mask: torch.Tensor
+    gray: torch.Tensor | None
+
+
+def _crop_to_boxes(depth: torch.Tensor, gray: torch.Tensor | None, origin, box: torch.Tensor):
+    """The part of a render window that the canvas boxes ``(B, 3)`` sample (union over the batch).
+
+    Returns ``(depth, gray, origin)`` of the crop; resampling it gives the same canvas as the window.
+    """
+    B, h, w = depth.shape
+    o = _origin(origin, B, box.dtype)
+    half = box[:, 2] / 2
+    lo = torch.stack((box[:, 0] - half - o[:, 0], box[:, 1] - half - o[:, 1]), -1).amin(0).floor() - 1
+    hi = torch.stack((box[:, 0] + half - o[:, 0], box[:, 1] + half - o[:, 1]), -1).amax(0).ceil() + 2
+    (u0, v0), (u1, v1) = lo.long().tolist(), hi.long().tolist()
+    u0, v0 = min(max(u0, 0), w - 1), min(max(v0, 0), h - 1)
+    u1, v1 = max(min(u1, w), u0 + 1), max(min(v1, h), v0 + 1)
+    if (u0, v0, u1, v1) == (0, 0, w, h):
+        return depth, gray, o
+    crop = (slice(None), slice(v0, v1), slice(u0, u1))
+    return depth[crop], None if gray is None else gray[crop], o + torch.tensor([u0, v0], dtype=o.dtype)
+
+
+def _canvas_and_gain(depth, gray, origin, camera: Camera, canvas: int, margin_px: float):
+    """:func:`prepare_canvas` and :func:`radial_gain` of a render, both from the crop the canvas samples."""
+    depth = _check_images(depth, "depth")
+    extent = _object_extent(depth, origin, camera)  # the crop below holds every object pixel: same gain
+    box = _box_of(extent, depth, origin, margin_px)
+    depth, gray, origin = _crop_to_boxes(depth, gray, origin, box)
+    return prepare_canvas(depth, gray, origin, camera, canvas, margin_px, box), _gain_of(extent, depth.dtype)
+
+
+def prepare_canvas(
+    depth: torch.Tensor,
+    gray: torch.Tensor | None,
+    origin,
+    camera: Camera,
+    canvas: int = 128,
+    margin_px: float = 20.0,
+    box: torch.Tensor | None = None,
+) -> CanvasRender:
+    """Resample a render (window at ``origin``) into the canvas; ``box`` defaults to :func:`canvas_box`
+    (and then only the part of the window under the box is read).
+
+    Shape: ``(B, h, w), (B, h, w) or None, (B, 2) -> CanvasRender`` with ``N = canvas``.
+    """
+    depth = _check_images(depth, "depth")
+    if box is None:
+        box = canvas_box(depth, origin, margin_px)
+        depth, gray, origin = _crop_to_boxes(depth, gray, origin, box)
+    mask = depth > 0
+    chans = (torch.where(mask, depth, 0.0), mask.to(depth.dtype)) + (() if gray is None else (gray.to(depth.dtype),))
+    chans = torch.stack(chans, 1)
+    c = to_canvas(chans, box, canvas, origin)
+    c_mask = c[:, 1]
+    c_depth = c[:, 0] / c_mask.clamp_min(1e-6) * (c_mask > 1e-6)
+    return CanvasRender(box, canvas_intrinsics(box, camera, canvas), c_depth, c_mask, None if gray is None else c[:, 2])
+
+
+def hypothesis_templates(
+    cr: CanvasRender,
+    base_pose: torch.Tensor,
+    poses: torch.Tensor,
+    *,
+    edge_clip: float = 0.1,
+    silhouette: bool = True,
+    warp: str = "template",
+) -> torch.Tensor:
+    """Templates at ``poses`` predicted from the canvas render ``cr`` made at ``base_pose``.
+
+    ``warp="template"``: Sobel + DoG of the base canvas, scaled to ``[-0.5, 0.5]``, then warped.
+    ``warp="image"``: grey and mask warped, then Sobel + DoG per pose, all scaled by the base
+    template's peak. See :mod:`torchevtrack.stages.template`, items 2 and 4.
+
+    Shape: ``CanvasRender, (B, 7), (B, P, 7) -> (B, P, N, N)``.
+    """
+    sil = cr.mask if silhouette else None
+    if cr.gray is None and sil is None:
+        raise ValueError("without a grey render the template needs silhouette=True")
+    N = cr.mask.shape[-1]
+    base = dog(edge_map(cr.gray, sil, edge_clip), N)[:, None]
+    if warp == "template":
+        return warp_canvas(_scale(base, base), cr.depth, cr.K, base_pose, poses)[:, :, 0]
+    if warp != "image":
+        raise ValueError(f"warp must be 'template' or 'image', got {warp!r}")
+    w = warp_canvas(torch.stack([x for x in (cr.gray, sil) if x is not None], 1), cr.depth, cr.K, base_pose, poses)
+    B, P = w.shape[:2]
+    g = None if cr.gray is None else w[:, :, 0].flatten(0, 1)
+    m = None if sil is None else w[:, :, -1].flatten(0, 1)
+    return _scale(dog(edge_map(g, m, edge_clip), N).reshape(B, P, N, N), base)
+
+
+def score(templates: torch.Tensor, observation: torch.Tensor) -> torch.Tensor:
+    """``sum(template * observation)`` over the canvas. Shape: ``(B, K, N, N), (B, N, N) -> (B, K)``."""
+    return torch.einsum("bkhw,bhw->bk", templates, observation.to(templates.dtype))
+
+
+def correct_warp(pose: torch.Tensor, depth: torch.Tensor, gray: torch.Tensor | None, origin, observation: torch.Tensor,
+                 camera: Camera, *, warp: str = "template", **options) -> Correction:
+    """:func:`torchevtrack.stages.template.correct` with warped templates instead of the second-order score model.
+
+    Args:
+        pose, depth, gray, origin, observation, camera: as for :func:`torchevtrack.stages.template.correct`.
+        warp: ``"template"`` (warp the finished template) or ``"image"`` (warp grey and mask, then filter each
+            hypothesis).
+        options: the keyword options of :func:`torchevtrack.stages.template.correct` (same defaults).
+
+    Returns:
+        :class:`~torchevtrack.stages.template.Correction`, scores in the render's dtype.
+
+    Shape: ``(B, 7), (B, h, w), (B, h, w) or None, (B, 2), (B, H, W) -> Correction``.
+    """
+    o = {**_CORRECT_DEFAULTS, **options}
+    if set(o) != set(_CORRECT_DEFAULTS):
+        raise TypeError(f"unknown options {sorted(set(o) - set(_CORRECT_DEFAULTS))}")
+    _check_correct(pose, depth, gray, observation, **o)
+    if warp not in ("template", "image"):
+        raise ValueError(f"warp must be 'template' or 'image', got {warp!r}")
+    cr, gain = _canvas_and_gain(depth, gray, origin, camera, o["canvas"], o["margin_px"])
+    obs = to_canvas(observation.to(depth.dtype), cr.box, o["canvas"], o["observation_origin"])
+
+    def score_poses(poses: torch.Tensor) -> torch.Tensor:
+        t = hypothesis_templates(cr, pose, poses, edge_clip=o["edge_clip"], silhouette=o["silhouette"], warp=warp)
+        return score(t, obs)
+
+    return search(pose, lambda centre: (lambda steps: score_poses(apply_steps(centre, steps)), score_poses), gain,
+                  camera, dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"], rule=o["rule"], iterations=o["iterations"])
+
+
+_CORRECT_DEFAULTS = {k: p.default for k, p in inspect.signature(correct).parameters.items()
+                     if p.kind is inspect.Parameter.KEYWORD_ONLY}
