@@ -62,7 +62,7 @@ from tqdm.auto import tqdm
 
 from torchevtrack.camera import Camera
 from torchevtrack.config import TrackerConfig
-from torchevtrack.events import EventStream
+from torchevtrack.events import EventStream, check_window
 from torchevtrack.geometry import check_pose, quat_rotate
 from torchevtrack.loss import LossDetector, LossUpdate, OnLost
 from torchevtrack.kernels import announce_compile
@@ -286,8 +286,8 @@ class EventPoseTracker(nn.Module):
         self._radius_of = torch.tensor([self._radius[i] for i in self._renderer_of], dtype=torch.float64)  # (B,)
         self.register_buffer("_min_depth", self._radius_of + 0.01, persistent=False)
         # render.ahead: where the next update renders (the last prediction moved on by its twist), when valid
-        self.register_buffer("_render_next", torch.zeros(B, 7, dtype=f64), persistent=False)
-        self.register_buffer("_render_next_ok", torch.zeros(B, dtype=torch.bool), persistent=False)
+        self.register_buffer("_render_next", torch.zeros(B, 7, dtype=f64))
+        self.register_buffer("_render_next_ok", torch.zeros(B, dtype=torch.bool))
         announce_compile()  # one line on stderr if the first update will compile the kernels
 
     def _set_depth(self, depth: torch.Tensor) -> None:
@@ -655,10 +655,46 @@ class EventPoseTracker(nn.Module):
         self._run.bound = None  # the buffers may be new tensors: bind again
         return super()._apply(fn, recurse)
 
+    def _settle(self, what: str) -> None:
+        """Before the state is read or replaced (``what``): no window may be taken in ahead (its events are half in the
+        stages), and a render made ahead must be done (it reads the poses)."""
+        if self._run.ahead is not None:
+            raise RuntimeError(f"cannot {what} while a window is taken in ahead (forward(next_window=...)): "
+                               "do it after the update of that window")
+        if self._run.rendering is not None:
+            self._run.rendering.wait()
+
     def __getstate__(self) -> dict:
+        """The attributes for a copy or pickle: the transient scheduling state (the pipeline's thread, a render made
+        ahead, the compiled steps bound to the buffers, the worker pool) is left out and made again when needed."""
+        self._settle("copy or pickle the tracker")
         state = super().__getstate__()  # a copy of the attributes
-        state["_run"] = dataclasses.replace(self._run, bound=None)  # a copy binds its own buffers
+        state["_run"] = dataclasses.replace(self._run, bound=None, rendering=None, observing=None)
+        state["_intake"] = None
+        state["_pool"] = None if self._pool is None else self._pool._max_workers  # made again by __setstate__
         return state
+
+    def __setstate__(self, state: dict) -> None:
+        threads = state["_pool"]
+        state["_pool"] = None if threads is None else ThreadPoolExecutor(threads, thread_name_prefix="torchevtrack")
+        super().__setstate__(state)
+
+    def _save_to_state_dict(self, destination, prefix, keep_vars):
+        self._settle("take the state_dict")
+        super()._save_to_state_dict(destination, prefix, keep_vars)
+
+    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+                              error_msgs):
+        """Load the buffers of another tracker of the same camera, meshes and configuration, used or not: the depth
+        buffer takes the size of the loaded one (it follows the object's window), and the transient state (the
+        pipeline's work ahead, the bound steps, the last template model) is dropped and made again when needed."""
+        self._settle("load a state_dict")
+        self._run = _UpdateState(self._run.quality)  # (a render made ahead is forgotten: the next update renders)
+        depth = state_dict.get(prefix + "depth")
+        if isinstance(depth, torch.Tensor) and depth.ndim == 3 and depth.shape[0] == self.batch_size:
+            self._set_depth(torch.zeros(depth.shape, dtype=self.depth.dtype))  # an ordinary tensor: copy_ may write it
+        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+                                      error_msgs)
 
     def _render_pose_ahead(self, predicted: np.ndarray, twist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """render.ahead: the poses to render at now (where the last update's prediction, moved on by its twist,
