@@ -80,3 +80,21 @@ def test_a_restored_tracker_continues_with_the_same_poses(seq, how):
         assert np.array_equal(_run(original, windows[BEFORE:]), expected), (how, pipeline)
         for t in (reference, original, restored):
             t.close()
+
+
+@pytest.mark.parametrize("convert", [lambda m: m.to(torch.float32), lambda m: m.double(), lambda m: m.half(),
+                                     lambda m: m.to("cuda"), lambda m: m.to("meta")],
+                         ids=["to(float32)", "double", "half", "to(cuda)", "to(meta)"])
+def test_conversions_the_kernels_cannot_run_are_refused_at_to_time(seq, convert):
+    tracker = EventPoseTracker(CAM, seq.mesh, pipeline=False)
+    tracker.reset(seq.gt_poses[0])
+    before = {k: v.clone() for k, v in tracker.state_dict().items()}
+    with pytest.raises(ValueError, match="EventPoseTracker runs on the CPU in its own dtypes") as err:
+        convert(tracker)
+    assert "\n" not in str(err.value)
+    after = tracker.state_dict()  # nothing converted, and the tracker still runs
+    assert all(after[k].dtype == v.dtype and after[k].device == v.device and torch.equal(after[k], v)
+               for k, v in before.items())
+    windows = _windows(seq)[:2]
+    assert torch.isfinite(torch.stack([tracker(*w) for w in windows])).all()
+    assert tracker.to("cpu") is tracker  # what it runs on is accepted

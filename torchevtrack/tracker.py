@@ -652,6 +652,19 @@ class EventPoseTracker(nn.Module):
         return self._run.bound
 
     def _apply(self, fn, recurse=True):
+        """Refuse a conversion (``.to``, ``.float``, ``.double``, ``.half``, ``.cuda``, ...) that would change a
+        tensor's dtype or move it off the CPU: the compiled kernels take the tracker's own dtypes on the CPU."""
+        for dtype in (torch.float64, torch.float32):
+            try:
+                out = fn(torch.zeros(1, dtype=dtype))
+            except Exception as e:  # e.g. .cuda() on a CPU-only build
+                raise ValueError(f"EventPoseTracker runs on the CPU in its own dtypes (float64 poses and filters, "
+                                 f"float32 images), so it cannot be converted or moved: {e}") from None
+            if not isinstance(out, torch.Tensor):
+                continue
+            if out.dtype != dtype or out.device.type != "cpu":
+                raise ValueError(f"EventPoseTracker runs on the CPU in its own dtypes (float64 poses and filters, "
+                                 f"float32 images), so it cannot be converted or moved to {out.dtype} on {out.device}")
         self._run.bound = None  # the buffers may be new tensors: bind again
         return super()._apply(fn, recurse)
 
