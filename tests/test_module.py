@@ -98,3 +98,74 @@ def test_conversions_the_kernels_cannot_run_are_refused_at_to_time(seq, convert)
     windows = _windows(seq)[:2]
     assert torch.isfinite(torch.stack([tracker(*w) for w in windows])).all()
     assert tracker.to("cpu") is tracker  # what it runs on is accepted
+
+
+def test_forward_before_reset_says_to_call_reset(seq):
+    tracker = EventPoseTracker(CAM, seq.mesh, pipeline=False)
+    with pytest.raises(RuntimeError, match=r"call reset\(pose\) before the first update"):
+        tracker(*_windows(seq)[0])
+
+
+def _bad_windows(seq):
+    """(name, window, message) of windows forward and track must refuse."""
+    x, y, t, p = _windows(seq)[1]
+    n = len(t)
+    shuffled = torch.cat([t[n // 2:], t[:n // 2]])
+    return [
+        ("unsorted", (x, y, shuffled, p), "t goes back in time at event"),
+        ("negative t", (x, y, t - int(t[-1]) - 1, p), "t=-"),
+        ("polarity 2", (x, y, t, torch.where(torch.arange(n) == 3, 2, p.long())), "event 3 has p=2, a polarity"),
+        ("polarity -1", (x, y, t, torch.where(torch.arange(n) == 3, -1, p.long())), "event 3 has p=-1"),
+        ("x outside", (torch.where(torch.arange(n) == 5, CAM.width, x.long()), y, t, p), "event 5 has x=320"),
+        ("float seconds", (x, y, t.double() * 1e-6, p), "t must be an integer tensor microseconds"),
+    ]
+
+
+@pytest.mark.parametrize("case", range(6))
+def test_forward_and_track_refuse_bad_windows(seq, case):
+    name, window, message = _bad_windows(seq)[case]
+    tracker = EventPoseTracker(CAM, seq.mesh, pipeline=False)
+    tracker.reset(seq.gt_poses[0])
+    tracker(*_windows(seq)[0])
+    state = {k: v.clone() for k, v in tracker.state_dict().items()}
+    with pytest.raises(ValueError, match=message.replace("(", r"\(")):
+        tracker(*window)
+    assert all(torch.equal(v, tracker.state_dict()[k]) for k, v in state.items())  # nothing went in
+    from torchevtrack.events import EventStream
+    with pytest.raises(ValueError, match="stream 0: .*" + message.replace("(", r"\(")):
+        tracker.track(EventStream(*window), seq.gt_poses[0], progress=False)
+
+
+def test_time_going_back_across_windows_is_refused(seq):
+    windows = _windows(seq)
+    for batch in (False, True):
+        def b(w):
+            return torch.zeros(len(w[0]), dtype=torch.long) if batch else None
+
+        tracker = EventPoseTracker(CAM, seq.mesh, pipeline=False)
+        tracker.reset(seq.gt_poses[0])
+        tracker(*windows[1], b(windows[1]))
+        with pytest.raises(ValueError, match="t goes back in time across windows at event 0"):
+            tracker(*windows[0], b(windows[0]))
+
+
+def test_a_wrong_length_batch_index_names_the_tensors(seq):
+    tracker = EventPoseTracker(CAM, seq.mesh, batch_size=2, pipeline=False, workers=1)
+    tracker.reset(seq.gt_poses[0])
+    x, y, t, p = _windows(seq)[0]
+    with pytest.raises(ValueError, match=f"b has {len(t) - 1} events, t has {len(t)}: x, y, t, p, b must have"):
+        tracker(x, y, t, p, torch.zeros(len(t) - 1, dtype=torch.long))
+
+
+def test_int32_windows_are_cast_once_and_give_the_same_poses(seq):
+    windows = _windows(seq)[:4]
+    runs = []
+    for cast in (lambda v: v, lambda v: v.to(torch.int32)):
+        tracker = EventPoseTracker(CAM, seq.mesh, pipeline=False)
+        tracker.reset(seq.gt_poses[0])
+        runs.append(np.stack([tracker(*(cast(v) for v in w)).numpy() for w in windows]))
+    assert np.array_equal(runs[0], runs[1])
+    import torchevtrack.stages.intake as intake  # its compiled kernels: one signature each (no int32 one)
+    kernels = [k for k in vars(intake).values()
+               if hasattr(k, "signatures")]
+    assert kernels and all(len(k.signatures) <= 1 for k in kernels), [k.signatures for k in kernels]

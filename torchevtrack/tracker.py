@@ -371,22 +371,49 @@ class EventPoseTracker(nn.Module):
     # -- one update --------------------------------------------------------------------------
     def forward(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor,
                 b: torch.Tensor | None = None, t_us: int | torch.Tensor | None = None, *,
-                next_window: tuple | None = None) -> torch.Tensor:
+                next_window: tuple | None = None, check: bool = True) -> torch.Tensor:
         """Consume one window of packed events and return the new poses ``(B, 7)`` float64.
 
         Args:
-            x, y: ``(N,)`` integer pixels; t: ``(N,)`` int64 microseconds; p: ``(N,)`` polarity {0, 1};
-            b: ``(N,)`` batch index (None: all batch element 0). Time order within each batch element.
+            x, y: ``(N,)`` integer pixels inside the camera; t: ``(N,)`` integer microseconds, ``>= 0``; p: ``(N,)``
+                polarity {0, 1}; b: ``(N,)`` batch index in ``[0, B)`` (None: all batch element 0). Time order within
+                each batch element, and no event of an element before the latest of its previous windows.
             t_us: time stamp of this update (int or ``(B,)`` int64 us, the window end), given to the loss
                 detector and ``on_lost``; default: the latest event time seen per element.
             next_window: the next window's ``(x, y, t, p, b)``, if it is already known. When the pipeline takes
                 windows in ahead (see ``pipeline``), its events go into the EROS and the flow while
                 this update searches (until the next call, those stages' state belongs to the intake thread), and
-                the next call must be for exactly these tensors (else RuntimeError); otherwise it is ignored.
+                the next call must be for exactly these tensors (else RuntimeError); otherwise it is ignored. Only
+                a window already in the kernels' dtypes (an :class:`EventStream`'s: int16 x and y, int64 t, int8
+                p, int64 b) that passes the checks is taken in ahead.
+            check: validate the window (:func:`~torchevtrack.events.check_window`, and time going back across
+                windows), raising a one-line ``ValueError`` that names the tensor and the event, and cast it once
+                to the kernels' dtypes (other integer dtypes would compile every kernel again). ``False`` skips
+                both, for windows known to be valid and in those dtypes (:meth:`track` checks its streams once).
+
+        Raises:
+            RuntimeError: before the first :meth:`reset`.
 
         The update runs in ``torch.inference_mode`` (no autograd bookkeeping on its many small tensor
         operations); the returned poses are ordinary tensors.
         """
+        last = self.t_last.numpy()
+        if not self.pose.numpy()[:, 3:].any(axis=1).all():  # reset gives every element a unit quaternion
+            raise RuntimeError("the tracker has no pose yet: call reset(pose) before the first update")
+        ahead_of = None if self._run.ahead is None else self._run.ahead.window[0]
+        if check and x is not ahead_of:  # (a window taken in ahead was checked before it went in)
+            x, y, t, p, b = self._check(x, y, t, p, b, last)
+        if check and next_window is not None and self._take_in_ahead:
+            latest = last.copy()
+            if t.numel() and b is None:
+                latest[0] = max(latest[0], t.numpy().max())
+            elif t.numel():
+                np.maximum.at(latest, b.numpy(), t.numpy())
+            try:
+                if any(c is not g for c, g in zip(self._check(*next_window, latest), next_window)):
+                    next_window = None  # other dtypes: checked and cast when its own update comes
+            except ValueError:
+                next_window = None  # its own update raises
         with torch.inference_mode():
             try:
                 self._update(x, y, t, p, b, t_us, next_window if self._take_in_ahead else None)
@@ -395,6 +422,23 @@ class EventPoseTracker(nn.Module):
                     self._run.observing.wait()
                     self._run.observing = None
         return torch.from_numpy(self.pose.numpy().copy())
+
+    def _check(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor, b: torch.Tensor | None,
+               last: np.ndarray) -> tuple[torch.Tensor, ...]:
+        """A window checked and in the kernels' dtypes (:func:`~torchevtrack.events.check_window`), none of whose
+        events comes before ``last`` ``(B,)``, its element's latest event time so far."""
+        x, y, t, p, b = check_window(x, y, t, p, b, width=self.camera.width, height=self.camera.height,
+                                     batch=self.batch_size)
+        if t.numel():
+            tn = t.numpy()
+            back = tn < (last[0] if b is None else last[b.numpy()])
+            if back.any():
+                i = int(back.argmax())
+                k = 0 if b is None else int(b[i])
+                where = "" if b is None else f" of batch element {k}"
+                raise ValueError(f"t goes back in time across windows at event {i}{where}: {int(tn[i])} us after "
+                                 f"{int(last[k])} us in an earlier window")
+        return x, y, t, p, b
 
     def _update(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor, b: torch.Tensor | None,
                 t_us: int | torch.Tensor | None, ahead: tuple | None) -> None:
@@ -524,6 +568,7 @@ class EventPoseTracker(nn.Module):
         B = self.batch_size
         if len(streams) != B:
             raise ValueError(f"expected {B} event streams, got {len(streams)}")
+        streams = [self._checked_stream(s, k) for k, s in enumerate(streams)]  # once: the updates skip the checks
         starts = _per_stream(t_start_us, [s.t_start for s in streams], "t_start_us")
         ends = _per_stream(t_end_us, [s.t_end for s in streams], "t_end_us")
         n = max((e - s) // self.period_us for s, e in zip(starts, ends))
@@ -543,12 +588,20 @@ class EventPoseTracker(nn.Module):
         try:
             for i in tqdm(range(n), desc="tracking", unit="update", disable=not progress, leave=False):
                 current, ahead = ahead, window(i + 1)
-                poses[:, i] = self(*current, t_us=times[:, i], next_window=ahead)
+                poses[:, i] = self(*current, t_us=times[:, i], next_window=ahead, check=False)
                 if return_lost:
                     lost[:, i] = self.lost
         finally:
             self._drop_ahead()
         return (times, poses, lost) if return_lost else (times, poses)
+
+    def _checked_stream(self, s: EventStream, k: int) -> EventStream:
+        """Stream ``k`` checked as a whole (:func:`~torchevtrack.events.check_window`) and in the kernels' dtypes."""
+        try:
+            checked = check_window(s.x, s.y, s.t, s.p, width=self.camera.width, height=self.camera.height)[:4]
+        except ValueError as e:
+            raise ValueError(f"stream {k}: {e}") from None
+        return s if all(c is f for c, f in zip(checked, (s.x, s.y, s.t, s.p))) else EventStream(*checked)
 
     # -- internals ---------------------------------------------------------------------------
     def _windows(self, poses: np.ndarray, index: list[int] | None = None) -> np.ndarray:
