@@ -118,10 +118,14 @@ def _bad_windows(seq):
         ("polarity -1", (x, y, t, torch.where(torch.arange(n) == 3, -1, p.long())), "event 3 has p=-1"),
         ("x outside", (torch.where(torch.arange(n) == 5, CAM.width, x.long()), y, t, p), "event 5 has x=320"),
         ("float seconds", (x, y, t.double() * 1e-6, p), "t must be an integer tensor microseconds"),
+        # in the kernels' dtypes (the fast path)
+        ("int8 polarity -1", (x, y, t, torch.where(torch.arange(n) == 4, -1, p).to(torch.int8)), "event 4 has p=-1"),
+        ("int16 y outside", (x, torch.where(torch.arange(n) == 6, CAM.height, y).to(torch.int16), t, p),
+         "event 6 has y=240"),
     ]
 
 
-@pytest.mark.parametrize("case", range(6))
+@pytest.mark.parametrize("case", range(8))
 def test_forward_and_track_refuse_bad_windows(seq, case):
     name, window, message = _bad_windows(seq)[case]
     tracker = EventPoseTracker(CAM, seq.mesh, pipeline=False)
