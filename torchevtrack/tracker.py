@@ -431,7 +431,8 @@ class EventPoseTracker(nn.Module):
         thousands of events); any other goes through :func:`~torchevtrack.events.check_window`, which also finds the
         message."""
         W, H = self.camera.width, self.camera.height
-        fast = b is None and all(isinstance(v, torch.Tensor) and v.ndim == 1 and v.is_contiguous() for v in (x, y, t, p)) \
+        fast = b is None and all(isinstance(v, torch.Tensor) and v.ndim == 1 and v.is_contiguous()
+                                 for v in (x, y, t, p)) \
             and x.dtype == y.dtype == torch.int16 and t.dtype == torch.int64 and p.dtype == torch.int8 \
             and x.shape == y.shape == t.shape == p.shape
         if fast and t.numel():
