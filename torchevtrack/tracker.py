@@ -62,7 +62,7 @@ from tqdm.auto import tqdm
 
 from torchevtrack.camera import Camera
 from torchevtrack.config import TrackerConfig
-from torchevtrack.events import EventStream
+from torchevtrack.events import EventStream, _first_invalid, check_window
 from torchevtrack.geometry import check_pose, quat_rotate
 from torchevtrack.loss import LossDetector, LossUpdate, OnLost
 from torchevtrack.kernels import announce_compile
@@ -286,8 +286,8 @@ class EventPoseTracker(nn.Module):
         self._radius_of = torch.tensor([self._radius[i] for i in self._renderer_of], dtype=torch.float64)  # (B,)
         self.register_buffer("_min_depth", self._radius_of + 0.01, persistent=False)
         # render.ahead: where the next update renders (the last prediction moved on by its twist), when valid
-        self.register_buffer("_render_next", torch.zeros(B, 7, dtype=f64), persistent=False)
-        self.register_buffer("_render_next_ok", torch.zeros(B, dtype=torch.bool), persistent=False)
+        self.register_buffer("_render_next", torch.zeros(B, 7, dtype=f64))
+        self.register_buffer("_render_next_ok", torch.zeros(B, dtype=torch.bool))
         announce_compile()  # one line on stderr if the first update will compile the kernels
 
     def _set_depth(self, depth: torch.Tensor) -> None:
@@ -371,22 +371,49 @@ class EventPoseTracker(nn.Module):
     # -- one update --------------------------------------------------------------------------
     def forward(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor,
                 b: torch.Tensor | None = None, t_us: int | torch.Tensor | None = None, *,
-                next_window: tuple | None = None) -> torch.Tensor:
+                next_window: tuple | None = None, check: bool = True) -> torch.Tensor:
         """Consume one window of packed events and return the new poses ``(B, 7)`` float64.
 
         Args:
-            x, y: ``(N,)`` integer pixels; t: ``(N,)`` int64 microseconds; p: ``(N,)`` polarity {0, 1};
-            b: ``(N,)`` batch index (None: all batch element 0). Time order within each batch element.
+            x, y: ``(N,)`` integer pixels inside the camera; t: ``(N,)`` integer microseconds, ``>= 0``; p: ``(N,)``
+                polarity {0, 1}; b: ``(N,)`` batch index in ``[0, B)`` (None: all batch element 0). Time order within
+                each batch element, and no event of an element before the latest of its previous windows.
             t_us: time stamp of this update (int or ``(B,)`` int64 us, the window end), given to the loss
                 detector and ``on_lost``; default: the latest event time seen per element.
             next_window: the next window's ``(x, y, t, p, b)``, if it is already known. When the pipeline takes
                 windows in ahead (see ``pipeline``), its events go into the EROS and the flow while
                 this update searches (until the next call, those stages' state belongs to the intake thread), and
-                the next call must be for exactly these tensors (else RuntimeError); otherwise it is ignored.
+                the next call must be for exactly these tensors (else RuntimeError); otherwise it is ignored. Only
+                a window already in the kernels' dtypes (an :class:`EventStream`'s: int16 x and y, int64 t, int8
+                p, int64 b) that passes the checks is taken in ahead.
+            check: validate the window (:func:`~torchevtrack.events.check_window`, and time going back across
+                windows), raising a one-line ``ValueError`` that names the tensor and the event, and cast it once
+                to the kernels' dtypes (other integer dtypes would compile every kernel again). ``False`` skips
+                both, for windows known to be valid and in those dtypes (:meth:`track` checks its streams once).
+
+        Raises:
+            RuntimeError: before the first :meth:`reset`.
 
         The update runs in ``torch.inference_mode`` (no autograd bookkeeping on its many small tensor
         operations); the returned poses are ordinary tensors.
         """
+        last = self.t_last.numpy()
+        if not self.pose.numpy()[:, 3:].any(axis=1).all():  # reset gives every element a unit quaternion
+            raise RuntimeError("the tracker has no pose yet: call reset(pose) before the first update")
+        ahead_of = None if self._run.ahead is None else self._run.ahead.window[0]
+        if check and x is not ahead_of:  # (a window taken in ahead was checked before it went in)
+            x, y, t, p, b = self._check(x, y, t, p, b, last)
+        if check and next_window is not None and self._take_in_ahead:
+            latest = last.copy()
+            if t.numel() and b is None:
+                latest[0] = max(latest[0], t.numpy().max())
+            elif t.numel():
+                np.maximum.at(latest, b.numpy(), t.numpy())
+            try:
+                if any(c is not g for c, g in zip(self._check(*next_window, latest), next_window)):
+                    next_window = None  # other dtypes: checked and cast when its own update comes
+            except ValueError:
+                next_window = None  # its own update raises
         with torch.inference_mode():
             try:
                 self._update(x, y, t, p, b, t_us, next_window if self._take_in_ahead else None)
@@ -395,6 +422,34 @@ class EventPoseTracker(nn.Module):
                     self._run.observing.wait()
                     self._run.observing = None
         return torch.from_numpy(self.pose.numpy().copy())
+
+    def _check(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor, b: torch.Tensor | None,
+               last: np.ndarray) -> tuple[torch.Tensor, ...]:
+        """A window checked and in the kernels' dtypes (:func:`~torchevtrack.events.check_window`), none of whose
+        events comes before ``last`` ``(B,)``, its element's latest event time so far. A window of one element already
+        in those dtypes (an :class:`EventStream`'s) takes one compiled pass and one numpy pass (a few microseconds for
+        thousands of events); any other goes through :func:`~torchevtrack.events.check_window`, which also finds the
+        message."""
+        W, H = self.camera.width, self.camera.height
+        fast = b is None and all(isinstance(v, torch.Tensor) and v.ndim == 1 and v.is_contiguous()
+                                 for v in (x, y, t, p)) \
+            and x.dtype == y.dtype == torch.int16 and t.dtype == torch.int64 and p.dtype == torch.int8 \
+            and x.shape == y.shape == t.shape == p.shape
+        if fast and t.numel():
+            fast = _first_invalid(x.numpy(), y.numpy(), t.numpy(), W, H)[0] == 0 and \
+                int(p.numpy().view(np.uint8).max()) <= 1
+        if not fast:
+            x, y, t, p, b = check_window(x, y, t, p, b, width=W, height=H, batch=self.batch_size)
+        if t.numel():
+            tn = t.numpy()
+            back = tn[:1] < last[0] if b is None else tn < last[b.numpy()]  # (one element: sorted, its first)
+            if back.any():
+                i = int(back.argmax())
+                k = 0 if b is None else int(b[i])
+                where = "" if b is None else f" of batch element {k}"
+                raise ValueError(f"t goes back in time across windows at event {i}{where}: {int(tn[i])} us after "
+                                 f"{int(last[k])} us in an earlier window")
+        return x, y, t, p, b
 
     def _update(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor, b: torch.Tensor | None,
                 t_us: int | torch.Tensor | None, ahead: tuple | None) -> None:
@@ -524,6 +579,7 @@ class EventPoseTracker(nn.Module):
         B = self.batch_size
         if len(streams) != B:
             raise ValueError(f"expected {B} event streams, got {len(streams)}")
+        streams = [self._checked_stream(s, k) for k, s in enumerate(streams)]  # once: the updates skip the checks
         starts = _per_stream(t_start_us, [s.t_start for s in streams], "t_start_us")
         ends = _per_stream(t_end_us, [s.t_end for s in streams], "t_end_us")
         n = max((e - s) // self.period_us for s, e in zip(starts, ends))
@@ -543,12 +599,20 @@ class EventPoseTracker(nn.Module):
         try:
             for i in tqdm(range(n), desc="tracking", unit="update", disable=not progress, leave=False):
                 current, ahead = ahead, window(i + 1)
-                poses[:, i] = self(*current, t_us=times[:, i], next_window=ahead)
+                poses[:, i] = self(*current, t_us=times[:, i], next_window=ahead, check=False)
                 if return_lost:
                     lost[:, i] = self.lost
         finally:
             self._drop_ahead()
         return (times, poses, lost) if return_lost else (times, poses)
+
+    def _checked_stream(self, s: EventStream, k: int) -> EventStream:
+        """Stream ``k`` checked as a whole (:func:`~torchevtrack.events.check_window`) and in the kernels' dtypes."""
+        try:
+            checked = check_window(s.x, s.y, s.t, s.p, width=self.camera.width, height=self.camera.height)[:4]
+        except ValueError as e:
+            raise ValueError(f"stream {k}: {e}") from None
+        return s if all(c is f for c, f in zip(checked, (s.x, s.y, s.t, s.p))) else EventStream(*checked)
 
     # -- internals ---------------------------------------------------------------------------
     def _windows(self, poses: np.ndarray, index: list[int] | None = None) -> np.ndarray:
@@ -652,13 +716,62 @@ class EventPoseTracker(nn.Module):
         return self._run.bound
 
     def _apply(self, fn, recurse=True):
+        """Refuse a conversion (``.to``, ``.float``, ``.double``, ``.half``, ``.cuda``, ...) that would change a
+        tensor's dtype or move it off the CPU: the compiled kernels take the tracker's own dtypes on the CPU."""
+        for dtype in (torch.float64, torch.float32):
+            try:
+                out = fn(torch.zeros(1, dtype=dtype))
+            except Exception as e:  # e.g. .cuda() on a CPU-only build
+                raise ValueError(f"EventPoseTracker runs on the CPU in its own dtypes (float64 poses and filters, "
+                                 f"float32 images), so it cannot be converted or moved: {e}") from None
+            if not isinstance(out, torch.Tensor):
+                continue
+            if out.dtype != dtype or out.device.type != "cpu":
+                raise ValueError(f"EventPoseTracker runs on the CPU in its own dtypes (float64 poses and filters, "
+                                 f"float32 images), so it cannot be converted or moved to {out.dtype} on {out.device}")
         self._run.bound = None  # the buffers may be new tensors: bind again
         return super()._apply(fn, recurse)
 
+    def _settle(self, what: str) -> None:
+        """Before the state is read or replaced (``what``): no window may be taken in ahead (its events are half in the
+        stages), and a render made ahead must be done (it reads the poses)."""
+        if self._run.ahead is not None:
+            raise RuntimeError(f"cannot {what} while a window is taken in ahead (forward(next_window=...)): "
+                               "do it after the update of that window")
+        if self._run.rendering is not None:
+            self._run.rendering.wait()
+
     def __getstate__(self) -> dict:
+        """The attributes for a copy or pickle: the transient scheduling state (the pipeline's thread, a render made
+        ahead, the compiled steps bound to the buffers, the worker pool) is left out and made again when needed."""
+        self._settle("copy or pickle the tracker")
         state = super().__getstate__()  # a copy of the attributes
-        state["_run"] = dataclasses.replace(self._run, bound=None)  # a copy binds its own buffers
+        state["_run"] = dataclasses.replace(self._run, bound=None, rendering=None, observing=None)
+        state["_intake"] = None
+        state["_pool"] = None if self._pool is None else self._pool._max_workers  # made again by __setstate__
         return state
+
+    def __setstate__(self, state: dict) -> None:
+        threads = state["_pool"]
+        state["_pool"] = None if threads is None else ThreadPoolExecutor(threads, thread_name_prefix="torchevtrack")
+        super().__setstate__(state)
+
+    def _save_to_state_dict(self, destination, prefix, keep_vars):
+        self._settle("take the state_dict")
+        super()._save_to_state_dict(destination, prefix, keep_vars)
+
+    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+                              error_msgs):
+        """Load the buffers of another tracker of the same camera, meshes and configuration, used or not: the depth
+        buffer takes the size of the loaded one (it follows the object's window), and the transient state (the
+        pipeline's work ahead, the bound steps, the last template model) is dropped and made again when needed."""
+        self._settle("load a state_dict")
+        self._run = _UpdateState(self._run.quality)  # (a render made ahead is forgotten: the next update renders)
+        depth = state_dict.get(prefix + "depth")
+        if isinstance(depth, torch.Tensor) and depth.ndim == 3 and depth.shape[0] == self.batch_size:
+            self._set_depth(torch.zeros(depth.shape, dtype=self.depth.dtype))  # an ordinary tensor: copy_ may write it
+        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+                                      error_msgs)
 
     def _render_pose_ahead(self, predicted: np.ndarray, twist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """render.ahead: the poses to render at now (where the last update's prediction, moved on by its twist,
