@@ -29,6 +29,7 @@ __all__ = [
     "UKFConfig",
     "RenderConfig",
     "LossConfig",
+    "BurstConfig",
     "TrackerConfig",
     "ABLATIONS",
     "DEFAULT_YAML",
@@ -126,6 +127,19 @@ class LossConfig:
 
 
 @dataclass
+class BurstConfig:
+    # Burst guard (torchevtrack.stages.burst.BurstGuard): a window holding more events than min_fraction of the
+    # sensor's pixels and more than ratio times the recent rate (an EMA of weight ema) is a burst (a flash, a bump);
+    # its events reach no stage, the velocity filter only predicts, the loss detector takes it as neutral. After
+    # max_run consecutive bursts the next window is accepted as the new normal.
+    enabled: bool = True
+    min_fraction: float = 0.05
+    ratio: float = 10.0
+    ema: float = 0.05
+    max_run: int = 25
+
+
+@dataclass
 class TrackerConfig:
     rate_hz: float = 500.0
     eros: ErosConfig = field(default_factory=ErosConfig)
@@ -135,6 +149,7 @@ class TrackerConfig:
     ukf: UKFConfig = field(default_factory=UKFConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     loss: LossConfig = field(default_factory=LossConfig)
+    burst: BurstConfig = field(default_factory=BurstConfig)
 
     def __post_init__(self) -> None:
         self.rate_hz = float(self.rate_hz)
