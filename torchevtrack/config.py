@@ -30,6 +30,7 @@ __all__ = [
     "RenderConfig",
     "LossConfig",
     "BurstConfig",
+    "DenoiseConfig",
     "TrackerConfig",
     "ABLATIONS",
     "DEFAULT_YAML",
@@ -140,6 +141,17 @@ class BurstConfig:
 
 
 @dataclass
+class DenoiseConfig:
+    # Background-activity and hot-pixel filter (torchevtrack.stages.denoise.BackgroundActivityFilter), applied after
+    # the burst guard: an event passes when a 3x3 neighbour fired at most dt_us before it and its pixel is not hot.
+    enabled: bool = False
+    dt_us: int = 10_000
+    hot_period_us: int = 200_000
+    hot_ratio: float = 8.0
+    hot_min_rate_hz: float = 50.0
+
+
+@dataclass
 class TrackerConfig:
     rate_hz: float = 500.0
     eros: ErosConfig = field(default_factory=ErosConfig)
@@ -150,6 +162,7 @@ class TrackerConfig:
     render: RenderConfig = field(default_factory=RenderConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     burst: BurstConfig = field(default_factory=BurstConfig)
+    denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
 
     def __post_init__(self) -> None:
         self.rate_hz = float(self.rate_hz)

@@ -30,6 +30,8 @@ sequences and runs, in the paper's order:
    each element's events in the window; a burst's (a flash, a camera bump) are dropped before any stage sees them,
    so that update costs what an empty window does: the velocity filter predicts without a measurement, the template
    corrects against the EROS as it was, and the loss detector takes the update as neutral (``Quality.burst``);
+   then, optionally (``config.denoise.enabled``), the
+   :class:`~torchevtrack.stages.denoise.BackgroundActivityFilter` drops the kept events no neighbour supports;
 7. optionally (``config.loss.enabled``) a :class:`~torchevtrack.loss.LossDetector` judges the update's
    :class:`Quality` and declares elements lost; an ``on_lost`` callback may give them new poses, and
    those elements (only) restart there.
@@ -77,6 +79,7 @@ from torchevtrack.render import make_renderer
 from torchevtrack.stages import batch_mask, periods
 from torchevtrack.stages.burst import BurstGuard, keep_events
 from torchevtrack.stages.correction import CorrectionStep, bind_correction
+from torchevtrack.stages.denoise import BackgroundActivityFilter
 from torchevtrack.stages.eros import EROS, TimeSurface
 from torchevtrack.stages.flow import FlowField, TripletFlow
 from torchevtrack.stages.intake import bind_intake
@@ -268,6 +271,10 @@ class EventPoseTracker(nn.Module):
         bc = cfg.burst
         self.burst = BurstGuard(H, W, min_fraction=bc.min_fraction, ratio=bc.ratio, ema=bc.ema, max_run=bc.max_run,
                                 batch_size=B) if bc.enabled else None
+        dc = cfg.denoise
+        self.denoise = BackgroundActivityFilter(H, W, dt_us=dc.dt_us, hot_period_us=dc.hot_period_us,
+                                                hot_ratio=dc.hot_ratio, hot_min_rate_hz=dc.hot_min_rate_hz,
+                                                batch_size=B) if dc.enabled else None
         lc = cfg.loss
         if lc.enabled:
             # Without flow velocity no flow vectors are counted: the flow criterion would flag every update.
@@ -351,6 +358,8 @@ class EventPoseTracker(nn.Module):
             self._run.guarded = None
         if self.burst is not None:
             self.burst.reset(m)
+        if self.denoise is not None:
+            self.denoise.reset(m)
         self.eros.reset(m)
         if self.time_surface is not None:
             self.time_surface.reset(m)
@@ -419,7 +428,7 @@ class EventPoseTracker(nn.Module):
         B = self.batch_size
         run = self._run.bound or self._bind()
         clock = _StageClock()
-        (x, y, t, p, b), counts, burst = self._guard((x, y, t, p, b))
+        (x, y, t, p, b), counts, seen, burst = self._guard((x, y, t, p, b))
         if ahead is not None:  # judged now, in window order, so that only its kept events go in ahead
             ahead = self._guard_ahead(ahead)
         launch = None if ahead is None else lambda: self._launch(ahead)  # once this update has read the surfaces
@@ -465,7 +474,7 @@ class EventPoseTracker(nn.Module):
                                   model=cfg.template.enabled and ahead is None)
         clock.lap("render")
         n_events = counts
-        run.events_seen[:] += n_events if burst is None else np.where(burst, 0, n_events)
+        run.events_seen[:] += seen
         if cfg.template.enabled:
             if self._run.observing is not None:  # (its window's times went into t_last when it was given out)
                 observing, self._run.observing = self._run.observing, None
@@ -745,10 +754,11 @@ class EventPoseTracker(nn.Module):
         return self._run.models is not None and reuse > 0 and \
             bool((self._model.shift_px(torch.from_numpy(pose)) < reuse).all())
 
-    def _guard(self, window: tuple) -> tuple[tuple, np.ndarray, np.ndarray | None]:
-        """The burst guard on a packed ``window`` ``(x, y, t, p, b)``: its kept events (the window itself when no
-        element bursts), each element's events in it ``(B,)`` int64 and the burst flags ``(B,)`` bool (``None``: no
-        guard). A window judged ahead (:meth:`_guard_ahead`) is not judged again."""
+    def _guard(self, window: tuple) -> tuple[tuple, np.ndarray, np.ndarray, np.ndarray | None]:
+        """The burst guard, then the denoise filter if on, on a packed ``window`` ``(x, y, t, p, b)``: its kept events
+        (the window itself when nothing is dropped), each element's events in the window and kept ``(B,)`` int64, and
+        the burst flags ``(B,)`` bool (``None``: no guard). A window judged ahead (:meth:`_guard_ahead`) is not judged
+        again."""
         g = self._run.guarded
         if g is not None and g[0] is window[0]:
             self._run.guarded = None
@@ -757,19 +767,24 @@ class EventPoseTracker(nn.Module):
         x, b = window[0], window[4]
         counts = np.bincount(b.numpy(), minlength=self.batch_size) if b is not None else \
             np.full(self.batch_size, x.numel(), dtype=np.int64)
-        if self.burst is None:
-            return window, counts, None
-        burst = self.burst(torch.from_numpy(counts), self.period_us).numpy()
-        if burst.any():
-            k = keep_events(b, x.numel(), torch.from_numpy(burst))
+        burst, seen = None, counts
+        if self.burst is not None:
+            burst = self.burst(torch.from_numpy(counts), self.period_us).numpy()
+            if burst.any():
+                k = keep_events(b, x.numel(), torch.from_numpy(burst))
+                window, seen = tuple(None if f is None else f[k] for f in window), np.where(burst, 0, counts)
+        if self.denoise is not None and window[0].numel():
+            k = self.denoise(window[0], window[1], window[2], window[4])
             window = tuple(None if f is None else f[k] for f in window)
-        return window, counts, burst
+            seen = np.bincount(window[4].numpy(), minlength=self.batch_size) if window[4] is not None else \
+                np.full(self.batch_size, window[0].numel(), dtype=np.int64)
+        return window, counts, seen, burst
 
     def _guard_ahead(self, window: tuple) -> tuple:
         """Judge the next ``window``, known ahead, now (after this one: the guard's state runs in window order); its
         kept events, which go in ahead; the next update takes its verdict (it is called with the same ``x``)."""
-        kept, counts, burst = self._guard(window)
-        self._run.guarded = (window[0], kept, counts, burst)
+        kept, counts, seen, burst = self._guard(window)
+        self._run.guarded = (window[0], kept, counts, seen, burst)
         return kept
 
     def _t_now(self, t: torch.Tensor, b: torch.Tensor | None) -> np.ndarray:
