@@ -41,10 +41,10 @@ def with_flash(ev: EventStream, t_us: int, per_pixel: int = 4, seed: int = 0) ->
     return EventStream(cat(ev.x, x), cat(ev.y, y), tt[order], cat(ev.p, p))
 
 
-def run(seq, events: EventStream, config: TrackerConfig | None = None):
+def run(seq, events: EventStream, config: TrackerConfig | None = None, pipeline: bool | None = None):
     """Track update by update as :meth:`EventPoseTracker.track` does (the next window given ahead): update times,
     poses, burst flags, update milliseconds and the tracemalloc peak (bytes) of the loop."""
-    tracker = EventPoseTracker(CAM, seq.mesh, config)
+    tracker = EventPoseTracker(CAM, seq.mesh, config, pipeline=pipeline)
     t0, period = int(seq.gt_t_us[0]), tracker.period_us
     n = (int(seq.gt_t_us[-1]) - t0) // period
     bounds = torch.searchsorted(events.t, t0 + torch.arange(n + 1) * period).tolist()
@@ -103,6 +103,16 @@ def test_a_flash_is_dropped_and_the_pose_stays_on_track(seq, flash_runs):
     # before the flash the two runs are the same run
     before = times < t_flash
     assert torch.equal(poses[before], clean[before])
+
+
+def test_a_flash_judged_ahead_gives_the_serial_poses(seq, flash_runs):
+    # without render.ahead the pipeline takes the next window in during an update: the guard judges it then
+    t_flash, flashed, _, _ = flash_runs
+    cfg = TrackerConfig().replace(render={"ahead": False})
+    _, ahead, flags, _, _ = run(seq, flashed, cfg, pipeline=True)
+    _, serial, flags_serial, _, _ = run(seq, flashed, cfg, pipeline=False)
+    assert flags.sum() == 2 and torch.equal(flags, flags_serial)
+    assert torch.equal(ahead, serial)
 
 
 def test_online_pushes_drop_the_flash_as_the_offline_loop_does(seq, flash_runs):
