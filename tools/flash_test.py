@@ -2,9 +2,9 @@
 
 Loads a sequence directory, optionally injects a flash of ``--flash-events`` events (every pixel fires about the
 same number of times, at uniform random times in ``[t_flash, t_flash + 2 ms)``, random polarity), and tracks the
-first ``--duration`` seconds update by update (``forward`` per window, so each update's time is its own). With
-``--guard`` each window first goes through :class:`~torchevtrack.stages.burst.BurstGuard` and a burst window's
-events are dropped before the tracker. Prints the longest update, the flash windows' update times, the peak RSS
+first ``--duration`` seconds update by update (``forward`` per window, so each update's time is its own). Mode
+``flash`` turns the tracker's burst guard off (``burst.enabled: false``); ``guard`` and ``none`` run the default
+config, whose guard drops a burst window's events before any stage. Prints the longest update, the flash windows' update times, the peak RSS
 growth during tracking, and the errors 0.2 s after the flash. Run each mode in its own process (peak RSS).
 
     python tools/flash_test.py SEQDIR --mode none|flash|guard [--duration 1.0] [--flash-at 0.5]
@@ -21,7 +21,6 @@ import torch
 
 from torchevtrack.config import TrackerConfig
 from torchevtrack.metrics import per_pose_errors
-from torchevtrack.stages.burst import BurstGuard, keep_events
 from torchevtrack.synth.sequence import Sequence
 from torchevtrack.tracker import EventPoseTracker
 
@@ -62,8 +61,8 @@ def main() -> None:
         x, y, t, p, n_flash = ev.x, ev.y, ev.t, ev.p, 0
     else:
         x, y, t, p, n_flash = inject_flash(ev, cam.width, cam.height, t_flash, args.flash_events)
-    tracker = EventPoseTracker(cam, seq.mesh, TrackerConfig())
-    guard = BurstGuard(cam.height, cam.width) if args.mode == "guard" else None
+    cfg = TrackerConfig().replace(burst={"enabled": args.mode != "flash"})
+    tracker = EventPoseTracker(cam, seq.mesh, cfg)
     period = tracker.period_us
     n = round(args.duration * 1e6) // period
     bounds = torch.searchsorted(t, t0 + torch.arange(n + 1) * period)
@@ -73,11 +72,9 @@ def main() -> None:
     for i in range(n):
         a, b = int(bounds[i]), int(bounds[i + 1])
         start = time.perf_counter()
-        if guard is not None:
-            keep = keep_events(None, b - a, guard(torch.tensor([b - a]), period))
-            a, b = a + keep.start, a + keep.stop
-            dropped += int(bounds[i + 1]) - int(bounds[i]) - (b - a)
         pose = tracker(x[a:b], y[a:b], t[a:b], p[a:b], t_us=t0 + (i + 1) * period)
+        if tracker.quality.burst is not None and bool(tracker.quality.burst[0]):
+            dropped += b - a
         ms.append((time.perf_counter() - start) * 1e3)
         times.append(t0 + (i + 1) * period)
         poses.append(pose[0])

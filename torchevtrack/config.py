@@ -29,6 +29,8 @@ __all__ = [
     "UKFConfig",
     "RenderConfig",
     "LossConfig",
+    "BurstConfig",
+    "DenoiseConfig",
     "TrackerConfig",
     "ABLATIONS",
     "DEFAULT_YAML",
@@ -126,6 +128,30 @@ class LossConfig:
 
 
 @dataclass
+class BurstConfig:
+    # Burst guard (torchevtrack.stages.burst.BurstGuard): a window holding more events than min_fraction of the
+    # sensor's pixels and more than ratio times the recent rate (an EMA of weight ema) is a burst (a flash, a bump);
+    # its events reach no stage, the velocity filter only predicts, the loss detector takes it as neutral. After
+    # max_run consecutive bursts the next window is accepted as the new normal.
+    enabled: bool = True
+    min_fraction: float = 0.05
+    ratio: float = 10.0
+    ema: float = 0.05
+    max_run: int = 25
+
+
+@dataclass
+class DenoiseConfig:
+    # Background-activity and hot-pixel filter (torchevtrack.stages.denoise.BackgroundActivityFilter), applied after
+    # the burst guard: an event passes when a 3x3 neighbour fired at most dt_us before it and its pixel is not hot.
+    enabled: bool = False
+    dt_us: int = 10_000
+    hot_period_us: int = 200_000
+    hot_ratio: float = 8.0
+    hot_min_rate_hz: float = 50.0
+
+
+@dataclass
 class TrackerConfig:
     rate_hz: float = 500.0
     eros: ErosConfig = field(default_factory=ErosConfig)
@@ -135,6 +161,8 @@ class TrackerConfig:
     ukf: UKFConfig = field(default_factory=UKFConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     loss: LossConfig = field(default_factory=LossConfig)
+    burst: BurstConfig = field(default_factory=BurstConfig)
+    denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
 
     def __post_init__(self) -> None:
         self.rate_hz = float(self.rate_hz)

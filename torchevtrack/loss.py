@@ -13,7 +13,8 @@ Per update and batch element (:func:`loss_step`):
 * ``confidence = min(c_score, c_flow)`` in ``[0, 1]`` (0 for an update the tracker rejected).
 * the update is **low** when it was rejected, ``c_score < score_threshold`` or ``flow_vectors <
   min_flow_vectors``. After ``patience`` consecutive low updates the element is ``lost``; it is found
-  again after ``recovery`` consecutive confident updates (or a reset).
+  again after ``recovery`` consecutive confident updates (or a reset). An update whose ``Quality.burst`` is set
+  (the burst guard dropped its events) is neutral: the element's state stays as it was.
 
 Both signals need a few updates to build up after a (re)start (the EROS and the flow's time surface
 start empty): ``patience`` must cover that warm-up. An object that stops moving produces no events and
@@ -222,6 +223,12 @@ class LossDetector(nn.Module):
                       self.good_run, self.lost, score_threshold=self.score_threshold,
                       min_flow_vectors=self.min_flow_vectors, patience=self.patience, recovery=self.recovery,
                       ema=self.ema)
+        burst = getattr(quality, "burst", None)
+        if burst is not None and bool(torch.as_tensor(burst).any()):  # a burst window is neutral: no evidence
+            keep = torch.as_tensor(burst).bool()
+            s = s._replace(**{f: torch.where(keep, getattr(self, f), getattr(s, f))
+                              for f in ("confidence", "reference", "low_run", "good_run", "lost")},
+                           low=s.low & ~keep)
         self.confidence.copy_(s.confidence)
         self.reference.copy_(s.reference)
         self.low_run.copy_(s.low_run)

@@ -26,6 +26,12 @@ sequences and runs, in the paper's order:
    ``template.rule``); the correction's rate feeds the feedback of step 3, if on;
 6. :class:`~torchevtrack.stages.ukf.PoseUKF` smooths the corrected pose into the output (with the correction
    feedback's update and the output checks, one compiled call: :func:`~torchevtrack.stages.output.output_step`);
+0. before all of them, the :class:`~torchevtrack.stages.burst.BurstGuard` (``config.burst``, on by default) counts
+   each element's events in the window; a burst's (a flash, a camera bump) are dropped before any stage sees them,
+   so that update costs what an empty window does: the velocity filter predicts without a measurement, the template
+   corrects against the EROS as it was, and the loss detector takes the update as neutral (``Quality.burst``);
+   then, optionally (``config.denoise.enabled``), the
+   :class:`~torchevtrack.stages.denoise.BackgroundActivityFilter` drops the kept events no neighbour supports;
 7. optionally (``config.loss.enabled``) a :class:`~torchevtrack.loss.LossDetector` judges the update's
    :class:`Quality` and declares elements lost; an ``on_lost`` callback may give them new poses, and
    those elements (only) restart there.
@@ -71,7 +77,9 @@ from torchevtrack.pipeline import Job, PipelineThread
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.render import make_renderer
 from torchevtrack.stages import batch_mask, periods
+from torchevtrack.stages.burst import BurstGuard, keep_events
 from torchevtrack.stages.correction import CorrectionStep, bind_correction
+from torchevtrack.stages.denoise import BackgroundActivityFilter
 from torchevtrack.stages.eros import EROS, TimeSurface
 from torchevtrack.stages.flow import FlowField, TripletFlow
 from torchevtrack.stages.intake import bind_intake
@@ -102,12 +110,15 @@ class Quality:
         events: ``(B,)`` events in the window.
         rejected: ``(B,)`` bool, the update produced an invalid pose (non-finite, or the object at or
             behind the camera) and the previous pose was kept.
+        burst: ``(B,)`` bool, the burst guard dropped the window's events (``events`` still counts them); ``None``:
+            no guard.
     """
 
     score: torch.Tensor
     flow_vectors: torch.Tensor
     events: torch.Tensor
     rejected: torch.Tensor
+    burst: torch.Tensor | None = None
 
 
 class _StageClock:
@@ -257,6 +268,13 @@ class EventPoseTracker(nn.Module):
         self._take_in_ahead = self._pipeline and not observes
         self.time_surface = TimeSurface(H, W, batch_size=B) if observes else None
         self.ukf = PoseUKF.from_config(cfg.ukf, batch_size=B)
+        bc = cfg.burst
+        self.burst = BurstGuard(H, W, min_fraction=bc.min_fraction, ratio=bc.ratio, ema=bc.ema, max_run=bc.max_run,
+                                batch_size=B) if bc.enabled else None
+        dc = cfg.denoise
+        self.denoise = BackgroundActivityFilter(H, W, dt_us=dc.dt_us, hot_period_us=dc.hot_period_us,
+                                                hot_ratio=dc.hot_ratio, hot_min_rate_hz=dc.hot_min_rate_hz,
+                                                batch_size=B) if dc.enabled else None
         lc = cfg.loss
         if lc.enabled:
             # Without flow velocity no flow vectors are counted: the flow criterion would flag every update.
@@ -277,7 +295,8 @@ class EventPoseTracker(nn.Module):
         self.register_buffer("events_seen", torch.zeros(B, dtype=torch.long))
         self.register_buffer("t_last", torch.zeros(B, dtype=torch.long))
         self._run = _UpdateState(Quality(torch.full((B,), float("nan")), torch.zeros(B, dtype=torch.long),
-                                         torch.zeros(B, dtype=torch.long), torch.zeros(B, dtype=torch.bool)))
+                                         torch.zeros(B, dtype=torch.long), torch.zeros(B, dtype=torch.bool),
+                                         None if self.burst is None else torch.zeros(B, dtype=torch.bool)))
         self.stage_ms: dict[str, float] = {}
         # The object centre must stay farther than its bounding radius (plus the near plane).
         self.register_buffer("_symmetry_axis", torch.stack([self._sym_axes[i] for i in self._renderer_of]),
@@ -335,6 +354,12 @@ class EventPoseTracker(nn.Module):
             self._run.ahead.flow.result()
             if mask is None:  # a fresh start: that window is not coming
                 self._run.ahead = None
+        if mask is None:
+            self._run.guarded = None
+        if self.burst is not None:
+            self.burst.reset(m)
+        if self.denoise is not None:
+            self.denoise.reset(m)
         self.eros.reset(m)
         if self.time_surface is not None:
             self.time_surface.reset(m)
@@ -458,6 +483,9 @@ class EventPoseTracker(nn.Module):
         B = self.batch_size
         run = self._run.bound or self._bind()
         clock = _StageClock()
+        (x, y, t, p, b), counts, seen, burst = self._guard((x, y, t, p, b))
+        if ahead is not None:  # judged now, in window order, so that only its kept events go in ahead
+            ahead = self._guard_ahead(ahead)
         launch = None if ahead is None else lambda: self._launch(ahead)  # once this update has read the surfaces
         if self._run.ahead is not None:  # this window went in on the intake thread during the last update
             clock.lap("eros")
@@ -475,6 +503,8 @@ class EventPoseTracker(nn.Module):
             events = self._share_events(x, y, t, p, b)
             clock.lap("eros")
             flow = _cat(self._map(lambda rows, intake, ev: intake(*ev), run.intake, events))
+        if burst is not None and burst.any():  # no flow measurement from a burst: the velocity filter predicts
+            flow.valid[burst] = False  # (the bound intake gives numpy arrays)
         clock.lap("flow")
 
         # A pose that is not finite or puts the object (nearly) behind the camera is not a pose: such a
@@ -498,8 +528,8 @@ class EventPoseTracker(nn.Module):
                 self._render_soon(run.render_next.copy(), cfg.template.enabled,
                                   model=cfg.template.enabled and ahead is None)
         clock.lap("render")
-        n_events = np.bincount(b.numpy(), minlength=B) if b is not None else np.full(B, x.numel())
-        run.events_seen[:] += n_events
+        n_events = counts
+        run.events_seen[:] += seen
         if cfg.template.enabled:
             if self._run.observing is not None:  # (its window's times went into t_last when it was given out)
                 observing, self._run.observing = self._run.observing, None
@@ -522,7 +552,7 @@ class EventPoseTracker(nn.Module):
         clock.lap("ukf")
         run.prev_pose[:] = run.pose
         run.pose[:] = out
-        self._run.quality = (score, n_vectors, n_events, bad | rejected)
+        self._run.quality = (score, n_vectors, n_events, bad | rejected) + (() if burst is None else (burst,))
         if self.loss is not None:
             upd = self.loss(self.quality, torch.from_numpy(run.t_last) if t_us is None else t_us)
             self.loss_update = upd
@@ -837,6 +867,39 @@ class EventPoseTracker(nn.Module):
         return self._run.models is not None and reuse > 0 and \
             bool((self._model.shift_px(torch.from_numpy(pose)) < reuse).all())
 
+    def _guard(self, window: tuple) -> tuple[tuple, np.ndarray, np.ndarray, np.ndarray | None]:
+        """The burst guard, then the denoise filter if on, on a packed ``window`` ``(x, y, t, p, b)``: its kept events
+        (the window itself when nothing is dropped), each element's events in the window and kept ``(B,)`` int64, and
+        the burst flags ``(B,)`` bool (``None``: no guard). A window judged ahead (:meth:`_guard_ahead`) is not judged
+        again."""
+        g = self._run.guarded
+        if g is not None and g[0] is window[0]:
+            self._run.guarded = None
+            return g[1:]
+        self._run.guarded = None
+        x, b = window[0], window[4]
+        counts = np.bincount(b.numpy(), minlength=self.batch_size) if b is not None else \
+            np.full(self.batch_size, x.numel(), dtype=np.int64)
+        burst, seen = None, counts
+        if self.burst is not None:
+            burst = self.burst(torch.from_numpy(counts), self.period_us).numpy()
+            if burst.any():
+                k = keep_events(b, x.numel(), torch.from_numpy(burst))
+                window, seen = tuple(None if f is None else f[k] for f in window), np.where(burst, 0, counts)
+        if self.denoise is not None and window[0].numel():
+            k = self.denoise(window[0], window[1], window[2], window[4])
+            window = tuple(None if f is None else f[k] for f in window)
+            seen = np.bincount(window[4].numpy(), minlength=self.batch_size) if window[4] is not None else \
+                np.full(self.batch_size, window[0].numel(), dtype=np.int64)
+        return window, counts, seen, burst
+
+    def _guard_ahead(self, window: tuple) -> tuple:
+        """Judge the next ``window``, known ahead, now (after this one: the guard's state runs in window order); its
+        kept events, which go in ahead; the next update takes its verdict (it is called with the same ``x``)."""
+        kept, counts, seen, burst = self._guard(window)
+        self._run.guarded = (window[0], kept, counts, seen, burst)
+        return kept
+
     def _t_now(self, t: torch.Tensor, b: torch.Tensor | None) -> np.ndarray:
         """Latest event time per element in this window (int64 us, the view of :attr:`t_last` the update binds; the
         previous one if the window is empty)."""
@@ -966,7 +1029,8 @@ class _UpdateState:
     setting these costs no nn.Module bookkeeping).
 
     quality: the last update's :class:`Quality` (or its fields as numpy arrays until read); ahead: the next window,
-    taken in on the intake thread; rendering: render.ahead, the next update's render and model on the intake thread;
+    taken in on the intake thread; guarded: the next window as the burst guard judged it ahead (its original ``x``, its
+    kept events, counts and flags); rendering: render.ahead, the next update's render and model on the intake thread;
     observing: streaming, this update's EROS, time surface and observation there; models: the template of the last
     render, one per worker's share (reused while render.reuse_px allows); bound: the stages' compiled steps bound
     to the tracker's buffers (made on first use).
@@ -975,6 +1039,7 @@ class _UpdateState:
     ahead: "_Ahead | None" = None
     rendering: Job | None = None
     observing: Job | None = None
+    guarded: tuple | None = None
     models: "list[TemplateModel] | None" = None
     bound: "_Bound | None" = None
 
