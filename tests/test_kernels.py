@@ -35,5 +35,7 @@ def test_warmup_leaves_no_tracker_module_cold(capsys):
     from torchevtrack.kernels import uncached_kernels, warmup
 
     warmup(progress=False)
-    assert uncached_kernels() == []
+    # torchevtrack.reference holds the tests' torch/numba oracles, which a tracking run never calls: earlier tests
+    # in the same process may have loaded it without compiling all of it
+    assert [n for n in uncached_kernels() if not n.startswith("torchevtrack.reference.")] == []
     assert "compiling" not in capsys.readouterr().err  # warmup reports through its own bar, not the notice
