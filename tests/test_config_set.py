@@ -30,7 +30,7 @@ def test_override_types_each_value_by_the_schema():
 
 @pytest.mark.parametrize("assignment, message", [
     ("ukf.enabld=false", "unknown config key 'ukf.enabld': ukf has enabled, p0"),
-    ("nope=1", "unknown config key 'nope': the config has eros"),
+    ("nope=1", "unknown config key 'nope': the config has burst, denoise, eros"),
     ("rate_hz.x=1", "rate_hz is not a section"),
     ("ukf=1", "is a section"),
     ("ukf.enabled=maybe", "config key 'ukf.enabled' expects bool, got 'maybe'"),
