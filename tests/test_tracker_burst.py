@@ -67,9 +67,9 @@ def run(seq, events: EventStream, config: TrackerConfig | None = None, pipeline:
         ms.append((time.perf_counter() - start) * 1e3)
         q = tracker.quality
         burst[i] = bool(q.burst[0]) if q.burst is not None else False
-    peak = tracemalloc.get_traced_memory()[1]
+    tracker.close()  # first: the pipeline thread may still allocate, and stopping tracemalloc under it can crash
+    peak = tracemalloc.get_traced_memory()[1]  # CPython 3.11
     tracemalloc.stop()
-    tracker.close()
     return times, poses, burst, ms, peak
 
 
