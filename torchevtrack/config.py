@@ -31,6 +31,7 @@ __all__ = [
     "LossConfig",
     "BurstConfig",
     "DenoiseConfig",
+    "RecoverConfig",
     "TrackerConfig",
     "ABLATIONS",
     "DEFAULT_YAML",
@@ -152,6 +153,22 @@ class DenoiseConfig:
 
 
 @dataclass
+class RecoverConfig:
+    # Re-localisation (torchevtrack.recover.Recoverer; needs loss.enabled). An element the loss detector declares
+    # lost reports its last good pose while a wide search (torchevtrack.stages.relocalise.Relocaliser), centred on
+    # that pose moved on by its last good twist, runs every retry_us of event time once min_events events came in
+    # since the last one; the element restarts at a clear result. start_search: one such search start_after_us
+    # after each (re)start, from the tracker's pose then. search_m: the search's image-plane half-width (metres at
+    # the object's depth; its depth offsets scale with it); the search blocks the update (~0.3-1.5 s of wall time).
+    enabled: bool = False
+    retry_us: int = 20_000
+    min_events: int = 500
+    search_m: float = 0.10
+    start_search: bool = False
+    start_after_us: int = 24_000
+
+
+@dataclass
 class TrackerConfig:
     rate_hz: float = 500.0
     eros: ErosConfig = field(default_factory=ErosConfig)
@@ -163,6 +180,7 @@ class TrackerConfig:
     loss: LossConfig = field(default_factory=LossConfig)
     burst: BurstConfig = field(default_factory=BurstConfig)
     denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
+    recover: RecoverConfig = field(default_factory=RecoverConfig)
 
     def __post_init__(self) -> None:
         self.rate_hz = float(self.rate_hz)
@@ -183,6 +201,14 @@ class TrackerConfig:
             raise ValueError(f"template.rule must be one of {RULES}, got {self.template.rule!r}")
         if self.render.backend not in BACKENDS:
             raise ValueError(f"render.backend must be one of {BACKENDS}, got {self.render.backend!r}")
+        r = self.recover
+        if r.enabled and not self.loss.enabled:
+            raise ValueError("recover.enabled needs the loss detector: set loss.enabled")
+        if r.start_search and not r.enabled:
+            raise ValueError("recover.start_search needs recover.enabled")
+        if r.retry_us <= 0 or r.min_events < 0 or not r.search_m > 0 or r.start_after_us <= 0:
+            raise ValueError(f"recover.retry_us and start_after_us must be positive, min_events >= 0 and search_m > 0, "
+                             f"got {r.retry_us!r}, {r.start_after_us!r}, {r.min_events!r}, {r.search_m!r}")
         if self.render.ahead and self.render.reuse_px > 0:
             raise ValueError("render.reuse_px > 0 needs render.ahead: false (each chooses where to render)")
 

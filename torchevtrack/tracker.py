@@ -34,7 +34,10 @@ sequences and runs, in the paper's order:
    :class:`~torchevtrack.stages.denoise.BackgroundActivityFilter` drops the kept events no neighbour supports;
 7. optionally (``config.loss.enabled``) a :class:`~torchevtrack.loss.LossDetector` judges the update's
    :class:`Quality` and declares elements lost; an ``on_lost`` callback may give them new poses, and
-   those elements (only) restart there.
+   those elements (only) restart there;
+8. optionally (``config.recover.enabled``) the :class:`~torchevtrack.recover.Recoverer` holds a lost element's output
+   at its last good pose and restarts it where a wide search (:class:`~torchevtrack.stages.relocalise.Relocaliser`)
+   finds the object clearly.
 
 The render of step 4 also provides the depth for step 2 of the next update, so an update costs one
 render. Ablations of the paper are configuration switches (:data:`torchevtrack.config.ABLATIONS`).
@@ -75,6 +78,7 @@ from torchevtrack.kernels import announce_compile
 from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
 from torchevtrack.pipeline import Job, PipelineThread
 from torchevtrack.raster import RasterRenderer
+from torchevtrack.recover import Recoverer
 from torchevtrack.render import make_renderer
 from torchevtrack.stages import batch_mask, periods
 from torchevtrack.stages.burst import BurstGuard, keep_events
@@ -286,6 +290,8 @@ class EventPoseTracker(nn.Module):
         else:
             self.loss = None
         self.loss_update: LossUpdate | None = None
+        self.recover = Recoverer.from_config(cfg.recover, camera, meshes, cfg.render.decimate) \
+            if cfg.recover.enabled else None
 
         f64 = torch.float64
         self.register_buffer("pose", torch.zeros(B, 7, dtype=f64))
@@ -376,6 +382,8 @@ class EventPoseTracker(nn.Module):
         self.t_last.masked_fill_(m, 0)
         if self.loss is not None:
             self.loss.reset(m)
+        if self.recover is not None:
+            self.recover.reset(pose, m)
         if mask is None:
             self.loss_update = None
             self._render(pose.numpy(), shaded=False)
@@ -387,6 +395,8 @@ class EventPoseTracker(nn.Module):
         """Release the renderers' GL contexts and the worker threads."""
         for r in self._renderers:
             r.close()
+        if self.recover is not None:
+            self.recover.close()
         if self._pool is not None:
             self._pool.shutdown()
         if self._intake is not None:
@@ -446,7 +456,7 @@ class EventPoseTracker(nn.Module):
                 if self._run.observing is not None:  # the update failed after it gave the intake thread its part
                     self._run.observing.wait()
                     self._run.observing = None
-        return torch.from_numpy(self.pose.numpy().copy())
+        return torch.from_numpy((self.pose if self.recover is None else self.recover.pose).numpy().copy())
 
     def _check(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor, b: torch.Tensor | None,
                last: np.ndarray) -> tuple[torch.Tensor, ...]:
@@ -563,6 +573,9 @@ class EventPoseTracker(nn.Module):
                 self.reset(pose, mask=upd.reinit_index)
                 self.loss.lost_at_us.copy_(lost_at)  # the first loss stays on record
             clock.lap("loss")
+        if self.recover is not None:  # may restart elements (a masked reset)
+            self.recover(self, torch.from_numpy(run.t_last) if t_us is None else t_us)
+            clock.lap("recover")
         self.stage_ms = clock.ms
 
     @property
@@ -575,8 +588,12 @@ class EventPoseTracker(nn.Module):
     @property
     def lost(self) -> torch.Tensor | None:
         """``(B,)`` bool: the loss detector held the element lost after the last update (before any
-        re-initialisation in that update); ``None`` without a detector or before the first update."""
-        return None if self.loss_update is None else self.loss_update.lost
+        re-initialisation in that update); with ``config.recover``, the :class:`~torchevtrack.recover.Recoverer`'s
+        flags (lost until a search restarted the element or the detector found it again; the output pose is then the
+        last good one); ``None`` without a detector or before the first update."""
+        if self.loss_update is None:
+            return None
+        return self.loss_update.lost if self.recover is None else self.recover.lost.clone()
 
     # -- offline tracking --------------------------------------------------------------------
     def track(

@@ -1,0 +1,228 @@
+"""Finding a lost object again: the loss detector's verdict, a wide search, a masked restart.
+
+:class:`Recoverer` runs after each tracker update (``config.recover``, with ``config.loss``) and reads only what the
+tracker shows: its output :attr:`~torchevtrack.tracker.EventPoseTracker.pose`, its loss detector's state
+(:class:`~torchevtrack.loss.LossDetector` ``lost`` and ``low_run``), the events of the update
+(:attr:`~torchevtrack.tracker.EventPoseTracker.quality`) and its time surface; it restarts elements with the
+tracker's masked :meth:`~torchevtrack.tracker.EventPoseTracker.reset`. Per batch element:
+
+* **Last good state.** After every confident update (the detector's ``low_run`` is 0) of an element that is not
+  lost, its pose is the *good pose* and its time the *good time*; its *good twist* is the constant twist between two
+  good poses at least ``TWIST_SPAN_US`` apart (:func:`~torchevtrack.stages.propagate.twist_between`).
+* **Lost.** When the detector declares the element lost, it stays lost here until a search restarts it or the
+  detector finds it again by itself. Meanwhile the element reports its good pose (not the tracker's drifting one)
+  and, every ``retry_us`` of event time once ``min_events`` events came in since the last search, the
+  :class:`~torchevtrack.stages.relocalise.Relocaliser` searches around the good pose moved on by the good twist over
+  the time since (:func:`~torchevtrack.stages.propagate.propagate`) against the tracker's time surface. A ``clear``
+  result restarts the element there (twist zero) and it reports that pose from this update on.
+* **Start search** (``start_search``): ``start_after_us`` after each (re)start, once the time surface holds that
+  much of the object's motion, one search around the tracker's pose then; a clear result restarts the element
+  there (from a rough start pose, the local tracker alone may never reach the basin of the true one).
+
+The search runs inside the update and blocks it: about 0.3-1.5 s of wall time per search (the event time does not
+advance meanwhile, so offline tracking gives the same poses however long it takes). :attr:`Recoverer.searches`,
+:attr:`Recoverer.search_s` and :attr:`Recoverer.restarts` count them.
+
+Example:
+    >>> import torch
+    >>> from torchevtrack import Camera, EventPoseTracker
+    >>> from torchevtrack.config import TrackerConfig
+    >>> cfg = TrackerConfig().replace(loss={"enabled": True}, recover={"enabled": True})
+    >>> tracker = EventPoseTracker(Camera(64, 48, 60.0, 60.0, 31.5, 23.5), "box", cfg)
+    >>> tracker.reset(torch.tensor([0.0, 0.0, 0.6, 1.0, 0.0, 0.0, 0.0]))
+    >>> e = torch.zeros(0, dtype=torch.long)
+    >>> for i in range(30):  # no events: lost after loss.patience updates, no search (no events to search in)
+    ...     pose = tracker(e, e, e, e, t_us=2000 * (i + 1))
+    >>> bool(tracker.lost[0]), tracker.recover.searches, pose[0, 2].item()
+    (True, 0, 0.6)
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Sequence
+
+import torch
+import trimesh
+from torch import nn
+
+from torchevtrack.camera import Camera
+from torchevtrack.config import RecoverConfig
+from torchevtrack.mesh import load_mesh
+from torchevtrack.raster import RasterRenderer
+from torchevtrack.stages import batch_mask
+from torchevtrack.stages.propagate import propagate, twist_between
+from torchevtrack.stages.relocalise import LEVELS, Level, Relocaliser
+
+if TYPE_CHECKING:  # the tracker imports this module
+    from torchevtrack.tracker import EventPoseTracker
+
+__all__ = ["Recoverer", "search_levels", "TWIST_SPAN_US"]
+
+TWIST_SPAN_US = 20_000  # the good twist is measured over at least this span (one update's pose difference is noise)
+
+
+def search_levels(search_m: float) -> tuple[Level, ...]:
+    """The relocaliser's :data:`~torchevtrack.stages.relocalise.LEVELS` with the image-plane half-width and the depth
+    offsets of every level scaled so that the first level's half-width is ``search_m`` metres (rotations and scales
+    as they are)."""
+    k = search_m / LEVELS[0].xy_m
+    return tuple(Level(lv.rot_deg, tuple(dz * k for dz in lv.dz_m), lv.xy_m * k, lv.scale) for lv in LEVELS)
+
+
+class Recoverer(nn.Module):
+    """Re-localise lost elements of an :class:`~torchevtrack.tracker.EventPoseTracker` (module docstring).
+
+    Args:
+        relocalisers: one :class:`~torchevtrack.stages.relocalise.Relocaliser` per distinct mesh.
+        owner: ``B`` indices into ``relocalisers``, the mesh of each element.
+        retry_us: event time between two searches of a lost element (us).
+        min_events: events an element must see since its last search (or loss) before the next one.
+        start_search: one search ``start_after_us`` after each (re)start.
+        start_after_us: that delay (us of event time).
+
+    Buffers (all with a leading ``B``):
+        pose: ``(B, 7)`` float64 the reported pose: the tracker's, or the good pose while lost.
+        lost: ``(B,)`` bool, lost and not yet found again.
+        good_pose, good_us: ``(B, 7)`` float64 and ``(B,)`` int64, the last good pose and its time.
+        twist: ``(B, 6)`` float64 ``[v, w]`` good twist (zero until measured).
+        anchor_pose, anchor_us: the good pose the next twist is measured from.
+        next_search_us: ``(B,)`` int64 the earliest time of a lost element's next search.
+        events: ``(B,)`` int64 events seen since the last search (or loss).
+        started_us: ``(B,)`` int64 start of the first update's window since the last (re)start (-1: none yet).
+        start_pending: ``(B,)`` bool, the start search is still to come.
+
+    ``forward(tracker, t_us)`` runs after each update of ``tracker`` with the update's ``(B,)`` int64 times.
+    """
+
+    pose: torch.Tensor
+    lost: torch.Tensor
+    good_pose: torch.Tensor
+    good_us: torch.Tensor
+    twist: torch.Tensor
+    anchor_pose: torch.Tensor
+    anchor_us: torch.Tensor
+    next_search_us: torch.Tensor
+    events: torch.Tensor
+    started_us: torch.Tensor
+    start_pending: torch.Tensor
+
+    def __init__(self, relocalisers: Sequence[Relocaliser], owner: Sequence[int], *, retry_us: int = 20_000,
+                 min_events: int = 500, start_search: bool = False, start_after_us: int = 24_000) -> None:
+        super().__init__()
+        if not relocalisers or not all(isinstance(r, Relocaliser) for r in relocalisers):
+            raise TypeError("relocalisers must be a non-empty list of Relocaliser")
+        if not owner or any(not 0 <= int(i) < len(relocalisers) for i in owner):
+            raise ValueError(f"owner must index the {len(relocalisers)} relocalisers, got {list(owner)}")
+        if retry_us <= 0 or start_after_us <= 0 or min_events < 0:
+            raise ValueError(f"need retry_us > 0, start_after_us > 0, min_events >= 0, got {retry_us}, "
+                             f"{start_after_us}, {min_events}")
+        self.relocalisers = nn.ModuleList(relocalisers)
+        self.owner = [int(i) for i in owner]
+        self.retry_us, self.min_events = int(retry_us), int(min_events)
+        self.start_search, self.start_after_us = bool(start_search), int(start_after_us)
+        self.searches, self.search_s, self.restarts = 0, 0.0, 0
+        B = len(self.owner)
+        f64, i64 = torch.float64, torch.int64
+        unit = torch.tensor([0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0], dtype=f64).expand(B, 7)
+        for name in ("pose", "good_pose", "anchor_pose"):
+            self.register_buffer(name, unit.clone())
+        self.register_buffer("twist", torch.zeros(B, 6, dtype=f64))
+        for name in ("good_us", "anchor_us", "next_search_us", "events"):
+            self.register_buffer(name, torch.zeros(B, dtype=i64))
+        self.register_buffer("started_us", torch.full((B,), -1, dtype=i64))
+        self.register_buffer("lost", torch.zeros(B, dtype=torch.bool))
+        self.register_buffer("start_pending", torch.zeros(B, dtype=torch.bool))
+
+    @classmethod
+    def from_config(cls, cfg: RecoverConfig, camera: Camera, meshes: Sequence[str | Path | trimesh.Trimesh],
+                    decimate: int | None = None) -> "Recoverer":
+        """One relocaliser per distinct mesh of the ``B`` ``meshes`` (as the tracker takes them; decimated to about
+        ``decimate`` faces if given), with :func:`search_levels` of ``cfg.search_m``."""
+        seen: dict[int, int] = {}
+        relocs, owner = [], []
+        for m in meshes:
+            key = id(m) if isinstance(m, trimesh.Trimesh) else hash(str(m))
+            if key not in seen:
+                mesh = load_mesh(m, decimate=decimate) if decimate else load_mesh(m)
+                radius = float(torch.as_tensor(mesh.vertices).norm(dim=1).max())
+                seen[key] = len(relocs)
+                relocs.append(Relocaliser(RasterRenderer(mesh, camera), radius, levels=search_levels(cfg.search_m)))
+            owner.append(seen[key])
+        return cls(relocs, owner, retry_us=cfg.retry_us, min_events=cfg.min_events, start_search=cfg.start_search,
+                   start_after_us=cfg.start_after_us)
+
+    def reset(self, pose: torch.Tensor, mask: torch.Tensor | None = None) -> None:
+        """Restart the elements of ``mask`` (default all; ``(B,)`` bool or ``(K,)`` indices) at ``pose`` ``(B, 7)``
+        (other rows ignored): not lost, the good pose ``pose``, no twist, the start search (if on) to come."""
+        m = batch_mask(mask, len(self.owner))
+        pose = torch.as_tensor(pose, dtype=torch.float64)
+        for name in ("pose", "good_pose", "anchor_pose"):
+            getattr(self, name)[m] = pose[m]
+        self.twist[m] = 0.0
+        self.lost[m] = False
+        self.events[m] = 0
+        self.started_us[m] = -1
+        self.start_pending[m] = self.start_search
+
+    def close(self) -> None:
+        """Release the relocalisers' renderers."""
+        for r in self.relocalisers:
+            r.renderer.close()
+
+    @torch.inference_mode()
+    def forward(self, tracker: "EventPoseTracker", t_us: torch.Tensor) -> None:
+        B = len(self.owner)
+        t = torch.as_tensor(t_us, dtype=torch.int64).expand(B).clone()
+        pose = tracker.pose.clone()
+        detector = tracker.loss
+        self.events += tracker.quality.events.to(torch.int64)
+        first = self.started_us < 0  # the first update since a (re)start: its window began a period ago
+        for name in ("started_us", "good_us", "anchor_us"):
+            getattr(self, name)[first] = t[first] - tracker.period_us
+        newly = detector.lost & ~self.lost
+        self.lost |= newly
+        self.next_search_us.copy_(torch.where(newly, t, self.next_search_us))
+        good = ~self.lost & (detector.low_run == 0)
+        self.good_pose[good] = pose[good]
+        self.good_us[good] = t[good]
+        span = good & (t - self.anchor_us >= TWIST_SPAN_US)
+        if bool(span.any()):
+            dt = (t[span] - self.anchor_us[span]).double() * 1e-6
+            self.twist[span] = twist_between(self.anchor_pose[span], pose[span], dt)
+            self.anchor_pose[span] = pose[span]
+            self.anchor_us[span] = t[span]
+        due = self.lost & (t >= self.next_search_us) & (self.events >= self.min_events)
+        starting = self.start_pending & ~self.lost & (t - self.started_us >= self.start_after_us)
+        self.start_pending &= ~starting
+        restart = torch.zeros(B, dtype=torch.bool)
+        found = pose.clone()
+        for i in (due | starting).nonzero()[:, 0].tolist():
+            if bool(due[i]):
+                dt = (t[i] - self.good_us[i]).double() * 1e-6
+                centre = propagate(self.good_pose[i:i + 1], self.twist[i:i + 1], dt)
+                self.next_search_us[i] = t[i] + self.retry_us
+                self.events[i] = 0
+            else:
+                centre = pose[i:i + 1]
+            reloc = self.relocalisers[self.owner[i]]
+            if not float(centre[0, 2]) > 1.5 * reloc.radius:  # extrapolated to (or behind) the camera
+                centre = self.good_pose[i:i + 1]
+            surface = tracker.time_surface.last_us if tracker.time_surface is not None else tracker.flow.sae
+            start = time.perf_counter()
+            out = reloc(centre, surface[i:i + 1].clone(), t[i:i + 1])
+            self.search_s += time.perf_counter() - start
+            self.searches += 1
+            if bool(out.clear[0]):
+                restart[i] = True
+                found[i] = out.pose[0]
+        if bool(restart.any()):
+            tracker.reset(found, mask=restart)  # resets this module's rows too (reset)
+            self.start_pending[restart] = False  # a restart found by a search needs no start search
+            self.restarts += int(restart.sum())
+        self.pose.copy_(torch.where(self.lost[:, None], self.good_pose, tracker.pose))
+
+    def extra_repr(self) -> str:
+        return (f"batch_size={len(self.owner)}, retry_us={self.retry_us}, min_events={self.min_events}, "
+                f"start_search={self.start_search}, start_after_us={self.start_after_us}")
