@@ -17,7 +17,8 @@ tracker's masked :meth:`~torchevtrack.tracker.EventPoseTracker.reset`. Per batch
   result restarts the element there (twist zero) and it reports that pose from this update on.
 * **Start search** (``start_search``): ``start_after_us`` after each (re)start, once the time surface holds that
   much of the object's motion, one search around the tracker's pose then; a clear result restarts the element
-  there (from a rough start pose, the local tracker alone may never reach the basin of the true one).
+  there, with the twist the UKF measured meanwhile (from a rough start pose, the local tracker alone may never reach
+  the basin of the true one).
 
 The search runs inside the update and blocks it: about 0.3-1.5 s of wall time per search (the event time does not
 advance meanwhile, so offline tracking gives the same poses however long it takes). :attr:`Recoverer.searches`,
@@ -198,6 +199,9 @@ class Recoverer(nn.Module):
         self.start_pending &= ~starting
         restart = torch.zeros(B, dtype=torch.bool)
         found = pose.clone()
+        # a start search keeps the motion the tracker measured meanwhile (the UKF's); a lost element's is not known
+        twist = tracker.ukf.twist.clone() if tracker.config.ukf.enabled else torch.zeros(B, 6, dtype=torch.float64)
+        twist[~starting] = 0.0
         for i in (due | starting).nonzero()[:, 0].tolist():
             if bool(due[i]):
                 dt = (t[i] - self.good_us[i]).double() * 1e-6
@@ -218,7 +222,7 @@ class Recoverer(nn.Module):
                 restart[i] = True
                 found[i] = out.pose[0]
         if bool(restart.any()):
-            tracker.reset(found, mask=restart)  # resets this module's rows too (reset)
+            tracker.reset(found, twist, mask=restart)  # resets this module's rows too (reset)
             self.start_pending[restart] = False  # a restart found by a search needs no start search
             self.restarts += int(restart.sum())
         self.pose.copy_(torch.where(self.lost[:, None], self.good_pose, tracker.pose))

@@ -9,6 +9,10 @@ raw sensor pixels.
 Exit status: 0 tracked; 2 bad input (one line on stderr, nothing written): unreadable or invalid events or camera,
 ``--out`` a directory, no events in the tracked span, a start pose that puts the object out of view; 3 the poses
 were written but never moved from the start pose (a warning says why to look).
+
+``--recover`` turns on the loss detector and the re-localiser (:mod:`torchevtrack.recover`); with the loss detector on
+(``--recover`` or ``--set loss.enabled=true``) the lost flags go to a side file beside ``--out``
+(:mod:`torchevtrack.io.lost`: ``poses.txt`` -> ``poses.lost.txt``) and a warning says how long the object was lost.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from torchevtrack.config import ABLATIONS
 from torchevtrack.distortion import Undistorter
 from torchevtrack.events import EventStream
 from torchevtrack.io.events_h5 import iter_events_h5, read_events_h5
+from torchevtrack.io.lost import lost_path, write_lost
 from torchevtrack.io.poses import read_tum, write_tum
 from torchevtrack.tracker import EventPoseTracker
 from torchevtrack.cli.options import add_config_options, config_from_args
@@ -45,6 +50,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--init", help='initial pose "tx ty tz qx qy qz qw": metres, then a unit quaternion with qw '
                    "LAST (TUM order; the Python API's pose is [t, qw, qx, qy, qz]); default: first pose of gt_poses.txt")
     p.add_argument("--mesh", help="mesh file or object name (default: SEQDIR/mesh.ply)")
+    p.add_argument("--recover", action="store_true",
+                   help="detect tracking loss and find the object again with a wide search (blocks ~0.3-1.5 s per "
+                   "search); writes the lost flags to OUT's side file (poses.txt -> poses.lost.txt)")
     p.add_argument("--duration", type=float, help="track only the first SECONDS")
     p.add_argument("--no-undistort", action="store_true",
                    help="do not undistort the events of a camera with distortion coefficients")
@@ -144,6 +152,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"{d} has no gt_poses.txt: give the initial pose with --init")
     cfg = config_from_args(args)
     cfg = cfg.replace(**ABLATIONS[args.ablation])
+    if args.recover:
+        cfg = cfg.replace(loss={"enabled": True}, recover={"enabled": True})
     t_end = t0 + round(args.duration * 1e6) if args.duration else events.t_end
     n_events = len(events.slice_time(t0, t_end + 1))
     if n_events == 0:
@@ -157,7 +167,8 @@ def run(args: argparse.Namespace) -> int:
     logger = rerun_logger(args, camera, mesh, truth, tracker)
     start = time.perf_counter()
     try:
-        times, poses = tracker.track(events, pose0, t_start_us=t0, t_end_us=t_end, progress=not args.quiet)
+        times, poses, *lost = tracker.track(events, pose0, t_start_us=t0, t_end_us=t_end, progress=not args.quiet,
+                                            return_lost=cfg.loss.enabled)
     finally:
         if logger is not None:
             logger.close()
@@ -166,6 +177,19 @@ def run(args: argparse.Namespace) -> int:
     write_tum(args.out, times[0], poses[0])
     n = times.shape[1]
     print(f"{args.out}: {n} poses from {n_events} events, {n / wall:.0f} updates/s ({wall:.1f} s)")
+    if lost:
+        flags = lost[0][0]
+        write_lost(lost_path(args.out), times[0], flags)
+        r = tracker.recover
+        searched = "" if r is None else (f"; {r.searches} searches ({r.search_s:.1f} s of the wall time), "
+                                         f"{r.restarts} restarts")
+        print(f"{lost_path(args.out)}: lost in {int(flags.sum())} of {n} updates{searched}")
+        if flags.any():
+            first = int(times[0][flags.nonzero()[0, 0]])
+            held = ": the pose file holds its last good pose then" if r is not None else ""
+            print(f"torchevtrack track: warning: the object was lost in {int(flags.sum())} of {n} updates (first at "
+                  f"t = {first / 1e6:.3f} s; {'still lost at the end' if flags[-1] else 'found again'}){held}",
+                  file=sys.stderr)
     if args.rerun is not None:
         print(f"rerun recording: {args.rerun} (open with: rerun {args.rerun})")
     if n and torch.allclose(poses[0], pose0.to(poses.dtype).expand_as(poses[0]), rtol=0.0, atol=1e-12):
