@@ -251,11 +251,13 @@ def test_loss_detection_is_reported_against_the_failure_rule(run, bench, tmp_pat
     res, out = run
     md = (out / "table.md").read_text()
     rows = _table(md, "## Tracking loss")
-    assert rows[0] == ["Method", "cracker_regular", "tomato_fast", "detected", "missed", "false alarms"]
+    assert rows[0] == ["Method", "cracker_regular", "tomato_fast", "detected", "missed", "false alarms",
+                       "within 50 ms", "false alarms / min", "recoveries"]
     for m in METHODS:
         for name in SEQS:
             loss, x = res["results"][m][name]["loss"], res["results"][m][name]["metrics"]
-            assert set(loss) == {"first_loss_us", "first_failure_us", "delay_us", "missed", "false_alarm"}
+            assert set(loss) == {"first_loss_us", "first_failure_us", "delay_us", "missed", "false_alarm",
+                                 "declarations", "false_alarms", "recoveries", "tracked_us"}
             assert (loss["first_failure_us"] is not None) == x["failed"]
     # A detector that finds every update short of flow declares loss at the first update: with 10 updates
     # nothing can fail (50 needed), so every sequence is a false alarm at t_start + 2 ms.
@@ -266,9 +268,11 @@ def test_loss_detection_is_reported_against_the_failure_rule(run, bench, tmp_pat
         t0 = strict["sequences"][name]["t_start_us"]
         assert strict["results"]["velocity_only"][name]["loss"] == {
             "first_loss_us": t0 + 2000, "first_failure_us": None, "delay_us": None, "missed": False,
-            "false_alarm": True}
+            "false_alarm": True, "declarations": 1, "false_alarms": 1, "recoveries": 0, "tracked_us": 18_000}
     rows = _table(table_markdown(strict), "## Tracking loss")
-    assert rows[2] == [METHOD_NAMES["velocity_only"], "0.002 / –", "0.002 / –", "0", "0", "2"]
+    # two false alarms in 2 x 18 ms of tracking: 2 / (36 ms / 60 s) = 3333.33 per minute
+    assert rows[2] == [METHOD_NAMES["velocity_only"], "0.002 / –", "0.002 / –", "0", "0", "2", "0 of 0", "3333.33",
+                       "0"]
     assert not strict["config"]["loss"]["enabled"]  # the benchmark runs the detector anyway (it only reports)
 
 

@@ -230,11 +230,22 @@ def test_compare_with_ground_truth_delay_and_outcomes():
     lost[95:] = True
     r = compare_with_ground_truth(t, lost, pred, t, gt)
     assert r == {"first_loss_us": 190_000, "first_failure_us": 160_000, "delay_us": 30_000, "missed": False,
-                 "false_alarm": False}
+                 "false_alarm": False, "declarations": 1, "false_alarms": 0, "recoveries": 0, "tracked_us": 398_000}
     r = compare_with_ground_truth(t, torch.zeros(200, dtype=torch.bool), pred, t, gt)
     assert r["missed"] and r["first_loss_us"] is None and r["delay_us"] is None
     r = compare_with_ground_truth(t, lost, gt, t, gt)
     assert r["false_alarm"] and r["first_failure_us"] is None
+    # declared twice before the failure, found again in between and once after it: two false alarms, one recovery
+    flicker = torch.zeros(200, dtype=torch.bool)
+    flicker[10:20] = True
+    flicker[30:] = True
+    r = compare_with_ground_truth(t, flicker, pred, t, gt)
+    assert (r["declarations"], r["false_alarms"], r["recoveries"]) == (2, 2, 1)
+    late = torch.zeros(200, dtype=torch.bool)
+    late[10:20] = True
+    late[90:] = True
+    r = compare_with_ground_truth(t, late, pred, t, gt)
+    assert (r["declarations"], r["false_alarms"], r["recoveries"]) == (2, 1, 1)
     # A 40-sample excursion is not a failure under the 50-sample rule, but is with window=30.
     short = gt.clone()
     short[10:50, 0] += 0.10

@@ -64,6 +64,8 @@ from torchevtrack.geometry import perturb_pose
 from torchevtrack.io.atomic import write_text
 from torchevtrack.io.poses import read_poses, read_tum, write_tum
 from torchevtrack.loss import compare_with_ground_truth
+
+LOSS_DELAY_US = 50_000  # a failure counts as flagged in time when declared at most this long after it began
 from torchevtrack.mesh import hidden_symmetry_axis
 from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, evaluate, mesh_points, per_pose_errors
 from torchevtrack.synth.sequence import SEQUENCE_FILES, Sequence
@@ -608,8 +610,9 @@ def table_markdown(results: dict) -> str:
     loss_rows = [m for m in rows if all("loss" in r for r in per_method[m].values())]  # other trackers: none
     if loss_rows:
         lines += ["", "## Tracking loss: declared / failed (s)", ""]
-        lines.append(_row(["Method"] + cols + ["detected", "missed", "false alarms"]))
-        lines.append(_row(["---"] * (len(cols) + 4)))
+        lines.append(_row(["Method"] + cols + ["detected", "missed", "false alarms", "within 50 ms",
+                                               "false alarms / min", "recoveries"]))
+        lines.append(_row(["---"] * (len(cols) + 7)))
         for m in loss_rows:
             cells = [METHOD_NAMES.get(m, m)]
             for c in cols:
@@ -621,12 +624,22 @@ def table_markdown(results: dict) -> str:
             losses = [r["loss"] for r in per_method[m].values()]
             cells += [str(sum(x["first_loss_us"] is not None and x["first_failure_us"] is not None for x in losses)),
                       str(sum(x["missed"] for x in losses)), str(sum(x["false_alarm"] for x in losses))]
+            failed = [x for x in losses if x["first_failure_us"] is not None]
+            soon = sum(x["delay_us"] is not None and x["delay_us"] <= LOSS_DELAY_US for x in failed)
+            minutes = sum(x.get("tracked_us", 0) for x in losses) / 60e6
+            cells += [f"{soon} of {len(failed)}",
+                      f"{sum(x.get('false_alarms', 0) for x in losses) / minutes:.2f}" if minutes > 0 else "–",
+                      str(sum(x.get("recoveries", 0) for x in losses))]
             lines.append(_row(cells))
         lines.append("")
         lines.append("declared: first update the loss detector held the sequence lost; failed: first of "
                      f"{FAIL_WINDOW} consecutive updates with translation error > {FAIL_T_M * 100:g} cm or rotation "
                      f"error > {FAIL_R_DEG:g} deg; –: never. detected: both happened (in either order); missed: "
-                     "failed, never declared; false alarms: declared, never failed.")
+                     "failed, never declared; false alarms: declared, never failed; within 50 ms: failed sequences "
+                     f"declared lost at most {LOSS_DELAY_US // 1000} ms after the failure run began (or before); "
+                     "false alarms / min: declarations before the first failure run (all, in a sequence that never "
+                     "failed) per minute tracked; recoveries: updates where the lost flag turned off (the "
+                     "re-localiser's restarts, with recover.enabled).")
 
     runs = results.get("runs") or {}
     if runs:

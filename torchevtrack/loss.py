@@ -279,8 +279,11 @@ def compare_with_ground_truth(
     Returns:
         ``first_loss_us`` (first update declared lost, or None), ``first_failure_us`` (first sample of the
         first failure run, or None), ``delay_us`` (loss - failure; negative: declared before the failure
-        run started; None unless both exist), ``missed`` (failed, never declared) and ``false_alarm``
-        (declared, never failed). Updates outside the ground-truth time range are ignored.
+        run started; None unless both exist), ``missed`` (failed, never declared), ``false_alarm``
+        (declared, never failed), ``declarations`` (updates where ``lost`` turned on), ``false_alarms`` (those
+        before the first failure run started, all of them if none did), ``recoveries`` (updates where ``lost``
+        turned off) and ``tracked_us`` (time span of the compared updates). Updates outside the ground-truth
+        time range are ignored.
     """
     lost = torch.as_tensor(lost)
     if lost.dtype != torch.bool or lost.ndim != 1:
@@ -293,10 +296,18 @@ def compare_with_ground_truth(
     hits = lost.nonzero()
     first_loss = int(e["t_us"][hits[0, 0]]) if hits.numel() else None
     first_failure = int(e["t_us"][k]) if k is not None else None
+    flags = lost.to(torch.int8)
+    rises = torch.cat((flags[:1], flags[1:] - flags[:-1])) if flags.numel() else flags
+    at = e["t_us"][rises > 0]
+    early = at if first_failure is None else at[at < first_failure]
     return {
         "first_loss_us": first_loss,
         "first_failure_us": first_failure,
         "delay_us": first_loss - first_failure if first_loss is not None and first_failure is not None else None,
         "missed": first_failure is not None and first_loss is None,
         "false_alarm": first_loss is not None and first_failure is None,
+        "declarations": int((rises > 0).sum()),
+        "false_alarms": int(early.numel()),
+        "recoveries": int((rises < 0).sum()),
+        "tracked_us": int(e["t_us"][-1] - e["t_us"][0]) if e["t_us"].numel() else 0,
     }
