@@ -156,8 +156,8 @@ class DenoiseConfig:
 class RecoverConfig:
     # Re-localisation (torchevtrack.recover.Recoverer; needs loss.enabled). An element the loss detector declares
     # lost reports its last good pose while a wide search (torchevtrack.stages.relocalise.Relocaliser), centred on
-    # that pose moved on by its last good twist, runs every retry_us of event time once min_events events came in
-    # since the last one; the element restarts at a clear result. start_search: one such search start_after_us
+    # that pose moved on by its last good twist, runs every retry_us of event time while min_events pixels fired
+    # within the last retry_us; the element restarts at a clear result. start_search: one such search start_after_us
     # after each (re)start, from the tracker's pose then. search_m: the search's image-plane half-width (metres at
     # the object's depth; its depth offsets scale with it); the search blocks the update (~0.3-1.5 s of wall time).
     enabled: bool = False

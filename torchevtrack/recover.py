@@ -2,16 +2,16 @@
 
 :class:`Recoverer` runs after each tracker update (``config.recover``, with ``config.loss``) and reads only what the
 tracker shows: its output :attr:`~torchevtrack.tracker.EventPoseTracker.pose`, its loss detector's state
-(:class:`~torchevtrack.loss.LossDetector` ``lost`` and ``low_run``), the events of the update
-(:attr:`~torchevtrack.tracker.EventPoseTracker.quality`) and its time surface; it restarts elements with the
-tracker's masked :meth:`~torchevtrack.tracker.EventPoseTracker.reset`. Per batch element:
+(:class:`~torchevtrack.loss.LossDetector` ``lost`` and ``low_run``), its UKF's twist and its time surface (the
+``time_surface`` stage where the tracker keeps one, else the flow's); it restarts elements with the tracker's masked :meth:`~torchevtrack.tracker.EventPoseTracker.reset`. Per batch element:
 
 * **Last good state.** After every confident update (the detector's ``low_run`` is 0) of an element that is not
   lost, its pose is the *good pose* and its time the *good time*; its *good twist* is the constant twist between two
   good poses at least ``TWIST_SPAN_US`` apart (:func:`~torchevtrack.stages.propagate.twist_between`).
 * **Lost.** When the detector declares the element lost, it stays lost here until a search restarts it or the
   detector finds it again by itself. Meanwhile the element reports its good pose (not the tracker's drifting one)
-  and, every ``retry_us`` of event time once ``min_events`` events came in since the last search, the
+  and, every ``retry_us`` of event time while at least ``min_events`` pixels of its time surface fired within the
+  last ``retry_us`` (the search needs the object's recent edges: none in a blackout), the
   :class:`~torchevtrack.stages.relocalise.Relocaliser` searches around the good pose moved on by the good twist over
   the time since (:func:`~torchevtrack.stages.propagate.propagate`) against the tracker's time surface. A ``clear``
   result restarts the element there (twist zero) and it reports that pose from this update on.
@@ -79,7 +79,7 @@ class Recoverer(nn.Module):
         relocalisers: one :class:`~torchevtrack.stages.relocalise.Relocaliser` per distinct mesh.
         owner: ``B`` indices into ``relocalisers``, the mesh of each element.
         retry_us: event time between two searches of a lost element (us).
-        min_events: events an element must see since its last search (or loss) before the next one.
+        min_events: pixels of the time surface that must have fired within the last ``retry_us`` for a search.
         start_search: one search ``start_after_us`` after each (re)start.
         start_after_us: that delay (us of event time).
 
@@ -90,7 +90,6 @@ class Recoverer(nn.Module):
         twist: ``(B, 6)`` float64 ``[v, w]`` good twist (zero until measured).
         anchor_pose, anchor_us: the good pose the next twist is measured from.
         next_search_us: ``(B,)`` int64 the earliest time of a lost element's next search.
-        events: ``(B,)`` int64 events seen since the last search (or loss).
         started_us: ``(B,)`` int64 start of the first update's window since the last (re)start (-1: none yet).
         start_pending: ``(B,)`` bool, the start search is still to come.
 
@@ -105,7 +104,6 @@ class Recoverer(nn.Module):
     anchor_pose: torch.Tensor
     anchor_us: torch.Tensor
     next_search_us: torch.Tensor
-    events: torch.Tensor
     started_us: torch.Tensor
     start_pending: torch.Tensor
 
@@ -130,7 +128,7 @@ class Recoverer(nn.Module):
         for name in ("pose", "good_pose", "anchor_pose"):
             self.register_buffer(name, unit.clone())
         self.register_buffer("twist", torch.zeros(B, 6, dtype=f64))
-        for name in ("good_us", "anchor_us", "next_search_us", "events"):
+        for name in ("good_us", "anchor_us", "next_search_us"):
             self.register_buffer(name, torch.zeros(B, dtype=i64))
         self.register_buffer("started_us", torch.full((B,), -1, dtype=i64))
         self.register_buffer("lost", torch.zeros(B, dtype=torch.bool))
@@ -163,7 +161,6 @@ class Recoverer(nn.Module):
             getattr(self, name)[m] = pose[m]
         self.twist[m] = 0.0
         self.lost[m] = False
-        self.events[m] = 0
         self.started_us[m] = -1
         self.start_pending[m] = self.start_search
 
@@ -178,7 +175,6 @@ class Recoverer(nn.Module):
         t = torch.as_tensor(t_us, dtype=torch.int64).expand(B).clone()
         pose = tracker.pose.clone()
         detector = tracker.loss
-        self.events += tracker.quality.events.to(torch.int64)
         first = self.started_us < 0  # the first update since a (re)start: its window began a period ago
         for name in ("started_us", "good_us", "anchor_us"):
             getattr(self, name)[first] = t[first] - tracker.period_us
@@ -194,7 +190,11 @@ class Recoverer(nn.Module):
             self.twist[span] = twist_between(self.anchor_pose[span], pose[span], dt)
             self.anchor_pose[span] = pose[span]
             self.anchor_us[span] = t[span]
-        due = self.lost & (t >= self.next_search_us) & (self.events >= self.min_events)
+        surface = tracker.time_surface.last_us if tracker.time_surface is not None else tracker.flow.sae
+        due = self.lost & (t >= self.next_search_us)
+        for i in due.nonzero()[:, 0].tolist():  # (B, H, W) or (B, C, H, W)
+            recent = (t[i] - surface[i].reshape(-1, *surface.shape[-2:]).amax(0)) <= self.retry_us
+            due[i] = int(recent.sum()) >= self.min_events
         starting = self.start_pending & ~self.lost & (t - self.started_us >= self.start_after_us)
         self.start_pending &= ~starting
         restart = torch.zeros(B, dtype=torch.bool)
@@ -207,13 +207,11 @@ class Recoverer(nn.Module):
                 dt = (t[i] - self.good_us[i]).double() * 1e-6
                 centre = propagate(self.good_pose[i:i + 1], self.twist[i:i + 1], dt)
                 self.next_search_us[i] = t[i] + self.retry_us
-                self.events[i] = 0
             else:
                 centre = pose[i:i + 1]
             reloc = self.relocalisers[self.owner[i]]
             if not float(centre[0, 2]) > 1.5 * reloc.radius:  # extrapolated to (or behind) the camera
                 centre = self.good_pose[i:i + 1]
-            surface = tracker.time_surface.last_us if tracker.time_surface is not None else tracker.flow.sae
             start = time.perf_counter()
             out = reloc(centre, surface[i:i + 1].clone(), t[i:i + 1])
             self.search_s += time.perf_counter() - start
