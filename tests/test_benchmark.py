@@ -274,6 +274,14 @@ def test_loss_detection_is_reported_against_the_failure_rule(run, bench, tmp_pat
     assert rows[2] == [METHOD_NAMES["velocity_only"], "0.002 / –", "0.002 / –", "0", "0", "2", "0 of 0", "3333.33",
                        "0"]
     assert not strict["config"]["loss"]["enabled"]  # the benchmark runs the detector anyway (it only reports)
+    # with recovery on, the lost flags are the recoverer's (held: no recent event pixels are enough for a search
+    # here) and each run counts its searches
+    held = run_benchmark(bench, tmp_path / "recover", methods=["velocity_only"], duration_s=0.02, overlays=False,
+                         config=cfg.replace(loss={"enabled": True},
+                                            recover={"enabled": True, "min_events": 10 ** 9}), progress=False)
+    assert [(r["searches"], r["restarts"]) for r in held["runs"]["velocity_only"]] == [(0, 0)]
+    for name in SEQS:
+        assert held["results"]["velocity_only"][name]["loss"] == strict["results"]["velocity_only"][name]["loss"]
 
 
 def test_table_lists_the_rotation_error_modulo_symmetry_for_symmetric_objects(run):

@@ -28,9 +28,13 @@ change a sequence's error by centimetres, so one run is one draw. ``results[meth
 hold the first trial; ``trials[method][sequence]`` the metrics of every trial, and ``table.md`` their spread.
 
 Tracking loss: every run carries the tracker's :class:`~torchevtrack.loss.LossDetector` (the config's
-``loss`` parameters, switched on whatever ``loss.enabled`` says; it only reports, no pose changes). Per
+``loss`` parameters, switched on whatever ``loss.enabled`` says; alone it only reports, no pose changes). Per
 sequence, :func:`torchevtrack.loss.compare_with_ground_truth` sets when loss was first declared against
-the start of the first ground-truth failure run: ``results[method][sequence]["loss"]``.
+the start of the first ground-truth failure run, and counts the declarations, the false alarms (declared before
+the first failure run) and the recoveries (the lost flag turning off): ``results[method][sequence]["loss"]``. With
+``recover.enabled`` (``benchmark --recover``) the lost sequences are re-localised (:mod:`torchevtrack.recover`); the
+lost flags are then the recoverer's and each run's timing counts its searches (``searches``, ``search_s``,
+``restarts``).
 
 Example:
     >>> from torchevtrack.benchmark import run_benchmark, table_markdown
@@ -231,6 +235,9 @@ def _track(items: list[_Item], camera: Camera, cfg: TrackerConfig, progress: boo
         "tracked_s": sum(it.n_updates for it in items) * cfg.period_us / 1e6,
     }
     run["realtime_factor"] = run["tracked_s"] / wall
+    if tracker.recover is not None:  # recover.enabled: the searches' share of the wall time
+        run.update(searches=tracker.recover.searches, search_s=tracker.recover.search_s,
+                   restarts=tracker.recover.restarts)
     out = [(times[i, :it.n_updates].clone(), poses[i, :it.n_updates].clone(), lost[i, :it.n_updates].clone())
            for i, it in enumerate(items)]
     return out, run

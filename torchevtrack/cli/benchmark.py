@@ -49,6 +49,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--only", type=_names, help="comma-separated sequence names (default: all)")
     p.add_argument("--duration", type=float, help="track only the first SECONDS of each sequence")
     add_config_options(p)
+    p.add_argument("--recover", action="store_true",
+                   help="re-localise lost sequences (the loss detector and recover.enabled on; each search blocks "
+                   "~0.3-1.5 s); the loss table then counts the recoveries")
     p.add_argument("--no-overlays", action="store_true", help="skip the overlay PNGs and GIFs")
     p.add_argument("--no-batch", action="store_true", help="one run per sequence instead of one batch")
     p.add_argument("--threads", type=int, help="torch threads (default: torch's choice)")
@@ -80,6 +83,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
     cfg, predictions = config_from_args(args), _predictions(args.pred)
+    if args.recover:
+        cfg = cfg.replace(loss={"enabled": True}, recover={"enabled": True})
     with executor_from_args(args) as executor:
         res = run_benchmark(args.benchdir, args.out, methods=args.methods, only=args.only, duration_s=args.duration,
                             config=cfg, batch=not args.no_batch, overlays=not args.no_overlays,
