@@ -166,7 +166,8 @@ class EventPoseTracker(nn.Module):
             (:meth:`reset` with a mask) before the update returns, so its output holds those poses.
 
     Buffers:
-        pose: ``(B, 7)`` float64 current output pose.
+        pose: ``(B, 7)`` float64 current output pose (with ``config.recover``, the output is ``recover.pose``: the
+            same, but a lost element's last good pose while it is lost).
         prev_pose: ``(B, 7)`` float64 output pose of the previous update.
         depth: ``(B, h, w)`` float32 depth of the last render window; ``origin``: ``(B, 2)`` its top-left pixel.
 
@@ -589,8 +590,8 @@ class EventPoseTracker(nn.Module):
     def lost(self) -> torch.Tensor | None:
         """``(B,)`` bool: the loss detector held the element lost after the last update (before any
         re-initialisation in that update); with ``config.recover``, the :class:`~torchevtrack.recover.Recoverer`'s
-        flags (lost until a search restarted the element or the detector found it again; the output pose is then the
-        last good one); ``None`` without a detector or before the first update."""
+        flags (lost until a search restarts the element; meanwhile its output is its last good pose); ``None`` without
+        a detector or before the first update."""
         if self.loss_update is None:
             return None
         return self.loss_update.lost if self.recover is None else self.recover.lost.clone()
