@@ -44,6 +44,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
+import numpy as np
 import torch
 import trimesh
 from torch import nn
@@ -169,51 +170,66 @@ class Recoverer(nn.Module):
         for r in self.relocalisers:
             r.renderer.close()
 
-    @torch.inference_mode()
-    def forward(self, tracker: "EventPoseTracker", t_us: torch.Tensor) -> None:
+    def forward(self, tracker: "EventPoseTracker", t_us: torch.Tensor | int) -> None:
+        # the bookkeeping of every update on numpy views of the buffers (a few microseconds); searches are rare
         B = len(self.owner)
-        t = torch.as_tensor(t_us, dtype=torch.int64).expand(B).clone()
-        pose = tracker.pose.clone()
-        detector = tracker.loss
-        first = self.started_us < 0  # the first update since a (re)start: its window began a period ago
-        for name in ("started_us", "good_us", "anchor_us"):
-            getattr(self, name)[first] = t[first] - tracker.period_us
-        newly = detector.lost & ~self.lost
-        self.lost |= newly
-        self.next_search_us.copy_(torch.where(newly, t, self.next_search_us))
-        good = ~self.lost & (detector.low_run == 0)
-        self.good_pose[good] = pose[good]
-        self.good_us[good] = t[good]
-        span = good & (t - self.anchor_us >= TWIST_SPAN_US)
-        if bool(span.any()):
-            dt = (t[span] - self.anchor_us[span]).double() * 1e-6
-            self.twist[span] = twist_between(self.anchor_pose[span], pose[span], dt)
-            self.anchor_pose[span] = pose[span]
-            self.anchor_us[span] = t[span]
+        t = np.broadcast_to(np.asarray(t_us, dtype=np.int64), (B,)).copy()
+        pose = tracker.pose.numpy()
+        det_lost, low_run = tracker.loss.lost.numpy(), tracker.loss.low_run.numpy()
+        lost, good_pose, good_us = self.lost.numpy(), self.good_pose.numpy(), self.good_us.numpy()
+        anchor_pose, anchor_us, started = self.anchor_pose.numpy(), self.anchor_us.numpy(), self.started_us.numpy()
+        next_search, pending = self.next_search_us.numpy(), self.start_pending.numpy()
+        first = started < 0  # the first update since a (re)start: its window began a period ago
+        if first.any():
+            for a in (started, good_us, anchor_us):
+                a[first] = t[first] - tracker.period_us
+        newly = det_lost & ~lost
+        lost |= newly
+        next_search[newly] = t[newly]
+        good = ~lost & (low_run == 0)
+        good_pose[good] = pose[good]
+        good_us[good] = t[good]
+        span = good & (t - anchor_us >= TWIST_SPAN_US)
+        if span.any():
+            dt = torch.from_numpy((t[span] - anchor_us[span]) * 1e-6)
+            self.twist.numpy()[span] = twist_between(torch.from_numpy(anchor_pose[span]),
+                                                     torch.from_numpy(pose[span]), dt).numpy()
+            anchor_pose[span] = pose[span]
+            anchor_us[span] = t[span]
+        due = lost & (t >= next_search)
+        starting = pending & ~lost & (t - started >= self.start_after_us)
+        if due.any() or starting.any():
+            pending &= ~starting
+            self._search(tracker, t, due, starting)
+        self.pose.numpy()[:] = np.where(lost[:, None], good_pose, tracker.pose.numpy())
+
+    @torch.inference_mode()
+    def _search(self, tracker: "EventPoseTracker", t: np.ndarray, due: np.ndarray, starting: np.ndarray) -> None:
+        """Search for the ``due`` lost elements that have recent event pixels and the ``starting`` ones (``(B,)``
+        bool); restart those whose search is clear."""
+        B = len(self.owner)
         surface = tracker.time_surface.last_us if tracker.time_surface is not None else tracker.flow.sae
-        due = self.lost & (t >= self.next_search_us)
-        for i in due.nonzero()[:, 0].tolist():  # (B, H, W) or (B, C, H, W)
-            recent = (t[i] - surface[i].reshape(-1, *surface.shape[-2:]).amax(0)) <= self.retry_us
-            due[i] = int(recent.sum()) >= self.min_events
-        starting = self.start_pending & ~self.lost & (t - self.started_us >= self.start_after_us)
-        self.start_pending &= ~starting
+        pose = tracker.pose.clone()
         restart = torch.zeros(B, dtype=torch.bool)
         found = pose.clone()
         # a start search keeps the motion the tracker measured meanwhile (the UKF's); a lost element's is not known
         twist = tracker.ukf.twist.clone() if tracker.config.ukf.enabled else torch.zeros(B, 6, dtype=torch.float64)
-        twist[~starting] = 0.0
-        for i in (due | starting).nonzero()[:, 0].tolist():
-            if bool(due[i]):
-                dt = (t[i] - self.good_us[i]).double() * 1e-6
+        twist[~torch.from_numpy(starting)] = 0.0
+        for i in np.flatnonzero(due | starting).tolist():
+            if due[i]:
+                recent = (int(t[i]) - surface[i].reshape(-1, *surface.shape[-2:]).amax(0)) <= self.retry_us
+                if int(recent.sum()) < self.min_events:  # no edges to search in (e.g. no events): retry later
+                    continue
+                dt = float(t[i] - self.good_us[i]) * 1e-6
                 centre = propagate(self.good_pose[i:i + 1], self.twist[i:i + 1], dt)
-                self.next_search_us[i] = t[i] + self.retry_us
+                self.next_search_us[i] = int(t[i]) + self.retry_us
             else:
                 centre = pose[i:i + 1]
             reloc = self.relocalisers[self.owner[i]]
             if not float(centre[0, 2]) > 1.5 * reloc.radius:  # extrapolated to (or behind) the camera
                 centre = self.good_pose[i:i + 1]
             start = time.perf_counter()
-            out = reloc(centre, surface[i:i + 1].clone(), t[i:i + 1])
+            out = reloc(centre, surface[i:i + 1].clone(), torch.from_numpy(t[i:i + 1]))
             self.search_s += time.perf_counter() - start
             self.searches += 1
             if bool(out.clear[0]):
@@ -223,7 +239,6 @@ class Recoverer(nn.Module):
             tracker.reset(found, twist, mask=restart)  # resets this module's rows too (reset)
             self.start_pending[restart] = False  # a restart found by a search needs no start search
             self.restarts += int(restart.sum())
-        self.pose.copy_(torch.where(self.lost[:, None], self.good_pose, tracker.pose))
 
     def extra_repr(self) -> str:
         return (f"batch_size={len(self.owner)}, retry_us={self.retry_us}, min_events={self.min_events}, "
