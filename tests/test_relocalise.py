@@ -126,3 +126,31 @@ def test_chamfer_prefers_the_aligned_edges():
     off[5:25, 14] = True
     assert chamfer(aligned, events, dist, 10.0) == 0 and chamfer(off, events, dist, 10.0) == pytest.approx(4.0)
     assert chamfer(aligned[:0], events[:0], dist[:0], 10.0) == 10.0
+
+
+
+def test_a_turn_about_the_symmetry_axis_is_no_distinct_pose():
+    # a can turned 90 deg about its own axis shows the same edges: with the axis it is the same pose (so such a twin
+    # cannot be the runner-up that keeps a result from being clear); turned about another axis, or without it, distinct
+    from torchevtrack.geometry import quat_exp, quat_rotate
+    from torchevtrack.mesh import symmetry_axis
+
+    mesh = load_mesh("can")
+    axis = torch.as_tensor(symmetry_axis(mesh), dtype=torch.float64)
+    pose = torch.tensor([[0.01, -0.02, 0.5, 0.9, 0.3, -0.2, 0.25]], dtype=torch.float64)
+    pose[:, 3:] /= pose[:, 3:].norm()
+
+    def turned(camera_axis):
+        out = pose.clone()
+        out[:, 3:] = quat_mul(quat_exp(math.radians(90.0) * camera_axis), pose[0, 3:])[None]
+        return out
+
+    own = quat_rotate(pose[0, 3:], axis)  # the symmetry axis in the camera frame
+    other = torch.linalg.cross(own, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
+    other /= other.norm()
+    with RasterRenderer(mesh, CAM) as r:
+        plain = Relocaliser(r, 0.05)
+        sym = Relocaliser(r, 0.05, symmetry_axis=axis)
+        assert not bool(sym._distinct(pose, turned(own))[0])
+        assert bool(sym._distinct(pose, turned(other))[0])
+        assert bool(plain._distinct(pose, turned(own))[0])

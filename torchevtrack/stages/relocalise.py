@@ -55,6 +55,7 @@ from torch import nn
 
 from torchevtrack.camera import Camera, interaction_matrix
 from torchevtrack.chamfer import distance_map, model_edges, recent_events
+from torchevtrack.geometry import quat_rotate
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.stages.template import apply_steps, pose_delta, render_window
 
@@ -134,6 +135,10 @@ class Relocaliser(nn.Module):
         kick_deg: the best result is polished again from six starts turned by +-``kick_deg`` about each camera
             axis, and replaced by a lower-cost one (0: no restarts).
         max_cost_px, min_margin_px, distinct_m, distinct_deg: the clear-winner rule (and the seeds' distinctness).
+        symmetry_axis: ``(3,)`` object-frame axis, through the origin, of a rotational symmetry of the object's shape
+            (:func:`~torchevtrack.mesh.symmetry_axis`): poses that differ only by a turn about it are not distinct
+            (else such a twin, of the same cost, keeps every result from being clear). Colours that break the
+            symmetry are ignored: a result may then be turned about the axis.
 
     ``forward(pose (B, 7), last_us (B, H, W) or (B, C, H, W) int64, t_now_us (B,) int64) -> Relocalisation``:
     ``last_us`` is a time surface (newest event per pixel and channel, microseconds), ``pose`` the centre of the
@@ -155,7 +160,8 @@ class Relocaliser(nn.Module):
                  events_per_edge: float = 1.0, beam: int = 3, max_seeds: int = 6, polish_steps: int = 15,
                  kick_deg: float = 7.5,
                  max_cost_px: float = 1.5, min_margin_px: float = 0.5,
-                 distinct_m: float = 0.02, distinct_deg: float = 15.0):
+                 distinct_m: float = 0.02, distinct_deg: float = 15.0,
+                 symmetry_axis: torch.Tensor | np.ndarray | None = None):
         super().__init__()
         if not isinstance(renderer, RasterRenderer):
             raise TypeError(f"renderer must be a RasterRenderer, got {type(renderer).__name__}")
@@ -174,6 +180,8 @@ class Relocaliser(nn.Module):
         self.max_seeds = max(int(max_seeds), int(beam))
         self.beam, self.min_margin_px, self.distinct_m = int(beam), float(min_margin_px), float(distinct_m)
         self.distinct_rad = math.radians(distinct_deg)
+        self.symmetry_axis = None if symmetry_axis is None else \
+            torch.nn.functional.normalize(torch.as_tensor(symmetry_axis, dtype=torch.float64), dim=0)
 
     # -- the observation ------------------------------------------------------------------------------------------
     def _events(self, pose: torch.Tensor, last_us: torch.Tensor, t_now: int) -> np.ndarray:
@@ -262,7 +270,11 @@ class Relocaliser(nn.Module):
     def _distinct(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         """Whether each pose of ``b`` ``(K, 7)`` is farther than the distinct rule from ``a`` ``(1, 7)``: ``(K,)``."""
         d = pose_delta(a, b[None])[0]
-        return (d[:, :3].norm(dim=1) > self.distinct_m) | (d[:, 3:].norm(dim=1) > self.distinct_rad)
+        rot = d[:, 3:]
+        if self.symmetry_axis is not None:  # a turn about the symmetry axis (camera frame at a) changes no edge
+            n = quat_rotate(a[0, 3:], self.symmetry_axis)
+            rot = rot - (rot @ n)[:, None] * n
+        return (d[:, :3].norm(dim=1) > self.distinct_m) | (rot.norm(dim=1) > self.distinct_rad)
 
     def _one(self, pose: torch.Tensor, last_us: torch.Tensor, t_now: int) -> tuple[torch.Tensor, float, float]:
         centre = pose.double()
