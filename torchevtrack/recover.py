@@ -3,19 +3,21 @@
 :class:`Recoverer` runs after each tracker update (``config.recover``, with ``config.loss``) and reads only what the
 tracker shows: its output :attr:`~torchevtrack.tracker.EventPoseTracker.pose`, its loss detector's state
 (:class:`~torchevtrack.loss.LossDetector` ``lost`` and ``low_run``), its UKF's twist and its time surface (the
-``time_surface`` stage where the tracker keeps one, else the flow's); it restarts elements with the tracker's masked :meth:`~torchevtrack.tracker.EventPoseTracker.reset`. Per batch element:
+``time_surface`` stage where the tracker keeps one, else the flow's); it restarts elements with the tracker's
+masked :meth:`~torchevtrack.tracker.EventPoseTracker.reset`. Per batch element:
 
 * **Last good state.** After every confident update (the detector's ``low_run`` is 0) of an element that is not
   lost, its pose is the *good pose* and its time the *good time*; its *good twist* is the constant twist between two
   good poses at least ``TWIST_SPAN_US`` apart (:func:`~torchevtrack.stages.propagate.twist_between`).
-* **Lost.** When the detector declares the element lost, it stays lost here until a search restarts it or the
-  detector finds it again by itself. Meanwhile the element reports its good pose (not the tracker's drifting one)
-  and, every ``retry_us`` of event time while at least ``min_events`` pixels of its time surface fired within the
-  last ``retry_us`` (the search needs the object's recent edges: none in a blackout), the
-  :class:`~torchevtrack.stages.relocalise.Relocaliser` searches around the good pose moved on by the good twist over
-  the time since, at most ``MAX_EXTRAPOLATION_US`` (:func:`~torchevtrack.stages.propagate.propagate`), against the
-  tracker's time surface. A ``clear``
-  result restarts the element there (twist zero) and it reports that pose from this update on.
+* **Lost.** When the detector declares the element lost, it stays lost here until a search restarts it (or a
+  :meth:`~torchevtrack.tracker.EventPoseTracker.reset`): the detector's own "found again" is not trusted, as a
+  tracker locked onto the wrong pose scores well against its own reference. Meanwhile the element reports its good
+  pose (not the tracker's drifting one) and, every ``retry_us`` of event time while at least ``min_events`` pixels of
+  its time surface fired within the last ``retry_us`` (the search needs the object's recent edges: none in a
+  blackout), the :class:`~torchevtrack.stages.relocalise.Relocaliser` searches around the good pose moved on by the
+  good twist over the time since, at most ``MAX_EXTRAPOLATION_US`` (:func:`~torchevtrack.stages.propagate.propagate`),
+  against the tracker's time surface. A ``clear`` result restarts the element there (twist zero) and it reports that
+  pose from this update on.
 * **Start search** (``start_search``): ``start_after_us`` after each (re)start, once the time surface holds that
   much of the object's motion, one search around the tracker's pose then; a clear result restarts the element
   there, with the twist the UKF measured meanwhile (from a rough start pose, the local tracker alone may never reach
@@ -90,7 +92,7 @@ class Recoverer(nn.Module):
 
     Buffers (all with a leading ``B``):
         pose: ``(B, 7)`` float64 the reported pose: the tracker's, or the good pose while lost.
-        lost: ``(B,)`` bool, lost and not yet found again.
+        lost: ``(B,)`` bool, lost and not yet restarted by a search.
         good_pose, good_us: ``(B, 7)`` float64 and ``(B,)`` int64, the last good pose and its time.
         twist: ``(B, 6)`` float64 ``[v, w]`` good twist (zero until measured).
         anchor_pose, anchor_us: the good pose the next twist is measured from.
