@@ -22,7 +22,7 @@ from typing import Iterator
 import numpy as np
 
 from torchevtrack.events import EventStream
-from torchevtrack.io.atomic import replacing
+from torchevtrack.io.atomic import ReplacingWriter, replacing
 from torchevtrack.io.formats import EventFileError
 
 __all__ = ["TextReader", "TextWriter", "looks_like_text"]
@@ -154,7 +154,7 @@ class TextReader:
         return np.rint(t * 1e6).astype(np.int64)
 
 
-class TextWriter:
+class TextWriter(ReplacingWriter):
     """Write ``t x y p`` lines (use as a context manager; ``append`` time-ordered chunks).
 
     Args:
@@ -185,18 +185,3 @@ class TextWriter:
         for i in range(0, len(rows), 100_000):  # one %-format per block: ~6x faster than numpy.savetxt
             block = rows[i:i + 100_000]
             self._f.write((fmt * len(block)) % tuple(block.ravel().tolist()))
-
-    def close(self) -> None:
-        """Finish the file: it replaces ``path`` now."""
-        self._f.close()
-        self._out.commit()
-
-    def __enter__(self) -> "TextWriter":
-        return self
-
-    def __exit__(self, typ, exc, tb) -> None:
-        if typ is None:
-            self.close()
-        else:  # failed mid-way: ``path`` stays as it was
-            self._f.close()
-            self._out.discard()
