@@ -23,7 +23,7 @@ import numpy as np
 
 from torchevtrack.events import EventStream
 from torchevtrack.io.atomic import ReplacingWriter, replacing
-from torchevtrack.io.formats import EventFileError
+from torchevtrack.io.formats import EventFileError, head_lines
 
 __all__ = ["TextReader", "TextWriter", "looks_like_text"]
 
@@ -32,10 +32,7 @@ _I64_MAX_S = (2**63 - 1) / 1e6
 
 def looks_like_text(path: Path) -> bool:
     """True if the first data line of ``path`` (within 64 KiB) is 4 or more numbers."""
-    with open(path, "rb") as f:
-        head = f.read(1 << 16)
-    pieces = head.split(b"\n")
-    for raw in pieces[:-1] if len(head) == 1 << 16 else pieces:  # whole lines only
+    for raw in head_lines(path):
         line = raw.split(b"#", 1)[0].strip()
         if line:
             fields = line.replace(b",", b" ").split()
