@@ -1,13 +1,17 @@
-"""The burst guard against a sequential scalar oracle, and its behaviour on flashes and rate changes."""
+"""The burst guard against a sequential scalar oracle and a vectorised numpy reference of the rule, and its
+behaviour on flashes and rate changes; its numpy views of the buffers follow copies, pickles and new buffers."""
 
 from __future__ import annotations
 
+import copy
 import math
+import pickle
 
+import numpy as np
 import pytest
 import torch
 
-from torchevtrack.stages.burst import BurstGuard, keep_events
+from torchevtrack.stages.burst import BurstGuard, burst_update_, keep_events
 
 
 def oracle(counts, dt_us, floor, ratio, ema, max_run):
@@ -22,6 +26,129 @@ def oracle(counts, dt_us, floor, ratio, ema, max_run):
         run = run + 1 if burst else 0
         out.append(burst)
     return out
+
+
+def reference_step(n, dt_us, rate, run, floor, ratio, ema, max_run):
+    """The rule for ``B`` elements in numpy, one window: ``(B,)`` counts and state -> flags, rate, run (new arrays)."""
+    n = np.asarray(n).astype(np.float64)
+    dt = dt_us * 1e-6
+    fresh = np.isnan(rate)
+    burst = (n > floor) & (fresh | (n > ratio * np.where(fresh, 0.0, rate) * dt)) & (run < max_run)
+    restart = fresh | (run >= max_run)
+    new_rate = np.where(restart, n / dt, (1 - ema) * np.where(fresh, 0.0, rate) + ema * n / dt)
+    return burst, np.where(burst, rate, new_rate), np.where(burst, run + 1, 0).astype(np.int64)
+
+
+def reference_keep(b, n, burst):
+    """Event by event: keep an event unless its element's window is a burst (``b`` None: all in element 0)."""
+    return np.array([not burst[0 if b is None else int(b[i])] for i in range(n)], dtype=bool)
+
+
+def kept(b, n, burst):
+    """:func:`keep_events` as the ``(n,)`` bool mask it selects."""
+    k = keep_events(b, n, torch.as_tensor(burst))
+    if isinstance(k, slice):
+        mask = np.zeros(n, dtype=bool)
+        mask[k] = True
+        return mask
+    return k.numpy()
+
+
+def packed_batch(counts, gen):
+    """Batch indices ``(N,)`` of a packed window holding ``counts[k]`` events of element k, in random order."""
+    b = torch.repeat_interleave(torch.arange(len(counts)), torch.as_tensor(counts))
+    return b[torch.randperm(len(b), generator=gen)]
+
+
+@pytest.mark.parametrize("B", [1, 2, 5])
+def test_matches_the_numpy_reference_on_random_windows(B):
+    gen = torch.Generator().manual_seed(B)
+    H, W, T = 60, 80, 300
+    floor, ratio, ema, max_run = 0.05 * H * W, 6.0, 0.07, 8
+    g = BurstGuard(H, W, min_fraction=0.05, ratio=ratio, ema=ema, max_run=max_run, batch_size=B)
+    rate, run = np.full(B, np.nan), np.zeros(B, dtype=np.int64)
+    scale = torch.exp(torch.empty(T, B).uniform_(0, 8, generator=gen))  # 1 to 3000 events, all scales of rate
+    counts = (scale * torch.rand(T, B, generator=gen)).long()
+    counts[torch.rand(T, B, generator=gen) < 0.08] += 2_000  # flashes
+    counts[100:130, 0] = 1_500  # a lasting change longer than max_run
+    n_bursts = 0
+    for i in range(T):
+        dt_us = int(torch.randint(500, 5000, (1,), generator=gen))
+        if i == 150:
+            g.reset(torch.tensor([B - 1]))
+            rate[B - 1], run[B - 1] = np.nan, 0
+        want, rate, run = reference_step(counts[i].numpy(), dt_us, rate, run, floor, ratio, ema, max_run)
+        got = g(counts[i], dt_us)
+        assert got.numpy().tolist() == want.tolist(), i
+        assert np.array_equal(g.rate.numpy(), rate, equal_nan=True) and np.array_equal(g.run.numpy(), run), i
+        assert torch.equal(g.burst, got)
+        if i % 10 == 0 or want.any():
+            b = None if B == 1 else packed_batch(counts[i].tolist(), gen)
+            n = int(counts[i].sum())
+            assert np.array_equal(kept(b, n, got), reference_keep(b, n, want)), i
+        n_bursts += int(want.sum())
+    assert n_bursts > 10
+
+
+def test_a_flash_in_one_element_drops_its_events_only():
+    gen = torch.Generator().manual_seed(7)
+    H, W, B = 120, 160, 3
+    g = BurstGuard(H, W, batch_size=B)
+    rate, run = np.full(B, np.nan), np.zeros(B, dtype=np.int64)
+    windows = [torch.randint(300, 600, (B,), generator=gen) for _ in range(40)]
+    for i in (30, 31):  # every pixel of element 1 fires 4 times, over two 2 ms windows
+        windows[i][1] += 2 * H * W
+    flags = []
+    for c in windows:
+        want, rate, run = reference_step(c.numpy(), 2000, rate, run, 0.05 * H * W, 10.0, 0.05, 25)
+        got = g(c, 2000)
+        b = packed_batch(c.tolist(), gen)
+        keep = kept(b, len(b), got)
+        assert got.tolist() == want.tolist()
+        assert np.array_equal(keep, reference_keep(b, len(b), want))
+        assert int(keep.sum()) == int(c[~got].sum())
+        flags.append(got)
+    flags = torch.stack(flags)
+    assert flags.nonzero().tolist() == [[30, 1], [31, 1]]
+
+
+def test_functional_step_inputs_and_checks():
+    g = BurstGuard(10, 10, batch_size=2, ratio=3.0)
+    rate, run, burst = g.rate.clone(), g.run.clone(), g.burst.clone()
+    flags = []
+    for c in ([3, 4], np.array([3, 400], dtype=np.int32), torch.tensor([2, 9], dtype=torch.int16)):
+        burst_update_(rate, run, burst, c, 1000, floor=g.floor, ratio=g.ratio, ema=g.ema, max_run=g.max_run)
+        assert torch.equal(g(c, 1000), burst)
+        assert torch.equal(g.rate, rate) and torch.equal(g.run, run)
+        flags.append(burst.tolist())
+    assert flags == [[False, False], [False, True], [False, False]]  # floor 5 events; 400 > 3 x 4 events
+    with pytest.raises(ValueError, match="float64"):
+        burst_update_(rate.float(), run, burst, [1, 2], 1000, floor=5.0, ratio=3.0, ema=0.1, max_run=3)
+    with pytest.raises(ValueError, match="integer"):
+        g([True, False], 1000)
+    with pytest.raises(ValueError, match="integer"):
+        g(torch.tensor([1, 2, 3]), 1000)
+    assert torch.equal(g.rate, rate)  # nothing written by a refused call
+
+
+def test_the_guards_arrays_follow_copies_pickles_and_new_buffers():
+    g = BurstGuard(10, 10, batch_size=2, ratio=3.0)
+    g([4, 4], 1000)  # at most the floor (5 events): accepted, the rate starts at 4 events per window
+    twin = copy.deepcopy(g)
+    thawed = pickle.loads(pickle.dumps(g))
+    assert g([400, 4], 1000).tolist() == [True, False]  # the copies share no state with g
+    for other in (twin, thawed):
+        assert other.run.tolist() == [0, 0]
+        assert other([4, 400], 1000).tolist() == [False, True] and other.run.tolist() == [0, 1]
+    assert g.run.tolist() == [1, 0]
+    g.load_state_dict(twin.state_dict())
+    assert g.run.tolist() == [0, 1] and g([4, 400], 1000).tolist() == [False, True] and g.run.tolist() == [0, 2]
+    g.run = torch.zeros(2, dtype=torch.int64)  # a new buffer tensor
+    g.rate = torch.full((2,), float("nan"), dtype=torch.float64)
+    assert g([400, 400], 1000).tolist() == [True, True] and g.run.tolist() == [1, 1]
+    g.float()
+    with pytest.raises(ValueError, match="float64"):
+        g([1, 2], 1000)
 
 
 def test_matches_oracle_batched():

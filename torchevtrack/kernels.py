@@ -74,7 +74,8 @@ def announce_compile() -> None:
 
 def warmup(progress: bool = True) -> int:
     """Compile and cache the tracker's kernels by tracking a short built-in sequence (the box turning in front
-    of a 160x120 camera, events at its silhouette's changes); returns the number of kernels compiled.
+    of a 160x120 camera, events at its silhouette's changes, optional stages on); returns the number of kernels
+    compiled.
 
     A tqdm bar counts the kernels as their cache files appear.
     """
@@ -84,6 +85,7 @@ def warmup(progress: bool = True) -> int:
     from tqdm import tqdm
 
     from torchevtrack.camera import Camera
+    from torchevtrack.config import TrackerConfig
     from torchevtrack.events import EventStream
     from torchevtrack.mesh import load_mesh
     from torchevtrack.raster import RasterRenderer
@@ -104,7 +106,8 @@ def warmup(progress: bool = True) -> int:
     watcher.start()
     try:
         events, pose0 = _warmup_events(camera, mesh, RasterRenderer, EventStream, np, torch)
-        tracker = EventPoseTracker(camera, mesh)
+        # the optional denoise stage on too: its module loads with the tracker, and a cold one would be announced
+        tracker = EventPoseTracker(camera, mesh, TrackerConfig().replace(denoise={"enabled": True}))
         tracker.track(events, pose0, progress=False)
         tracker.close()
         missing |= set(uncached_kernels())  # the modules the tracker loaded

@@ -900,7 +900,7 @@ class EventPoseTracker(nn.Module):
             np.full(self.batch_size, x.numel(), dtype=np.int64)
         burst, seen = None, counts
         if self.burst is not None:
-            burst = self.burst(torch.from_numpy(counts), self.period_us).numpy()
+            burst = self.burst(counts, self.period_us).numpy()
             if burst.any():
                 k = keep_events(b, x.numel(), torch.from_numpy(burst))
                 window, seen = tuple(None if f is None else f[k] for f in window), np.where(burst, 0, counts)

@@ -22,8 +22,11 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
+from typing import IO, TypeVar
 
-__all__ = ["replacing", "write_text"]
+__all__ = ["ReplacingWriter", "replacing", "write_text"]
+
+_W = TypeVar("_W", bound="ReplacingWriter")
 
 
 class replacing:
@@ -65,6 +68,36 @@ class replacing:
     def __exit__(self, typ, exc, tb) -> None:
         if typ is None:
             self.commit()
+        else:
+            self.discard()
+
+
+class ReplacingWriter:
+    """Base of the streaming writers: a subclass writes the open file ``self._f`` at the temporary path of
+    ``self._out`` (a :class:`replacing` of its destination). :meth:`close` finishes the file and replaces the
+    destination with it; :meth:`discard` drops it. As a context manager it closes on a normal exit and discards
+    on an exception, so a writer that fails mid-way leaves the destination as it was. A writer that stages its
+    data elsewhere overrides both methods."""
+
+    _f: IO
+    _out: replacing
+
+    def close(self) -> None:
+        """Finish the file: it replaces ``path`` now."""
+        self._f.close()
+        self._out.commit()
+
+    def discard(self) -> None:
+        """Drop what was written: ``path`` stays as it was."""
+        self._f.close()
+        self._out.discard()
+
+    def __enter__(self: _W) -> _W:
+        return self
+
+    def __exit__(self, typ, exc, tb) -> None:
+        if typ is None:
+            self.close()
         else:
             self.discard()
 

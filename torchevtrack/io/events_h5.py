@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from torchevtrack.events import EventStream, check_window
-from torchevtrack.io.atomic import replacing
+from torchevtrack.io.atomic import ReplacingWriter, replacing
 
 __all__ = ["EventsH5Writer", "write_events_h5", "read_events_h5", "iter_events_h5", "events_h5_summary"]
 
@@ -33,7 +33,7 @@ _FIELDS = {"x": np.int16, "y": np.int16, "t": np.int64, "p": np.int8}
 _CHUNK = 1 << 16
 
 
-class EventsH5Writer:
+class EventsH5Writer(ReplacingWriter):
     """Append time-sorted event batches to a new HDF5 file (use as a context manager).
 
     Args:
@@ -78,21 +78,6 @@ class EventsH5Writer:
             d[self._n:] = getattr(events, k).numpy().astype(dt)
         self._n += n
         self._t_last = int(events.t[-1])
-
-    def close(self) -> None:
-        """Finish the file: it replaces ``path`` now."""
-        self._f.close()
-        self._out.commit()
-
-    def __enter__(self) -> "EventsH5Writer":
-        return self
-
-    def __exit__(self, typ, exc, tb) -> None:
-        if typ is None:
-            self.close()
-        else:  # failed mid-way: ``path`` stays as it was
-            self._f.close()
-            self._out.discard()
 
 
 def write_events_h5(path: str | Path, events: EventStream, *, width: int | None = None,

@@ -29,7 +29,8 @@ from typing import Iterator
 
 import numpy as np
 
-from torchevtrack.io.formats import ZSTD_MAGIC, EventFileError, require, times_to_int64
+from torchevtrack.io.formats import (ZSTD_MAGIC, EventFileError, head_lines, open_hdf5, require,
+                                     times_to_int64)
 
 __all__ = ["DsecReader", "Aedat4Reader", "Evt3Reader", "YarpReader", "YarpTextReader", "YcbEvReader",
            "looks_like_yarp_text"]
@@ -41,14 +42,8 @@ class DsecReader:
     """DSEC-style HDF5 events (``events/{x,y,t,p}``, optional ``t_offset``), read in slices."""
 
     def __init__(self, path: Path) -> None:
-        import h5py
-
         self.path = path
-        try:
-            f = h5py.File(path, "r")
-        except OSError as e:
-            raise EventFileError(path, None, f"unreadable HDF5 file ({e})") from None
-        with f:
+        with open_hdf5(path) as f:
             if "events" not in f or not all(k in f["events"] for k in "xytp"):
                 raise EventFileError(path, None, "no events/x, events/y, events/t, events/p datasets")
             shapes = {k: f["events"][k].shape for k in "xytp"}
@@ -242,10 +237,7 @@ _BOTTLE = re.compile(rb"^\s*(\d+)\s+([-+0-9.eE]+)\s+([A-Za-z_]\w*)\s+\((.*)\)\s*
 
 def looks_like_yarp_text(path: Path) -> bool:
     """True if the first non-empty line of ``path`` (within 64 KiB) is a YARP bottle ``N T TAG (...)``."""
-    with open(path, "rb") as f:
-        head = f.read(1 << 16)
-    pieces = head.split(b"\n")
-    lines = [ln for ln in (pieces[:-1] if len(head) == 1 << 16 else pieces) if ln.strip()]  # whole lines
+    lines = [ln for ln in head_lines(path) if ln.strip()]
     return bool(lines) and _BOTTLE.match(lines[0]) is not None
 
 

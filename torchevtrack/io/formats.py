@@ -132,6 +132,24 @@ def times_to_int64(t: np.ndarray, path: Path, first_index: int) -> np.ndarray:
     return t.astype(np.int64, copy=False)
 
 
+def open_hdf5(path: Path):
+    """``path`` opened read-only as an ``h5py.File``; :class:`EventFileError` if HDF5 cannot read it."""
+    import h5py
+
+    try:
+        return h5py.File(path, "r")
+    except OSError as e:
+        raise EventFileError(path, None, f"unreadable HDF5 file ({e})") from None
+
+
+def head_lines(path: Path) -> list[bytes]:
+    """The whole lines of the first 64 KiB of ``path`` (a line cut at the 64 KiB mark is left out)."""
+    with open(path, "rb") as f:
+        head = f.read(1 << 16)
+    pieces = head.split(b"\n")
+    return pieces[:-1] if len(head) == 1 << 16 else pieces
+
+
 def _magic(path: Path, n: int = 64) -> bytes:
     with open(path, "rb") as f:
         return f.read(n)
@@ -150,13 +168,7 @@ def detect_format(path: str | Path) -> str:
     head = _magic(path)
     name = path.name.lower()
     if head.startswith(_HDF5_MAGIC):
-        import h5py
-
-        try:
-            f = h5py.File(path, "r")
-        except OSError as e:
-            raise EventFileError(path, None, f"unreadable HDF5 file ({e})") from None
-        with f:
+        with open_hdf5(path) as f:
             if all(k in f for k in "xytp"):
                 return "events_h5"
             if "events" in f and all(k in f["events"] for k in "xytp"):

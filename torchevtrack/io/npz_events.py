@@ -17,7 +17,7 @@ from typing import Iterator
 import numpy as np
 
 from torchevtrack.events import EventStream
-from torchevtrack.io.atomic import replacing
+from torchevtrack.io.atomic import ReplacingWriter, replacing
 from torchevtrack.io.formats import EventFileError
 
 __all__ = ["NpzReader", "NpzWriter"]
@@ -96,7 +96,7 @@ class NpzReader:
             raise EventFileError(self.path, None, f"corrupt npz archive: {e}") from None
 
 
-class NpzWriter:
+class NpzWriter(ReplacingWriter):
     """Write events to an ``.npz`` archive (context manager; ``append`` time-ordered chunks).
 
     Args:
@@ -120,6 +120,7 @@ class NpzWriter:
         self._n += len(events)
 
     def close(self) -> None:
+        """Write the archive from the staged members: it replaces ``path`` now."""
         for f in self._files.values():
             f.close()
         try:
@@ -139,13 +140,8 @@ class NpzWriter:
         finally:
             self._tmp.cleanup()
 
-    def __enter__(self) -> "NpzWriter":
-        return self
-
-    def __exit__(self, typ, exc, tb) -> None:
-        if typ is None:
-            self.close()
-        else:  # failed mid-way: write nothing
-            for f in self._files.values():
-                f.close()
-            self._tmp.cleanup()
+    def discard(self) -> None:
+        """Drop the staged members: ``path`` stays as it was."""
+        for f in self._files.values():
+            f.close()
+        self._tmp.cleanup()

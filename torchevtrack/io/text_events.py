@@ -22,8 +22,8 @@ from typing import Iterator
 import numpy as np
 
 from torchevtrack.events import EventStream
-from torchevtrack.io.atomic import replacing
-from torchevtrack.io.formats import EventFileError
+from torchevtrack.io.atomic import ReplacingWriter, replacing
+from torchevtrack.io.formats import EventFileError, head_lines
 
 __all__ = ["TextReader", "TextWriter", "looks_like_text"]
 
@@ -32,10 +32,7 @@ _I64_MAX_S = (2**63 - 1) / 1e6
 
 def looks_like_text(path: Path) -> bool:
     """True if the first data line of ``path`` (within 64 KiB) is 4 or more numbers."""
-    with open(path, "rb") as f:
-        head = f.read(1 << 16)
-    pieces = head.split(b"\n")
-    for raw in pieces[:-1] if len(head) == 1 << 16 else pieces:  # whole lines only
+    for raw in head_lines(path):
         line = raw.split(b"#", 1)[0].strip()
         if line:
             fields = line.replace(b",", b" ").split()
@@ -154,7 +151,7 @@ class TextReader:
         return np.rint(t * 1e6).astype(np.int64)
 
 
-class TextWriter:
+class TextWriter(ReplacingWriter):
     """Write ``t x y p`` lines (use as a context manager; ``append`` time-ordered chunks).
 
     Args:
@@ -185,18 +182,3 @@ class TextWriter:
         for i in range(0, len(rows), 100_000):  # one %-format per block: ~6x faster than numpy.savetxt
             block = rows[i:i + 100_000]
             self._f.write((fmt * len(block)) % tuple(block.ravel().tolist()))
-
-    def close(self) -> None:
-        """Finish the file: it replaces ``path`` now."""
-        self._f.close()
-        self._out.commit()
-
-    def __enter__(self) -> "TextWriter":
-        return self
-
-    def __exit__(self, typ, exc, tb) -> None:
-        if typ is None:
-            self.close()
-        else:  # failed mid-way: ``path`` stays as it was
-            self._f.close()
-            self._out.discard()

@@ -1,7 +1,8 @@
 """Burst guard: tell a window whose event count is far above the recent rate (a flash, a camera bump) before any
 stage sees its events, so it can be dropped at O(1) cost instead of flooding the EROS, the flow and the template.
 
-Rule per update and batch element (:func:`burst_step`), for a window of ``n`` events over ``dt_us``:
+Rule per update and batch element (:func:`burst_update_`, one compiled step), for a window of ``n`` events over
+``dt_us``:
 
 * ``rate`` is an exponential moving average (weight ``ema``) of the events per second of the accepted windows
   (started by the first accepted window; NaN before).
@@ -24,48 +25,85 @@ Example:
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
+import numba
 import numpy as np
 import torch
 from torch import nn
 
 from torchevtrack.stages import batch_mask
 
-__all__ = ["BurstGuard", "BurstState", "burst_step", "keep_events"]
+__all__ = ["BurstGuard", "burst_update_", "keep_events"]
 
 
-class BurstState(NamedTuple):
-    """Guard state after one window, all ``(B,)``: ``burst`` bool (this window), ``rate`` float64 events/s of the
-    accepted windows (NaN: none yet), ``run`` int64 consecutive bursts so far."""
-
-    burst: torch.Tensor
-    rate: torch.Tensor
-    run: torch.Tensor
-
-
-def burst_step(n_events: torch.Tensor, dt_us: int, rate: torch.Tensor, run: torch.Tensor, *, floor: float,
-               ratio: float, ema: float, max_run: int) -> BurstState:
-    """One window of the rule (module docstring) for ``B`` elements; pure, returns the new state.
+def burst_update_(rate: torch.Tensor, run: torch.Tensor, burst: torch.Tensor, n_events: torch.Tensor, dt_us: int,
+                  *, floor: float, ratio: float, ema: float, max_run: int) -> None:
+    """Judge one window of ``B`` elements by the rule of the module docstring, updating the state in place
+    (one compiled step).
 
     Args:
-        n_events: ``(B,)`` integer events of each element in the window; dt_us: window length (us, > 0).
-        rate: ``(B,)`` float64 events/s (NaN: none yet); run: ``(B,)`` int64 consecutive bursts before this one.
+        rate: ``(B,)`` float64 events/s of the accepted windows (NaN: none yet); run: ``(B,)`` int64 consecutive
+            bursts before this window; burst: ``(B,)`` bool, receives this window's flags. All contiguous CPU
+            tensors, written in place.
+        n_events: ``(B,)`` integer events of each element in the window (tensor or array); dt_us: window length
+            (us, > 0).
         floor: ``min_fraction * H * W`` events; ratio, ema, max_run: see :class:`BurstGuard`.
 
-    Shape: ``(B,)`` inputs, :class:`BurstState` of ``(B,)`` tensors. (numpy inside: a window costs microseconds.)
+    Shape: ``(B,)`` everywhere.
+
+    Raises:
+        ValueError: state tensors of the wrong dtype or shape, ``n_events`` not integer ``(B,)``, or ``dt_us <= 0``.
+            Nothing is written then.
+
+    Example:
+        >>> import torch
+        >>> rate, run = torch.tensor([float("nan"), 1e6], dtype=torch.float64), torch.zeros(2, dtype=torch.int64)
+        >>> burst = torch.zeros(2, dtype=torch.bool)
+        >>> burst_update_(rate, run, burst, torch.tensor([500, 90_000]), 2000, floor=1000.0, ratio=10.0, ema=0.05,
+        ...               max_run=25)
+        >>> burst.tolist(), rate.tolist(), run.tolist()
+        ([False, True], [250000.0, 1000000.0], [0, 1])
     """
+    _check_state(rate, run, burst)
+    _judge(rate.numpy(), run.numpy(), burst.numpy(), n_events, dt_us, floor, ratio, ema, max_run)
+
+
+def _check_state(rate: torch.Tensor, run: torch.Tensor, burst: torch.Tensor) -> None:
+    B = rate.shape
+    if not (rate.dtype == torch.float64 and run.dtype == torch.int64 and burst.dtype == torch.bool
+            and rate.ndim == 1 and run.shape == B and burst.shape == B
+            and rate.is_contiguous() and run.is_contiguous() and burst.is_contiguous()):
+        raise ValueError("rate, run and burst must be contiguous (B,) float64, int64 and bool tensors, got "
+                         f"{rate.dtype} {tuple(rate.shape)}, {run.dtype} {tuple(run.shape)}, {burst.dtype} "
+                         f"{tuple(burst.shape)}")
+
+
+def _judge(rate: np.ndarray, run: np.ndarray, burst: np.ndarray, n_events, dt_us, floor, ratio, ema,
+           max_run) -> None:
+    """:func:`burst_update_` on numpy views of the state: checks ``n_events`` and ``dt_us``, then the kernel."""
+    n = n_events.numpy() if isinstance(n_events, torch.Tensor) else np.asarray(n_events)
+    if n.shape != rate.shape or n.dtype.kind not in "iu":
+        raise ValueError(f"n_events must be an integer {rate.shape} tensor, got {n.dtype} {n.shape}")
     if not dt_us > 0:
         raise ValueError(f"dt_us must be positive, got {dt_us}")
-    n = n_events.numpy().astype(np.float64)
-    r, k = rate.numpy(), run.numpy()
+    _burst_kernel(n if n.dtype == np.int64 else n.astype(np.int64), float(dt_us), rate, run, burst, float(floor),
+                  float(ratio), float(ema), int(max_run))
+
+
+@numba.njit(cache=True, nogil=True)
+def _burst_kernel(n, dt_us, rate, run, burst, floor, ratio, ema, max_run):
+    """The rule of the module docstring for each element in turn; the state arrays are written in place."""
     dt = dt_us * 1e-6
-    fresh = np.isnan(r)
-    burst = (n > floor) & (fresh | (n > ratio * np.where(fresh, 0.0, r) * dt)) & (k < max_run)
-    restart = fresh | (k >= max_run)  # the first window, or the new normal after a long run
-    new_rate = np.where(restart, n / dt, (1 - ema) * np.where(fresh, 0.0, r) + ema * n / dt)
-    return BurstState(torch.from_numpy(burst), torch.from_numpy(np.where(burst, r, new_rate)),
-                      torch.from_numpy(np.where(burst, k + 1, 0).astype(np.int64)))
+    for k in range(n.shape[0]):
+        nk, r = float(n[k]), rate[k]
+        fresh = np.isnan(r)
+        flag = nk > floor and (fresh or nk > ratio * r * dt) and run[k] < max_run
+        burst[k] = flag
+        if flag:
+            run[k] += 1
+        else:
+            # the first window, or the new normal after a long run, restarts the rate
+            rate[k] = nk / dt if fresh or run[k] >= max_run else (1 - ema) * r + ema * nk / dt
+            run[k] = 0
 
 
 def keep_events(b: torch.Tensor | None, n: int, burst: torch.Tensor) -> slice | torch.Tensor:
@@ -94,7 +132,8 @@ class BurstGuard(nn.Module):
         rate: ``(B,)`` float64 events/s (NaN before the first accepted window); run: ``(B,)`` int64;
         burst: ``(B,)`` bool, the last window's flags.
 
-    ``forward(n_events (B,), dt_us) -> burst (B,) bool``; then :func:`keep_events` selects the events to pass on.
+    ``forward(n_events (B,) integer tensor or array, dt_us) -> burst (B,) bool`` (a new tensor); then
+    :func:`keep_events` selects the events to pass on.
     """
 
     rate: torch.Tensor
@@ -114,17 +153,29 @@ class BurstGuard(nn.Module):
         self.register_buffer("rate", torch.full((batch_size,), float("nan"), dtype=torch.float64))
         self.register_buffer("run", torch.zeros(batch_size, dtype=torch.int64))
         self.register_buffer("burst", torch.zeros(batch_size, dtype=torch.bool))
+        self._views: tuple | None = None  # (:meth:`_arrays`)
 
     def forward(self, n_events: torch.Tensor, dt_us: int) -> torch.Tensor:
-        n_events = torch.as_tensor(n_events)
-        if n_events.shape != self.rate.shape or n_events.is_floating_point() or n_events.dtype == torch.bool:
-            raise ValueError(f"n_events must be an integer {tuple(self.rate.shape)} tensor, got {n_events.dtype} "
-                             f"{tuple(n_events.shape)}")
-        s = burst_step(n_events, dt_us, self.rate, self.run, floor=self.floor, ratio=self.ratio, ema=self.ema,
-                       max_run=self.max_run)
-        self.rate.numpy()[:], self.run.numpy()[:] = s.rate.numpy(), s.run.numpy()
-        self.burst.numpy()[:] = s.burst.numpy()
-        return s.burst
+        rate, run, burst = self._arrays()
+        _judge(rate, run, burst, n_events, dt_us, self.floor, self.ratio, self.ema, self.max_run)
+        return torch.from_numpy(burst.copy())
+
+    def _arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """numpy views of the buffers ``rate, run, burst``, made again when a buffer is replaced (assignment, ``.to``,
+        ``load_state_dict`` keeps them): converting the tensors at each window costs more than judging it."""
+        bufs = self._buffers
+        state = bufs["rate"], bufs["run"], bufs["burst"]
+        key = tuple(t.data_ptr() for t in state)
+        if self._views is None or self._views[0] != key:
+            _check_state(*state)
+            self._views = key, tuple(t.numpy() for t in state)
+        return self._views[1]
+
+    def __getstate__(self) -> dict:
+        """The attributes for a copy or pickle, without the numpy views (a copy's would not share its buffers)."""
+        state = super().__getstate__()
+        state["_views"] = None
+        return state
 
     def reset(self, mask: torch.Tensor | None = None) -> None:
         """Forget the rate of every element, or of those selected by ``mask`` (``(B,)`` bool or ``(K,)`` indices)."""
