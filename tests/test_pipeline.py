@@ -5,7 +5,7 @@ import threading
 
 import pytest
 
-from torchevtrack.pipeline import Job, PipelineThread
+from torchevtrack.schedule import Job, PipelineThread
 
 
 def test_jobs_run_in_order_on_the_thread():

@@ -374,7 +374,7 @@ def test_the_pipeline_gives_the_poses_of_the_serial_update(seq, ablation, monkey
 def test_pipeline_options_and_a_window_that_was_not_taken_in(seq, monkeypatch):
     with pytest.raises(ValueError, match="workers=1"):
         EventPoseTracker(CAM, [seq.mesh] * 2, workers=2, pipeline=True)
-    assert not EventPoseTracker(CAM, [seq.mesh] * 2, workers=2)._pipeline  # the workers use the cores
+    assert not EventPoseTracker(CAM, [seq.mesh] * 2, workers=2)._schedule.pipelined  # the workers use the cores
     # (with render.ahead, one stream's windows go into the EROS side on that thread instead of ahead)
     tracker = EventPoseTracker(CAM, seq.mesh, TrackerConfig().replace(render={"ahead": False}), workers=1,
                                pipeline=True)

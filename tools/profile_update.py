@@ -36,7 +36,7 @@ import torch
 from torchevtrack.cli.bench import _stream, packets
 from torchevtrack.config import TrackerConfig
 from torchevtrack.online import OnlineTracker
-from torchevtrack.pipeline import Job
+from torchevtrack.schedule import Job
 from torchevtrack.stages import render_model
 from torchevtrack.stages.render_model import RenderModelBinding
 from torchevtrack.synth.sequence import Sequence

@@ -56,9 +56,7 @@ Example:
 from __future__ import annotations
 
 import dataclasses
-import os
 import time
-from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, NamedTuple, Sequence, TypeVar
@@ -76,10 +74,10 @@ from torchevtrack.geometry import check_pose, quat_rotate
 from torchevtrack.loss import LossDetector, LossUpdate, OnLost
 from torchevtrack.kernels import announce_compile
 from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
-from torchevtrack.pipeline import Job, PipelineThread
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.recover import Recoverer
 from torchevtrack.render import make_renderer
+from torchevtrack.schedule import Job, Schedule
 from torchevtrack.stages import batch_mask, periods
 from torchevtrack.stages.burst import BurstGuard, keep_events
 from torchevtrack.stages.correction import CorrectionStep, bind_correction
@@ -209,23 +207,8 @@ class EventPoseTracker(nn.Module):
         if not meshes:
             raise ValueError("at least one mesh is needed")
         B = len(meshes)
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-        if workers is None:
-            workers = min(B, cores)
-        elif isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-            raise ValueError(f"workers must be a positive int or None, got {workers!r}")
         self.camera, self.config, self.batch_size = camera, cfg, B
-        # Contiguous shares of the batch, one per worker (the pool exists only with two or more).
-        n = min(workers, B)
-        self._shares = [slice(i * B // n, (i + 1) * B // n) for i in range(n)]
-        # the calling thread works the first share itself (_map): the pool's threads take the others
-        self._pool = ThreadPoolExecutor(n - 1, thread_name_prefix="torchevtrack") if n > 1 else None
-        if pipeline is None:
-            pipeline = self._pool is None and cores > 1
-        elif pipeline and self._pool is not None:
-            raise ValueError("pipeline needs workers=1: the worker threads already share the batch")
-        self._pipeline = bool(pipeline)
-        self._intake: PipelineThread | None = None  # the pipeline's thread, made when first needed
+        self._schedule = Schedule(B, workers, pipeline)
         self.period_us = cfg.period_us
         self.dt = self.period_us * 1e-6
 
@@ -246,7 +229,7 @@ class EventPoseTracker(nn.Module):
                 self._sym_axes.append(torch.zeros(3, dtype=torch.float64) if axis is None else torch.as_tensor(axis))
             self._renderer_of.append(seen[key])
         # OpenGL contexts belong to the thread that made them: only the compiled rasteriser renders in the workers.
-        self._threaded_render = self._pool is not None and cfg.render.backend == "raster"
+        self._threaded_render = self._schedule.pooled and cfg.render.backend == "raster"
 
         H, W = camera.height, camera.width
         self.eros = EROS.from_config(H, W, cfg.eros, batch_size=B)
@@ -269,8 +252,8 @@ class EventPoseTracker(nn.Module):
         # observation weighs the EROS by a time surface of the EROS side's own (the flow writes its SAE meanwhile);
         # otherwise the observation reads the SAE's channel maximum, the same numbers, and no time surface is kept
         # (for a batch, ~20 MB less memory traffic per step).
-        observes = self._pipeline and self._render_one is not None and cfg.render.ahead and t.enabled
-        self._take_in_ahead = self._pipeline and not observes
+        observes = self._schedule.pipelined and self._render_one is not None and cfg.render.ahead and t.enabled
+        self._take_in_ahead = self._schedule.pipelined and not observes
         self.time_surface = TimeSurface(H, W, batch_size=B) if observes else None
         self.ukf = PoseUKF.from_config(cfg.ukf, batch_size=B)
         bc = cfg.burst
@@ -398,11 +381,7 @@ class EventPoseTracker(nn.Module):
             r.close()
         if self.recover is not None:
             self.recover.close()
-        if self._pool is not None:
-            self._pool.shutdown()
-        if self._intake is not None:
-            self._intake.close()
-        self._intake = None
+        self._schedule.close()
 
     # -- one update --------------------------------------------------------------------------
     def forward(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor,
@@ -507,13 +486,13 @@ class EventPoseTracker(nn.Module):
             clock.lap("eros")
             flow = run.intake[0](x, y, t, p, b, surfaces=False,
                                  checked=lambda *ev: self._observe_soon(*ev, self._t_now(t, b).copy()))
-        elif self._pool is None:  # the three stages in one compiled call: its time counts as the flow's
+        elif not self._schedule.pooled:  # the three stages in one compiled call: its time counts as the flow's
             clock.lap("eros")
             flow = run.intake[0](x, y, t, p, b)
         else:  # each worker takes the events of its share of the batch
-            events = self._share_events(x, y, t, p, b)
+            events = self._schedule.split(x, y, t, p, b)
             clock.lap("eros")
-            flow = _cat(self._map(lambda rows, intake, ev: intake(*ev), run.intake, events))
+            flow = _cat(self._schedule.map(lambda rows, intake, ev: intake(*ev), run.intake, events))
         if burst is not None and burst.any():  # no flow measurement from a burst: the velocity filter predicts
             flow.valid[burst] = False  # (the bound intake gives numpy arrays)
         clock.lap("flow")
@@ -534,7 +513,7 @@ class EventPoseTracker(nn.Module):
             render = self._render(render_pose, shaded=cfg.template.enabled)
             if render.model is not None:
                 self._run.models, render = [render.model], None
-            if self._pipeline and cfg.render.ahead and run.render_next_ok.all():
+            if self._schedule.pipelined and cfg.render.ahead and run.render_next_ok.all():
                 # the template model too, unless the thread will take the next window in (it would then wait)
                 self._render_soon(run.render_next.copy(), cfg.template.enabled,
                                   model=cfg.template.enabled and ahead is None)
@@ -728,7 +707,7 @@ class EventPoseTracker(nn.Module):
                 self._render_into(i, poses[i:i + 1], win[i], origin[i], depth_np, gray_np)
 
         if self._threaded_render:
-            self._map(share)
+            self._schedule.map(share)
         else:
             share(slice(None))
         self._set_depth(depth)
@@ -750,14 +729,14 @@ class EventPoseTracker(nn.Module):
                                    margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"],
                                    dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"], rule=o["rule"],
                                    iterations=o["iterations"], max_age_us=e.max_age_us, recency_us=e.recency_us)
-                   for r in self._shares]
+                   for r in self._schedule.shares]
         output = bind_output(self.pose.numpy(), self.dt, self._min_depth.numpy(),
                              ukf=self.ukf if cfg.ukf.enabled else None, feedback=fb)
         observe = None if self.time_surface is None else \
             bind_observe(self.eros, self.time_surface, canvas=o["canvas"], max_age_us=e.max_age_us,
                          recency_us=e.recency_us)
-        self._run.bound = _Bound([bind_intake(self.eros, self.time_surface, self.flow, r) for r in self._shares], motion,
-                             correct, output, observe,
+        intake = [bind_intake(self.eros, self.time_surface, self.flow, r) for r in self._schedule.shares]
+        self._run.bound = _Bound(intake, motion, correct, output, observe,
                              self.pose.numpy(), self.prev_pose.numpy(), self.origin.numpy(), self.events_seen.numpy(),
                              self.t_last.numpy(), self._min_depth.numpy(), self._render_next.numpy(),
                              self._render_next_ok.numpy())
@@ -795,14 +774,7 @@ class EventPoseTracker(nn.Module):
         self._settle("copy or pickle the tracker")
         state = super().__getstate__()  # a copy of the attributes
         state["_run"] = dataclasses.replace(self._run, bound=None, rendering=None, observing=None)
-        state["_intake"] = None
-        state["_pool"] = None if self._pool is None else self._pool._max_workers  # made again by __setstate__
         return state
-
-    def __setstate__(self, state: dict) -> None:
-        threads = state["_pool"]
-        state["_pool"] = None if threads is None else ThreadPoolExecutor(threads, thread_name_prefix="torchevtrack")
-        super().__setstate__(state)
 
     def _save_to_state_dict(self, destination, prefix, keep_vars):
         self._settle("take the state_dict")
@@ -837,7 +809,7 @@ class EventPoseTracker(nn.Module):
         (:func:`~torchevtrack.stages.render_model.bind_render_model`)."""
         if self._render_one is not None:  # only the compiled call on that thread: it needs the GIL only to start
             r = self._render_one
-            self._run.rendering = self._intake_thread().submit(r.kernel, *r.start(poses, shaded, model))
+            self._run.rendering = self._schedule.submit(r.kernel, *r.start(poses, shaded, model))
 
     def _drop_render(self) -> None:
         """Forget a render made ahead (a reset moved the poses): wait for the thread."""
@@ -946,7 +918,7 @@ class EventPoseTracker(nn.Module):
                 return correct(None, _cut(predicted, rows), None, None, None, _cut(t_now, rows), model=model,
                                on_observed=on_observed, obs=obs)
 
-            parts = self._map(share, self._run.bound.correct, self._run.models)
+            parts = self._schedule.map(share, self._run.bound.correct, self._run.models)
         else:
             depth, gray = render.depth.numpy(), None if render.gray is None else render.gray.numpy()
 
@@ -954,7 +926,7 @@ class EventPoseTracker(nn.Module):
                 return correct(_cut(pose32, rows), _cut(predicted, rows), _cut(depth, rows), _cut(gray, rows),
                                _cut(self._run.bound.origin, rows), _cut(t_now, rows), on_observed=on_observed)
 
-            parts = self._map(share, self._run.bound.correct)
+            parts = self._schedule.map(share, self._run.bound.correct)
         self._run.models = [p.model for p in parts]  # kept per share: each worker reads its own next time
         return _cat([p.correction for p in parts])
 
@@ -969,17 +941,11 @@ class EventPoseTracker(nn.Module):
             # raises that when it takes the render, and the events still go in
             return observe(x, y, t, b, None if rendering.raised() else box, t_now)
 
-        self._run.observing = self._intake_thread().submit(job)
-
-    def _intake_thread(self) -> PipelineThread:
-        """The pipeline's thread, made on first use."""
-        if self._intake is None:
-            self._intake = PipelineThread("torchevtrack-intake")
-        return self._intake
+        self._run.observing = self._schedule.submit(job)
 
     def _launch(self, window: tuple) -> None:
         """Take the packed ``window`` into the EROS and the flow on the intake thread (:meth:`_take_ahead` waits)."""
-        self._run.ahead = _Ahead(self._intake_thread().submit(self._run.bound.intake[0], *window), window)
+        self._run.ahead = _Ahead(self._schedule.submit(self._run.bound.intake[0], *window), window)
 
     def _take_ahead(self, x: torch.Tensor) -> FlowField:
         """The flow of the window the intake thread took in, once it is done; ``x`` is that window's."""
@@ -1008,37 +974,6 @@ class EventPoseTracker(nn.Module):
             for field, row in zip(parts, redo):
                 field[i] = row[0]
         self._run.ahead = _Ahead(Job.of(FlowField(*parts)), self._run.ahead.window)
-
-    def _share_events(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor,
-                      b: torch.Tensor | None) -> list[tuple[torch.Tensor, ...]]:
-        """The packed events ``(x, y, t, p, b)`` of each worker's share, ``b`` counted from the share's first
-        element (views of the packet when it is ordered by element, as :meth:`track` packs it)."""
-        bn = np.zeros(x.shape[0], dtype=np.int64) if b is None else b.numpy().astype(np.int64, copy=False)  # numpy:
-        if bn.shape[0] < 2 or bool((bn[1:] >= bn[:-1]).all()):  # fewer and cheaper calls than torch on the packet
-            cuts = np.searchsorted(bn, [rows.start for rows in self._shares] + [self.batch_size]).tolist()
-            picks = [slice(i, j) for i, j in zip(cuts[:-1], cuts[1:])]
-        else:
-            picks = [torch.from_numpy((bn >= rows.start) & (bn < rows.stop)) for rows in self._shares]
-        return [(x[k], y[k], t[k], p[k], torch.from_numpy(bn[k] - rows.start)) for k, rows in zip(picks, self._shares)]
-
-    def _map(self, fn: Callable[..., _T], *per_share: list) -> list[_T]:
-        """``fn(rows, *args)`` of each worker's share of the batch (``rows``) and its items of ``per_share``: the
-        first share on the calling thread, the others on the pool's threads meanwhile (one thread hand-over fewer)."""
-        if self._pool is None:
-            return [fn(slice(None), *(a[0] for a in per_share))]
-        inference = torch.is_inference_mode_enabled()  # a thread-local mode: the workers take the caller's
-
-        def run(*args):
-            with torch.inference_mode(inference):
-                return fn(*args)
-
-        jobs = list(zip(self._shares, *per_share))
-        others = [self._pool.submit(run, *args) for args in jobs[1:]]
-        try:
-            first = fn(*jobs[0])
-        finally:
-            wait(others)  # also when the first share failed: the others still use the tracker's state
-        return [first] + [f.result() for f in others]
 
 
 @dataclass
