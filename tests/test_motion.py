@@ -7,9 +7,9 @@ import torch
 from torchevtrack.camera import Camera
 from torchevtrack.geometry import quat_exp, quat_mul
 from torchevtrack.stages.flow import FlowField
-from torchevtrack.stages.motion import invalid_poses, motion_step
-from torchevtrack.stages.propagate import propagate, twist_between
+from torchevtrack.stages.propagate import invalid_poses, propagate, twist_between
 from torchevtrack.stages.velocity import VelocityKF, sample_depth, shift_twist
+from torchevtrack.update import motion_step
 
 CAM = Camera.default()
 F64 = torch.float64
@@ -138,7 +138,7 @@ def test_render_ahead_kernel_swaps_in_the_last_prediction_and_propagates():
     """now = the poses predicted last time where they were valid, else this prediction; the buffers then hold this
     prediction moved on by its twist (propagate) and whether that is valid (invalid_poses)."""
     from torchevtrack.stages import periods
-    from torchevtrack.stages.motion import _render_ahead_kernel
+    from torchevtrack.update import render_ahead
 
     g = torch.Generator().manual_seed(3)
     predicted = _poses(g)
@@ -151,7 +151,7 @@ def test_render_ahead_kernel_swaps_in_the_last_prediction_and_propagates():
     want_next = propagate(predicted, twist, 0.002)
     now, now32 = np.empty((B, 7)), np.empty((B, 7), dtype=np.float32)
     ahead_np, ok_np = ahead.numpy().copy(), ok.numpy().copy()
-    _render_ahead_kernel(predicted.numpy(), twist.numpy(), periods(B, 0.002), min_depth.numpy(), ahead_np, ok_np,
+    render_ahead(predicted.numpy(), twist.numpy(), periods(B, 0.002), min_depth.numpy(), ahead_np, ok_np,
                          now, now32)
     assert np.array_equal(now, want_now.numpy()) and np.array_equal(now32, want_now.float().numpy())
     assert np.array_equal(ahead_np, want_next.numpy())

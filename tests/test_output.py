@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from torchevtrack.geometry import quat_canonical, quat_exp
-from torchevtrack.stages.output import output_step
+from torchevtrack.update import output_step
 from torchevtrack.stages.propagate import propagate, twist_between
 from torchevtrack.stages.ukf import PoseUKF
 from torchevtrack.stages.velocity import CorrectionFeedback, shift_twist

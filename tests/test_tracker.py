@@ -386,7 +386,7 @@ def test_pipeline_options_and_a_window_that_was_not_taken_in(seq, monkeypatch):
     with pytest.raises(RuntimeError, match="taken in ahead"):
         tracker(*win[2])
     # A track that stops early (here: an error in an update) leaves nothing taken in ahead behind.
-    import torchevtrack.stages.output as output_module
+    import torchevtrack.update as output_module
 
     kernel = output_module._output_kernel
 
@@ -412,7 +412,7 @@ def _recording(monkeypatch):
     """Record each update's prediction and twist (the motion kernel's outputs) and the pose its template was
     rendered at (the template model's, made in the correction)."""
     import torchevtrack.stages.correction as correction_module
-    import torchevtrack.stages.motion as motion_module
+    import torchevtrack.update as motion_module
 
     rec = {"motion": [], "render_pose": []}
     motion, model = motion_module._motion_kernel, correction_module._model_in_box

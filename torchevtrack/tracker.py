@@ -15,7 +15,7 @@ sequences and runs, in the paper's order:
    filter's twist, plus with ``velocity.feedback_gain > 0`` the
    :class:`~torchevtrack.stages.velocity.CorrectionFeedback` on the axes the flow hardly observes: depth
    rate, pitch and yaw); steps 2 and 3 run as one compiled call of those stages' kernels,
-   :func:`~torchevtrack.stages.motion.motion_step`;
+   :func:`~torchevtrack.update.motion_step`;
 4. the mesh is rendered once, in a window around the propagated pose; by default (``render.ahead``) around
    the pose the previous update predicted for this one (its propagated pose moved on by its twist), so that
    with the pipeline the render and its template model are made on the pipeline's thread during the previous
@@ -25,7 +25,7 @@ sequences and runs, in the paper's order:
    and moves the pose to the best (the paper's argmax of 13, or a Newton step over all six axes:
    ``template.rule``); the correction's rate feeds the feedback of step 3, if on;
 6. :class:`~torchevtrack.stages.ukf.PoseUKF` smooths the corrected pose into the output (with the correction
-   feedback's update and the output checks, one compiled call: :func:`~torchevtrack.stages.output.output_step`);
+   feedback's update and the output checks, one compiled call: :func:`~torchevtrack.update.output_step`);
 0. before all of them, the :class:`~torchevtrack.stages.burst.BurstGuard` (``config.burst``, on by default) counts
    each element's events in the window; a burst's (a flash, a camera bump) are dropped before any stage sees them,
    so that update costs what an empty window does: the velocity filter predicts without a measurement, the template
@@ -85,14 +85,13 @@ from torchevtrack.stages.denoise import BackgroundActivityFilter
 from torchevtrack.stages.eros import EROS, TimeSurface
 from torchevtrack.stages.flow import FlowField, TripletFlow
 from torchevtrack.stages.intake import bind_intake
-from torchevtrack.stages.motion import _render_ahead_kernel, bind_motion, invalid_poses
 from torchevtrack.stages.observe import bind_observe
-from torchevtrack.stages.output import bind_output
-from torchevtrack.stages.propagate import propagate
+from torchevtrack.stages.propagate import invalid_poses, propagate
 from torchevtrack.stages.render_model import bind_render_model
 from torchevtrack.stages.template import Correction, TemplateCorrector, TemplateModel, window_of
 from torchevtrack.stages.ukf import PoseUKF
 from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, shift_twist
+from torchevtrack.update import MotionArgs, OutputArgs, motion, output, render_ahead
 
 if TYPE_CHECKING:
     from torchevtrack.render import Renderer
@@ -499,9 +498,7 @@ class EventPoseTracker(nn.Module):
 
         # A pose that is not finite or puts the object (nearly) behind the camera is not a pose: such a
         # prediction or output is replaced by the last pose (zero motion) rather than used or emitted.
-        predicted, twist, n_vectors, rejected = \
-            run.motion(flow.uv, flow.flow, flow.valid, self.depth.numpy(), run.origin) \
-            if cfg.velocity.source == "flow" else run.motion()
+        predicted, twist, n_vectors, rejected = motion(run.motion, flow, self.depth.numpy(), run.origin)
         if launch is not None and not cfg.template.enabled:  # nothing reads the surfaces after the flow
             launch()
         clock.lap("velocity")
@@ -538,7 +535,7 @@ class EventPoseTracker(nn.Module):
         # the objects' symmetry axes in the camera frame, for the feedback (zero stays zero; none: no rotation)
         axis = quat_rotate(torch.from_numpy(measured[:, 3:]), self._symmetry_axis).numpy() \
             if self.feedback is not None and self._symmetric else None
-        out, bad = run.output(predicted, measured, twist, axis)
+        out, bad = output(run.output, predicted, measured, twist, axis)
         clock.lap("ukf")
         run.prev_pose[:] = run.pose
         run.pose[:] = out
@@ -719,19 +716,19 @@ class EventPoseTracker(nn.Module):
         per update), per worker share where the workers run it (one worker: its share is the whole batch)."""
         cfg, o, e = self.config, self.corrector.options, self.config.eros
         fb = self.feedback
-        motion = bind_motion(cfg.velocity.source, self.pose.numpy(), self.prev_pose.numpy(), self.dt,
-                             self._min_depth.numpy(), kf=self.velocity, groups=self.flow.n_blocks,
-                             max_speed=cfg.flow.max_speed,
-                             radius=max(cfg.flow.block // 4, 2),  # flow lies on edges: the pixel may fall just off
-                             feedback=None if fb is None else fb.b.numpy())
+        dt = periods(self.batch_size, self.dt)
+        motion = MotionArgs(cfg.velocity.source, self.pose.numpy(), self.prev_pose.numpy(), dt, self._min_depth.numpy(),
+                            self.velocity.arrays(), cfg.flow.max_speed,
+                            max(cfg.flow.block // 4, 2),  # flow lies on edges: the pixel may fall just off
+                            None if fb is None else fb.b.numpy())
         times = self.flow.sae if self.time_surface is None else self.time_surface.last_us[:, None]  # (B, C, H, W)
         correct = [bind_correction(self.eros.surface[r].numpy(), times[r].numpy(), self.camera, canvas=o["canvas"],
                                    margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"],
                                    dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"], rule=o["rule"],
                                    iterations=o["iterations"], max_age_us=e.max_age_us, recency_us=e.recency_us)
                    for r in self._schedule.shares]
-        output = bind_output(self.pose.numpy(), self.dt, self._min_depth.numpy(),
-                             ukf=self.ukf if cfg.ukf.enabled else None, feedback=fb)
+        output = OutputArgs(self.pose.numpy(), dt, self._min_depth.numpy(),
+                            self.ukf.arrays() if cfg.ukf.enabled else None, None if fb is None else fb.arrays())
         observe = None if self.time_surface is None else \
             bind_observe(self.eros, self.time_surface, canvas=o["canvas"], max_age_us=e.max_age_us,
                          recency_us=e.recency_us)
@@ -799,8 +796,8 @@ class EventPoseTracker(nn.Module):
         of ``predicted`` and ``twist``, and whether it is valid)."""
         B, run = self.batch_size, self._run.bound
         now, now32 = np.empty((B, 7)), np.empty((B, 7), dtype=np.float32)
-        _render_ahead_kernel(predicted, twist, periods(B, self.dt), run.min_depth, run.render_next, run.render_next_ok,
-                             now, now32)
+        render_ahead(predicted, twist, periods(B, self.dt), run.min_depth, run.render_next, run.render_next_ok,
+                     now, now32)
         return now, now32
 
     def _render_soon(self, poses: np.ndarray, shaded: bool, model: bool) -> None:
@@ -1008,9 +1005,9 @@ class _Bound(NamedTuple):
     """The stages' bound steps (:meth:`EventPoseTracker._bind`; ``intake`` and ``correct`` one per worker share) and
     numpy views of the tracker's buffers an update reads and writes."""
     intake: list[Callable[..., FlowField]]
-    motion: Callable[..., tuple[np.ndarray, ...]]
+    motion: MotionArgs
     correct: list[Callable[..., CorrectionStep]]
-    output: Callable[..., tuple[np.ndarray, np.ndarray]]
+    output: OutputArgs
     observe: Callable[..., np.ndarray | None | bool] | None
     pose: np.ndarray
     prev_pose: np.ndarray

@@ -43,7 +43,7 @@ from torchevtrack.geometry import (
     quat_rotate,
 )
 
-__all__ = ["se3_exp_apply", "propagate", "twist_between"]
+__all__ = ["se3_exp_apply", "propagate", "propagate_step", "twist_between", "invalid_poses", "valid_pose"]
 
 
 def se3_exp_apply(xi: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
@@ -172,3 +172,42 @@ def twist_between(start: torch.Tensor, end: torch.Tensor, dt: torch.Tensor | flo
     out = torch.empty(*lead, 6, dtype=torch.float64)
     _twist_between_kernel(s, e, dt, out.view(-1, 6).numpy())
     return out if dtype == torch.float64 else out.to(dtype)
+
+
+@numba.njit(cache=True, nogil=True)
+def valid_pose(pose, min_depth):
+    """A pose ``(7,)`` is valid: finite, with the object centre farther than ``min_depth`` (metres)."""
+    ok = pose[2] > min_depth
+    for j in range(7):
+        ok = ok and np.isfinite(pose[j])
+    return ok
+
+
+@numba.njit(cache=True, nogil=True)
+def _invalid_kernel(pose, min_depth, out):
+    for b in range(pose.shape[0]):
+        out[b] = not valid_pose(pose[b], min_depth[b])
+
+
+def invalid_poses(pose: torch.Tensor, min_depth: torch.Tensor) -> torch.Tensor:
+    """The poses the tracker rejects (as a prediction, an output or a start): not finite, or the object centre at or
+    nearer than ``min_depth`` (m).
+
+    Shape: ``(B, 7), (B,) -> (B,)`` bool.
+    """
+    out = np.empty(pose.shape[0], dtype=np.bool_)
+    _invalid_kernel(pose.detach().double().numpy(), min_depth.detach().double().numpy(), out)
+    return torch.from_numpy(out)
+
+
+@numba.njit(cache=True, nogil=True)
+def propagate_step(pose, twist, dt, min_depth, predicted, rejected):
+    """:func:`propagate` of ``pose`` ``(B, 7)`` by ``twist`` ``(B, 6)`` over ``dt`` ``(B,)`` seconds into ``predicted``,
+    unchecked; where that is not a valid pose (:func:`valid_pose` with ``min_depth`` ``(B,)``) the pose itself
+    with zero twist (``twist`` is written), and ``rejected`` ``(B,)`` says so."""
+    _propagate_kernel(pose, twist, dt, predicted)
+    for b in range(pose.shape[0]):
+        rejected[b] = not valid_pose(predicted[b], min_depth[b])
+        if rejected[b]:
+            predicted[b] = pose[b]
+            twist[b] = 0.0

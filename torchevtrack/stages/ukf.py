@@ -37,6 +37,7 @@ Example:
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -320,6 +321,35 @@ def _ukf_update_kernel(x, P, z, R, r_diag, Wm, Wc, spread, x_out, P_out):
     return -1
 
 
+class UKFArrays(NamedTuple):
+    """A :class:`PoseUKF` as compiled kernels take it (:meth:`PoseUKF.arrays`): its state ``x`` ``(B, 13)`` and ``P``
+    ``(B, 12, 12)`` (views of its buffers, written in place), process densities ``q`` (``(1, 12)`` with ``q_diag``,
+    or ``(12, 12)``), measurement covariance ``r`` (``(1, 6)`` with ``r_diag``, or ``(6, 6)``), and the sigma-point
+    weights ``Wm``, ``Wc`` ``(25,)`` and ``spread``."""
+
+    x: np.ndarray
+    P: np.ndarray
+    q: np.ndarray
+    q_diag: bool
+    r: np.ndarray
+    r_diag: bool
+    Wm: np.ndarray
+    Wc: np.ndarray
+    spread: float
+
+
+@numba.njit(cache=True, nogil=True)
+def ukf_step(f, dt, twist, z):
+    """:meth:`PoseUKF.predict` over ``dt`` ``(B,)`` seconds with the known ``twist`` ``(B, 6)``, then
+    :meth:`PoseUKF.update` with the measured poses ``z`` ``(B, 7)``, on the filters' :class:`UKFArrays` ``f`` in place,
+    unchecked. Returns -1, or the failing filter: its index in the prediction, ``B`` + its index in the update."""
+    bad = _ukf_predict_kernel(f.x, f.P, dt, f.q, f.q_diag, twist, True, f.Wm, f.Wc, f.spread, f.x, f.P)
+    if bad >= 0:
+        return bad
+    bad = _ukf_update_kernel(f.x, f.P, z, f.r, f.r_diag, f.Wm, f.Wc, f.spread, f.x, f.P)
+    return bad if bad < 0 else f.x.shape[0] + bad
+
+
 @functools.lru_cache(maxsize=16)
 def _weights_np(alpha: float, beta: float, kappa: float) -> tuple[np.ndarray, np.ndarray, float]:
     """:func:`merwe_weights` of the tangent space as read-only numpy arrays (cached: a filter's are fixed)."""
@@ -535,6 +565,13 @@ class PoseUKF(nn.Module):
             raise ValueError(f"twist must have shape ({self.batch_size}, 6), got {tuple(twist.shape)}")
         _predict_into(self.x, self.P, T, self.q_density, self.alpha, self.beta, self.kappa, twist, self.x.numpy(),
                       self.P.numpy())
+
+    def arrays(self) -> UKFArrays:
+        """The filters for compiled kernels (:func:`ukf_step`): numpy views of the buffers, valid until they are
+        replaced (``.to``, ``load_state_dict`` keeps them)."""
+        Wm, Wc, spread = _weights_np(self.alpha, self.beta, self.kappa)
+        (q, q_diag), (r, r_diag) = _cov_arg(self.q_density), _cov_arg(self.R)
+        return UKFArrays(self.x.numpy(), self.P.numpy(), q, q_diag, r, r_diag, Wm, Wc, spread)
 
     def update(self, pose_meas: torch.Tensor) -> None:
         """Fuse measured poses ``(B, 7)`` in place."""

@@ -433,6 +433,60 @@ def _kf_predict_kernel(x, P, rho, Q):
                 P[b, i, j] = r2 * P[b, i, j] + Q[i, j]
 
 
+class KFArrays(NamedTuple):
+    """A :class:`VelocityKF` as compiled kernels take it (:meth:`VelocityKF.arrays`): its state ``x`` ``(B, 6)`` and
+    ``P`` ``(B, 6, 6)`` (views of its buffers, written in place), motion model ``rho`` and ``Q`` ``(6, 6)``, the camera
+    ``fx, fy, cx, cy`` (px) and the update's options (:func:`kf_update`)."""
+
+    x: np.ndarray
+    P: np.ndarray
+    rho: float
+    Q: np.ndarray
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    r_px: float
+    iters: int
+    k: float
+    min_vectors: int
+    normal: bool
+
+
+@numba.njit(cache=True, nogil=True)
+def velocity_step(f, field, depth, origin, max_speed, radius, dt, centre, feedback, twist, n_vectors):
+    """The velocity stage of one update on the filters' :class:`KFArrays` ``f`` in place, unchecked:
+    :meth:`VelocityKF.predict`; the valid vectors of the flow ``field`` (a :class:`~torchevtrack.stages.flow.FlowField`
+    of numpy arrays) slower than ``max_speed`` (px/s); their depth from the render ``depth`` ``(B, h, w)`` at
+    ``origin`` ``(B, 2)`` (:func:`sample_depth` with ``radius``); :meth:`VelocityKF.update` over ``dt`` ``(B,)`` s about
+    the object centres ``centre`` ``(B, 3)``; plus the feedback twist ``(B, 6)`` (or ``None``); the sum back about the
+    camera (:func:`shift_twist`) into ``twist`` ``(B, 6)`` ``[v, w]`` and the vectors weighed into ``n_vectors``
+    ``(B,)``. Returns -1, or the index of a filter whose covariance is not positive definite."""
+    valid, flow = field.valid, field.flow
+    B, G = valid.shape
+    _kf_predict_kernel(f.x, f.P, f.rho, f.Q)
+    limit = np.float32(max_speed)
+    slow = np.empty((B, G), dtype=np.bool_)
+    for b in range(B):
+        for g in range(G):
+            f0, f1 = flow[b, g, 0], flow[b, g, 1]
+            slow[b, g] = valid[b, g] and np.sqrt(f0 * f0 + f1 * f1) < limit
+    z = np.empty((B, G))
+    _sample_depth_kernel(depth, origin, field.uv, slow, radius, z)
+    w, res, used = np.empty((B, G)), np.empty((B, G)), np.empty(B, dtype=np.bool_)
+    bad = _kf_update_kernel(f.x, f.P, field.uv, flow, z, slow, dt, centre, True, f.fx, f.fy, f.cx, f.cy, f.r_px,
+                            f.iters, f.k, f.min_vectors, f.normal, f.x, f.P, w, res, used)  # in place: each read first
+    if bad >= 0:
+        return bad
+    twist_c = f.x.copy()
+    if feedback is not None:
+        twist_c += feedback
+    _shift_twist_kernel(twist_c, -centre, twist)  # [c_dot, w] about the centre -> [v, w]
+    for b in range(B):
+        n_vectors[b] = np.count_nonzero(w[b] > 0)
+    return -1
+
+
 class VelocityKF(nn.Module):
     """Batched velocity Kalman filter (state in buffers ``x`` ``(B, 6)`` and ``P`` ``(B, 6, 6)``, float64).
 
@@ -503,6 +557,12 @@ class VelocityKF(nn.Module):
         m = batch_mask(mask, self.batch_size)
         self.x.copy_(torch.where(m[:, None], 0.0 if twist is None else twist.to(self.x), self.x))
         self.P.copy_(torch.where(m[:, None, None], self.P0, self.P))
+
+    def arrays(self) -> KFArrays:
+        """The filters for compiled kernels (:func:`velocity_step`): numpy views of the buffers."""
+        c = self.camera
+        return KFArrays(self.x.numpy(), self.P.numpy(), self.rho, self.Q.numpy(), c.fx, c.fy, c.cx, c.cy, self.r_px,
+                        self.iters, self.k, self.min_vectors, self.normal)
 
     def predict(self) -> torch.Tensor:
         """Apply the motion model in place; returns the predicted twist ``(B, 6)``."""
@@ -581,6 +641,28 @@ def _feedback_kernel(b, rate, axis, has_axis, gain, leak, mask, limit, has_limit
             out[i, j] = v if mask[j] else 0.0
 
 
+class FeedbackArrays(NamedTuple):
+    """A :class:`CorrectionFeedback` as compiled kernels take it (:meth:`CorrectionFeedback.arrays`): its feedback
+    ``b`` ``(B, 6)`` (a view of the buffer, written in place), ``gain``, ``leak``, the axes ``mask`` ``(6,)`` bool and
+    the ``limit`` ``(6,)``."""
+
+    b: np.ndarray
+    gain: float
+    leak: float
+    mask: np.ndarray
+    limit: np.ndarray
+
+
+@numba.njit(cache=True, nogil=True)
+def feedback_step(f, rate, axis):
+    """:meth:`CorrectionFeedback.forward` of the corrections' ``rate`` ``(B, 6)`` about the centres on the feedback's
+    :class:`FeedbackArrays` ``f`` in place, unchecked; ``axis`` ``(B, 3)`` symmetry axes or ``None``."""
+    if axis is None:
+        _feedback_kernel(f.b, rate, np.zeros((1, 3)), False, f.gain, f.leak, f.mask, f.limit, True, f.b)
+    else:
+        _feedback_kernel(f.b, rate, axis, True, f.gain, f.leak, f.mask, f.limit, True, f.b)
+
+
 class CorrectionFeedback(nn.Module):
     """Velocity from the template corrections, for the twist components the flow hardly observes.
 
@@ -647,6 +729,10 @@ class CorrectionFeedback(nn.Module):
             raise ValueError(f"rate must have shape {tuple(self.b.shape)}, got {tuple(rate.shape)}")
         _feedback_into(self.b, rate, symmetry_axis, self.gain, self.leak, self.mask, self.limit, self.b)
         return self.b
+
+    def arrays(self) -> FeedbackArrays:
+        """The feedback for compiled kernels (:func:`feedback_step`): numpy views of the buffers."""
+        return FeedbackArrays(self.b.numpy(), self.gain, self.leak, self.mask.numpy(), self.limit.numpy())
 
     def reset(self, mask: torch.Tensor | None = None) -> None:
         """Zero the feedback of every element, or of those selected by ``mask`` (``(B,)`` bool or ``(K,)`` indices)."""
