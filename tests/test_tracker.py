@@ -135,31 +135,6 @@ def test_a_deep_copy_tracks_on_its_own_buffers(seq):
     twin.close()
 
 
-def test_a_failing_share_waits_for_the_others(seq):
-    """The caller works the first share, the pool the others; an error in the first still lets them finish (they
-    use the tracker's state) before it propagates."""
-    import threading
-    import time
-
-    tracker = EventPoseTracker(CAM, seq.mesh, batch_size=3, workers=3)
-    done, threads = [], set()
-
-    def fn(rows, item):
-        threads.add(threading.current_thread().name)
-        if rows.start == 0:
-            raise RuntimeError(f"share {item} failed")
-        time.sleep(0.05)
-        done.append(item)
-        return item
-
-    assert tracker._map(lambda rows, item: (rows, item), ["a", "b", "c"]) == [
-        (slice(0, 1), "a"), (slice(1, 2), "b"), (slice(2, 3), "c")]
-    with pytest.raises(RuntimeError, match="share a failed"):
-        tracker._map(fn, ["a", "b", "c"])
-    assert sorted(done) == ["b", "c"] and threading.current_thread().name in threads and len(threads) >= 2
-    tracker.close()
-
-
 def test_empty_windows_keep_a_valid_pose():
     tracker = EventPoseTracker(CAM, "can")
     pose0 = torch.tensor([0.01, 0.0, 0.4, 1.0, 0.0, 0.0, 0.0], dtype=torch.float64)

@@ -563,6 +563,11 @@ class EventPoseTracker(nn.Module):
         return self._run.quality
 
     @property
+    def pipelined(self) -> bool:
+        """A thread of its own shares each update (the ``pipeline`` argument, its default resolved)."""
+        return self._schedule.pipelined
+
+    @property
     def lost(self) -> torch.Tensor | None:
         """``(B,)`` bool: the loss detector held the element lost after the last update (before any
         re-initialisation in that update); with ``config.recover``, the :class:`~torchevtrack.recover.Recoverer`'s

@@ -115,7 +115,7 @@ def bench(seq: Sequence, config: TrackerConfig, batch: int, duration_s: float | 
             latencies.append(np.asarray(online.latencies_ms))  # one per update: n
             stages += online.stage_ms
             offline_walls.append(_timed_track(single, events, pose0, t0, t_end, warm_end, 1))
-        pipeline = single._pipeline
+        pipeline = single.pipelined
     finally:
         single.close()
 

@@ -1,11 +1,11 @@
-"""The pipeline thread: jobs run one at a time in submission order, off the calling thread, and hand back their
-results and errors."""
+"""The schedule: the pipeline thread runs jobs one at a time in submission order, off the calling thread, and hands
+back their results and errors; the worker pool maps a function over the batch's shares."""
 
 import threading
 
 import pytest
 
-from torchevtrack.schedule import Job, PipelineThread
+from torchevtrack.schedule import Job, PipelineThread, Schedule
 
 
 def test_jobs_run_in_order_on_the_thread():
@@ -42,3 +42,27 @@ def test_a_done_job_and_a_closed_thread():
     assert slow.result() == "done"
     with pytest.raises(RuntimeError, match="closed"):
         thread.submit(print)
+
+
+def test_a_failing_share_waits_for_the_others():
+    """The caller works the first share, the pool the others; an error in the first still lets them finish (they
+    use the tracker's state) before it propagates."""
+    import time
+
+    schedule = Schedule(3, workers=3)
+    done, threads = [], set()
+
+    def fn(rows, item):
+        threads.add(threading.current_thread().name)
+        if rows.start == 0:
+            raise RuntimeError(f"share {item} failed")
+        time.sleep(0.05)
+        done.append(item)
+        return item
+
+    assert schedule.map(lambda rows, item: (rows, item), ["a", "b", "c"]) == [
+        (slice(0, 1), "a"), (slice(1, 2), "b"), (slice(2, 3), "c")]
+    with pytest.raises(RuntimeError, match="share a failed"):
+        schedule.map(fn, ["a", "b", "c"])
+    assert sorted(done) == ["b", "c"] and threading.current_thread().name in threads and len(threads) >= 2
+    schedule.close()
