@@ -44,7 +44,6 @@ Example:
 from __future__ import annotations
 
 import time
-from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
@@ -54,7 +53,7 @@ from torch import nn
 
 from torchevtrack.camera import Camera
 from torchevtrack.config import RecoverConfig
-from torchevtrack.mesh import load_mesh, symmetry_axis
+from torchevtrack.mesh import symmetry_axis
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.stages import batch_mask
 from torchevtrack.stages.propagate import propagate, twist_between
@@ -142,22 +141,13 @@ class Recoverer(nn.Module):
         self.register_buffer("start_pending", torch.zeros(B, dtype=torch.bool))
 
     @classmethod
-    def from_config(cls, cfg: RecoverConfig, camera: Camera, meshes: Sequence[str | Path | trimesh.Trimesh],
-                    decimate: int | None = None) -> "Recoverer":
-        """One relocaliser per distinct mesh of the ``B`` ``meshes`` (as the tracker takes them; decimated to about
-        ``decimate`` faces if given), with :func:`search_levels` of ``cfg.search_m`` and the shape's
-        :func:`~torchevtrack.mesh.symmetry_axis`."""
-        seen: dict[int, int] = {}
-        relocs, owner = [], []
-        for m in meshes:
-            key = id(m) if isinstance(m, trimesh.Trimesh) else hash(str(m))
-            if key not in seen:
-                mesh = load_mesh(m, decimate=decimate) if decimate else load_mesh(m)
-                radius = float(torch.as_tensor(mesh.vertices).norm(dim=1).max())
-                seen[key] = len(relocs)
-                relocs.append(Relocaliser(RasterRenderer(mesh, camera), radius, levels=search_levels(cfg.search_m),
-                                          symmetry_axis=symmetry_axis(mesh)))
-            owner.append(seen[key])
+    def from_config(cls, cfg: RecoverConfig, camera: Camera, meshes: Sequence[trimesh.Trimesh], owner: Sequence[int],
+                    radii: Sequence[float]) -> "Recoverer":
+        """One relocaliser per distinct loaded mesh of ``meshes`` (the tracker's, already decimated as it renders
+        them) with its bounding radius of ``radii`` (metres), :func:`search_levels` of ``cfg.search_m`` and the
+        shape's :func:`~torchevtrack.mesh.symmetry_axis`; ``owner`` gives each of the ``B`` elements its mesh."""
+        relocs = [Relocaliser(RasterRenderer(mesh, camera), radius, levels=search_levels(cfg.search_m),
+                              symmetry_axis=symmetry_axis(mesh)) for mesh, radius in zip(meshes, radii)]
         return cls(relocs, owner, retry_us=cfg.retry_us, min_events=cfg.min_events, start_search=cfg.start_search,
                    start_after_us=cfg.start_after_us)
 

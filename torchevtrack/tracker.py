@@ -216,12 +216,14 @@ class EventPoseTracker(nn.Module):
         self._renderer_of: list[int] = []
         self._radius: list[float] = []
         self._sym_axes: list[torch.Tensor] = []
+        distinct: list[trimesh.Trimesh] = []
         seen: dict[int, int] = {}
         for m in meshes:
             key = id(m) if isinstance(m, trimesh.Trimesh) else hash(str(m))
             if key not in seen:
                 mesh = load_mesh(m, decimate=cfg.render.decimate) if cfg.render.decimate else load_mesh(m)
                 seen[key] = len(self._renderers)
+                distinct.append(mesh)
                 self._renderers.append(make_renderer(mesh, camera, cfg.render.backend))
                 self._radius.append(float(torch.as_tensor(mesh.vertices).norm(dim=1).max()))
                 axis = hidden_symmetry_axis(mesh) if self._feedback_on(cfg) else None
@@ -273,7 +275,7 @@ class EventPoseTracker(nn.Module):
         else:
             self.loss = None
         self.loss_update: LossUpdate | None = None
-        self.recover = Recoverer.from_config(cfg.recover, camera, meshes, cfg.render.decimate) \
+        self.recover = Recoverer.from_config(cfg.recover, camera, distinct, self._renderer_of, self._radius) \
             if cfg.recover.enabled else None
 
         f64 = torch.float64
