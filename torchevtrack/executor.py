@@ -36,10 +36,6 @@ __all__ = ["EXECUTORS", "Executor", "SerialExecutor", "ProcessExecutor", "RayExe
 EXECUTORS = ("serial", "process", "ray")
 
 
-def _usable_cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-
-
 class Executor:
     """Runs independent tasks; a context manager (:meth:`close` on exit).
 
@@ -182,7 +178,9 @@ def _python_path() -> dict[str, str]:
 
 def _check_workers(workers: int | None) -> int:
     if workers is None:
-        return _usable_cores()
+        from torchevtrack.schedule import usable_cores  # (imports torch: only when the default is asked for)
+
+        return usable_cores()
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be a positive integer, got {workers!r}")
     return workers
