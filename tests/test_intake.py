@@ -1,11 +1,11 @@
-"""intake_step against its oracle: the EROS stage, the time surface stage and then the flow stage, bit for bit."""
+"""bind_intake against its oracle: the EROS stage, the time surface stage and then the flow stage, bit for bit."""
 
 import pytest
 import torch
 
 from torchevtrack.stages.eros import EROS, TimeSurface
-from torchevtrack.stages.flow import TripletFlow
-from torchevtrack.stages.intake import intake_step
+from torchevtrack.stages.flow import FlowField, TripletFlow
+from torchevtrack.update import bind_intake
 
 H, W, B = 60, 80, 3
 
@@ -14,6 +14,11 @@ def _stages(B=B, smooth=False):
     """Two polarity channels: the flow checks the polarities too."""
     return EROS(H, W, batch_size=B), TimeSurface(H, W, batch_size=B), \
         TripletFlow(H, W, batch_size=B, block=20, min_samples=5, per_polarity=True, smooth=smooth)
+
+
+def intake(eros, times, flow, x, y, t, p=None, b=None, rows=None):
+    """The tracker's call: the bound intake, its numpy flow field as tensors."""
+    return FlowField(*(torch.from_numpy(a) for a in bind_intake(eros, times, flow, rows)(x, y, t, p, b)))
 
 
 def _window(seed, t0, n=3000, B=B):
@@ -30,12 +35,12 @@ def _window(seed, t0, n=3000, B=B):
 
 
 @pytest.mark.parametrize("smooth", [False, True])
-def test_intake_step_is_the_eros_then_the_flow_bit_for_bit(smooth):
+def test_intake_is_the_eros_then_the_flow_bit_for_bit(smooth):
     eros, times, flow = _stages(smooth=smooth)
     ref_eros, ref_times, ref_flow = _stages(smooth=smooth)
     for k in range(3):  # later windows see the surfaces the earlier ones left
         x, y, t, p, b = _window(k, 10_000 + 2000 * k)
-        got = intake_step(eros, times, flow, x, y, t, p, b)
+        got = intake(eros, times, flow, x, y, t, p, b)
         ref_eros(x, y, b)
         ref_times(x, y, t, b)
         want = ref_flow(x, y, t, p, b)
@@ -53,7 +58,7 @@ def test_rows_and_one_element_without_a_batch_index():
     ref_eros, ref_times, ref_flow = _stages()
     x, y, t, p, b = _window(1, 5000)
     keep = b == 1
-    got = intake_step(eros, times, flow, x[keep], y[keep], t[keep], p[keep], b[keep] - 1, rows=slice(1, 2))
+    got = intake(eros, times, flow, x[keep], y[keep], t[keep], p[keep], b[keep] - 1, rows=slice(1, 2))
     ref_eros(x[keep], y[keep], b[keep] - 1, rows=slice(1, 2))
     ref_times(x[keep], y[keep], t[keep], b[keep] - 1, rows=slice(1, 2))
     want = ref_flow(x[keep], y[keep], t[keep], p[keep], b[keep] - 1, rows=slice(1, 2))
@@ -62,7 +67,7 @@ def test_rows_and_one_element_without_a_batch_index():
     assert torch.equal(times.last_us, ref_times.last_us)
     one_eros, one_times, one_flow = _stages(B=1)
     ref_eros, ref_times, ref_flow = _stages(B=1)
-    got = intake_step(one_eros, one_times, one_flow, x[keep], y[keep], t[keep], p[keep])
+    got = intake(one_eros, one_times, one_flow, x[keep], y[keep], t[keep], p[keep])
     ref_eros(x[keep], y[keep])
     ref_times(x[keep], y[keep], t[keep])
     want = ref_flow(x[keep], y[keep], t[keep], p[keep])
@@ -77,20 +82,18 @@ def test_bad_events_raise_the_stages_errors_and_write_nothing():
     for bad, match in (((x.clone().fill_(W), y, t, p, b), "x"), ((x, y, t, p.clone().fill_(2), b), "p must"),
                        ((x, y, t, p, b.clone().fill_(B)), "b")):
         with pytest.raises(ValueError, match=match):
-            intake_step(eros, times, flow, *bad)
+            intake(eros, times, flow, *bad)
         assert torch.equal(eros.surface, before[0]) and torch.equal(times.last_us, before[1])
         assert torch.equal(flow.sae_padded, before[2])
     with pytest.raises(TypeError):
-        intake_step(eros, times, flow, x.float(), y, t, p, b)
+        intake(eros, times, flow, x.float(), y, t, p, b)
     with pytest.raises(ValueError, match="same elements"):
-        intake_step(EROS(H, W, batch_size=2), times, flow, x, y, t, p, b)
+        intake(EROS(H, W, batch_size=2), times, flow, x, y, t, p, b)
 
 
 def test_the_flow_alone_and_the_checked_events():
     """surfaces=False leaves the EROS and the time surface alone; checked sees the events once they are known to be in
     range, and bad events raise before it is called."""
-    from torchevtrack.stages.intake import bind_intake
-
     eros, times, flow = _stages()
     ref_eros, ref_times, ref_flow = _stages()
     x, y, t, p, b = _window(3, 7000)
@@ -113,7 +116,7 @@ def test_without_a_time_surface():
     eros, _, flow = _stages()
     ref_eros, _, ref_flow = _stages()
     x, y, t, p, b = _window(4, 9000)
-    got = intake_step(eros, None, flow, x, y, t, p, b)
+    got = intake(eros, None, flow, x, y, t, p, b)
     ref_eros(x, y, b)
     want = ref_flow(x, y, t, p, b)
     assert all(torch.equal(a, c) for a, c in zip(got, want))

@@ -163,7 +163,7 @@ def test_a_wrong_length_batch_index_names_the_tensors(seq):
 
 
 def test_int32_windows_are_cast_once_and_give_the_same_poses(seq):
-    import torchevtrack.stages.intake as intake  # its compiled kernels
+    import torchevtrack.update as intake  # the intake's compiled kernels
 
     def signatures():
         return {name: list(k.signatures) for name, k in vars(intake).items() if hasattr(k, "signatures")}

@@ -1,4 +1,4 @@
-"""motion_step against its oracle: the stage calls it composes, one after the other, bit for bit."""
+"""motion against its oracle: the stage calls it composes, one after the other, bit for bit."""
 
 import numpy as np
 import pytest
@@ -6,10 +6,11 @@ import torch
 
 from torchevtrack.camera import Camera
 from torchevtrack.geometry import quat_exp, quat_mul
+from torchevtrack.stages import periods
 from torchevtrack.stages.flow import FlowField
 from torchevtrack.stages.propagate import invalid_poses, propagate, twist_between
 from torchevtrack.stages.velocity import VelocityKF, sample_depth, shift_twist
-from torchevtrack.update import motion_step
+from torchevtrack.update import MotionArgs, motion
 
 CAM = Camera.default()
 F64 = torch.float64
@@ -42,6 +43,15 @@ def _inputs(seed=0):
     return kf, fields, depth, origin, pose, prev, feedback
 
 
+def _motion(source, pose, prev, min_depth, kf=None, fields=None, depth=None, origin=None, feedback=None):
+    """The tracker's call: the arguments as numpy views (the filter's and the flow's whatever the source), the
+    results as tensors ``(predicted, twist, n_vectors, rejected)``."""
+    a = MotionArgs(source, pose.numpy(), prev.numpy(), periods(B, DT), min_depth.numpy(),
+                   None if kf is None else kf.arrays(), MAX_SPEED, RADIUS, None if feedback is None else feedback.numpy())
+    flow = () if fields is None else (FlowField(*(f.numpy() for f in fields)), depth.numpy(), origin.numpy())
+    return tuple(torch.from_numpy(v) for v in motion(a, *flow))
+
+
 def _oracle(source, kf, fields, depth, origin, pose, prev, feedback, min_depth):
     """The tracker's steps 2-3 as separate stage calls."""
     n_vectors = torch.zeros(B, dtype=torch.long)
@@ -69,19 +79,18 @@ def _oracle(source, kf, fields, depth, origin, pose, prev, feedback, min_depth):
 
 @pytest.mark.parametrize("source, with_feedback", [("flow", True), ("flow", False), ("poses", False),
                                                    ("none", False)])
-def test_motion_step_is_the_stage_calls_bit_for_bit(source, with_feedback):
+def test_motion_is_the_stage_calls_bit_for_bit(source, with_feedback):
     kf, fields, depth, origin, pose, prev, feedback = _inputs()
     feedback = feedback if with_feedback else None
     min_depth = torch.full((B,), 0.1, dtype=F64)
     ref_kf, *_ = _inputs()
     want = _oracle(source, ref_kf, fields, depth, origin, pose, prev, feedback, min_depth)
-    got = motion_step(source, pose, prev, DT, min_depth, kf=kf, flow=fields, max_speed=MAX_SPEED, depth=depth,
-                      origin=origin, radius=RADIUS, feedback=feedback)
-    for name, g, w in zip(got._fields, got, want):
-        assert torch.equal(g, w), name
+    got = _motion(source, pose, prev, min_depth, kf, fields, depth, origin, feedback)
+    for name, g, w in zip(("predicted", "twist", "n_vectors", "rejected"), got, want):
+        assert g.dtype == w.dtype and torch.equal(g, w), name
     assert torch.equal(kf.x, ref_kf.x) and torch.equal(kf.P, ref_kf.P)
     if source == "flow":
-        assert int(got.n_vectors.sum()) > 0 and not bool(got.rejected.any())
+        assert int(got[2].sum()) > 0 and not bool(got[3].any())
         assert not torch.equal(kf.x, _inputs()[0].x)  # the filter moved
     else:
         assert torch.equal(kf.x, _inputs()[0].x)  # untouched
@@ -93,32 +102,23 @@ def test_invalid_predictions_keep_the_pose_with_zero_twist():
     prev = pose.clone()
     prev[1, 2] += 0.4  # it came from 0.4 m farther in one period: it will pass min_depth
     min_depth = torch.tensor([0.1, 0.5, 0.1], dtype=F64)
-    got = motion_step("poses", pose, prev, DT, min_depth)
-    assert got.rejected.tolist() == [False, True, False]
-    assert torch.equal(got.predicted[1], pose[1]) and not bool(got.twist[1].any())
+    predicted, twist, _, rejected = _motion("poses", pose, prev, min_depth)
+    assert rejected.tolist() == [False, True, False]
+    assert torch.equal(predicted[1], pose[1]) and not bool(twist[1].any())
     want = _oracle("poses", kf, fields, depth, origin, pose, prev, None, min_depth)
-    assert torch.equal(got.predicted, want[0]) and torch.equal(got.twist, want[1])
+    assert torch.equal(predicted, want[0]) and torch.equal(twist, want[1])
     # a rotation-only twist keeps the position but turns the orientation
     prev = pose.clone()
     prev[:, 3:] = quat_mul(quat_exp(torch.tensor([[0.0, 0.0, 0.01]], dtype=F64)).expand(B, 4), pose[:, 3:])
-    turned = motion_step("poses", pose, prev, DT, torch.full((B,), 0.1, dtype=F64)).predicted
+    turned = _motion("poses", pose, prev, torch.full((B,), 0.1, dtype=F64))[0]
     assert torch.allclose(turned[:, :3], pose[:, :3], atol=1e-12) and not torch.allclose(turned[:, 3:], pose[:, 3:])
 
 
-def test_bad_arguments_are_clear_errors():
+def test_a_filter_that_is_not_positive_definite_is_named():
     kf, fields, depth, origin, pose, prev, _ = _inputs()
-    min_depth = torch.full((B,), 0.1, dtype=F64)
-    with pytest.raises(ValueError, match="source"):
-        motion_step("imu", pose, prev, DT, min_depth)
-    with pytest.raises(ValueError, match="needs kf"):
-        motion_step("flow", pose, prev, DT, min_depth, flow=fields)
-    with pytest.raises(ValueError, match="float64"):
-        motion_step("none", pose.float(), prev, DT, min_depth)
-    with pytest.raises(ValueError, match="B=3"):  # a filter of another batch size: refused, not read out of bounds
-        motion_step("flow", pose, prev, DT, min_depth, kf=VelocityKF(CAM, batch_size=2), flow=fields, depth=depth,
-                    origin=origin)
-    with pytest.raises(ValueError, match="B=3"):
-        motion_step("flow", pose, prev, DT, min_depth, kf=kf, flow=fields, depth=depth, origin=origin[:2])
+    kf.P[1] = -100.0 * torch.eye(6, dtype=F64)
+    with pytest.raises(torch.linalg.LinAlgError, match="kf_update: the covariance of filter 1"):
+        _motion("flow", pose, prev, torch.full((B,), 0.1, dtype=F64), kf, fields, depth, origin)
 
 
 def test_invalid_poses_is_the_rule():
@@ -137,7 +137,6 @@ def test_invalid_poses_is_the_rule():
 def test_render_ahead_kernel_swaps_in_the_last_prediction_and_propagates():
     """now = the poses predicted last time where they were valid, else this prediction; the buffers then hold this
     prediction moved on by its twist (propagate) and whether that is valid (invalid_poses)."""
-    from torchevtrack.stages import periods
     from torchevtrack.update import render_ahead
 
     g = torch.Generator().manual_seed(3)

@@ -310,8 +310,8 @@ def _counting_intake(monkeypatch):
     with the observation (the observe kernel); the serial update calls the intake kernel on the caller's thread."""
     import threading
 
-    import torchevtrack.stages.intake as intake_module
-    import torchevtrack.stages.observe as observe_module
+    import torchevtrack.stages.eros as observe_module
+    import torchevtrack.update as intake_module
 
     calls = {"intake": [], "observe": []}
     for name, module, attr in (("intake", intake_module, "_intake_kernel"), ("observe", observe_module,

@@ -43,12 +43,10 @@ from torchevtrack.synth.sequence import Sequence
 from torchevtrack.tracker import EventPoseTracker
 
 KERNELS = {
-    "torchevtrack.stages.eros": ["_eros_kernel"],
-    "torchevtrack.stages.flow": ["_flow_packet"],
-    "torchevtrack.stages.intake": ["_intake_kernel"],
-    "torchevtrack.stages.observe": ["_observe_kernel"],
+    "torchevtrack.stages.eros": ["eros_kernel", "_observe_kernel"],
+    "torchevtrack.stages.flow": ["flow_packet"],
     "torchevtrack.stages.render_model": ["_render_model_kernel"],
-    "torchevtrack.update": ["_motion_kernel", "_output_kernel"],
+    "torchevtrack.update": ["_intake_kernel", "_motion_kernel", "_output_kernel"],
     "torchevtrack.raster": ["_render_kernel"],
     "torchevtrack.stages.template": ["_box_kernel", "_model_kernel"],
     "torchevtrack.stages.correction": ["_canvas_kernel", "_newton_kernel"],

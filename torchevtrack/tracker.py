@@ -4,9 +4,9 @@ One update consumes the events of one window (``1 / rate_hz``, 2 ms by default) 
 sequences and runs, in the paper's order:
 
 1. :class:`~torchevtrack.stages.eros.EROS` and :class:`~torchevtrack.stages.flow.TripletFlow` take the events in
-   one compiled call (:func:`~torchevtrack.stages.intake.intake_step`). With the pipeline: for one stream with its
+   one compiled call (:func:`~torchevtrack.update.bind_intake`). With the pipeline: for one stream with its
    template made ahead, the EROS (and a :class:`~torchevtrack.stages.eros.TimeSurface` of its own) on a thread of
-   their own together with step 5's observation (:func:`~torchevtrack.stages.observe.observe_step`) while the flow
+   their own together with step 5's observation (:func:`~torchevtrack.stages.eros.bind_observe`) while the flow
    runs here; otherwise, when the window is known one update ahead, both on that thread during the previous update's
    step 5;
 2. :class:`~torchevtrack.stages.velocity.VelocityKF` fuses the block flows, with depth sampled from the
@@ -15,7 +15,7 @@ sequences and runs, in the paper's order:
    filter's twist, plus with ``velocity.feedback_gain > 0`` the
    :class:`~torchevtrack.stages.velocity.CorrectionFeedback` on the axes the flow hardly observes: depth
    rate, pitch and yaw); steps 2 and 3 run as one compiled call of those stages' kernels,
-   :func:`~torchevtrack.update.motion_step`;
+   :func:`~torchevtrack.update.motion`;
 4. the mesh is rendered once, in a window around the propagated pose; by default (``render.ahead``) around
    the pose the previous update predicted for this one (its propagated pose moved on by its twist), so that
    with the pipeline the render and its template model are made on the pipeline's thread during the previous
@@ -25,7 +25,7 @@ sequences and runs, in the paper's order:
    and moves the pose to the best (the paper's argmax of 13, or a Newton step over all six axes:
    ``template.rule``); the correction's rate feeds the feedback of step 3, if on;
 6. :class:`~torchevtrack.stages.ukf.PoseUKF` smooths the corrected pose into the output (with the correction
-   feedback's update and the output checks, one compiled call: :func:`~torchevtrack.update.output_step`);
+   feedback's update and the output checks, one compiled call: :func:`~torchevtrack.update.output`);
 0. before all of them, the :class:`~torchevtrack.stages.burst.BurstGuard` (``config.burst``, on by default) counts
    each element's events in the window; a burst's (a flash, a camera bump) are dropped before any stage sees them,
    so that update costs what an empty window does: the velocity filter predicts without a measurement, the template
@@ -82,16 +82,14 @@ from torchevtrack.stages import batch_mask, periods
 from torchevtrack.stages.burst import BurstGuard, keep_events
 from torchevtrack.stages.correction import CorrectionStep, bind_correction
 from torchevtrack.stages.denoise import BackgroundActivityFilter
-from torchevtrack.stages.eros import EROS, TimeSurface
+from torchevtrack.stages.eros import EROS, TimeSurface, bind_observe
 from torchevtrack.stages.flow import FlowField, TripletFlow
-from torchevtrack.stages.intake import bind_intake
-from torchevtrack.stages.observe import bind_observe
 from torchevtrack.stages.propagate import invalid_poses, propagate
 from torchevtrack.stages.render_model import bind_render_model
 from torchevtrack.stages.template import Correction, TemplateCorrector, TemplateModel, window_of
 from torchevtrack.stages.ukf import PoseUKF
 from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, shift_twist
-from torchevtrack.update import MotionArgs, OutputArgs, motion, output, render_ahead
+from torchevtrack.update import MotionArgs, OutputArgs, bind_intake, motion, output, render_ahead
 
 if TYPE_CHECKING:
     from torchevtrack.render import Renderer
@@ -150,9 +148,9 @@ class EventPoseTracker(nn.Module):
             one sequence, the compiled rasteriser and the template on, that thread makes the next update's render
             and template model (:func:`~torchevtrack.stages.render_model.render_model_step`) while an update
             searches, and takes each window into the EROS and the time surface and observes it
-            (:func:`~torchevtrack.stages.observe.observe_step`) while the calling thread runs the flow. Otherwise it
+            (:func:`~torchevtrack.stages.eros.bind_observe`) while the calling thread runs the flow. Otherwise it
             takes the next window's events into the EROS and the flow
-            (:func:`~torchevtrack.stages.intake.intake_step`) while an update searches, whenever that window is
+            (:func:`~torchevtrack.update.bind_intake`) while an update searches, whenever that window is
             known: in :meth:`track`, and in :class:`~torchevtrack.online.OnlineTracker` when a push completes
             several windows (and with ``render.ahead``, one sequence, also makes the next update's render). Default:
             on with one worker and two or more usable cores. Results do not depend on it; with it, the ``eros``,
@@ -171,7 +169,7 @@ class EventPoseTracker(nn.Module):
     After each update, ``quality`` holds its :class:`Quality` and ``stage_ms`` the milliseconds spent in
     each stage (eros, flow, velocity, render, correction, ukf; and loss with a detector; ukf includes the
     correction feedback's update, which runs with it; the EROS and the flow, and the time surface where one is kept,
-    run as one compiled call per worker, :func:`~torchevtrack.stages.intake.intake_step`, whose time counts as the
+    run as one compiled call per worker, :func:`~torchevtrack.update.bind_intake`, whose time counts as the
     flow's). With
     ``config.loss.enabled``, ``loss`` is the :class:`~torchevtrack.loss.LossDetector` (its buffers:
     confidence, lost, lost_at_us, ...), ``loss_update`` the :class:`~torchevtrack.loss.LossUpdate` of
@@ -937,7 +935,8 @@ class EventPoseTracker(nn.Module):
     def _observe_soon(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, b: np.ndarray | None,
                       t_now: np.ndarray) -> None:
         """Take the checked events into the EROS and the time surface on the intake thread and observe them under the
-        canvas box of the render made ahead there (:mod:`~torchevtrack.stages.observe`), for :meth:`_correct`."""
+        canvas box of the render made ahead there (:func:`~torchevtrack.stages.eros.bind_observe`), for
+        :meth:`_correct`."""
         rendering, observe, box = self._run.rendering, self._run.bound.observe, self._render_one.observed_box
 
         def job() -> np.ndarray | None:

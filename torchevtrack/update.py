@@ -2,17 +2,21 @@
 
 An update's small per-element operations cost less as one compiled call than as stage calls with tensor glue between
 them, and on the tracker's threads a call that holds the GIL delays the other thread. Each fused step here is built
-from the stages' public fast pieces (their ``arrays()`` records and compiled ``*_step`` functions), and its checked
-form (``*_step`` here) gives exactly the numbers of the stage calls (``tests/test_motion.py``,
-``tests/test_output.py``):
+from the stages' public compiled pieces (their ``arrays()`` records, ``*_step`` and ``*_kernel`` functions), runs on
+numpy views of their buffers, unchecked but for the events, and gives exactly the numbers of the stage calls one after
+the other (``tests/test_intake.py``, ``tests/test_motion.py``, ``tests/test_output.py``):
 
-- :func:`motion_step`, steps 2-3: the twist and the propagated pose of every element. With ``source = "flow"`` (the
+- :func:`bind_intake`, step 1: a window's events into the :class:`~torchevtrack.stages.eros.EROS`, its
+  :class:`~torchevtrack.stages.eros.TimeSurface` and the :class:`~torchevtrack.stages.flow.TripletFlow`. Each reads
+  only its own state and the events, so their order does not matter: the flow (which checks every event before it
+  writes), then the EROS and the time surface.
+- :func:`motion`, steps 2-3: the twist and the propagated pose of every element. With ``source = "flow"`` (the
   paper) the velocity filter's step (:func:`~torchevtrack.stages.velocity.velocity_step`: predict, the slow valid
   flow vectors, their depth from the last render, update about the object centre, plus the correction feedback,
   back about the camera); ``"poses"``: :func:`~torchevtrack.stages.propagate.twist_between` the last two poses;
   ``"none"``: zero twist. Then :func:`~torchevtrack.stages.propagate.propagate_step` by ``dt``, which keeps the pose
   with zero twist where the prediction is not valid.
-- :func:`output_step`, step 6: the correction's rate into the
+- :func:`output`, step 6: the correction's rate into the
   :class:`~torchevtrack.stages.velocity.CorrectionFeedback` (:func:`~torchevtrack.stages.propagate.twist_between`
   the predicted and measured poses about the predicted centre, :func:`~torchevtrack.stages.velocity.feedback_step`),
   the :class:`~torchevtrack.stages.ukf.PoseUKF` predict and update (:func:`~torchevtrack.stages.ukf.ukf_step`; its
@@ -22,47 +26,100 @@ form (``*_step`` here) gives exactly the numbers of the stage calls (``tests/tes
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import numba
 import numpy as np
 import torch
 
-from torchevtrack.stages import periods
-from torchevtrack.stages.flow import FlowField
-from torchevtrack.stages.propagate import _propagate_kernel, _twist_between_kernel, propagate_step, valid_pose
-from torchevtrack.stages.ukf import PoseUKF, UKFArrays, ukf_step
-from torchevtrack.stages.velocity import (CorrectionFeedback, FeedbackArrays, KFArrays, VelocityKF, _shift_twist_kernel,
-                                          feedback_step, velocity_step)
+from torchevtrack.stages.eros import EROS, TimeSurface, eros_kernel, prepare_events, time_kernel
+from torchevtrack.stages.flow import (FlowField, TripletFlow, event_arrays, events_in_range, flow_packet, range_error,
+                                      smooth_flow)
+from torchevtrack.stages.propagate import propagate_kernel, propagate_step, twist_between_kernel, valid_pose
+from torchevtrack.stages.ukf import UKFArrays, ukf_step
+from torchevtrack.stages.velocity import FeedbackArrays, KFArrays, feedback_step, shift_twist_kernel, velocity_step
 
-__all__ = ["Motion", "MotionArgs", "Output", "OutputArgs", "SOURCES", "motion", "motion_step", "output",
-           "output_step"]
-
-SOURCES = ("flow", "poses", "none")
+__all__ = ["MotionArgs", "OutputArgs", "bind_intake", "motion", "output", "render_ahead"]
 
 
-class Motion(NamedTuple):
-    """Result of :func:`motion_step`.
+def bind_intake(eros: EROS, time_surface: TimeSurface | None, flow: TripletFlow,
+                rows: slice | None = None) -> Callable[..., FlowField]:
+    """Step 1 bound to the stages' buffers (numpy views of their ``rows``, default all ``B``, written in place at each
+    call); ``time_surface`` ``None``: none is kept.
 
-    Attributes:
-        predicted: ``(B, 7)`` float64 propagated poses ``[t (m), q (w, x, y, z)]``.
-        twist: ``(B, 6)`` float64 camera-frame twist ``[v (m/s), w (rad/s)]`` they were propagated with.
-        n_vectors: ``(B,)`` int64 flow vectors the velocity filter weighed (0 unless ``source = "flow"``).
-        rejected: ``(B,)`` bool, the prediction was not valid and the pose was kept.
+    Returns ``run(x, y, t, p, b, surfaces=True, checked=None)``: ``eros(x, y, b, rows)``, ``time_surface(x, y, t, b,
+    rows)`` and ``flow(x, y, t, p, b, rows)`` in one compiled call, with the arguments and errors of the stages'
+    ``forward`` (packed events: ``(N,)`` integer pixels ``x, y``, int64 microseconds ``t``, polarity ``p``, batch
+    index ``b`` counted from the first of ``rows``); on an error nothing is written. It gives the flow's
+    :class:`~torchevtrack.stages.flow.FlowField` as numpy arrays. With ``surfaces=False`` it runs the flow alone,
+    leaving the EROS and the time surface to the caller. ``checked``, if given, is called with the events as numpy
+    arrays ``(x, y, t, b)`` (``b`` ``None`` for one element) once every event is known to be in range, before
+    anything is written (from there on the call cannot fail): the caller may start taking them into the EROS and the
+    time surface elsewhere then (:func:`~torchevtrack.stages.eros.bind_observe`).
     """
+    surface = eros.surface if rows is None else eros.surface[rows]
+    sae = flow.sae_padded if rows is None else flow.sae_padded[rows]
+    B, C = sae.shape[:2]
+    times = time_surface is not None
+    last = (time_surface.last_us if rows is None else time_surface.last_us[rows]) if times else \
+        torch.empty(B, 0, 0, dtype=torch.int64)
+    if surface.shape[0] != B or last.shape[0] != B:
+        raise ValueError(f"the EROS, the time surface and the flow must hold the same elements, got "
+                         f"{surface.shape[0]}, {last.shape[0]} and {B}")
+    G = flow.n_blocks
+    s, last_np, sae_np = surface.numpy(), last.numpy(), sae.numpy()
+    lam, r = s.dtype.type(eros.lam), eros.kernel_size // 2
+    matching = flow.params
 
-    predicted: torch.Tensor
-    twist: torch.Tensor
-    n_vectors: torch.Tensor
-    rejected: torch.Tensor
+    def _range_errors(x, y, t, p, b):
+        prepare_events(x, y, b, *surface.shape[1:], B)  # the EROS stage's range error
+        range_error(tuple(sae.shape[:2]) + (flow.height, flow.width), x, y, t, p, b)  # the flow's (polarity)
+
+    def run(x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor | None = None,
+            b: torch.Tensor | None = None, surfaces: bool = True,
+            checked: Callable[..., object] | None = None) -> FlowField:
+        xn, yn, tn, pn, bn, batched = event_arrays(C, x, y, t, p, b)  # checks the fields as the EROS stage does
+        if checked is not None:
+            if not events_in_range(xn, yn, pn, bn, C, batched, B, flow.height, flow.width):
+                _range_errors(x, y, t, p, b)
+            checked(xn, yn, tn, bn if batched else None)
+        out, uv = np.zeros((B, G, 2), dtype=np.float32), np.empty((B, G, 2), dtype=np.float32)
+        valid, count = np.empty((B, G), dtype=np.bool_), np.empty((B, G), dtype=np.int64)
+        if not _intake_kernel(s, lam, r, last_np, surfaces, surfaces and times, sae_np, xn, yn, tn, pn, bn, C, batched,
+                              *matching, out, uv, valid, count):
+            _range_errors(x, y, t, p, b)
+        if flow.smooth:
+            out, uv = (a.numpy() for a in smooth_flow(torch.from_numpy(out), torch.from_numpy(uv),
+                                                      torch.from_numpy(valid), flow.gy, flow.gx))
+        return FlowField(uv, out, valid, count)
+    return run
+
+
+@numba.njit(cache=True, nogil=True)
+def _intake_kernel(surface, lam, r, last, surfaces, times, sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us,
+                   tol, chunk, block_x, block_y, G, min_samples, max_candidates, tie_tol, normal, inlier, fill, out, uv,
+                   valid, count):
+    """:func:`~torchevtrack.stages.flow.flow_packet`, then (``surfaces``) :func:`~torchevtrack.stages.eros.eros_kernel`
+    and (``times``) :func:`~torchevtrack.stages.eros.time_kernel` if every event was in range (False: nothing
+    written)."""
+    ok = flow_packet(sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, chunk, block_x, block_y, G,
+                     min_samples, max_candidates, tie_tol, normal, inlier, fill, out, uv, valid, count)
+    if ok and surfaces and x.shape[0]:
+        ok = eros_kernel(surface, x, y, b, batched, r, lam) and (not times or time_kernel(last, x, y, t, b, batched))
+    return ok
+
+
 
 
 class MotionArgs(NamedTuple):
-    """What :func:`motion` reads besides the flow and the render: ``source`` (:data:`SOURCES`), the current and
-    previous poses ``(B, 7)`` float64, the period ``dt`` ``(B,)`` s, ``min_depth`` ``(B,)`` m (numpy views, read at each
-    call); for ``source = "flow"`` the velocity filter's :class:`~torchevtrack.stages.velocity.KFArrays` (else
-    ``None``), the speed ``max_speed`` (px/s) from which a flow vector is dropped, the depth sampling ``radius`` (px)
-    and the feedback twist ``(B, 6)`` about the centre (or ``None``)."""
+    """What :func:`motion` reads besides the flow and the render (numpy views, read at each call): ``source``
+    (``"flow"``, ``"poses"`` or ``"none"``, as ``velocity.source`` of the config), the current and previous poses
+    ``(B, 7)`` float64, the period ``dt`` ``(B,)`` s (:func:`~torchevtrack.stages.periods`) and ``min_depth`` ``(B,)``
+    float64, the nearest valid object-centre depth (m); for ``source = "flow"`` the velocity filter's
+    :class:`~torchevtrack.stages.velocity.KFArrays` (:meth:`~torchevtrack.stages.velocity.VelocityKF.arrays`; else
+    ``None``), the speed ``max_speed`` (px/s) from which a flow vector is dropped, the radius (px) of
+    :func:`~torchevtrack.stages.velocity.sample_depth` and the feedback twist ``(B, 6)`` about the centre added to the
+    filter's (or ``None``)."""
 
     source: str
     pose: np.ndarray
@@ -77,9 +134,24 @@ class MotionArgs(NamedTuple):
 
 def motion(a: MotionArgs, field: FlowField | None = None, depth: np.ndarray | None = None,
            origin: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
-    """:func:`motion_step` unchecked, on numpy arrays: the flow ``field`` and the last render's ``depth`` and
-    ``origin`` for ``source = "flow"``. Returns new arrays ``(predicted, twist, n_vectors, rejected)`` as
-    :class:`Motion`; the filter of ``a.kf`` is updated in place."""
+    """Steps 2-3 (see the module docstring) in one compiled call, unchecked: the twist and the propagated pose of
+    every element; with ``source = "flow"`` the filter of ``a.kf`` is updated in place.
+
+    Args:
+        a: the bound arguments (:class:`MotionArgs`).
+        field, depth, origin: for ``source = "flow"``: the flow field ``(B, G)`` as numpy arrays
+            (:func:`bind_intake`), the last render's depth ``(B, h, w)`` float32 and its top-left pixel ``(B, 2)``
+            int64.
+
+    Returns:
+        New arrays ``(predicted, twist, n_vectors, rejected)``: the propagated poses ``(B, 7)`` float64
+        ``[t (m), q (w, x, y, z)]``, the camera-frame twist ``(B, 6)`` float64 ``[v (m/s), w (rad/s)]`` they were
+        propagated with, the flow vectors the filter weighed ``(B,)`` int64 (0 unless ``source = "flow"``) and
+        ``(B,)`` bool where the prediction was not valid and the pose was kept with zero twist.
+
+    Raises:
+        torch.linalg.LinAlgError: a velocity filter's covariance is not positive definite.
+    """
     B = a.pose.shape[0]
     out = np.empty((B, 7)), np.empty((B, 6)), np.zeros(B, dtype=np.int64), np.empty(B, dtype=np.bool_)
     kf = a.kf if a.source == "flow" else None
@@ -101,57 +173,11 @@ def _motion_kernel(from_poses, pose, prev_pose, dt, min_depth, kf, field, depth,
         if bad >= 0:
             return bad
     elif from_poses:
-        _twist_between_kernel(prev_pose, pose, dt, twist)
+        twist_between_kernel(prev_pose, pose, dt, twist)
     else:
         twist[:] = 0.0
     propagate_step(pose, twist, dt, min_depth, predicted, rejected)
     return -1
-
-
-def motion_step(source: str, pose: torch.Tensor, prev_pose: torch.Tensor, dt: float, min_depth: torch.Tensor, *,
-                kf: VelocityKF | None = None, flow: FlowField | None = None, max_speed: float = float("inf"),
-                depth: torch.Tensor | None = None, origin: torch.Tensor | None = None, radius: int = 2,
-                feedback: torch.Tensor | None = None) -> Motion:
-    """The twist and propagated pose of every element (see the module docstring); with ``source = "flow"`` the
-    filter ``kf`` is updated in place.
-
-    Args:
-        source: ``"flow"``, ``"poses"`` or ``"none"`` (:data:`SOURCES`).
-        pose, prev_pose: ``(B, 7)`` float64 current and previous poses.
-        dt: update period, seconds.
-        min_depth: ``(B,)`` float64, the nearest valid object-centre depth (m).
-        kf, flow, max_speed, depth, origin, radius, feedback: for ``source = "flow"``: the velocity filter; the
-            flow field ``(B, G)``; the speed (px/s) from which a flow vector is dropped; the last render's
-            depth ``(B, h, w)`` float32 with its top-left pixel ``origin`` ``(B, 2)`` int64 and the radius of
-            :func:`~torchevtrack.stages.velocity.sample_depth`; the feedback twist ``(B, 6)`` about the centre
-            added to the filter's (or ``None``).
-
-    Raises:
-        torch.linalg.LinAlgError: a velocity filter's covariance is not positive definite.
-
-    Shape: ``(B, 7), (B, 7), (), (B,) -> Motion``.
-    """
-    if source not in SOURCES:
-        raise ValueError(f"source must be one of {SOURCES}, got {source!r}")
-    B = pose.shape[0]
-    if pose.shape != (B, 7) or prev_pose.shape != (B, 7) or pose.dtype != torch.float64 \
-            or prev_pose.dtype != torch.float64 or min_depth.shape != (B,):
-        raise ValueError(f"expected float64 pose and prev_pose (B, 7) and min_depth (B,), got {tuple(pose.shape)}, "
-                         f"{tuple(prev_pose.shape)}, {tuple(min_depth.shape)}")
-    by_flow = source == "flow"
-    if by_flow and (kf is None or flow is None or depth is None or origin is None):
-        raise ValueError("source='flow' needs kf, flow, depth and origin")
-    G = flow.valid.shape[1] if by_flow else 0
-    if by_flow and (kf.batch_size != B or flow.valid.shape != (B, G) or flow.valid.dtype != torch.bool
-                    or flow.uv.shape != (B, G, 2) or flow.flow.shape != (B, G, 2) or depth.ndim != 3
-                    or depth.shape[0] != B or origin.shape != (B, 2) or origin.dtype != torch.int64
-                    or (feedback is not None and feedback.shape != (B, 6))):
-        raise ValueError(f"expected for B={B}: a filter of B, flow uv and flow (B, G, 2) with a bool valid (B, G), "
-                         "depth (B, h, w), int64 origin (B, 2) and feedback (B, 6)")
-    a = MotionArgs(source, pose.numpy(), prev_pose.numpy(), periods(B, float(dt)), min_depth.numpy(),
-                   kf.arrays() if by_flow else None, max_speed, radius, None if feedback is None else feedback.numpy())
-    out = motion(a, FlowField(*(f.numpy() for f in flow)), depth.numpy(), origin.numpy()) if by_flow else motion(a)
-    return Motion(*(torch.from_numpy(v) for v in out))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -169,28 +195,16 @@ def render_ahead(predicted, twist, dt, min_depth, ahead, ahead_ok, now, now32):
         for j in range(7):
             now[b, j] = src[j]
             now32[b, j] = np.float32(src[j])
-    _propagate_kernel(predicted, twist, dt, ahead)
+    propagate_kernel(predicted, twist, dt, ahead)
     for b in range(predicted.shape[0]):
         ahead_ok[b] = valid_pose(ahead[b], min_depth[b])
 
 
-class Output(NamedTuple):
-    """Result of :func:`output_step`.
-
-    Attributes:
-        pose: ``(B, 7)`` float64 output poses ``[t (m), q (w, x, y, z)]``, canonical quaternions.
-        rejected: ``(B,)`` bool, the output was not valid and the current pose was kept.
-    """
-
-    pose: torch.Tensor
-    rejected: torch.Tensor
-
-
 class OutputArgs(NamedTuple):
-    """What :func:`output` reads besides the update's poses: the current pose ``(B, 7)``, the period ``dt`` ``(B,)`` s,
-    ``min_depth`` ``(B,)`` m (numpy views, read at each call), the UKF's
-    :class:`~torchevtrack.stages.ukf.UKFArrays` and the feedback's
-    :class:`~torchevtrack.stages.velocity.FeedbackArrays` (``None``: not used)."""
+    """What :func:`output` reads besides the update's poses (numpy views, read at each call): the current (last output)
+    pose ``(B, 7)`` float64, the period ``dt`` ``(B,)`` s, ``min_depth`` ``(B,)`` float64 m, the UKF's
+    :class:`~torchevtrack.stages.ukf.UKFArrays` (``None``: the measured poses are the output) and the feedback's
+    :class:`~torchevtrack.stages.velocity.FeedbackArrays` (``None``: none)."""
 
     pose: np.ndarray
     dt: np.ndarray
@@ -201,8 +215,23 @@ class OutputArgs(NamedTuple):
 
 def output(a: OutputArgs, predicted: np.ndarray, measured: np.ndarray, twist: np.ndarray,
            symmetry_axis: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`output_step` unchecked, on float64 numpy arrays (the axis ``(B, 3)`` or ``None``). Returns new arrays
-    ``(pose, rejected)`` as :class:`Output`; the UKF and the feedback of ``a`` are updated in place."""
+    """Step 6 (see the module docstring) in one compiled call, unchecked: the output poses of an update; the UKF and
+    the feedback of ``a`` are updated in place.
+
+    Args:
+        a: the bound arguments (:class:`OutputArgs`).
+        predicted, measured: ``(B, 7)`` float64 propagated and corrected poses; twist: ``(B, 6)`` float64 ``[v, w]``
+            of the propagation.
+        symmetry_axis: ``(B, 3)`` float64 camera-frame unit axes the feedback ignores turns about (zero rows: none),
+            or ``None``.
+
+    Returns:
+        New arrays ``(pose, rejected)``: the output poses ``(B, 7)`` float64 with canonical quaternions and ``(B,)``
+        bool where the output was not valid and the current pose was kept.
+
+    Raises:
+        torch.linalg.LinAlgError: a UKF covariance is not positive definite.
+    """
     B = a.pose.shape[0]
     out, rejected = np.empty((B, 7)), np.empty(B, dtype=np.bool_)
     bad = _output_kernel(a.pose, predicted, measured, twist, a.dt, a.min_depth, a.feedback, symmetry_axis, a.ukf, out,
@@ -220,8 +249,8 @@ def _output_kernel(pose, predicted, measured, twist, dt, min_depth, feedback, ax
     if feedback is not None:
         B = pose.shape[0]
         rate, rate_c = np.empty((B, 6)), np.empty((B, 6))
-        _twist_between_kernel(predicted, measured, dt, rate)
-        _shift_twist_kernel(rate, predicted[:, :3].copy(), rate_c)  # about the predicted centre
+        twist_between_kernel(predicted, measured, dt, rate)
+        shift_twist_kernel(rate, predicted[:, :3].copy(), rate_c)  # about the predicted centre
         feedback_step(feedback, rate_c, axis)
     if ukf is not None:
         bad = ukf_step(ukf, dt, twist, measured)
@@ -242,39 +271,3 @@ def _output_kernel(pose, predicted, measured, twist, dt, min_depth, feedback, ax
         for j in range(3, 7):
             out[i, j] = sign * (out[i, j] / norm)
     return -1
-
-
-def output_step(pose: torch.Tensor, predicted: torch.Tensor, measured: torch.Tensor, twist: torch.Tensor, dt: float,
-                min_depth: torch.Tensor, *, ukf: PoseUKF | None = None, feedback: CorrectionFeedback | None = None,
-                symmetry_axis: torch.Tensor | None = None) -> Output:
-    """The output poses of an update (see the module docstring); ``ukf`` and ``feedback`` are updated in place.
-
-    Args:
-        pose: ``(B, 7)`` current (last output) poses; predicted: ``(B, 7)`` propagated poses; measured:
-            ``(B, 7)`` corrected poses; twist: ``(B, 6)`` ``[v, w]`` of the propagation; all float64.
-        dt: update period, seconds.
-        min_depth: ``(B,)`` float64, the nearest valid object-centre depth (m).
-        ukf: the pose smoother (``None``: the measured poses are the output).
-        feedback: the correction feedback (``None``: none).
-        symmetry_axis: ``(B, 3)`` camera-frame unit axes the feedback ignores turns about (zero rows: none).
-
-    Raises:
-        torch.linalg.LinAlgError: a UKF covariance is not positive definite.
-
-    Shape: ``(B, 7), (B, 7), (B, 7), (B, 6), (), (B,) -> Output``.
-    """
-    B = pose.shape[0]
-    for name, v, n in (("pose", pose, 7), ("predicted", predicted, 7), ("measured", measured, 7), ("twist", twist, 6)):
-        if v.shape != (B, n) or v.dtype != torch.float64:
-            raise ValueError(f"{name} must be a float64 ({B}, {n}) tensor, got {v.dtype} {tuple(v.shape)}")
-    if min_depth.shape != (B,):
-        raise ValueError(f"min_depth must have shape ({B},), got {tuple(min_depth.shape)}")
-    if (ukf is not None and ukf.batch_size != B) or (feedback is not None and feedback.b.shape != (B, 6)):
-        raise ValueError(f"the UKF and the feedback must have B={B} elements")
-    if symmetry_axis is not None and symmetry_axis.shape != (B, 3):
-        raise ValueError(f"symmetry_axis must have shape ({B}, 3), got {tuple(symmetry_axis.shape)}")
-    a = OutputArgs(pose.numpy(), periods(B, float(dt)), min_depth.numpy(), None if ukf is None else ukf.arrays(),
-                   None if feedback is None else feedback.arrays())
-    out = output(a, predicted.numpy(), measured.numpy(), twist.numpy(),
-                 None if symmetry_axis is None else symmetry_axis.double().numpy())
-    return Output(*(torch.from_numpy(v) for v in out))

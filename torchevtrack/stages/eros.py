@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import Callable
 
 import kornia
 import numba
@@ -37,8 +38,8 @@ from torch import nn
 from torchevtrack.config import ErosConfig
 from torchevtrack.stages import NEVER, batch_mask, canvas_taps
 
-__all__ = ["EROS", "TimeSurface", "canvas_observation", "eros_update", "eros_update_", "observation", "prepare_events",
-           "recent_observation", "time_surface_update_"]
+__all__ = ["EROS", "TimeSurface", "bind_observe", "canvas_observation", "eros_kernel", "eros_update", "eros_update_",
+           "observation", "prepare_events", "recent_observation", "time_kernel", "time_surface_update_"]
 
 
 def prepare_events(x: torch.Tensor, y: torch.Tensor, b: torch.Tensor | None, height: int, width: int,
@@ -109,7 +110,7 @@ def eros_update_(surface: torch.Tensor, x: torch.Tensor, y: torch.Tensor, b: tor
     if x.numel():
         lam = surface.numpy().dtype.type(decay ** (1.0 / kernel_size))
         bn = np.zeros(1, dtype=np.int64) if b is None else b.numpy()
-        if not _eros_kernel(surface.numpy(), x.numpy(), y.numpy(), bn, b is not None, kernel_size // 2, lam):
+        if not eros_kernel(surface.numpy(), x.numpy(), y.numpy(), bn, b is not None, kernel_size // 2, lam):
             prepare_events(x, y, b, H, W, B)  # raises the range error (the kernel checks before it writes)
     return surface
 
@@ -125,8 +126,11 @@ def _inside(x, y, b, batched, B, H, W):
 
 
 @numba.njit(cache=True, nogil=True)
-def _eros_kernel(surface, x, y, b, batched, r, lam):
-    """Apply the events in order; returns False, untouched, if one lies outside the surface."""
+def eros_kernel(surface, x, y, b, batched, r, lam):
+    """:func:`eros_update_` on numpy arrays, unchecked, for compiled callers: the events ``x, y`` ``(N,)`` of the
+    elements ``b`` ``(N,)`` (read only when ``batched``; else all in element 0) into ``surface`` ``(B, H, W)``, in
+    order, with the window radius ``r = kernel_size // 2`` and the factor ``lam`` (:attr:`EROS.lam`, of the surface's
+    dtype). Returns False, the surface untouched, if an event lies outside it."""
     B, H, W = surface.shape
     if not _inside(x, y, b, batched, B, H, W):
         return False
@@ -469,14 +473,16 @@ def time_surface_update_(last_us: torch.Tensor, x: torch.Tensor, y: torch.Tensor
     _check_fields(x, y, b)
     _check_times(t, x.shape)
     bn = np.zeros(1, dtype=np.int64) if b is None else b.numpy()
-    if not _time_kernel(last_us.numpy(), x.numpy(), y.numpy(), t.numpy(), bn, b is not None):
+    if not time_kernel(last_us.numpy(), x.numpy(), y.numpy(), t.numpy(), bn, b is not None):
         prepare_events(x, y, b, *last_us.shape[1:], last_us.shape[0])  # raises the range error
     return last_us
 
 
 @numba.njit(cache=True, nogil=True)
-def _time_kernel(last, x, y, t, b, batched):
-    """Apply the events; returns False, untouched, if one lies outside the surface."""
+def time_kernel(last, x, y, t, b, batched):
+    """:func:`time_surface_update_` on numpy arrays, unchecked, for compiled callers: the events ``x, y, t`` ``(N,)``
+    (``t`` int64 us) of the elements ``b`` (read only when ``batched``) into ``last`` ``(B, H, W)`` int64. Returns
+    False, the surface untouched, if an event lies outside it."""
     B, H, W = last.shape
     if not _inside(x, y, b, batched, B, H, W):
         return False
@@ -533,3 +539,47 @@ class TimeSurface(nn.Module):
     def extra_repr(self) -> str:
         B, H, W = self.last_us.shape
         return f"height={H}, width={W}, batch_size={B}"
+
+
+def bind_observe(eros: EROS, time_surface: TimeSurface, *, canvas: int, max_age_us: int = 0,
+                 recency_us: float = 0.0) -> Callable[..., np.ndarray | None | bool]:
+    """``eros(x, y, b)``, ``time_surface(x, y, t, b)`` and then :func:`canvas_observation` under a box, in one
+    compiled call that releases the GIL, bound to the stages' buffers (numpy views, written in place at each call).
+
+    The tracker's pipeline thread runs it in streaming, while the calling thread runs the flow: these stages read only
+    their own state and the events. Returns ``run(x, y, t, b, box, t_now_us)`` of numpy arrays, unchecked: packed
+    events ``(N,)`` (``t`` int64 us; ``b`` ``None``: all in element 0), the canvas boxes ``box`` ``(B, 3)`` float64
+    ``[cu, cv, side]`` (or ``None``: no observation) and ``t_now_us`` ``(B,)`` int64. ``run`` gives the observation
+    ``(B, canvas, canvas)`` float32 (``None`` without a box), or ``False``, nothing written, if an event lies outside
+    the surfaces. ``max_age_us``, ``recency_us``: as for :func:`canvas_observation`.
+    """
+    s, last = eros.surface.numpy(), time_surface.last_us.numpy()
+    if s.shape != last.shape:
+        raise ValueError(f"the EROS and the time surface must have the same shape, got {s.shape} and {last.shape}")
+    lam, r = s.dtype.type(eros.lam), eros.kernel_size // 2
+    max_age_us, recency_us = int(max_age_us), float(recency_us)
+    table = _decay_table(recency_us, max_age_us)
+    none, no_box = np.zeros(1, dtype=np.int64), np.empty((0, 3))
+
+    def run(x: np.ndarray, y: np.ndarray, t: np.ndarray, b: np.ndarray | None, box: np.ndarray | None,
+            t_now_us: np.ndarray) -> np.ndarray | None | bool:
+        obs = np.empty((s.shape[0] if box is not None else 0, canvas, canvas), dtype=np.float32)
+        if not _observe_kernel(s, lam, r, last, x, y, t, none if b is None else b, b is not None,
+                               no_box if box is None else box, t_now_us, max_age_us, recency_us, table, obs):
+            return False
+        return obs if box is not None else None
+    return run
+
+
+@numba.njit(cache=True, nogil=True)
+def _observe_kernel(surface, lam, r, last, x, y, t, b, batched, box, t_now, max_age, tau, decay, out):
+    """:func:`eros_kernel` and :func:`time_kernel`, then (if ``box`` has rows) :func:`_canvas_kernel` into ``out``;
+    False, nothing written, if an event lies outside the surfaces."""
+    if x.shape[0]:
+        if not eros_kernel(surface, x, y, b, batched, r, lam):
+            return False
+        time_kernel(last, x, y, t, b, batched)
+    if box.shape[0]:
+        B, H, W = last.shape
+        _canvas_kernel(surface, last.reshape(B, 1, H, W), box, t_now, max_age, tau, decay, out)
+    return True

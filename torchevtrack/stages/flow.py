@@ -66,11 +66,17 @@ from torchevtrack.stages.eros import _check_fields, _check_times, prepare_events
 __all__ = [
     "NEVER",
     "FlowField",
+    "FlowParams",
     "TripletFlow",
     "block_grid",
+    "event_arrays",
+    "events_in_range",
+    "flow_packet",
+    "range_error",
     "register_blocks",
     "sae_update",
     "sae_update_",
+    "smooth_flow",
     "triplet_samples",
 ]
 
@@ -128,9 +134,10 @@ def _prepare(sae: torch.Tensor, x, y, t, p, b):
 _NONE = np.zeros(1, dtype=np.int64)
 
 
-def _event_arrays(C: int, x, y, t, p, b):
-    """The packed events as numpy arrays for the compiled kernels, their types and shapes checked as
-    :func:`_prepare` checks them (the ranges are checked by :func:`_match_packet`), for an SAE of ``C`` channels.
+def event_arrays(C: int, x, y, t, p, b):
+    """The packed events of :meth:`TripletFlow.forward` as numpy arrays for the compiled kernels (views where the
+    dtypes allow), for an SAE of ``C`` channels. Their types and shapes are checked here, with the errors
+    ``forward`` raises (TypeError, ValueError); their ranges are not (:func:`events_in_range`, :func:`range_error`).
 
     Returns ``(x, y, t, p, b, batched)``: the event of index ``i`` updates the SAE plane ``b[i] C + p[i]``;
     ``p`` (only read when ``C = 2``) and ``b`` (only read when ``batched``) may be placeholders."""
@@ -141,8 +148,10 @@ def _event_arrays(C: int, x, y, t, p, b):
     return _index_array(x), _index_array(y), t.numpy(), pn, bn, b is not None
 
 
-def _range_error(shape: tuple[int, int, int, int], x, y, t, p, b):
-    """Raise the error :func:`_prepare` raises for events outside an SAE of ``shape``."""
+def range_error(shape: tuple[int, int, int, int], x, y, t, p, b):
+    """Raise the ValueError :meth:`TripletFlow.forward` raises for the packed events ``x, y, t, p, b`` (tensors, as
+    given to it) that do not fit an SAE of ``shape`` ``(B, C, H, W)``: it names the first field out of range. For
+    a caller whose compiled call found such an event (:func:`events_in_range` or :func:`flow_packet` False)."""
     _prepare(torch.empty(shape, dtype=torch.int64), x, y, t, p, b)
 
 
@@ -155,8 +164,9 @@ def _index_array(v: torch.Tensor) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _events_in_range(x, y, p, b, C, batched, B, H, W):
-    """Every event inside ``[0, W) x [0, H)``, batch index in ``[0, B)`` and (``C = 2``) polarity in ``{0, 1}``."""
+def events_in_range(x, y, p, b, C, batched, B, H, W):
+    """Every event of :func:`event_arrays` inside ``[0, W) x [0, H)``, its batch index in ``[0, B)`` (when
+    ``batched``) and (``C = 2``) its polarity in ``{0, 1}``: the events fit an SAE ``(B, C, H, W)``. Compiled."""
     for i in range(x.shape[0]):
         if x[i] < 0 or x[i] >= W or y[i] < 0 or y[i] >= H:
             return False
@@ -224,7 +234,7 @@ _DIRECTIONS: dict[int, np.ndarray] = {}
 
 @numba.njit(cache=True, nogil=True)
 def _match_packet(sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, chunk):
-    """Triplet samples of a packet of events (:func:`_event_arrays`: event ``i`` in SAE plane ``b[i] C + p[i]``)
+    """Triplet samples of a packet of events (:func:`event_arrays`: event ``i`` in SAE plane ``b[i] C + p[i]``)
     against the padded SAE ``(B, Cs, Hp, Wp)``, which they update in place as they go (each event looks up, then
     writes: the module docstring's "strictly earlier"), ``chunk`` events at a time (a buffer of ``chunk K``
     samples). Returns ``event (S,)`` (index into the packet), ``flow (S, 2)`` float32 and ``ok``: False, nothing
@@ -235,7 +245,7 @@ def _match_packet(sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, chu
     n, K = x.shape[0], dirs.shape[0]
     size = min(n, chunk) * K
     event, flow = np.empty(size, dtype=np.int64), np.empty((size, 2), dtype=np.float32)
-    if not _events_in_range(x, y, p, b, C, batched, planes // C, Hp - 2 * pad, Wp - 2 * pad):
+    if not events_in_range(x, y, p, b, C, batched, planes // C, Hp - 2 * pad, Wp - 2 * pad):
         return event[:0], flow[:0], False
     if n <= chunk:
         s = _triplet_kernel(sae3, x, y, t, p, b, C, batched, 0, n, dirs, pad, dt_max_us, tol, event, flow)
@@ -357,11 +367,11 @@ def triplet_samples(sae: torch.Tensor, x: torch.Tensor, y: torch.Tensor, t: torc
     pad = 2 * D
     sae_pad = _pad_sae(sae, pad)
     C = sae_pad.shape[1]
-    xn, yn, tn, pn, bn, batched = _event_arrays(C, x, y, t, p, b)
+    xn, yn, tn, pn, bn, batched = event_arrays(C, x, y, t, p, b)
     ev, flow, ok = _match_packet(sae_pad.numpy(), xn, yn, tn, pn, bn, C, batched,
                                  _direction_array(D), pad, dt_max_us, tol, max(xn.shape[0], 1))
     if not ok:
-        _range_error(tuple(sae.shape), x, y, t, p, b)
+        range_error(tuple(sae.shape), x, y, t, p, b)
     return torch.from_numpy(ev), torch.from_numpy(flow)
 
 
@@ -796,11 +806,15 @@ def _sample_blocks(ev, x, y, b, batched, block_x, block_y, G):
 
 
 @numba.njit(cache=True, nogil=True)
-def _flow_packet(sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, chunk, block_x, block_y, G, min_samples,
+def flow_packet(sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, chunk, block_x, block_y, G, min_samples,
                  max_candidates, tie_tol, normal, inlier, fill, out, uv, valid, count):
-    """:meth:`TripletFlow.forward` in one call: :func:`_match_packet`, :func:`_sample_blocks`, then
-    :func:`_register_all` into ``out``, ``uv`` ``(B, G, 2)`` and ``valid``, ``count`` ``(B, G)``; False (nothing
-    done) if an event lies outside the SAE."""
+    """:meth:`TripletFlow.forward` without its smoothing in one compiled call, unchecked, for compiled callers.
+
+    The events of :func:`event_arrays` are matched against the padded SAE ``sae`` ``(B, C, H + 2 pad, W + 2 pad)``
+    int64 (``TripletFlow.sae_padded``, written in place) with the flow's constants (``*TripletFlow.params``, see
+    :class:`FlowParams`), and the blocks registered into ``out`` (zeros on entry) and ``uv`` ``(B, G, 2)`` float32 and
+    ``valid`` bool, ``count`` int64 ``(B, G)``. Returns False, nothing written, if an event lies outside the SAE.
+    (Its steps: :func:`_match_packet`, :func:`_sample_blocks`, :func:`_register_all`.)"""
     event, flow, ok = _match_packet(sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, chunk)
     if ok:
         B = count.shape[0]
@@ -810,8 +824,10 @@ def _flow_packet(sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, chun
     return ok
 
 
-def _smooth(flow: torch.Tensor, uv: torch.Tensor, valid: torch.Tensor, gy: int, gx: int):
-    """Mean flow and mean ``uv`` over the valid blocks of each valid block's 3x3 block neighbourhood."""
+def smooth_flow(flow: torch.Tensor, uv: torch.Tensor, valid: torch.Tensor, gy: int, gx: int):
+    """The smoothing of ``TripletFlow(smooth=True)``: each valid block's ``flow`` and ``uv`` ``(B, G, 2)`` replaced by
+    their means over the valid blocks of its 3x3 block neighbourhood on the ``gy x gx`` grid (``valid`` ``(B, G)``
+    bool); returns new ``(flow, uv)`` tensors."""
     B = flow.shape[0]
     w = valid.to(flow.dtype).view(B, 1, gy, gx)
     both = torch.cat([flow, uv], 2).permute(0, 2, 1).reshape(B, 4, gy, gx)
@@ -823,7 +839,7 @@ def _smooth(flow: torch.Tensor, uv: torch.Tensor, valid: torch.Tensor, gy: int, 
 
 
 class FlowParams(NamedTuple):
-    """The constants :func:`_flow_packet` takes after the events, in its argument order (``TripletFlow.params``).
+    """The constants :func:`flow_packet` takes after the events, in its argument order (``TripletFlow.params``).
 
     ``dirs`` ``(K, 2)`` triplet directions, ``pad`` the SAE border (``2 D``), ``dt_max_us``, ``tol``, ``chunk`` (see
     :class:`TripletFlow`), ``block_x`` ``(W,)`` block column of each pixel column, ``block_y`` ``(H,)`` first block
@@ -937,17 +953,17 @@ class TripletFlow(nn.Module):
         sae = self.sae_padded if rows is None else self.sae_padded[rows]
         B, C = sae.shape[:2]
         G = self.gy * self.gx
-        xn, yn, tn, pn, bn, batched = _event_arrays(C, x, y, t, p, b)
+        xn, yn, tn, pn, bn, batched = event_arrays(C, x, y, t, p, b)
         out = np.zeros((B, G, 2), dtype=np.float32)
         uv = np.empty((B, G, 2), dtype=np.float32)
         valid = np.empty((B, G), dtype=np.bool_)
         count = np.empty((B, G), dtype=np.int64)
-        if not _flow_packet(sae.numpy(), xn, yn, tn, pn, bn, C, batched, *self.params, out, uv, valid, count):
-            _range_error((B, C, self.height, self.width), x, y, t, p, b)
+        if not flow_packet(sae.numpy(), xn, yn, tn, pn, bn, C, batched, *self.params, out, uv, valid, count):
+            range_error((B, C, self.height, self.width), x, y, t, p, b)
         out, uv, valid, count = torch.from_numpy(out), torch.from_numpy(uv), torch.from_numpy(valid), \
             torch.from_numpy(count)
         if self.smooth:
-            out, uv = _smooth(out, uv, valid, self.gy, self.gx)
+            out, uv = smooth_flow(out, uv, valid, self.gy, self.gx)
         return FlowField(uv, out, valid, count)
 
     def _match(self, xi: torch.Tensor, yi: torch.Tensor, ch: torch.Tensor, t: torch.Tensor):

@@ -43,7 +43,8 @@ from torchevtrack.geometry import (
     quat_rotate,
 )
 
-__all__ = ["se3_exp_apply", "propagate", "propagate_step", "twist_between", "invalid_poses", "valid_pose"]
+__all__ = ["se3_exp_apply", "propagate", "propagate_kernel", "propagate_step", "twist_between", "twist_between_kernel",
+           "invalid_poses", "valid_pose"]
 
 
 def se3_exp_apply(xi: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
@@ -64,8 +65,9 @@ def se3_exp_apply(xi: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
 
 
 @numba.njit(cache=True, nogil=True)
-def _propagate_kernel(pose, twist, dt, out):
-    """:func:`propagate` row by row: ``pose (N, 7)``, ``twist (N, 6)``, ``dt (N,)`` -> ``out (N, 7)``."""
+def propagate_kernel(pose, twist, dt, out):
+    """:func:`propagate` row by row, unchecked, for compiled callers: float64 numpy ``pose (N, 7)``, ``twist (N, 6)``
+    and ``dt (N,)`` seconds into ``out (N, 7)`` (canonical quaternions)."""
     for i in range(pose.shape[0]):
         T = dt[i]
         r0, r1, r2 = twist[i, 0] * T, twist[i, 1] * T, twist[i, 2] * T
@@ -88,8 +90,9 @@ def _propagate_kernel(pose, twist, dt, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def _twist_between_kernel(start, end, dt, out):
-    """:func:`twist_between` row by row: ``start, end (N, 7)``, ``dt (N,)`` -> ``out (N, 6)``."""
+def twist_between_kernel(start, end, dt, out):
+    """:func:`twist_between` row by row, unchecked, for compiled callers: float64 numpy ``start, end (N, 7)`` and
+    ``dt (N,)`` seconds into ``out (N, 6)`` ``[v (m/s), w (rad/s)]``."""
     for i in range(start.shape[0]):
         q0, q1, q2, q3 = _nb_quat_mul(end[i, 3], end[i, 4], end[i, 5], end[i, 6],
                                       start[i, 3], -start[i, 4], -start[i, 5], -start[i, 6])
@@ -155,7 +158,7 @@ def propagate(pose: torch.Tensor, twist: torch.Tensor, dt: torch.Tensor | float)
         raise ValueError(f"twist must be a tensor of shape (B, 6), got {getattr(twist, 'shape', type(twist))}")
     p, tw, dt, lead, dtype = _rows(pose, twist, dt, 7, 6)
     out = torch.empty(*lead, 7, dtype=torch.float64)
-    _propagate_kernel(p, tw, dt, out.view(-1, 7).numpy())
+    propagate_kernel(p, tw, dt, out.view(-1, 7).numpy())
     return out if dtype == torch.float64 else out.to(dtype)
 
 
@@ -170,7 +173,7 @@ def twist_between(start: torch.Tensor, end: torch.Tensor, dt: torch.Tensor | flo
     """
     s, e, dt, lead, dtype = _rows(start, end, dt, 7, 7)
     out = torch.empty(*lead, 6, dtype=torch.float64)
-    _twist_between_kernel(s, e, dt, out.view(-1, 6).numpy())
+    twist_between_kernel(s, e, dt, out.view(-1, 6).numpy())
     return out if dtype == torch.float64 else out.to(dtype)
 
 
@@ -205,7 +208,7 @@ def propagate_step(pose, twist, dt, min_depth, predicted, rejected):
     """:func:`propagate` of ``pose`` ``(B, 7)`` by ``twist`` ``(B, 6)`` over ``dt`` ``(B,)`` seconds into ``predicted``,
     unchecked; where that is not a valid pose (:func:`valid_pose` with ``min_depth`` ``(B,)``) the pose itself
     with zero twist (``twist`` is written), and ``rejected`` ``(B,)`` says so."""
-    _propagate_kernel(pose, twist, dt, predicted)
+    propagate_kernel(pose, twist, dt, predicted)
     for b in range(pose.shape[0]):
         rejected[b] = not valid_pose(predicted[b], min_depth[b])
         if rejected[b]:

@@ -61,13 +61,18 @@ from torchevtrack.stages import batch_mask
 __all__ = [
     "TWIST_AXES",
     "CorrectionFeedback",
+    "FeedbackArrays",
+    "KFArrays",
     "VelocityUpdate",
     "VelocityKF",
+    "feedback_step",
     "shift_twist",
+    "shift_twist_kernel",
     "feedback_update",
     "kf_predict",
     "kf_update",
     "sample_depth",
+    "velocity_step",
 ]
 
 
@@ -115,12 +120,15 @@ def shift_twist(twist: torch.Tensor, point: torch.Tensor) -> torch.Tensor:
     if twist.ndim != 2 or twist.shape[-1] != 6 or point.shape != (twist.shape[0], 3):
         raise ValueError(f"expected twist (B, 6) and point (B, 3), got {tuple(twist.shape)} and {tuple(point.shape)}")
     out = np.empty((twist.shape[0], 6))
-    _shift_twist_kernel(_f64(twist), _f64(point), out)
+    shift_twist_kernel(_f64(twist), _f64(point), out)
     return torch.from_numpy(out)
 
 
 @numba.njit(cache=True, nogil=True)
-def _shift_twist_kernel(twist, c, out):
+def shift_twist_kernel(twist, c, out):
+    """:func:`shift_twist` of ``twist`` ``(B, 6)`` to the points ``c`` ``(B, 3)`` into ``out`` ``(B, 6)``, all float64
+    numpy arrays (``out`` may be ``twist``), unchecked; for compiled callers (:func:`velocity_step`,
+    :func:`~torchevtrack.update.output`)."""
     for b in range(out.shape[0]):
         w0, w1, w2 = twist[b, 3], twist[b, 4], twist[b, 5]
         out[b, 0] = twist[b, 0] + (w1 * c[b, 2] - w2 * c[b, 1])
@@ -481,7 +489,7 @@ def velocity_step(f, field, depth, origin, max_speed, radius, dt, centre, feedba
     twist_c = f.x.copy()
     if feedback is not None:
         twist_c += feedback
-    _shift_twist_kernel(twist_c, -centre, twist)  # [c_dot, w] about the centre -> [v, w]
+    shift_twist_kernel(twist_c, -centre, twist)  # [c_dot, w] about the centre -> [v, w]
     for b in range(B):
         n_vectors[b] = np.count_nonzero(w[b] > 0)
     return -1
