@@ -36,7 +36,7 @@ import torch
 from torch import nn
 
 from torchevtrack.stages import NEVER, batch_mask
-from torchevtrack.stages.eros import _check_fields, _check_times, _inside, prepare_events
+from torchevtrack.stages.eros import check_fields, check_times, events_inside, prepare_events
 
 __all__ = ["BackgroundActivityFilter", "denoise_update_"]
 
@@ -75,8 +75,8 @@ def denoise_update_(last_us: torch.Tensor, count: torch.Tensor, hot: torch.Tenso
         non-positive parameters. Nothing is written then.
     """
     _check_state(last_us, count, hot, period_end)
-    _check_fields(x, y, b)
-    _check_times(t, x.shape)
+    check_fields(x, y, b)
+    check_times(t, x.shape)
     if not (dt_us > 0 and hot_period_us > 0 and hot_ratio > 0 and hot_min_count > 0):
         raise ValueError("dt_us, hot_period_us, hot_ratio and hot_min_count must be positive, got "
                          f"{dt_us}, {hot_period_us}, {hot_ratio}, {hot_min_count}")
@@ -115,7 +115,7 @@ def _hot_mask(count, hot, ratio, min_count):
 def _denoise_kernel(last, count, hot, period_end, x, y, t, b, batched, dt, period, ratio, min_count, keep):
     """The rule of the module docstring over the events in order; False, nothing written, if one lies outside."""
     B, H, W = last.shape
-    if not _inside(x, y, b, batched, B, H, W):
+    if not events_inside(x, y, b, batched, B, H, W):
         return False
     never = NEVER
     for i in range(x.shape[0]):

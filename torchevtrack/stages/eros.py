@@ -38,8 +38,9 @@ from torch import nn
 from torchevtrack.config import ErosConfig
 from torchevtrack.stages import NEVER, batch_mask, canvas_taps
 
-__all__ = ["EROS", "TimeSurface", "bind_observe", "canvas_observation", "eros_kernel", "eros_update", "eros_update_",
-           "observation", "prepare_events", "recent_observation", "time_kernel", "time_surface_update_"]
+__all__ = ["EROS", "TimeSurface", "bind_observe", "canvas_observation", "check_fields", "check_times", "eros_kernel",
+           "eros_update", "eros_update_", "events_inside", "observation", "prepare_events", "recent_observation",
+           "time_kernel", "time_surface_update_"]
 
 
 def prepare_events(x: torch.Tensor, y: torch.Tensor, b: torch.Tensor | None, height: int, width: int,
@@ -55,7 +56,7 @@ def prepare_events(x: torch.Tensor, y: torch.Tensor, b: torch.Tensor | None, hei
         ValueError: shapes differ, or a coordinate is outside ``[0, width) x [0, height)`` or a
             batch index outside ``[0, batch_size)``.
     """
-    _check_fields(x, y, b)
+    check_fields(x, y, b)
     xi, yi = x.long(), y.long()
     bi = torch.zeros_like(xi) if b is None else b.long()
     if xi.numel():
@@ -66,8 +67,10 @@ def prepare_events(x: torch.Tensor, y: torch.Tensor, b: torch.Tensor | None, hei
     return xi, yi, bi
 
 
-def _check_fields(x, y, b) -> None:
-    """Types and shapes of packed event coordinates (see :func:`prepare_events`)."""
+def check_fields(x, y, b) -> None:
+    """Check the types and shapes of packed event coordinates, as every stage that takes events does: ``x, y`` and
+    ``b`` (``None``: not checked) 1-D integer CPU tensors of one shape. Raises the TypeError or ValueError of
+    :func:`prepare_events`; the ranges are not checked (:func:`prepare_events`, :func:`events_inside`)."""
     fields = {"x": x, "y": y} if b is None else {"x": x, "y": y, "b": b}
     for name, f in fields.items():
         if not isinstance(f, torch.Tensor):
@@ -80,8 +83,9 @@ def _check_fields(x, y, b) -> None:
             raise ValueError(f"{name} must be a CPU tensor, got one on {f.device}")
 
 
-def _check_times(t, shape) -> None:
-    """``t``: an int64 tensor of microseconds, one per event (``shape``, that of ``x``)."""
+def check_times(t, shape) -> None:
+    """Check that ``t`` is an int64 tensor of microseconds, one per event (``shape``, that of ``x``); a TypeError
+    otherwise, as every stage that takes event times raises it."""
     if not isinstance(t, torch.Tensor) or t.dtype != torch.int64 or t.shape != shape:
         raise TypeError(f"t must be an int64 tensor of microseconds with the shape of x {tuple(shape)}")
 
@@ -106,7 +110,7 @@ def eros_update_(surface: torch.Tensor, x: torch.Tensor, y: torch.Tensor, b: tor
     _check_surface(surface)
     _check_params(kernel_size, decay)
     B, H, W = surface.shape
-    _check_fields(x, y, b)
+    check_fields(x, y, b)
     if x.numel():
         lam = surface.numpy().dtype.type(decay ** (1.0 / kernel_size))
         bn = np.zeros(1, dtype=np.int64) if b is None else b.numpy()
@@ -116,8 +120,10 @@ def eros_update_(surface: torch.Tensor, x: torch.Tensor, y: torch.Tensor, b: tor
 
 
 @numba.njit(cache=True, nogil=True)
-def _inside(x, y, b, batched, B, H, W):
-    """Every event inside ``[0, W) x [0, H)`` with its batch index (``batched``) in ``[0, B)``."""
+def events_inside(x, y, b, batched, B, H, W):
+    """Every event of numpy arrays ``x, y`` ``(N,)`` inside ``[0, W) x [0, H)`` with its batch index ``b[i]`` (only
+    read when ``batched``) in ``[0, B)``: the range check of :func:`prepare_events`, compiled, for compiled callers
+    that check before they write."""
     for i in range(x.shape[0]):
         k = b[i] if batched else 0
         if x[i] < 0 or x[i] >= W or y[i] < 0 or y[i] >= H or k < 0 or k >= B:
@@ -132,7 +138,7 @@ def eros_kernel(surface, x, y, b, batched, r, lam):
     order, with the window radius ``r = kernel_size // 2`` and the factor ``lam`` (:attr:`EROS.lam`, of the surface's
     dtype). Returns False, the surface untouched, if an event lies outside it."""
     B, H, W = surface.shape
-    if not _inside(x, y, b, batched, B, H, W):
+    if not events_inside(x, y, b, batched, B, H, W):
         return False
     for i in range(x.shape[0]):
         u, v, k = x[i], y[i], b[i] if batched else 0
@@ -470,8 +476,8 @@ def time_surface_update_(last_us: torch.Tensor, x: torch.Tensor, y: torch.Tensor
             or not last_us.is_contiguous():
         raise ValueError("last_us must be a contiguous int64 (B, H, W) tensor, got "
                          f"{getattr(last_us, 'dtype', type(last_us).__name__)} {tuple(getattr(last_us, 'shape', ()))}")
-    _check_fields(x, y, b)
-    _check_times(t, x.shape)
+    check_fields(x, y, b)
+    check_times(t, x.shape)
     bn = np.zeros(1, dtype=np.int64) if b is None else b.numpy()
     if not time_kernel(last_us.numpy(), x.numpy(), y.numpy(), t.numpy(), bn, b is not None):
         prepare_events(x, y, b, *last_us.shape[1:], last_us.shape[0])  # raises the range error
@@ -484,7 +490,7 @@ def time_kernel(last, x, y, t, b, batched):
     (``t`` int64 us) of the elements ``b`` (read only when ``batched``) into ``last`` ``(B, H, W)`` int64. Returns
     False, the surface untouched, if an event lies outside it."""
     B, H, W = last.shape
-    if not _inside(x, y, b, batched, B, H, W):
+    if not events_inside(x, y, b, batched, B, H, W):
         return False
     for i in range(x.shape[0]):
         k = b[i] if batched else 0

@@ -61,7 +61,7 @@ from torch import nn
 
 from torchevtrack.config import FlowConfig
 from torchevtrack.stages import NEVER, batch_mask
-from torchevtrack.stages.eros import _check_fields, _check_times, prepare_events
+from torchevtrack.stages.eros import check_fields, check_times, prepare_events
 
 __all__ = [
     "NEVER",
@@ -112,7 +112,7 @@ def _check_sae(sae: torch.Tensor) -> None:
 
 def _check_time_polarity(t, p, shape: torch.Size, C: int) -> None:
     """``t`` int64 microseconds and, with two SAE channels (``C = 2``), an integer ``p``, both of ``shape``."""
-    _check_times(t, shape)
+    check_times(t, shape)
     if C == 2 and (not isinstance(p, torch.Tensor) or p.shape != shape or p.is_floating_point()):
         raise TypeError(f"p must be an integer tensor with the shape of x {tuple(shape)}")
 
@@ -141,7 +141,7 @@ def event_arrays(C: int, x, y, t, p, b):
 
     Returns ``(x, y, t, p, b, batched)``: the event of index ``i`` updates the SAE plane ``b[i] C + p[i]``;
     ``p`` (only read when ``C = 2``) and ``b`` (only read when ``batched``) may be placeholders."""
-    _check_fields(x, y, b)
+    check_fields(x, y, b)
     _check_time_polarity(t, p, x.shape, C)
     pn = _NONE if C == 1 else _index_array(p)
     bn = _NONE if b is None else _index_array(b)
@@ -185,7 +185,7 @@ def sae_update_(sae: torch.Tensor, x: torch.Tensor, y: torch.Tensor, t: torch.Te
         sae: ``(B, C, H, W)`` int64 us, ``C`` in ``{1, 2}``; x, y, t, p, b: ``(N,)``.
     """
     _check_sae(sae)
-    _check_fields(x, y, b)
+    check_fields(x, y, b)
     B, C, H, W = sae.shape
     _check_time_polarity(t, p, x.shape, C)
     none = np.zeros(1, dtype=np.int64)
