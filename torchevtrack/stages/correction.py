@@ -108,7 +108,7 @@ def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *,
     the arguments of :func:`correction_step` as numpy arrays (``render_pose`` float32; ``depth``, ``gray`` and
     ``origin`` ``None`` with a ``model`` to reuse), giving its :class:`CorrectionStep` with the fields of the
     correction as numpy arrays. ``obs``: the observation ``(B, N, N)`` under the ``model``'s box if it was made
-    elsewhere (:mod:`~torchevtrack.stages.observe`); the surfaces are then not read.
+    elsewhere (:func:`~torchevtrack.stages.eros.bind_observe`); the surfaces are then not read.
     """
     cam = _camera_array(camera)
     max_age_us, recency_us = int(max_age_us), float(recency_us)
