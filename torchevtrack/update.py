@@ -109,8 +109,6 @@ def _intake_kernel(surface, lam, r, last, surfaces, times, sae, x, y, t, p, b, C
     return ok
 
 
-
-
 class MotionArgs(NamedTuple):
     """What :func:`motion` reads besides the flow and the render (numpy views, read at each call): ``source``
     (``"flow"``, ``"poses"`` or ``"none"``, as ``velocity.source`` of the config), the current and previous poses
