@@ -60,7 +60,7 @@ import trimesh
 from PIL import Image
 
 from torchevtrack.camera import Camera
-from torchevtrack.geometry import _nb_normalise_quaternions, pose_to_matrix
+from torchevtrack.geometry import nb_normalise_quaternions, pose_to_matrix
 
 __all__ = ["AMBIENT", "BACKENDS", "DEFAULT_ALBEDO", "LIGHT_DIRECTION", "Render", "Renderer", "make_renderer"]
 
@@ -577,7 +577,7 @@ def _normalise_quaternions(p: np.ndarray) -> np.ndarray:
     """Divide the quaternions of poses ``(B, 7)`` by their norms, in place, and return those norms ``(B,)`` (the
     one rule by which renders normalise their poses)."""
     norm = np.empty(p.shape[0])
-    _nb_normalise_quaternions(p, norm)
+    nb_normalise_quaternions(p, norm)
     return norm
 
 

@@ -19,7 +19,7 @@ sequences and runs, in the paper's order:
 4. the mesh is rendered once, in a window around the propagated pose; by default (``render.ahead``) around
    the pose the previous update predicted for this one (its propagated pose moved on by its twist), so that
    with the pipeline the render and its template model are made on the pipeline's thread during the previous
-   update's step 5, in one compiled call (:func:`~torchevtrack.stages.render_model.render_model_step`);
+   update's step 5, in one compiled call (:class:`~torchevtrack.update.RenderModelBinding`);
 5. :class:`~torchevtrack.stages.template.TemplateCorrector` scores hypotheses around the propagated pose,
    warped from that render, against the EROS observation (optionally weighted toward its newest events, ``eros.recency_us``)
    and moves the pose to the best (the paper's argmax of 13, or a Newton step over all six axes:
@@ -80,16 +80,15 @@ from torchevtrack.render import make_renderer
 from torchevtrack.schedule import Job, Schedule
 from torchevtrack.stages import batch_mask, periods
 from torchevtrack.stages.burst import BurstGuard, keep_events
-from torchevtrack.stages.correction import CorrectionStep, bind_correction
 from torchevtrack.stages.denoise import BackgroundActivityFilter
 from torchevtrack.stages.eros import EROS, TimeSurface, bind_observe
 from torchevtrack.stages.flow import FlowField, TripletFlow
 from torchevtrack.stages.propagate import invalid_poses, propagate
-from torchevtrack.stages.render_model import bind_render_model
 from torchevtrack.stages.template import Correction, TemplateCorrector, TemplateModel, window_of
 from torchevtrack.stages.ukf import PoseUKF
 from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, shift_twist
-from torchevtrack.update import MotionArgs, OutputArgs, bind_intake, motion, output, render_ahead
+from torchevtrack.update import (CorrectionStep, MotionArgs, OutputArgs, RenderModelBinding, bind_correction,
+                                 bind_intake, motion, output, render_ahead)
 
 if TYPE_CHECKING:
     from torchevtrack.render import Renderer
@@ -146,7 +145,7 @@ class EventPoseTracker(nn.Module):
             ``min(B, usable cores)``, 1 runs everything in the calling thread. Results do not depend on it.
         pipeline: with one worker, let a thread of its own share each update. With ``render.ahead`` (default),
             one sequence, the compiled rasteriser and the template on, that thread makes the next update's render
-            and template model (:func:`~torchevtrack.stages.render_model.render_model_step`) while an update
+            and template model (:class:`~torchevtrack.update.RenderModelBinding`) while an update
             searches, and takes each window into the EROS and the time surface and observes it
             (:func:`~torchevtrack.stages.eros.bind_observe`) while the calling thread runs the flow. Otherwise it
             takes the next window's events into the EROS and the flow
@@ -241,8 +240,8 @@ class EventPoseTracker(nn.Module):
         o = self.corrector.options
         # each compiled rasteriser's render (and template model) of a pose in its window, in one compiled call
         self._render_bindings = [
-            bind_render_model(r, radius, margin_px=cfg.render.margin_px, canvas=o["canvas"],
-                              box_margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"])
+            RenderModelBinding(r, radius, margin_px=cfg.render.margin_px, canvas=o["canvas"],
+                               box_margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"])
             if isinstance(r, RasterRenderer) else None for r, radius in zip(self._renderers, self._radius)]
         self._render_one = self._render_bindings[0] if B == 1 else None  # one stream: the render is the buffer
         # The pipeline's thread takes a known next window in ahead, unless it makes each update's render and template
@@ -808,7 +807,7 @@ class EventPoseTracker(nn.Module):
     def _render_soon(self, poses: np.ndarray, shaded: bool, model: bool) -> None:
         """Make the next update's render at ``poses`` and, with ``model``, its template model on the intake thread
         (one element, compiled rasteriser), in one compiled call
-        (:func:`~torchevtrack.stages.render_model.bind_render_model`)."""
+        (:class:`~torchevtrack.update.RenderModelBinding`)."""
         if self._render_one is not None:  # only the compiled call on that thread: it needs the GIL only to start
             r = self._render_one
             self._run.rendering = self._schedule.submit(r.kernel, *r.start(poses, shaded, model))

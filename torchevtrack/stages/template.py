@@ -107,8 +107,8 @@ from torch import nn
 
 from torchevtrack.camera import Camera
 from torchevtrack.config import RULES, TemplateConfig
-from torchevtrack.geometry import (_nb_quat_canonical, _nb_quat_exp, _nb_quat_mul,
-                                  _nb_quat_to_matrix, quat_canonical, quat_conj, quat_exp, quat_log, quat_mul,
+from torchevtrack.geometry import (nb_quat_canonical, nb_quat_exp, nb_quat_mul,
+                                  nb_quat_to_matrix, quat_canonical, quat_conj, quat_exp, quat_log, quat_mul,
                                   quat_rotate)
 from torchevtrack.linalg import cholesky, cholesky_solve, eigh
 from torchevtrack.stages import canvas_taps
@@ -123,6 +123,7 @@ __all__ = [
     "Correction",
     "render_window",
     "window_of",
+    "window_kernel",
     "canvas_intrinsics",
     "to_canvas",
     "hypothesis_steps",
@@ -132,9 +133,16 @@ __all__ = [
     "quadratic_score",
     "TemplateModel",
     "template_model",
+    "camera_array",
+    "render_box",
+    "model_in_box",
+    "box_kernel",
+    "model_kernel",
+    "model_filters",
     "select",
     "newton_step",
     "newton_search",
+    "newton_kernel",
     "search",
     "correct",
     "correct_model",
@@ -200,14 +208,16 @@ def window_of(t: np.ndarray, camera: Camera, radius: float | np.ndarray, margin_
     Shape: ``(B, 3), (), () or (B,) -> (B, 4)`` int64.
     """
     out = np.empty((len(t), 4), dtype=np.int64)
-    _window_kernel(np.ascontiguousarray(t, dtype=np.float64), np.broadcast_to(np.asarray(radius, np.float64), len(t)),
-                   camera.fx, camera.fy, camera.cx, camera.cy, float(margin_px), camera.width, camera.height, clip, out)
+    window_kernel(np.ascontiguousarray(t, dtype=np.float64), np.broadcast_to(np.asarray(radius, np.float64), len(t)),
+                  camera.fx, camera.fy, camera.cx, camera.cy, float(margin_px), camera.width, camera.height, clip, out)
     return out
 
 
 @numba.njit(cache=True, nogil=True)
-def _window_kernel(t, radius, fx, fy, cx, cy, margin, W, H, clip, out):
-    """:func:`window_of` into ``out`` ``(B, 4)``: the square around the projected bounding sphere plus ``margin``."""
+def window_kernel(t, radius, fx, fy, cx, cy, margin, W, H, clip, out):
+    """:func:`window_of` into ``out`` ``(B, 4)`` int64 ``(u0, v0, w, h)``: the square around the projected bounding
+    sphere plus ``margin`` pixels; ``t`` ``(B, 3)`` float64 object positions (m), ``radius`` ``(B,)`` float64 (m), the
+    frame's intrinsics ``fx, fy, cx, cy`` and size ``W, H``, ``clip`` as for :func:`window_of`."""
     for b in range(t.shape[0]):
         r = radius[b]
         z = max(t[b, 2], r * 1.05)
@@ -419,7 +429,7 @@ def _bspline_weights(x):
 def _rotation(q):
     """Rotation matrix of a ``(w, x, y, z)`` quaternion (normalised first)."""
     n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    return _nb_quat_to_matrix(q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+    return nb_quat_to_matrix(q[0] / n, q[1] / n, q[2] / n, q[3] / n)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -607,16 +617,22 @@ def _apply_step(pose, delta):
     """:func:`apply_steps` of one step ``[dt, phi]`` to one pose (float64)."""
     out = np.empty(7)
     out[:3] = pose[:3] + delta[:3]
-    e0, e1, e2, e3 = _nb_quat_exp(delta[3], delta[4], delta[5])
-    q0, q1, q2, q3 = _nb_quat_mul(e0, e1, e2, e3, pose[3], pose[4], pose[5], pose[6])
-    out[3], out[4], out[5], out[6] = _nb_quat_canonical(q0, q1, q2, q3)
+    e0, e1, e2, e3 = nb_quat_exp(delta[3], delta[4], delta[5])
+    q0, q1, q2, q3 = nb_quat_mul(e0, e1, e2, e3, pose[3], pose[4], pose[5], pose[6])
+    out[3], out[4], out[5], out[6] = nb_quat_canonical(q0, q1, q2, q3)
     return out
 
 
 @numba.njit(cache=True, nogil=True)
-def _newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, iterations, damping, max_step,
-                   out_pose, out_score, out_scores, out_moved):
-    """The ``"newton"`` rule of :func:`search` on the exact second-order model, per element (:func:`newton_search`).
+def newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, iterations, damping, max_step,
+                  out_pose, out_score, out_scores, out_moved):
+    """:func:`newton_search` on numpy arrays, unchecked, into ``out_pose`` ``(B, 7)``, ``out_score`` ``(B,)``,
+    ``out_scores`` ``(B, 13)`` (float64) and ``out_moved`` ``(B,)`` int64; releases the GIL. The model's fields
+    (``coef``, ``Z = depth``, ``K`` float64, ``render_pose``, ``gain`` float64), the start poses ``pose`` ``(B, 7)``
+    float64, ``obs`` ``(B, N * N)``, the frame's ``fx, fy``, the steps ``dp`` (pixels) and ``dtheta`` (radians), and
+    ``iterations, damping, max_step`` as for :func:`newton_search`.
+
+    The ``"newton"`` rule of :func:`search` on the exact second-order model, per element.
 
     Each round fits the model at the current pose (:func:`_quadratic_terms`), where in step units ``u`` the
     score is ``s0 + gu . u + u^T Hu u / 2`` with ``gu = -g unit``, ``Hu = unit M unit``; the damped step
@@ -876,10 +892,12 @@ def _edges(x, y, scale, E):
 
 
 @numba.njit(cache=True, nogil=True)
-def _box_kernel(depth, origin, cam, margin, box, gain):
-    """The first part of :func:`template_model`: the object's extent in each window ``depth`` ``(B, h, w)`` at
-    ``origin`` gives the canvas ``box`` ``(B, 3)`` float64 (:func:`~torchevtrack.reference.canvas_box`) and the ``gain``
-    (:func:`~torchevtrack.reference.radial_gain`); :func:`_model_kernel` makes the rest in that box."""
+def box_kernel(depth, origin, cam, margin, box, gain):
+    """The first part of :func:`template_model`, unchecked: the object's extent in each window ``depth`` ``(B, h, w)``
+    at ``origin`` ``(B, 2)`` float64 (frame pixels; ``cam`` from :func:`camera_array`, ``margin`` pixels) gives the
+    canvas ``box`` ``(B, 3)`` float64 ``[cu, cv, side]`` (:func:`~torchevtrack.reference.canvas_box`) and the ``gain``
+    ``(B,)`` (:func:`~torchevtrack.reference.radial_gain`), both written; :func:`model_kernel` makes the rest in that
+    box."""
     B, h, w = depth.shape
     cx, cy = cam[2], cam[3]
     for b in range(B):
@@ -894,10 +912,17 @@ def _box_kernel(depth, origin, cam, margin, box, gain):
 
 
 @numba.njit(cache=True, nogil=True)
-def _model_kernel(depth, gray, origin, box64, cam, z_fallback, use_gray, use_mask, edge_scale, g1, g2, pre, fill_radius,
-                  point_step, box, K, T, coef, Z, points, valid):
-    """:func:`template_model` of each window ``depth`` / ``gray`` ``(B, h, w)`` at ``origin`` in its canvas box
-    ``box64`` (:func:`_box_kernel`), in one pass per element.
+def model_kernel(depth, gray, origin, box64, cam, z_fallback, use_gray, use_mask, edge_scale, g1, g2, pre, fill_radius,
+                 point_step, box, K, T, coef, Z, points, valid):
+    """:func:`template_model` of each window ``depth`` / ``gray`` ``(B, h, w)`` at ``origin`` ``(B, 2)`` float64 in its
+    canvas box ``box64`` (:func:`box_kernel`), unchecked, in one pass per element; releases the GIL.
+
+    Inputs besides those: ``cam`` (:func:`camera_array`), ``z_fallback`` ``(B,)`` float64 depth of the background far
+    from the object (the pose's ``tz``), ``use_gray`` (else ``gray`` is the depth), ``use_mask`` (the silhouette's
+    edges too), ``edge_scale = 0.125 / edge_clip``, the filters ``g1, g2, pre`` of :func:`model_filters`, the
+    ``fill_radius`` of the background fill and the ``point_step`` between object points (both ``max(1, N // 16)``).
+    Outputs, overwritten: the fields ``box, K, render_template = T, coef, depth = Z, points, valid`` of a
+    :class:`TemplateModel` in the render's dtype (``coef`` zeroed beforehand: only its interior is written).
 
     The box (also into ``box``, in its dtype) gives the canvas intrinsics ``K`` (:func:`canvas_intrinsics`); the
     window resampled into the box (:func:`~torchevtrack.reference.prepare_canvas`) gives the template (Sobel edges, DoG, scale and clip: the
@@ -992,8 +1017,9 @@ def _resample(depth, gray, cu, cv, step, use_gray, c_depth, c_mask, c_gray):
 
 
 @functools.lru_cache(maxsize=8)
-def _model_filters(canvas: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The DoG's two Gaussians and the B-spline prefilter of a canvas size, float32 (cached constants)."""
+def model_filters(canvas: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The DoG's two Gaussians and the B-spline prefilter of a canvas size, the ``g1, g2, pre`` of
+    :func:`model_kernel`: three 1-D float32 arrays (cached constants, never modified)."""
     f32 = torch.float32
     return (_gaussian(_odd(canvas / 20), f32).numpy(), _gaussian(_odd(canvas / 8), f32).numpy(),
             _prefilter_kernel(f32).numpy())
@@ -1021,40 +1047,49 @@ def template_model(
         raise ValueError(f"edge_clip must be positive, got {edge_clip}")
     depth = _check_images(depth, "depth")
     B, dt = pose.shape[0], depth.dtype
-    d, o, cam = depth.detach().numpy(), _origin(origin, B, torch.float64).contiguous().numpy(), _camera_array(camera)
-    box, gain = _render_box(d, o, cam, margin_px)
-    return _model_in_box(pose.detach().double().numpy(), d, (depth if gray is None else gray.to(dt)).detach().numpy(),
-                         gray is not None, o, cam, box, gain, canvas, edge_clip, silhouette)
+    d, o, cam = depth.detach().numpy(), _origin(origin, B, torch.float64).contiguous().numpy(), camera_array(camera)
+    box, gain = render_box(d, o, cam, margin_px)
+    return model_in_box(pose.detach().double().numpy(), d, (depth if gray is None else gray.to(dt)).detach().numpy(),
+                        gray is not None, o, cam, box, gain, canvas, edge_clip, silhouette)
 
 
-def _camera_array(camera: Camera) -> np.ndarray:
-    """``[fx, fy, cx, cy]`` float64, as the compiled template kernels take a camera."""
+def camera_array(camera: Camera) -> np.ndarray:
+    """``[fx, fy, cx, cy]`` float64, the ``cam`` argument of the compiled template kernels.
+
+    Shape: ``(4,)``.
+    """
     return np.array([camera.fx, camera.fy, camera.cx, camera.cy])
 
 
-def _render_box(depth: np.ndarray, origin: np.ndarray, cam: np.ndarray,
-                margin_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """The first part of :func:`template_model` (:func:`_box_kernel`): the canvas box ``(B, 3)`` float64 and the gain
-    ``(B,)`` in the render's dtype, of renders ``depth`` ``(B, h, w)`` at ``origin`` ``(B, 2)`` float64."""
+def render_box(depth: np.ndarray, origin: np.ndarray, cam: np.ndarray,
+               margin_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The first part of :func:`template_model` on numpy arrays, unchecked (:func:`box_kernel`): the canvas box
+    ``(B, 3)`` float64 and the gain ``(B,)`` in the render's dtype, of renders ``depth`` ``(B, h, w)`` at ``origin``
+    ``(B, 2)`` float64, ``cam`` from :func:`camera_array`. The observation needs only the box: the model can follow
+    (:func:`model_in_box`)."""
     box, gain = np.empty((len(depth), 3)), np.empty(len(depth), dtype=depth.dtype)
-    _box_kernel(depth, origin, cam, float(margin_px), box, gain)
+    box_kernel(depth, origin, cam, float(margin_px), box, gain)
     return box, gain
 
 
-def _model_in_box(pose: np.ndarray, depth: np.ndarray, shade: np.ndarray, use_gray: bool, origin: np.ndarray,
-                  cam: np.ndarray, box64: np.ndarray, gain: np.ndarray, N: int, edge_clip: float,
-                  silhouette: bool) -> TemplateModel:
-    """The rest of :func:`template_model` in the canvas box of :func:`_render_box` (:func:`_model_kernel`), on numpy
-    buffers in the render's dtype; ``pose`` ``(B, 7)`` float64 is the render's, ``shade`` the grey render (or the
-    depth when ``use_gray`` is false)."""
+def model_in_box(pose: np.ndarray, depth: np.ndarray, shade: np.ndarray, use_gray: bool, origin: np.ndarray,
+                 cam: np.ndarray, box64: np.ndarray, gain: np.ndarray, N: int, edge_clip: float,
+                 silhouette: bool) -> TemplateModel:
+    """The rest of :func:`template_model` in the canvas box of :func:`render_box` (:func:`model_kernel`), on numpy
+    arrays, unchecked: ``pose`` ``(B, 7)`` float64 is the render's, ``depth`` ``(B, h, w)`` at ``origin`` ``(B, 2)``
+    float64 the render, ``shade`` the grey render (or the depth when ``use_gray`` is false), ``box64`` and ``gain``
+    :func:`render_box`'s, ``N`` the canvas side; ``edge_clip`` and ``silhouette`` as for :func:`template_model`.
+
+    Shape: returns the :class:`TemplateModel` (tensors sharing the new arrays, in the render's dtype).
+    """
     B, dt = len(depth), depth.dtype
     step = max(1, N // 16)  # object points for shift_px: every step-th canvas pixel
     P = len(range(step // 2, N, step)) ** 2
     box, K = np.empty((B, 3), dt), np.empty((B, 4), dt)
     T, Z, coef = np.empty((B, N, N), dt), np.empty((B, N, N), dt), np.zeros((B, N + 6, N + 6), dt)
     points, valid = np.empty((B, P, 3), dt), np.empty((B, P), dtype=np.bool_)
-    _model_kernel(depth, shade, origin, box64, cam, np.ascontiguousarray(pose[:, 2]), use_gray, silhouette,
-                  0.125 / edge_clip, *_model_filters(N), step, step, box, K, T, coef, Z, points, valid)
+    model_kernel(depth, shade, origin, box64, cam, np.ascontiguousarray(pose[:, 2]), use_gray, silhouette,
+                  0.125 / edge_clip, *model_filters(N), step, step, box, K, T, coef, Z, points, valid)
     pose = torch.from_numpy(pose)
     return TemplateModel(pose, pose, *(torch.from_numpy(a) for a in (box, K, gain, T, Z, coef, points, valid)))
 
@@ -1330,9 +1365,9 @@ def newton_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, c
     out_pose = torch.empty(B, 7, dtype=torch.float64)
     score, scores = torch.empty(B, dtype=torch.float64), torch.empty(B, NUM_HYPOTHESES, dtype=torch.float64)
     moved = torch.empty(B, dtype=torch.int64)
-    _newton_kernel(_np(model.coef), _np(model.depth), _np(model.K.double()), _np(model.render_pose), _np(start),
-                   _np(obs), _np(model.gain.double()), camera.fx, camera.fy, float(dp_px), math.radians(dtheta_deg),
-                   iterations, damping, max_step, out_pose.numpy(), score.numpy(), scores.numpy(), moved.numpy())
+    newton_kernel(_np(model.coef), _np(model.depth), _np(model.K.double()), _np(model.render_pose), _np(start),
+                  _np(obs), _np(model.gain.double()), camera.fx, camera.fy, float(dp_px), math.radians(dtheta_deg),
+                  iterations, damping, max_step, out_pose.numpy(), score.numpy(), scores.numpy(), moved.numpy())
     dtype = model.depth.dtype
     scores = scores.to(dtype)
     return Correction(out_pose.to(pose.dtype), score.to(dtype), scores, scores.argmax(1),
