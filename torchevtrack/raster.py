@@ -27,7 +27,7 @@ Per pose, the kernel
    the first face drawn wins ties);
 5. shades only the visible pixels: albedo and object-frame normal are interpolated with the
    perspective-correct weights from the per-vertex attributes the pyrender backend packs
-   (``torchevtrack.render._shading_mesh``), then ``gray = albedo * (AMBIENT + (1 - AMBIENT) *
+   (``torchevtrack.render.shading_mesh``), then ``gray = albedo * (AMBIENT + (1 - AMBIENT) *
    max(0, n . l) / |n|)`` with the light direction ``l`` in the object frame. A textured mesh's albedo is its
    texture's luminance at the perspective-correct UV, sampled trilinearly from mipmaps (2 x 2 means) at the level
    of detail of the pixel's footprint (exact UV derivatives), as OpenGL's ``LINEAR_MIPMAP_LINEAR``
@@ -72,13 +72,14 @@ from torchevtrack.render import (
     AMBIENT,
     LIGHT_DIRECTION,
     Render,
-    _check_renderer_args,
-    _check_roi,
-    _shading_mesh,
-    _unit_poses,
+    check_renderer_args,
+    check_roi,
+    shading_mesh,
+    unit_poses,
 )
 
-__all__ = ["RasterMesh", "RasterRenderer", "RasterTexture", "raster_arrays", "raster_mesh", "rasterise", "render_kernel"]
+__all__ = ["RasterMesh", "RasterRenderer", "RasterTexture", "raster_arrays", "raster_mesh", "rasterise",
+           "render_kernel"]
 
 
 class RasterMesh(NamedTuple):
@@ -123,7 +124,7 @@ def raster_mesh(mesh: trimesh.Trimesh) -> RasterMesh:
 def raster_arrays(mesh: trimesh.Trimesh) -> tuple[RasterMesh, RasterTexture | None]:
     """:func:`raster_mesh` and, for a textured mesh (``TextureVisuals`` with UVs and an image), its
     :class:`RasterTexture` (else ``None``), from one preparation of the mesh."""
-    shading = _shading_mesh(mesh)
+    shading = shading_mesh(mesh)
     vertices, faces = shading.vertices, shading.faces
     corners = vertices[faces]
     n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
@@ -465,7 +466,7 @@ class RasterRenderer:
         zfar: float = 20.0,
         background: float = 0.0,
     ) -> None:
-        _check_renderer_args(mesh, camera, znear, zfar, background)
+        check_renderer_args(mesh, camera, znear, zfar, background)
         self.camera = camera
         self.znear, self.zfar = float(znear), float(zfar)
         self.background = float(background)
@@ -509,8 +510,8 @@ class RasterRenderer:
         ``shaded=False`` for depth only)."""
         if self._mesh is None:
             raise RuntimeError("renderer is closed")
-        cam = self.camera if roi is None else self.camera.crop(*_check_roi(roi))
-        depth, gray = self.render_unit(_unit_poses(poses), cam, shaded)
+        cam = self.camera if roi is None else self.camera.crop(*check_roi(roi))
+        depth, gray = self.render_unit(unit_poses(poses), cam, shaded)
         return Render(depth=torch.from_numpy(depth), gray=None if gray is None else torch.from_numpy(gray), camera=cam)
 
     def render_unit(self, poses: np.ndarray, camera: Camera,

@@ -32,9 +32,9 @@ import torch.nn.functional as F
 
 from torchevtrack.camera import Camera
 from torchevtrack.geometry import quat_conj, quat_mul, quat_rotate, quat_to_matrix
-from torchevtrack.stages.template import (_PREFILTER_RADIUS, Correction, _check_correct, _check_images, _extent, _fill,
-                                          _gaussian, _odd, _origin, _prefilter_kernel, apply_steps, canvas_intrinsics,
-                                          correct, search, to_canvas)
+from torchevtrack.stages.template import (PREFILTER_RADIUS, Correction, apply_steps, batch_origin, canvas_intrinsics,
+                                          check_correct, check_images, correct, fill_kernel, gaussian_taps, odd_size,
+                                          prefilter_taps, search, to_canvas, window_extent)
 
 __all__ = ["canvas_box", "edge_map", "dog", "radial_gain", "warp_canvas", "CanvasRender", "prepare_canvas",
            "hypothesis_templates", "score", "correct_warp"]
@@ -53,14 +53,14 @@ def canvas_box(depth: torch.Tensor, origin, margin_px: float = 20.0) -> torch.Te
 
     Shape: ``(B, h, w), (B, 2) -> (B, 3)``.
     """
-    depth = _check_images(depth, "depth")
+    depth = check_images(depth, "depth")
     return _box_of(_object_extent(depth, origin), depth, origin, margin_px)
 
 
 def _box_of(extent: torch.Tensor, depth: torch.Tensor, origin, margin_px: float) -> torch.Tensor:
     """:func:`canvas_box` from the :func:`_object_extent` of the render ``depth``."""
     B, h, w = depth.shape
-    origin = _origin(origin, B, depth.dtype)
+    origin = batch_origin(origin, B, depth.dtype)
     e = extent.to(depth.dtype)
     umin, umax, vmin, vmax = e[:, 0], e[:, 1], e[:, 2], e[:, 3]
     empty = e[:, 5] == 0
@@ -78,7 +78,7 @@ def _object_extent(depth: torch.Tensor, origin, camera: Camera | None = None) ->
     ``camera``) and their count.
     """
     B = depth.shape[0]
-    o = _origin(origin, B, torch.float64)
+    o = batch_origin(origin, B, torch.float64)
     c = (0.0, 0.0) if camera is None else (camera.cx, camera.cy)
     out = torch.empty(B, 6, dtype=torch.float64)
     _extent_kernel(depth.detach().numpy(), o.numpy(), c[0], c[1], camera is not None, out.numpy())
@@ -88,7 +88,7 @@ def _object_extent(depth: torch.Tensor, origin, camera: Camera | None = None) ->
 @numba.njit(cache=True, nogil=True)
 def _extent_kernel(depth, origin, cx, cy, gain, out):
     for b in range(depth.shape[0]):
-        out[b] = _extent(depth[b], origin[b, 0], origin[b, 1], cx, cy, gain)
+        out[b] = window_extent(depth[b], origin[b, 0], origin[b, 1], cx, cy, gain)
 
 
 def edge_map(gray: torch.Tensor | None, mask: torch.Tensor | None, edge_clip: float = 0.1) -> torch.Tensor:
@@ -116,13 +116,13 @@ def edge_map(gray: torch.Tensor | None, mask: torch.Tensor | None, edge_clip: fl
 
 @functools.lru_cache(maxsize=16)
 def _blur_matrix(k: int, n: int, dtype: torch.dtype) -> torch.Tensor:
-    """``(n, n)`` matrix of the 1-D blur with :func:`_gaussian` ``k`` and zero padding (``A @ x``).
+    """``(n, n)`` matrix of the 1-D blur with :func:`gaussian_taps` ``k`` and zero padding (``A @ x``).
 
     Cached (a constant of ``k, n, dtype``; never modified in place).
     """
     i = torch.arange(n)
     off = i[None, :] - i[:, None] + k // 2  # column j contributes to row i with tap j - i + k // 2
-    g = _gaussian(k, dtype)
+    g = gaussian_taps(k, dtype)
     return torch.where((off >= 0) & (off < k), g[off.clamp(0, k - 1)], torch.zeros((), dtype=dtype))
 
 
@@ -136,7 +136,7 @@ def dog(edges: torch.Tensor, canvas: int) -> torch.Tensor:
     """
     _, H, W = edges.shape
     out = None
-    for sign, k in ((1.0, _odd(canvas / 20)), (-1.0, _odd(canvas / 8))):
+    for sign, k in ((1.0, odd_size(canvas / 20)), (-1.0, odd_size(canvas / 8))):
         blur = _blur_matrix(k, H, edges.dtype) @ edges @ _blur_matrix(k, W, edges.dtype).T
         out = blur if out is None else out + sign * blur
     return out
@@ -155,7 +155,7 @@ def radial_gain(depth: torch.Tensor, origin, camera: Camera) -> torch.Tensor:
 
     Shape: ``(B, h, w), (B, 2) -> (B,)``.
     """
-    depth = _check_images(depth, "depth")
+    depth = check_images(depth, "depth")
     return _gain_of(_object_extent(depth, origin, camera), depth.dtype)
 
 
@@ -175,7 +175,7 @@ def _fill_depth(depth: torch.Tensor, fallback: torch.Tensor, radius: int) -> tor
 def _fill_kernel(depth, fallback, r):
     """:func:`_fill_depth` in place."""
     for b in range(depth.shape[0]):
-        _fill(depth[b], fallback[b], r)
+        fill_kernel(depth[b], fallback[b], r)
 
 
 def _spline_prefilter(x: torch.Tensor) -> torch.Tensor:
@@ -183,10 +183,10 @@ def _spline_prefilter(x: torch.Tensor) -> torch.Tensor:
 
     Shape: ``(B, C, H, W) -> (B, C, H, W)``.
     """
-    kern = _prefilter_kernel(x.dtype)
+    kern = prefilter_taps(x.dtype)
     B, C, H, W = x.shape
-    y = F.conv2d(x.reshape(B * C, 1, H, W), kern.view(1, 1, 1, -1), padding=(0, _PREFILTER_RADIUS))
-    y = F.conv2d(y, kern.view(1, 1, -1, 1), padding=(_PREFILTER_RADIUS, 0))
+    y = F.conv2d(x.reshape(B * C, 1, H, W), kern.view(1, 1, 1, -1), padding=(0, PREFILTER_RADIUS))
+    y = F.conv2d(y, kern.view(1, 1, -1, 1), padding=(PREFILTER_RADIUS, 0))
     return y.reshape(B, C, H, W)
 
 
@@ -306,7 +306,7 @@ def _crop_to_boxes(depth: torch.Tensor, gray: torch.Tensor | None, origin, box: 
     Returns ``(depth, gray, origin)`` of the crop; resampling it gives the same canvas as the window.
     """
     B, h, w = depth.shape
-    o = _origin(origin, B, box.dtype)
+    o = batch_origin(origin, B, box.dtype)
     half = box[:, 2] / 2
     lo = torch.stack((box[:, 0] - half - o[:, 0], box[:, 1] - half - o[:, 1]), -1).amin(0).floor() - 1
     hi = torch.stack((box[:, 0] + half - o[:, 0], box[:, 1] + half - o[:, 1]), -1).amax(0).ceil() + 2
@@ -321,7 +321,7 @@ def _crop_to_boxes(depth: torch.Tensor, gray: torch.Tensor | None, origin, box: 
 
 def _canvas_and_gain(depth, gray, origin, camera: Camera, canvas: int, margin_px: float):
     """:func:`prepare_canvas` and :func:`radial_gain` of a render, both from the crop the canvas samples."""
-    depth = _check_images(depth, "depth")
+    depth = check_images(depth, "depth")
     extent = _object_extent(depth, origin, camera)  # the crop below holds every object pixel: same gain
     box = _box_of(extent, depth, origin, margin_px)
     depth, gray, origin = _crop_to_boxes(depth, gray, origin, box)
@@ -342,7 +342,7 @@ def prepare_canvas(
 
     Shape: ``(B, h, w), (B, h, w) or None, (B, 2) -> CanvasRender`` with ``N = canvas``.
     """
-    depth = _check_images(depth, "depth")
+    depth = check_images(depth, "depth")
     if box is None:
         box = canvas_box(depth, origin, margin_px)
         depth, gray, origin = _crop_to_boxes(depth, gray, origin, box)
@@ -411,7 +411,7 @@ def correct_warp(pose: torch.Tensor, depth: torch.Tensor, gray: torch.Tensor | N
     o = {**_CORRECT_DEFAULTS, **options}
     if set(o) != set(_CORRECT_DEFAULTS):
         raise TypeError(f"unknown options {sorted(set(o) - set(_CORRECT_DEFAULTS))}")
-    _check_correct(pose, depth, gray, observation, **o)
+    check_correct(pose, depth, gray, observation, **o)
     if warp not in ("template", "image"):
         raise ValueError(f"warp must be 'template' or 'image', got {warp!r}")
     cr, gain = _canvas_and_gain(depth, gray, origin, camera, o["canvas"], o["margin_px"])

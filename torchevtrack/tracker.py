@@ -69,7 +69,7 @@ from tqdm.auto import tqdm
 
 from torchevtrack.camera import Camera
 from torchevtrack.config import TrackerConfig
-from torchevtrack.events import EventStream, _first_invalid, check_window
+from torchevtrack.events import EventStream, check_window, first_invalid, pack_streams
 from torchevtrack.geometry import check_pose, quat_rotate
 from torchevtrack.loss import LossDetector, LossUpdate, OnLost
 from torchevtrack.kernels import announce_compile
@@ -398,7 +398,8 @@ class EventPoseTracker(nn.Module):
                 this update searches (until the next call, those stages' state belongs to the intake thread), and
                 the next call must be for exactly these tensors (else RuntimeError); otherwise it is ignored. Only
                 a window already in the kernels' dtypes (an :class:`EventStream`'s: int16 x and y, int64 t, int8
-                p, int64 b) that passes the checks is taken in ahead.
+                p, int64 b) that passes the checks is taken in ahead. A loop that passes it ends with
+                :meth:`drop_ahead`.
             check: validate the window (:func:`~torchevtrack.events.check_window`, and time going back across
                 windows), raising a one-line ``ValueError`` that names the tensor and the event, and cast it once
                 to the kernels' dtypes (other integer dtypes would compile every kernel again). ``False`` skips
@@ -436,6 +437,15 @@ class EventPoseTracker(nn.Module):
                     self._run.observing = None
         return torch.from_numpy((self.pose if self.recover is None else self.recover.pose).numpy().copy())
 
+    def drop_ahead(self) -> None:
+        """Forget a window given as ``next_window`` to :meth:`forward` whose update will not come: a caller that feeds
+        windows ahead calls it when its loop ends (in a ``finally``; nothing happens if no window is ahead). It waits
+        for the pipeline's thread to finish taking that window in; the state then holds its events (the next update
+        must not be for them). A render made ahead stays: it depends on the poses only."""
+        if self._run.ahead is not None:
+            self._run.ahead.flow.wait()  # not .result(): in a finally, its error would hide the one that stopped the loop
+            self._run.ahead = None
+
     def _check(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor, b: torch.Tensor | None,
                last: np.ndarray) -> tuple[torch.Tensor, ...]:
         """A window checked and in the kernels' dtypes (:func:`~torchevtrack.events.check_window`), none of whose
@@ -449,7 +459,7 @@ class EventPoseTracker(nn.Module):
             and x.dtype == y.dtype == torch.int16 and t.dtype == torch.int64 and p.dtype == torch.int8 \
             and x.shape == y.shape == t.shape == p.shape
         if fast and t.numel():
-            fast = _first_invalid(x.numpy(), y.numpy(), t.numpy(), W, H)[0] == 0 and \
+            fast = first_invalid(x.numpy(), y.numpy(), t.numpy(), W, H)[0] == 0 and \
                 int(p.numpy().view(np.uint8).max()) <= 1
         if not fast:
             x, y, t, p, b = check_window(x, y, t, p, b, width=W, height=H, batch=self.batch_size)
@@ -621,7 +631,7 @@ class EventPoseTracker(nn.Module):
         lost = torch.zeros(B, n, dtype=torch.bool)
 
         def window(i: int) -> tuple | None:
-            return _pack([s[int(bd[i]): int(bd[i + 1])] for s, bd in zip(streams, bounds)]) if i < n else None
+            return pack_streams([s[int(bd[i]): int(bd[i + 1])] for s, bd in zip(streams, bounds)]) if i < n else None
 
         ahead = window(0)
         try:
@@ -631,7 +641,7 @@ class EventPoseTracker(nn.Module):
                 if return_lost:
                     lost[:, i] = self.lost
         finally:
-            self._drop_ahead()
+            self.drop_ahead()
         return (times, poses, lost) if return_lost else (times, poses)
 
     def _checked_stream(self, s: EventStream, k: int) -> EventStream:
@@ -957,13 +967,6 @@ class EventPoseTracker(nn.Module):
             raise RuntimeError("the update is not for the window taken in ahead (an interrupted track or push?)")
         return flow
 
-    def _drop_ahead(self) -> None:
-        """Forget a window taken in ahead whose update will not come (the loop ended early): wait for the thread. (A
-        render made ahead stays: it depends on the poses only, and the next update still renders there.)"""
-        if self._run.ahead is not None:
-            self._run.ahead.flow.wait()  # not .result(): in a finally, its error would hide the one that stopped the loop
-            self._run.ahead = None
-
     def _retake_ahead(self, m: torch.Tensor) -> None:
         """After a reset of the elements ``m`` ``(B,)`` bool: take their events of the window already taken in
         ahead into their cleared EROS and flow again (the others keep theirs), as if the reset came first."""
@@ -1056,14 +1059,3 @@ def _per_stream(value, default: list[int], name: str) -> list[int]:
         raise ValueError(f"{name} needs one value per stream ({len(default)}), got {len(value)}")
     return [int(v) for v in value]
 
-
-def _pack(parts: Sequence[EventStream]):
-    """Concatenate per-element windows into packed tensors with a batch index (``None`` for one element), in the
-    streams' own integer types (the kernels take them as they are: no int64 copies)."""
-    if len(parts) == 1:
-        q = parts[0]
-        return q.x, q.y, q.t, q.p, None
-    sizes = torch.tensor([len(q) for q in parts])
-    b = torch.repeat_interleave(torch.arange(len(parts)), sizes)
-    cat = lambda f: torch.cat([getattr(q, f) for q in parts])  # noqa: E731
-    return cat("x"), cat("y"), cat("t"), cat("p"), b

@@ -122,11 +122,17 @@ __all__ = [
     "RULES",
     "Correction",
     "render_window",
+    "window_extent",
     "window_of",
     "window_kernel",
     "canvas_intrinsics",
     "to_canvas",
     "hypothesis_steps",
+    "odd_size",
+    "gaussian_taps",
+    "fill_kernel",
+    "PREFILTER_RADIUS",
+    "prefilter_taps",
     "apply_steps",
     "pose_delta",
     "QuadraticScore",
@@ -148,6 +154,9 @@ __all__ = [
     "correct_model",
     "correct_canvas",
     "TemplateCorrector",
+    "check_correct",
+    "check_images",
+    "batch_origin",
 ]
 
 AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
@@ -232,8 +241,11 @@ def window_kernel(t, radius, fx, fy, cx, cy, margin, W, H, clip, out):
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
-def _extent(depth, u0, v0, cx, cy, gain):
-    """:func:`_object_extent` of one window ``(h, w)`` at ``(u0, v0)``: a 6-tuple."""
+def window_extent(depth, u0, v0, cx, cy, gain):
+    """The object's extent in one render window ``depth`` ``(h, w)`` whose top-left frame pixel is ``(u0, v0)``
+    (compiled; :func:`~torchevtrack.reference.canvas_box` and :func:`~torchevtrack.reference.radial_gain` reduce it):
+    ``(umin, umax, vmin, vmax, total, n)`` floats, the window pixel bounds of the ``n`` object pixels (``depth > 0``;
+    all 0 if none) and, with ``gain``, ``total`` the sum of their ``|(u - cx, v - cy)| / z`` (else 0)."""
     h, w = depth.shape
     umin, umax, vmin, vmax, total, n = w, -1, h, -1, 0.0, 0
     for v in range(h):
@@ -291,7 +303,7 @@ def to_canvas(image: torch.Tensor, box: torch.Tensor, canvas: int, origin=(0, 0)
     B, _, h, w = x.shape
     if box.shape != (B, 3):
         raise ValueError(f"box must have shape ({B}, 3) [cu, cv, side], got {tuple(box.shape)}")
-    origin = _origin(origin, B, x.dtype)
+    origin = batch_origin(origin, B, x.dtype)
     box = box.to(x.dtype)
     offs = (torch.arange(canvas, dtype=x.dtype) + 0.5 - canvas / 2.0) * (box[:, 2:] / canvas)  # (B, N)
     u = box[:, :1] + offs - origin[:, :1]
@@ -303,15 +315,20 @@ def to_canvas(image: torch.Tensor, box: torch.Tensor, canvas: int, origin=(0, 0)
 
 
 # -- templates --------------------------------------------------------------------------------
-def _odd(n: float) -> int:
+def odd_size(n: float) -> int:
+    """The odd kernel size nearest ``n`` from above (at least 3): the DoG's sizes ``odd_size(canvas / 20)`` and
+    ``odd_size(canvas / 8)``."""
     k = max(3, round(n))
     return k if k % 2 else k + 1
 
 
 @functools.lru_cache(maxsize=16)
-def _gaussian(k: int, dtype: torch.dtype) -> torch.Tensor:
+def gaussian_taps(k: int, dtype: torch.dtype) -> torch.Tensor:
     """Normalised Gaussian kernel of odd size ``k``, sigma ``0.3 ((k - 1) / 2 - 1) + 0.8`` (OpenCV's default;
-    cached constant, never modified in place)."""
+    cached constant, never modified in place).
+
+    Shape: ``(k,)`` in ``dtype``.
+    """
     s = 0.3 * ((k - 1) / 2 - 1) + 0.8
     x = torch.arange(k, dtype=torch.float64) - k // 2
     g = torch.exp(-x * x / (2 * s * s))
@@ -356,10 +373,12 @@ def apply_steps(pose: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
 
 # -- warping and scoring ----------------------------------------------------------------------
 @numba.njit(cache=True, nogil=True)
-def _fill(depth, fallback, r):
-    """:func:`~torchevtrack.reference._fill_depth` of one image ``(h, w)`` in place, from float64 box sums of the object depths and counts:
-    running sums over ``2 r + 1`` rows, then prefix sums along the rows (zero-padded by ``r``, so the window
-    of pixel ``u`` is ``P[u + 2 r + 1] - P[u]``)."""
+def fill_kernel(depth, fallback, r):
+    """The background fill of one canvas depth ``depth`` ``(h, w)``, in place (compiled): each background pixel
+    (``<= 0``) takes the mean object depth in the ``(2 r + 1)`` square around it, or ``fallback`` (metres) where that
+    square holds no object pixel (:func:`~torchevtrack.reference._fill_depth` fills a batch with it). From float64 box
+    sums of the object depths and counts: running sums over ``2 r + 1`` rows, then prefix sums along the rows
+    (zero-padded by ``r``, so the window of pixel ``u`` is ``P[u + 2 r + 1] - P[u]``)."""
     h, w = depth.shape
     S, C = np.zeros((h, w + 2 * r + 1)), np.zeros((h, w + 2 * r + 1))
     s, c = np.zeros(w), np.zeros(w)  # sums over the rows [v - r, v + r]
@@ -394,13 +413,17 @@ def _fill(depth, fallback, r):
 # Cubic B-spline interpolation for the warp (module docstring, item 4): exact at the samples and
 # neither blurring nor sharpening a sub-pixel sample of the smooth template.
 _POLE = math.sqrt(3.0) - 2.0
-_PREFILTER_RADIUS = 8  # |pole| ** 9 < 1e-5: truncation error of the FIR inverse of [1, 4, 1] / 6
+PREFILTER_RADIUS = 8  # of prefilter_taps; |pole| ** 9 < 1e-5: truncation error of the FIR inverse of [1, 4, 1] / 6
 
 
 @functools.lru_cache(maxsize=8)
-def _prefilter_kernel(dtype: torch.dtype) -> torch.Tensor:
-    """FIR taps of the B-spline prefilter (cached constant, never modified in place)."""
-    k = torch.arange(-_PREFILTER_RADIUS, _PREFILTER_RADIUS + 1, dtype=torch.float64)
+def prefilter_taps(dtype: torch.dtype) -> torch.Tensor:
+    """FIR taps of the cubic B-spline prefilter (the inverse of ``[1, 4, 1] / 6`` truncated at ``PREFILTER_RADIUS``;
+    cached constant, never modified in place).
+
+    Shape: ``(2 PREFILTER_RADIUS + 1,)`` in ``dtype``.
+    """
+    k = torch.arange(-PREFILTER_RADIUS, PREFILTER_RADIUS + 1, dtype=torch.float64)
     return ((-6 * _POLE / (1 - _POLE**2)) * _POLE ** k.abs()).to(dtype)
 
 
@@ -803,7 +826,7 @@ class TemplateModel(NamedTuple):
     def observe(self, observation: torch.Tensor, observation_origin=(0, 0)) -> torch.Tensor:
         """Observation ``(B, H, W)`` (top-left pixel at ``observation_origin``) resampled into the canvas, ``(B, N * N)``."""
         B, N, _ = self.depth.shape
-        obs = _check_images(observation, "observation")
+        obs = check_images(observation, "observation")
         if obs.shape[0] != B:
             raise ValueError(f"observation must have one image per pose ({B}), got {tuple(obs.shape)}")
         return to_canvas(obs.to(self.depth.dtype), self.box, N, observation_origin).reshape(B, N * N)
@@ -902,7 +925,7 @@ def box_kernel(depth, origin, cam, margin, box, gain):
     cx, cy = cam[2], cam[3]
     for b in range(B):
         ou, ov = origin[b, 0], origin[b, 1]
-        umin, umax, vmin, vmax, total, n = _extent(depth[b], ou, ov, cx, cy, True)
+        umin, umax, vmin, vmax, total, n = window_extent(depth[b], ou, ov, cx, cy, True)
         if n == 0:
             box[b, 0], box[b, 1], box[b, 2] = (w - 1) / 2.0 + ou, (h - 1) / 2.0 + ov, float(max(h, w))
         else:
@@ -960,7 +983,7 @@ def model_kernel(depth, gray, origin, box64, cam, z_fallback, use_gray, use_mask
         _dog_template(B1, B2, T[b], Tp)
         _blur(Tp, pre, tmp, B1)
         coef[b, 3:N + 3, 3:N + 3] = B1[:, p:p + N]  # the B-spline coefficients
-        _fill(Z[b], z_fallback[b], fill_radius)
+        fill_kernel(Z[b], z_fallback[b], fill_radius)
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
@@ -1021,8 +1044,8 @@ def model_filters(canvas: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The DoG's two Gaussians and the B-spline prefilter of a canvas size, the ``g1, g2, pre`` of
     :func:`model_kernel`: three 1-D float32 arrays (cached constants, never modified)."""
     f32 = torch.float32
-    return (_gaussian(_odd(canvas / 20), f32).numpy(), _gaussian(_odd(canvas / 8), f32).numpy(),
-            _prefilter_kernel(f32).numpy())
+    return (gaussian_taps(odd_size(canvas / 20), f32).numpy(), gaussian_taps(odd_size(canvas / 8), f32).numpy(),
+            prefilter_taps(f32).numpy())
 
 
 def template_model(
@@ -1045,9 +1068,10 @@ def template_model(
         raise ValueError("without a grey render the template needs silhouette=True")
     if not edge_clip > 0:
         raise ValueError(f"edge_clip must be positive, got {edge_clip}")
-    depth = _check_images(depth, "depth")
+    depth = check_images(depth, "depth")
     B, dt = pose.shape[0], depth.dtype
-    d, o, cam = depth.detach().numpy(), _origin(origin, B, torch.float64).contiguous().numpy(), camera_array(camera)
+    d, cam = depth.detach().numpy(), camera_array(camera)
+    o = batch_origin(origin, B, torch.float64).contiguous().numpy()
     box, gain = render_box(d, o, cam, margin_px)
     return model_in_box(pose.detach().double().numpy(), d, (depth if gray is None else gray.to(dt)).detach().numpy(),
                         gray is not None, o, cam, box, gain, canvas, edge_clip, silhouette)
@@ -1272,8 +1296,8 @@ def correct(
 
     Shape: ``(B, 7), (B, h, w), (B, h, w), (B, 2), (B, H, W) -> Correction``.
     """
-    _check_correct(pose, depth, gray, observation, canvas=canvas, rule=rule, iterations=iterations,
-                   silhouette=silhouette)
+    check_correct(pose, depth, gray, observation, canvas=canvas, rule=rule, iterations=iterations,
+                  silhouette=silhouette)
     model = template_model(pose, depth, gray, origin, camera, canvas=canvas, margin_px=margin_px,
                            edge_clip=edge_clip, silhouette=silhouette)
     return correct_model(model, pose, observation, camera, observation_origin=observation_origin, dp_px=dp_px,
@@ -1436,7 +1460,7 @@ class TemplateCorrector(nn.Module):
     def template_model(self, pose, depth, gray, origin) -> TemplateModel:
         """:func:`template_model` of a render (window at ``origin``) made at ``pose``."""
         o = self.options
-        return template_model(_check_poses(pose, "pose"), _check_images(depth, "depth"), gray, origin, self.camera,
+        return template_model(_check_poses(pose, "pose"), check_images(depth, "depth"), gray, origin, self.camera,
                               canvas=o["canvas"], margin_px=o["margin_px"], edge_clip=o["edge_clip"],
                               silhouette=o["silhouette"])
 
@@ -1455,18 +1479,19 @@ class TemplateCorrector(nn.Module):
 
 
 # -- input checks -----------------------------------------------------------------------------
-def _check_correct(pose, depth, gray, observation, *, canvas, rule, iterations, silhouette, **_) -> None:
-    """The checks of :func:`correct`'s inputs and options (one line each)."""
+def check_correct(pose, depth, gray, observation, *, canvas, rule, iterations, silhouette, **_) -> None:
+    """The checks of :func:`correct`'s inputs and options: a one-line ``TypeError`` / ``ValueError`` for the first
+    problem, else ``None``."""
     _check_poses(pose, "pose")
-    B = _check_images(depth, "depth").shape[0]
+    B = check_images(depth, "depth").shape[0]
     if B != pose.shape[0]:
         raise ValueError(f"depth must have one image per pose ({pose.shape[0]}), got {tuple(depth.shape)}")
     if gray is not None:
-        if _check_images(gray, "gray").shape != depth.shape:
+        if check_images(gray, "gray").shape != depth.shape:
             raise ValueError(f"gray must match depth {tuple(depth.shape)}, got {tuple(gray.shape)}")
     elif not silhouette:
         raise ValueError("without a grey render the template needs silhouette=True")
-    if _check_images(observation, "observation").shape[0] != B:
+    if check_images(observation, "observation").shape[0] != B:
         raise ValueError(f"observation must have one image per pose ({B}), got {tuple(observation.shape)}")
     _check_options(rule, iterations)
     if isinstance(canvas, bool) or not isinstance(canvas, int) or canvas < 16:
@@ -1483,7 +1508,9 @@ def _check_poses(pose, name: str) -> torch.Tensor:
     return pose
 
 
-def _check_images(x, name: str) -> torch.Tensor:
+def check_images(x, name: str) -> torch.Tensor:
+    """``x`` if it is a floating-point ``(B, H, W)`` tensor with pixels, else a one-line ``TypeError`` /
+    ``ValueError`` naming ``name``."""
     if not isinstance(x, torch.Tensor) or not x.is_floating_point():
         raise TypeError(f"{name} must be a floating-point tensor (B, H, W), got {type(x).__name__}")
     if x.ndim != 3 or x.shape[1] == 0 or x.shape[2] == 0:
@@ -1491,7 +1518,9 @@ def _check_images(x, name: str) -> torch.Tensor:
     return x
 
 
-def _origin(origin, B: int, dtype: torch.dtype) -> torch.Tensor:
+def batch_origin(origin, B: int, dtype: torch.dtype) -> torch.Tensor:
+    """A window origin ``(u0, v0)`` or ``(B, 2)`` as a ``(B, 2)`` tensor of ``dtype`` (one-line ``ValueError`` for
+    another shape)."""
     o = torch.as_tensor(origin, dtype=dtype)
     if o.shape == (2,):
         o = o.expand(B, 2)
