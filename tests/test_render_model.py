@@ -65,6 +65,17 @@ def test_the_binding_is_the_stage_calls_bit_for_bit(renderer, pose):
     assert float(model.render_template.abs().max()) > 0
 
 
+def test_the_observation_box_is_the_models_float32_box(renderer):
+    """The tracker observes the EROS under ``observed_box``, which the compiled call writes: the model's box."""
+    bind = RenderModelBinding(renderer, _radius(renderer), margin_px=10, **OPTIONS)
+    got = bind(_pose(0.0, 0.0, 0.45, 0.4).numpy(), True, True)
+    assert got.model.box.dtype == torch.float32
+    assert torch.equal(torch.from_numpy(bind.observed_box), got.model.box.double())
+    again = bind(_pose(0.03, 0.01, 0.5, 0.2).numpy(), True, True)  # each model made rewrites it
+    assert torch.equal(torch.from_numpy(bind.observed_box), again.model.box.double())
+    assert not torch.equal(got.model.box, again.model.box)
+
+
 def test_the_render_alone(renderer):
     pose = _pose(0.0, 0.01, 0.5, 0.7)
     depth_only = render_model(renderer, pose, _radius(renderer), shaded=False, model=False)

@@ -39,7 +39,7 @@ import torch
 import torch.nn.functional as F
 
 from torchevtrack.camera import Camera
-from torchevtrack.geometry import quat_canonical, quat_conj, quat_exp, quat_mul, quat_rotate, quat_to_matrix
+from torchevtrack.geometry import quat_canonical, quat_exp, quat_mul, quat_to_matrix
 from torchevtrack.stages.template import (NEWTON_DAMPING, NEWTON_MAX_STEP, NUM_HYPOTHESES, PREFILTER_RADIUS, Correction,
                                           TemplateModel, apply_steps, batch_origin, canvas_intrinsics, check_correct,
                                           check_images, correct_canvas, fill_kernel, gaussian_taps, odd_size,

@@ -25,9 +25,9 @@ the other (``tests/test_intake.py``, ``tests/test_motion.py``, ``tests/test_rend
   thread searches, and as separate calls that job would hold the GIL between its kernels.
 - :func:`bind_correction`, step 5: the canvas box of the render's extent, the observation under it
   (:func:`~torchevtrack.stages.eros.canvas_observation`), then the rest of the template model and the search
-  (:func:`~torchevtrack.stages.template.newton_search`, or the other rules' torch search). Once the observation is made
-  it tells the caller (``on_observed``): the next window's events may then update the surfaces while the model and the
-  search run.
+  (:func:`~torchevtrack.stages.template.newton_search`; the ablation's argmax and group rules through
+  :func:`~torchevtrack.stages.template.correct_canvas`). Once the observation is made it tells the caller
+  (``on_observed``): the next window's events may then update the surfaces while the model and the search run.
 - :func:`output`, step 6: the correction's rate into the
   :class:`~torchevtrack.stages.velocity.CorrectionFeedback` (:func:`~torchevtrack.stages.propagate.twist_between`
   the predicted and measured poses about the predicted centre, :func:`~torchevtrack.stages.velocity.feedback_step`),
