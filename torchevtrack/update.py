@@ -384,11 +384,11 @@ def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *,
             box, gain = render_box(depth, origin64, cam, margin_px)
             N, observed_box = canvas, box.astype(np.float32).astype(np.float64)  # as the model's box (float32) gives it
         else:
-            N, observed_box = model.depth.shape[-1], model.box.numpy().astype(np.float64)
+            N = model.depth.shape[-1]
         if obs is None:
             obs = np.empty((B, N, N), dtype=np.float32)
-            canvas_kernel(surface, last_us, observed_box, t_now_us.astype(np.int64, copy=False), max_age_us,
-                          recency_us, table, obs)
+            canvas_kernel(surface, last_us, observed_box if model is None else model.box.numpy().astype(np.float64),
+                          t_now_us.astype(np.int64, copy=False), max_age_us, recency_us, table, obs)
         if on_observed is not None:
             on_observed()
         if model is None:
