@@ -140,7 +140,7 @@ class Recorder(EventPoseTracker):
         pose[:, 0] = self.count
         return pose
 
-    def _drop_ahead(self) -> None:  # nothing is taken in ahead
+    def drop_ahead(self) -> None:  # nothing is taken in ahead
         pass
 
 
@@ -299,7 +299,7 @@ class _Constant(EventPoseTracker):
     def forward(self, x, y, t, p, b=None, t_us=None, next_window=None):
         return torch.zeros(1, 7, dtype=torch.float64)
 
-    def _drop_ahead(self) -> None:
+    def drop_ahead(self) -> None:
         pass
 
 

@@ -24,7 +24,8 @@ from torchevtrack.stages.flow import NEVER, TripletFlow
 from torchevtrack.stages.ukf import PoseUKF
 from torchevtrack.stages.velocity import VelocityKF
 from torchevtrack.synth.generate import generate_sequence
-from torchevtrack.tracker import EventPoseTracker, _pack
+from torchevtrack.events import pack_streams
+from torchevtrack.tracker import EventPoseTracker
 
 F64 = torch.float64
 B = 3
@@ -244,7 +245,7 @@ def test_tracker_reset_of_one_element_restarts_it_and_leaves_the_other_bit_ident
                 assert torch.equal(d1[fv - v:fv - v + fh, fu - u:fu - u + fw], fresh.depth[0])
                 assert (d1 > 0).sum() == (fresh.depth[0] > 0).sum()
             w = _window(seq.events, k)
-            x, y, t, p, b = _pack([w, w])
+            x, y, t, p, b = pack_streams([w, w])
             poses.append(tracker(x, y, t, p, b))
             if k >= K and reinit:
                 poses_fresh = fresh(w.x.long(), w.y.long(), w.t, w.p.long())
@@ -315,7 +316,7 @@ def test_on_lost_pose_restarts_the_lost_element_only(seq):
     for k in range(N):
         w1 = _window(noise if CUT_US <= P_US * k and not calls else seq.events, k)
         fed.append(w1)
-        poses.append(tracker(*_pack([_window(seq.events, k), w1]), t_us=P_US * (k + 1)))
+        poses.append(tracker(*pack_streams([_window(seq.events, k), w1]), t_us=P_US * (k + 1)))
         lost.append(tracker.lost.clone())
         assert tracker.stage_ms["loss"] >= 0
     tracker.close()
@@ -331,7 +332,7 @@ def test_on_lost_pose_restarts_the_lost_element_only(seq):
     plain = EventPoseTracker(CAM, [seq.mesh, seq.mesh], cfg.replace(loss={"enabled": False}))
     plain.reset(seq.gt_poses[0])
     for k in range(N):
-        assert torch.equal(plain(*_pack([_window(seq.events, k), fed[k]]))[0], poses[k, 0]), k
+        assert torch.equal(plain(*pack_streams([_window(seq.events, k), fed[k]]))[0], poses[k, 0]), k
     plain.close()
     # Element 1 after the restart: a fresh tracker started at the callback's pose.
     fresh = EventPoseTracker(CAM, seq.mesh, cfg.replace(loss={"enabled": False}))
@@ -395,7 +396,7 @@ def test_a_restart_with_the_next_window_taken_in_ahead_gives_the_serial_poses(se
     noise = _noise(CUT_US, int(seq.gt_t_us[-1]), rate, 0)
     N = 90
     streams = [seq.events, noise] if batch == 2 else [noise]  # the last element loses its object at CUT_US
-    windows = [_pack([_window(seq.events if P_US * k < CUT_US else s, k) for s in streams]) for k in range(N)]
+    windows = [pack_streams([_window(seq.events if P_US * k < CUT_US else s, k) for s in streams]) for k in range(N)]
     out = {}
     for pipeline in (False, True):
         calls = []

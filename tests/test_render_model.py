@@ -1,4 +1,4 @@
-"""render_model_step against its oracle: the render window, the rasteriser's render in it and template_model of it,
+"""RenderModelBinding against its oracle: the render window, the rasteriser's render in it and template_model of it,
 one call after the other, bit for bit."""
 
 import math
@@ -10,11 +10,16 @@ import torch
 from torchevtrack.camera import Camera
 from torchevtrack.mesh import load_mesh
 from torchevtrack.raster import RasterRenderer
-from torchevtrack.stages.render_model import render_model_step
 from torchevtrack.stages.template import render_window, template_model
+from torchevtrack.update import RenderModelBinding
 
 CAM = Camera(160, 120, 150.0, 150.0, 79.5, 59.5)
 OPTIONS = dict(canvas=64, box_margin_px=12.0, edge_clip=0.2, silhouette=True)
+
+
+def render_model(renderer, pose, radius, margin_px=24, shaded=True, model=True):
+    """The tracker's call: the binding of a renderer and the options, on a float64 (1, 7) pose."""
+    return RenderModelBinding(renderer, radius, margin_px=margin_px, **OPTIONS)(pose.numpy(), shaded, model)
 
 
 @pytest.fixture(scope="module")
@@ -41,9 +46,9 @@ def _pose(tx, ty, tz, angle, axis=(0.3, 1.0, 0.2), scale=1.0):
     _pose(0.04, -0.03, 0.6, 2.0, scale=1.0003),  # not quite unit
     _pose(0.15, 0.1, 0.5, -1.0),  # the window cut by the frame's corner
 ])
-def test_render_model_step_is_the_stage_calls_bit_for_bit(renderer, pose):
+def test_the_binding_is_the_stage_calls_bit_for_bit(renderer, pose):
     radius = _radius(renderer)
-    got = render_model_step(renderer, pose, radius, margin_px=10, **OPTIONS)
+    got = render_model(renderer, pose, radius, margin_px=10)
     win = render_window(pose, CAM, radius, margin_px=10)
     u0, v0, w, h = win[0].tolist()
     u1, v1 = min(max(u0, 0), CAM.width - min(w, CAM.width)), min(max(v0, 0), CAM.height - min(h, CAM.height))
@@ -60,24 +65,23 @@ def test_render_model_step_is_the_stage_calls_bit_for_bit(renderer, pose):
     assert float(model.render_template.abs().max()) > 0
 
 
+def test_the_observation_box_is_the_models_float32_box(renderer):
+    """The tracker observes the EROS under ``observed_box``, which the compiled call writes: the model's box."""
+    bind = RenderModelBinding(renderer, _radius(renderer), margin_px=10, **OPTIONS)
+    got = bind(_pose(0.0, 0.0, 0.45, 0.4).numpy(), True, True)
+    assert got.model.box.dtype == torch.float32
+    assert torch.equal(torch.from_numpy(bind.observed_box), got.model.box.double())
+    again = bind(_pose(0.03, 0.01, 0.5, 0.2).numpy(), True, True)  # each model made rewrites it
+    assert torch.equal(torch.from_numpy(bind.observed_box), again.model.box.double())
+    assert not torch.equal(got.model.box, again.model.box)
+
+
 def test_the_render_alone(renderer):
     pose = _pose(0.0, 0.01, 0.5, 0.7)
-    depth_only = render_model_step(renderer, pose, _radius(renderer), shaded=False, model=False)
-    shaded = render_model_step(renderer, pose, _radius(renderer), model=False)
+    depth_only = render_model(renderer, pose, _radius(renderer), shaded=False, model=False)
+    shaded = render_model(renderer, pose, _radius(renderer), model=False)
     assert depth_only.gray is None and depth_only.model is None and shaded.model is None
     assert torch.equal(depth_only.depth, shaded.depth) and shaded.gray is not None
-
-
-def test_bad_input(renderer):
-    radius = _radius(renderer)
-    with pytest.raises(ValueError, match="float64 \\(1, 7\\)"):
-        render_model_step(renderer, _pose(0.0, 0.0, 0.5, 0.1).float(), radius)
-    with pytest.raises(ValueError, match="in front of the camera"):
-        render_model_step(renderer, _pose(0.0, 0.0, -0.5, 0.1), radius)
-    with pytest.raises(ValueError, match="needs the grey render"):
-        render_model_step(renderer, _pose(0.0, 0.0, 0.5, 0.1), radius, shaded=False)
-    with pytest.raises(TypeError, match="RasterRenderer"):
-        render_model_step(object(), _pose(0.0, 0.0, 0.5, 0.1), radius)
 
 
 def test_a_textured_mesh_renders_its_texture_into_the_template():
@@ -91,7 +95,7 @@ def test_a_textured_mesh_renders_its_texture_into_the_template():
     radius = _radius(printed)
     energy, gradient = [], []
     for r in (plain, printed):
-        got = render_model_step(r, pose, radius, margin_px=10, **OPTIONS)
+        got = render_model(r, pose, radius, margin_px=10)
         u0, v0, w, h = got.window[0].tolist()
         want = r.render(pose, roi=(u0, v0, w, h))
         assert torch.equal(got.gray, want.gray)

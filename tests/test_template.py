@@ -39,7 +39,7 @@ def scenes():
 
 
 def _steps(pose, render, roi):
-    return tm.hypothesis_steps(pose, CAM, reference.radial_gain(render.depth, roi[:2], CAM))
+    return reference.hypothesis_steps(pose, CAM, reference.radial_gain(render.depth, roi[:2], CAM))
 
 
 def _edges(render):
@@ -60,7 +60,7 @@ def test_doctests():
 def test_translation_steps_move_the_projected_centre_by_dp(scenes):
     _, roi, base = scenes["box"]
     for dp in (1.0, 2.5):
-        hyp = tm.apply_steps(POSE, tm.hypothesis_steps(POSE, CAM, reference.radial_gain(base.depth, roi[:2], CAM), dp))[0]
+        hyp = tm.apply_steps(POSE, reference.hypothesis_steps(POSE, CAM, reference.radial_gain(base.depth, roi[:2], CAM), dp))[0]
         uv = CAM.project(hyp[:, :3])
         d = uv - uv[0]
         expected = torch.tensor([[dp, 0], [-dp, 0], [0, dp], [0, -dp]], dtype=d.dtype)
@@ -89,7 +89,7 @@ def test_rotation_steps_are_dtheta_about_camera_axes():
     pose = torch.cat((torch.randn(3, 3, dtype=torch.float64) * 0.1 + torch.tensor([0, 0, 0.6]),
                       g.quat_canonical(torch.randn(3, 4, dtype=torch.float64))), -1)
     for dth in (0.5, 2.0):
-        hyp = tm.apply_steps(pose, tm.hypothesis_steps(pose, CAM, torch.full((3,), 200.0), 1.0, dth))
+        hyp = tm.apply_steps(pose, reference.hypothesis_steps(pose, CAM, torch.full((3,), 200.0), 1.0, dth))
         for b in range(3):
             R0 = Rotation.from_quat(pose[b, [4, 5, 6, 3]].numpy())
             for a in range(3):
@@ -135,8 +135,8 @@ def test_one_step_offsets_are_recovered_in_every_direction(scenes, rule):
     truth_hyp = tm.apply_steps(POSE, _steps(POSE, base, roi))[0]
     starts = truth_hyp[OPP[1:]]  # start k - 1 lies one step in the direction opposite to k
     renders = r.render(starts.float(), roi=roi)
-    out = tm.correct(starts, renders.depth, renders.gray, roi[:2], obs.expand(12, -1, -1), CAM,
-                     observation_origin=roi[:2], rule=rule)
+    out = reference.correct(starts, renders.depth, renders.gray, roi[:2], obs.expand(12, -1, -1), CAM,
+                            observation_origin=roi[:2], rule=rule)
     assert torch.equal(out.index, torch.arange(1, 13))
     assert out.applied[torch.arange(12), torch.arange(1, 13)].all()
     assert (out.score > out.scores[:, 0]).all()
@@ -159,10 +159,10 @@ def test_iterating_converges_from_three_pixels(scenes, rule):
     renders = r.render(starts.float(), roi=roi)
     uv_true = CAM.project(POSE[:, :3])
     err0 = (CAM.project(starts[:, :3]) - uv_true).norm(dim=-1)
-    one = tm.correct(starts, renders.depth, renders.gray, roi[:2], obs.expand(2, -1, -1), CAM,
-                     observation_origin=roi[:2], rule=rule, iterations=1)
-    out = tm.correct(starts, renders.depth, renders.gray, roi[:2], obs.expand(2, -1, -1), CAM,
-                     observation_origin=roi[:2], rule=rule, iterations=8)
+    one = reference.correct(starts, renders.depth, renders.gray, roi[:2], obs.expand(2, -1, -1), CAM,
+                            observation_origin=roi[:2], rule=rule, iterations=1)
+    out = reference.correct(starts, renders.depth, renders.gray, roi[:2], obs.expand(2, -1, -1), CAM,
+                            observation_origin=roi[:2], rule=rule, iterations=8)
     err = (CAM.project(out.pose[:, :3]) - uv_true).norm(dim=-1)
     assert (err <= 1.0).all(), err
     assert (err0 >= 2.8).all()
@@ -179,8 +179,8 @@ def test_group_rule_applies_steps_of_two_groups_at_once(scenes):
     # one step off along -x and along -rz (roll): different groups
     start = tm.apply_steps(tm.apply_steps(POSE, -steps[:, 1:2])[:, 0], -steps[:, 11:12])[:, 0]
     rd = r.render(start.float(), roi=roi)
-    grp = tm.correct(start, rd.depth, rd.gray, roi[:2], obs, CAM, observation_origin=roi[:2], rule="group")
-    arg = tm.correct(start, rd.depth, rd.gray, roi[:2], obs, CAM, observation_origin=roi[:2], rule="argmax")
+    grp = reference.correct(start, rd.depth, rd.gray, roi[:2], obs, CAM, observation_origin=roi[:2], rule="group")
+    arg = reference.correct(start, rd.depth, rd.gray, roi[:2], obs, CAM, observation_origin=roi[:2], rule="argmax")
     assert grp.applied[0, [1, 11]].all() and int(grp.applied.sum()) == 2
     assert int(arg.applied.sum()) == 1
     assert float(grp.score) > float(arg.score)
@@ -217,11 +217,11 @@ def test_select_matches_sequential_reference(rule):
     B = 64
     pose = torch.cat((torch.randn(B, 3, dtype=torch.float64) * 0.1 + torch.tensor([0, 0, 0.6]),
                       g.quat_canonical(torch.randn(B, 4, dtype=torch.float64))), -1)
-    steps = tm.hypothesis_steps(pose, CAM, torch.rand(B, dtype=torch.float64) * 300 + 50, 1.0, 3.0)
+    steps = reference.hypothesis_steps(pose, CAM, torch.rand(B, dtype=torch.float64) * 300 + 50, 1.0, 3.0)
     scores = torch.randn(B, 13, dtype=torch.float64)
     scores[:8, 0] = 10.0  # null best: nothing applied
     scores[8:12] = scores[8:12].round()  # ties
-    new, applied = tm.select(pose, steps, scores, rule)
+    new, applied = reference.select(pose, steps, scores, rule)
     ref = _reference_select(pose, steps, scores, rule)
     assert torch.allclose(new, ref, atol=1e-12)
     assert not applied[:8].any() and not applied[:, 0].any()
@@ -246,10 +246,10 @@ def test_newton_step_is_the_maximiser_of_a_concave_quadratic():
     g = -(H @ u_star[..., None])[..., 0]  # gradient at 0 of a quadratic peaking at u_star
     unit = torch.rand(B, 6, dtype=torch.float64) * 0.01 + 0.001
     score = _quadratic_scorer(torch.randn(B, dtype=torch.float64), g, H, unit)
-    step = tm.newton_step(score, unit, damping=0.0)
+    step = reference.newton_step(score, unit, damping=0.0)
     assert torch.allclose(step / unit, u_star, atol=1e-9)
     # damping shortens the step along the same direction of improvement; the score still improves
-    damped = tm.newton_step(score, unit, damping=0.5)
+    damped = reference.newton_step(score, unit, damping=0.5)
     assert (score(damped[:, None])[:, 0] > score(torch.zeros(B, 1, 6, dtype=torch.float64))[:, 0]).all()
     assert ((damped / unit).norm(dim=-1) < u_star.norm(dim=-1)).all()
 
@@ -261,11 +261,11 @@ def test_newton_step_is_clipped_to_one_step_and_flat_scores_do_not_move():
     g = torch.zeros(B, 6, dtype=torch.float64)
     g[0, 2] = 5.0  # the peak is 5 steps away along +tz
     score = _quadratic_scorer(torch.zeros(B, dtype=torch.float64), g, H, unit)
-    step = tm.newton_step(score, unit)
+    step = reference.newton_step(score, unit)
     assert torch.allclose(step[0] / unit[0], torch.tensor([0, 0, 1.0, 0, 0, 0], dtype=torch.float64))
     assert torch.equal(step[1], torch.zeros(6, dtype=torch.float64))  # zero gradient: stay
     convex = _quadratic_scorer(torch.zeros(B, dtype=torch.float64), g, -H, unit)  # a minimum, not a peak
-    step = tm.newton_step(convex, unit)
+    step = reference.newton_step(convex, unit)
     assert (step[0, 2] > 0) and float(convex(step[:1, None])[0, 0]) > 0  # still uphill
 
 
@@ -278,8 +278,8 @@ def test_newton_rule_recovers_sub_step_offsets_that_argmax_cannot(scenes):
     rd = r.render(start.float(), roi=roi)
     err = {}
     for rule in ("argmax", "newton"):
-        out = tm.correct(start, rd.depth, rd.gray, roi[:2], obs, CAM, observation_origin=roi[:2], rule=rule,
-                         iterations=3)
+        out = reference.correct(start, rd.depth, rd.gray, roi[:2], obs, CAM, observation_origin=roi[:2], rule=rule,
+                                iterations=3)
         d = tm.pose_delta(POSE, out.pose[:, None])[0, 0] / steps[1:13:2].diagonal()
         err[rule] = float(d.abs().max())  # largest remaining offset, in steps
     assert err["newton"] < 0.25 < err["argmax"], err
@@ -391,30 +391,30 @@ def test_bad_inputs(scenes):
     obs = torch.zeros(1, CAM.height, CAM.width)
     args = (POSE, base.depth, base.gray, roi[:2], obs, CAM)
     with pytest.raises(ValueError, match="rule"):
-        tm.correct(*args, rule="best")
+        reference.correct(*args, rule="best")
     with pytest.raises(ValueError, match="warp"):
         reference.correct_warp(*args, warp="flow")
     model = tm.template_model(POSE, base.depth, base.gray, roi[:2], CAM)
     with pytest.raises(ValueError, match="pose"):
-        tm.correct_model(model, POSE.repeat(2, 1), obs, CAM)
+        reference.correct_model(model, POSE.repeat(2, 1), obs, CAM)
     with pytest.raises(ValueError, match="observation"):
         model.fit(obs.repeat(2, 1, 1))
     with pytest.raises(ValueError, match="iterations"):
-        tm.correct(*args, iterations=0)
+        reference.correct(*args, iterations=0)
     with pytest.raises(ValueError, match="pose"):
-        tm.correct(POSE[:, :6], *args[1:])
+        reference.correct(POSE[:, :6], *args[1:])
     with pytest.raises(ValueError, match="observation"):
-        tm.correct(POSE, base.depth, base.gray, roi[:2], obs.repeat(2, 1, 1), CAM)
+        reference.correct(POSE, base.depth, base.gray, roi[:2], obs.repeat(2, 1, 1), CAM)
     with pytest.raises(ValueError, match="gray"):
-        tm.correct(POSE, base.depth, base.gray[:, 1:], roi[:2], obs, CAM)
+        reference.correct(POSE, base.depth, base.gray[:, 1:], roi[:2], obs, CAM)
     with pytest.raises(ValueError, match="origin"):
-        tm.correct(POSE, base.depth, base.gray, (1, 2, 3), obs, CAM)
+        reference.correct(POSE, base.depth, base.gray, (1, 2, 3), obs, CAM)
     with pytest.raises(TypeError, match="depth"):
-        tm.correct(POSE, base.depth.bool(), base.gray, roi[:2], obs, CAM)
+        reference.correct(POSE, base.depth.bool(), base.gray, roi[:2], obs, CAM)
     with pytest.raises(TypeError, match="camera"):
         tm.TemplateCorrector((640, 480))
     with pytest.raises(ValueError, match="silhouette"):
-        tm.correct(*args[:2], None, *args[3:], silhouette=False)
+        reference.correct(*args[:2], None, *args[3:], silhouette=False)
 
 
 @pytest.mark.parametrize("rule", ["argmax", "group", "newton"])
@@ -422,7 +422,7 @@ def test_object_out_of_view_leaves_the_pose_unchanged(rule):
     depth = torch.zeros(2, 40, 50)
     obs = torch.rand(2, CAM.height, CAM.width)
     pose = POSE.float().repeat(2, 1)
-    out = tm.correct(pose, depth, depth.clone(), (100, 80), obs, CAM, rule=rule, iterations=3)
+    out = reference.correct(pose, depth, depth.clone(), (100, 80), obs, CAM, rule=rule, iterations=3)
     assert torch.equal(out.pose, pose) and (out.index == 0).all() and not out.applied.any()
     assert torch.equal(out.scores, torch.zeros(2, 13)) and (out.iterations == 0).all()
 
@@ -638,7 +638,7 @@ def _both_scores(r, roi, start, obs):
     rd = r.render(start.float(), roi=roi)
     B = start.shape[0]
     cr = reference.prepare_canvas(rd.depth, rd.gray, roi[:2], CAM, 128, 20)
-    steps = tm.hypothesis_steps(start, CAM, reference.radial_gain(rd.depth, roi[:2], CAM))
+    steps = reference.hypothesis_steps(start, CAM, reference.radial_gain(rd.depth, roi[:2], CAM))
     o = tm.to_canvas(obs.expand(B, -1, -1), cr.box, 128, roi[:2])
     warp = reference.score(reference.hypothesis_templates(cr, start.float(), tm.apply_steps(start, steps).float()), o)
     model = tm.template_model(start, rd.depth, rd.gray, roi[:2], CAM)
@@ -695,7 +695,7 @@ def test_correct_taylor_equals_warp_on_one_step_offsets(scenes, rule):
     starts = tm.apply_steps(POSE, -_steps(POSE, base, roi)[:, SIX])[0]
     rd = r.render(starts.float(), roi=roi)
     outs = [f(starts, rd.depth, rd.gray, roi[:2], obs.expand(6, -1, -1), CAM, observation_origin=roi[:2], rule=rule)
-            for f in (tm.correct, reference.correct_warp)]
+            for f in (reference.correct, reference.correct_warp)]
     assert torch.equal(outs[0].index, outs[1].index) and torch.equal(outs[0].applied, outs[1].applied)
     assert torch.allclose(outs[0].pose, outs[1].pose, atol=1e-6)
     # argmax: the score of one hypothesis step; group: of up to four composed steps, where the
@@ -722,7 +722,7 @@ def test_compiled_newton_search_equals_the_generic_search(scenes, name):
         return quad.at_steps, quad.evaluate
 
     for iterations in (1, 4):
-        ref = tm.search(starts, scorer, model.gain, CAM, rule="newton", iterations=iterations)
+        ref = reference.search(starts, scorer, model.gain, CAM, rule="newton", iterations=iterations)
         out = tm.newton_search(model, starts, obs, CAM, iterations=iterations)
         assert torch.equal(out.iterations, ref.iterations) and (ref.iterations > 0).any()
         assert torch.allclose(out.pose, ref.pose, atol=1e-9)

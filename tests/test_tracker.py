@@ -227,18 +227,18 @@ def test_observation_drops_old_pixels_and_weighs_recent_ones(seq, monkeypatch):
     """The observation the tracker corrected against, captured from its kernel, against a per-pixel reference:
     EROS, zero where the last event is ``max_age_us`` old or older, times ``exp(-age / recency_us)``, then the
     3x3 median over the window under the canvas box, resampled into the canvas."""
-    from torchevtrack.stages import correction
+    from torchevtrack import update
     from torchevtrack.stages.eros import observation
     from torchevtrack.stages.template import to_canvas
 
     seen = []
-    kernel = correction._canvas_kernel
+    kernel = update.canvas_kernel
 
     def capture(*args):
         kernel(*args)
         seen.append(torch.from_numpy(args[-1].copy()))
 
-    monkeypatch.setattr(correction, "_canvas_kernel", capture)
+    monkeypatch.setattr(update, "canvas_kernel", capture)
     cfg = TrackerConfig().replace(eros={"max_age_us": 4000, "recency_us": 1500.0})
     tracker = EventPoseTracker(CAM, seq.mesh, cfg)
     tracker.reset(seq.gt_poses[0])
@@ -386,11 +386,10 @@ def test_pipeline_options_and_a_window_that_was_not_taken_in(seq, monkeypatch):
 def _recording(monkeypatch):
     """Record each update's prediction and twist (the motion kernel's outputs) and the pose its template was
     rendered at (the template model's, made in the correction)."""
-    import torchevtrack.stages.correction as correction_module
-    import torchevtrack.update as motion_module
+    import torchevtrack.update as update_module
 
     rec = {"motion": [], "render_pose": []}
-    motion, model = motion_module._motion_kernel, correction_module._model_in_box
+    motion, model = update_module._motion_kernel, update_module.model_in_box
 
     def motion_recorded(*args):
         out = motion(*args)
@@ -402,8 +401,8 @@ def _recording(monkeypatch):
         rec["render_pose"].append(torch.from_numpy(pose).float())  # float64 of the float32 render pose
         return model(pose, *args)
 
-    monkeypatch.setattr(motion_module, "_motion_kernel", motion_recorded)
-    monkeypatch.setattr(correction_module, "_model_in_box", model_recorded)
+    monkeypatch.setattr(update_module, "_motion_kernel", motion_recorded)
+    monkeypatch.setattr(update_module, "model_in_box", model_recorded)
     return rec
 
 
@@ -485,7 +484,7 @@ def test_render_ahead_excludes_render_reuse():
 
 
 def test_the_tracker_renders_what_the_renderer_renders(seq):
-    """One stream renders through one compiled call (bind_render_model): bit for bit RasterRenderer.render of the
+    """One stream renders through one compiled call (RenderModelBinding): bit for bit RasterRenderer.render of the
     same pose and window."""
     tracker = EventPoseTracker(CAM, seq.mesh)
     pose = seq.gt_poses[:1].clone()

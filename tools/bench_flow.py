@@ -26,7 +26,7 @@ import torch
 from torchevtrack.benchmark import _prepare
 from torchevtrack.config import TrackerConfig
 from torchevtrack.stages import flow as flow_module
-from torchevtrack.tracker import _pack
+from torchevtrack.events import pack_streams
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -39,7 +39,7 @@ def windows(seq: Path, duration_s: float, batch: int, window_us: int = 2000):
     k = torch.arange(n + 1, dtype=torch.int64) * window_us
     bounds = [torch.searchsorted(ev.t, it.t_start_us + j * 50_000 + k) for j in range(batch)]
     cam = it.seq.camera
-    return [_pack([ev[int(bd[i]): int(bd[i + 1])] for bd in bounds]) for i in range(n)], (cam.height, cam.width)
+    return [pack_streams([ev[int(bd[i]): int(bd[i + 1])] for bd in bounds]) for i in range(n)], (cam.height, cam.width)
 
 
 def load_revision(rev: str):

@@ -10,7 +10,7 @@ z, up to ``--max-deg`` about a random axis), renders there and scores the 13 hyp
 Prints per case: median / minimum Pearson correlation of the 13 scores, argmax agreement, the
 score the model's choice loses against the exact best (in units of the spread of the 13 exact
 scores), and agreement of the group rule's applied sets. Then per-call timings (1 thread, B = 1,
-canvas 128): min and median ms of ``reference.correct_warp`` and ``template.correct`` and of its parts.
+canvas 128): min and median ms of ``reference.correct_warp`` and ``reference.correct`` and of its parts.
 With ``--reuse`` also the render-reuse path (a model of the render at P_ref scoring hypotheses
 around P_ref + delta, by its quadratic at P_ref or re-centred there) against re-rendering at the new pose.
 
@@ -68,7 +68,7 @@ def scores_both(renderer, roi, start, obs, obs_origin):
     rd = renderer.render(start.float(), roi=roi)
     pose = start.float()
     cr = ref.prepare_canvas(rd.depth, rd.gray, roi[:2], CAM, 128, 20)
-    steps = tm.hypothesis_steps(pose, CAM, ref.radial_gain(rd.depth, roi[:2], CAM))
+    steps = ref.hypothesis_steps(pose, CAM, ref.radial_gain(rd.depth, roi[:2], CAM))
     hyp = tm.apply_steps(pose, steps)
     o = tm.to_canvas(obs, cr.box, 128, obs_origin)
     exact = ref.score(ref.hypothesis_templates(cr, pose, hyp), o)[0].double()
@@ -87,8 +87,8 @@ def compare(name, trials):
         loss.append(float(exact[ie] - exact[i_f]) / max(float(exact.max() - exact.min()), 1e-12))
         p = torch.zeros(1, 7, dtype=torch.float64)
         p[0, 2], p[0, 3] = 0.5, 1.0
-        group.append(torch.equal(tm.select(p, steps.double(), exact[None], "group")[1],
-                                 tm.select(p, steps.double(), fast[None], "group")[1]))
+        group.append(torch.equal(ref.select(p, steps.double(), exact[None], "group")[1],
+                                 ref.select(p, steps.double(), fast[None], "group")[1]))
     c = np.array(corr)
     print(f"{name:28s} n={len(c):3d}  corr median {np.median(c):.4f} min {c.min():.4f}  "
           f"argmax agree {np.mean(agree) * 100:5.1f}%  loss median {np.median(loss):.3f} max {max(loss):.3f}  "
@@ -180,7 +180,7 @@ def speed(args):
     print(f"  render window {roi[2]}x{roi[3]}; render itself: {'%.2f / %.2f' % timeit(lambda: r.render(start, roi=roi), 10)}")
     for rule in ("argmax", "group"):
         for it in (1, 3):
-            for scoring, correct in (("warp", ref.correct_warp), ("taylor", tm.correct)):
+            for scoring, correct in (("warp", ref.correct_warp), ("taylor", ref.correct)):
                 t = timeit(lambda: correct(start, rd.depth, rd.gray, roi[:2], obs, CAM, observation_origin=roi[:2],
                                            rule=rule, iterations=it), args.runs)
                 print(f"  correct {scoring:6s} rule={rule:6s} iterations={it}: {t[0]:7.2f} / {t[1]:7.2f}")

@@ -37,19 +37,18 @@ from torchevtrack.cli.bench import _stream, packets
 from torchevtrack.config import TrackerConfig
 from torchevtrack.online import OnlineTracker
 from torchevtrack.schedule import Job
-from torchevtrack.stages import render_model
-from torchevtrack.stages.render_model import RenderModelBinding
+from torchevtrack import update
 from torchevtrack.synth.sequence import Sequence
 from torchevtrack.tracker import EventPoseTracker
+from torchevtrack.update import RenderModelBinding
 
 KERNELS = {
     "torchevtrack.stages.eros": ["eros_kernel", "_observe_kernel"],
     "torchevtrack.stages.flow": ["flow_packet"],
-    "torchevtrack.stages.render_model": ["_render_model_kernel"],
-    "torchevtrack.update": ["_intake_kernel", "_motion_kernel", "_output_kernel"],
-    "torchevtrack.raster": ["_render_kernel"],
-    "torchevtrack.stages.template": ["_box_kernel", "_model_kernel"],
-    "torchevtrack.stages.correction": ["_canvas_kernel", "_newton_kernel"],
+    "torchevtrack.update": ["_intake_kernel", "_motion_kernel", "_render_model_kernel", "canvas_kernel", "newton_kernel",
+                            "_output_kernel"],
+    "torchevtrack.raster": ["render_kernel"],
+    "torchevtrack.stages.template": ["box_kernel", "model_kernel"],
 }
 
 
@@ -79,7 +78,7 @@ def main() -> None:
                 times[key] += time.perf_counter() - t
                 return out
             setattr(m, name, timed)
-    RenderModelBinding.kernel = staticmethod(render_model._render_model_kernel)  # the binding's own reference
+    RenderModelBinding.kernel = staticmethod(update._render_model_kernel)  # the binding's own reference
 
     result = Job.result
 

@@ -17,13 +17,13 @@ Example:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Iterator
+from typing import Iterator, Sequence
 
 import numba
 import numpy as np
 import torch
 
-__all__ = ["EventStream", "US_PER_S", "check_window"]
+__all__ = ["EventStream", "US_PER_S", "check_window", "first_invalid", "pack_streams"]
 
 US_PER_S = 1_000_000
 
@@ -125,7 +125,7 @@ class EventStream:
         if n == 0:
             return self
         no_limit = 1 << 62
-        kind, i = _first_invalid(self.x.numpy(), self.y.numpy(), self.t.numpy(),
+        kind, i = first_invalid(self.x.numpy(), self.y.numpy(), self.t.numpy(),
                                  no_limit if width is None else width, no_limit if height is None else height)
         if kind == 1:
             raise ValueError(f"negative timestamp {int(self.t[0])} us at event 0")
@@ -253,11 +253,33 @@ def check_window(x, y, t, p, b=None, *, width: int | None = None, height: int | 
             None if b is None else b.to(torch.int64))
 
 
+def pack_streams(parts: Sequence[EventStream]) -> tuple:
+    """Concatenate per-element windows into packed events ``(x, y, t, p, b)`` with a batch index ``b`` (``None`` for
+    one element), in the streams' own integer types (the kernels take them as they are: no int64 copies).
+
+    Shape: ``B`` streams of ``N_i`` events -> five ``(sum N_i,)`` tensors (``b`` int64 in ``[0, B)``).
+
+    Example:
+        >>> a = EventStream.from_arrays([1], [2], [10], [1])
+        >>> b = EventStream.from_arrays([3, 4], [5, 6], [11, 12], [0, 1])
+        >>> pack_streams([a, b])[4].tolist()
+        [0, 1, 1]
+    """
+    if len(parts) == 1:
+        q = parts[0]
+        return q.x, q.y, q.t, q.p, None
+    sizes = torch.tensor([len(q) for q in parts])
+    b = torch.repeat_interleave(torch.arange(len(parts)), sizes)
+    cat = lambda f: torch.cat([getattr(q, f) for q in parts])  # noqa: E731
+    return cat("x"), cat("y"), cat("t"), cat("p"), b
+
+
 @numba.njit(cache=True, nogil=True)
-def _first_invalid(x, y, t, width, height):
-    """The first problem of non-empty events, in :meth:`EventStream.validate`'s order of checks, as ``(kind,
-    index)``: 1 a negative first time, 2 time going back at ``index``, 3 / 4 the first ``x`` / ``y`` outside
-    ``[0, width)`` / ``[0, height)``; ``(0, 0)`` if none. One pass for the time, one for the pixels."""
+def first_invalid(x, y, t, width, height):
+    """The first problem of non-empty events (numpy ``(N,)`` arrays ``x, y, t``, ``N > 0``), in
+    :meth:`EventStream.validate`'s order of checks, as ``(kind, index)``: 1 a negative first time, 2 time going back
+    at ``index``, 3 / 4 the first ``x`` / ``y`` outside ``[0, width)`` / ``[0, height)``; ``(0, 0)`` if none. One
+    compiled pass for the time, one for the pixels."""
     if t[0] < 0:
         return 1, 0
     for i in range(1, t.shape[0]):

@@ -49,6 +49,14 @@ __all__ = [
     "interpolate_poses",
     "perturb_pose",
     "check_pose",
+    "nb_cross",
+    "nb_quat_mul",
+    "nb_quat_canonical",
+    "nb_normalise_quaternions",
+    "nb_quat_exp",
+    "nb_quat_log",
+    "nb_quat_rotate",
+    "nb_quat_to_matrix",
 ]
 
 
@@ -273,19 +281,20 @@ def check_pose(pose: torch.Tensor, name: str = "pose", atol: float = 1e-3) -> to
 
 
 # -- scalar kernels --------------------------------------------------------------------------------
-# The same operations on one quaternion / vector at a time (tuples of floats), for the compiled (numba)
-# kernels of the filters and the pose propagation. Each follows its tensor function above operation by
-# operation, so the two agree to float64 rounding.
+# The same operations for the compiled (numba) kernels of the filters, the pose propagation, the template search
+# and the renderers: on one quaternion / vector at a time (float scalars in, a tuple of floats out, inlined into
+# their callers), and nb_normalise_quaternions on an array of poses in place. Each follows its tensor function
+# above operation by operation, so the two agree to float64 rounding.
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _nb_cross(a0, a1, a2, b0, b1, b2):
+def nb_cross(a0, a1, a2, b0, b1, b2):
     """``a x b`` (as :func:`torch.linalg.cross`)."""
     return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _nb_quat_mul(a0, a1, a2, a3, b0, b1, b2, b3):
+def nb_quat_mul(a0, a1, a2, a3, b0, b1, b2, b3):
     """:func:`quat_mul` (the same sums in the same order)."""
     return (a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3,
             a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2,
@@ -294,7 +303,7 @@ def _nb_quat_mul(a0, a1, a2, a3, b0, b1, b2, b3):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _nb_quat_canonical(q0, q1, q2, q3):
+def nb_quat_canonical(q0, q1, q2, q3):
     """:func:`quat_canonical`."""
     n = max(math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3), 1e-12)
     q0, q1, q2, q3 = q0 / n, q1 / n, q2 / n, q3 / n
@@ -304,7 +313,7 @@ def _nb_quat_canonical(q0, q1, q2, q3):
 
 
 @numba.njit(cache=True, nogil=True)
-def _nb_normalise_quaternions(p, norm):
+def nb_normalise_quaternions(p, norm):
     """Divide the quaternions of poses ``p`` ``(B, 7)`` by their norms (squares summed in order) in place, the norms
     into ``norm`` ``(B,)``."""
     for b in range(p.shape[0]):
@@ -315,7 +324,7 @@ def _nb_normalise_quaternions(p, norm):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _nb_quat_exp(a0, a1, a2):
+def nb_quat_exp(a0, a1, a2):
     """:func:`quat_exp`."""
     sq = a0 * a0 + a1 * a1 + a2 * a2
     if sq > 0.0:
@@ -327,9 +336,9 @@ def _nb_quat_exp(a0, a1, a2):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _nb_quat_log(q0, q1, q2, q3):
+def nb_quat_log(q0, q1, q2, q3):
     """:func:`quat_log` (of the canonical quaternion)."""
-    c, x, y, z = _nb_quat_canonical(q0, q1, q2, q3)
+    c, x, y, z = nb_quat_canonical(q0, q1, q2, q3)
     s2 = x * x + y * y + z * z
     if s2 > 0.0:
         s = math.sqrt(s2)
@@ -341,16 +350,15 @@ def _nb_quat_log(q0, q1, q2, q3):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _nb_quat_rotate(q0, q1, q2, q3, v0, v1, v2):
+def nb_quat_rotate(q0, q1, q2, q3, v0, v1, v2):
     """:func:`quat_rotate`."""
-    c0, c1, c2 = _nb_cross(q1, q2, q3, v0, v1, v2)
-    d0, d1, d2 = _nb_cross(q1, q2, q3, c0, c1, c2)
+    c0, c1, c2 = nb_cross(q1, q2, q3, v0, v1, v2)
+    d0, d1, d2 = nb_cross(q1, q2, q3, c0, c1, c2)
     return v0 + 2.0 * (q0 * c0 + d0), v1 + 2.0 * (q0 * c1 + d1), v2 + 2.0 * (q0 * c2 + d2)
 
 
-
 @numba.njit(cache=True, nogil=True)
-def _nb_quat_to_matrix(w, x, y, z):
+def nb_quat_to_matrix(w, x, y, z):
     """Rotation matrix ``(3, 3)`` of the unit quaternion ``(w, x, y, z)`` (:func:`quat_to_matrix` without the
     normalisation)."""
     return np.array([[1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],

@@ -51,9 +51,9 @@ import torch
 
 from torchevtrack.camera import Camera
 from torchevtrack.config import TrackerConfig
-from torchevtrack.events import EventStream
+from torchevtrack.events import EventStream, pack_streams
 from torchevtrack.loss import OnLost
-from torchevtrack.tracker import EventPoseTracker, MeshLike, _pack
+from torchevtrack.tracker import EventPoseTracker, MeshLike
 
 __all__ = ["OnlineTracker"]
 
@@ -216,7 +216,7 @@ class OnlineTracker:
         # one pushed chunk is the buffer itself (its remainder is copied below: a view would keep the chunk alive)
         buffers = [_concat(chunks) for chunks in self._pending]
         cuts = [[0] + np.searchsorted(s[2], ends).tolist() for s in buffers]
-        windows = [_pack([_window(s, c[k], c[k + 1]) for s, c in zip(buffers, cuts)]) for k in range(n)]
+        windows = [pack_streams([_window(s, c[k], c[k + 1]) for s, c in zip(buffers, cuts)]) for k in range(n)]
         out = []
         try:
             for k in range(n):  # the tracker's pipeline takes in the window after it meanwhile
@@ -226,7 +226,7 @@ class OnlineTracker:
                 if self.tracker.lost is not None:
                     self._lost.append(self.tracker.lost.clone())
         finally:
-            self.tracker._drop_ahead()
+            self.tracker.drop_ahead()
         # Copy the remainders: a view would keep the whole pushed chunk alive.
         self._pending = [[] if c[-1] == len(s[2]) else [tuple(f[c[-1]:].copy() if len(chunks) == 1 else f[c[-1]:]
                                                               for f in s)]

@@ -27,7 +27,7 @@ Per pose, the kernel
    the first face drawn wins ties);
 5. shades only the visible pixels: albedo and object-frame normal are interpolated with the
    perspective-correct weights from the per-vertex attributes the pyrender backend packs
-   (``torchevtrack.render._shading_mesh``), then ``gray = albedo * (AMBIENT + (1 - AMBIENT) *
+   (``torchevtrack.render.shading_mesh``), then ``gray = albedo * (AMBIENT + (1 - AMBIENT) *
    max(0, n . l) / |n|)`` with the light direction ``l`` in the object frame. A textured mesh's albedo is its
    texture's luminance at the perspective-correct UV, sampled trilinearly from mipmaps (2 x 2 means) at the level
    of detail of the pixel's footprint (exact UV derivatives), as OpenGL's ``LINEAR_MIPMAP_LINEAR``
@@ -67,18 +67,19 @@ import torch
 import trimesh
 
 from torchevtrack.camera import Camera
-from torchevtrack.geometry import _nb_quat_to_matrix
+from torchevtrack.geometry import nb_quat_to_matrix
 from torchevtrack.render import (
     AMBIENT,
     LIGHT_DIRECTION,
     Render,
-    _check_renderer_args,
-    _check_roi,
-    _shading_mesh,
-    _unit_poses,
+    check_renderer_args,
+    check_roi,
+    shading_mesh,
+    unit_poses,
 )
 
-__all__ = ["RasterMesh", "RasterRenderer", "RasterTexture", "raster_arrays", "raster_mesh", "rasterise"]
+__all__ = ["RasterMesh", "RasterRenderer", "RasterTexture", "raster_arrays", "raster_mesh", "rasterise",
+           "render_kernel"]
 
 
 class RasterMesh(NamedTuple):
@@ -123,7 +124,7 @@ def raster_mesh(mesh: trimesh.Trimesh) -> RasterMesh:
 def raster_arrays(mesh: trimesh.Trimesh) -> tuple[RasterMesh, RasterTexture | None]:
     """:func:`raster_mesh` and, for a textured mesh (``TextureVisuals`` with UVs and an image), its
     :class:`RasterTexture` (else ``None``), from one preparation of the mesh."""
-    shading = _shading_mesh(mesh)
+    shading = shading_mesh(mesh)
     vertices, faces = shading.vertices, shading.faces
     corners = vertices[faces]
     n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
@@ -170,11 +171,11 @@ def rasterise(mesh: RasterMesh, poses: np.ndarray, camera: Camera, *, znear: flo
     depth = np.empty((len(poses), camera.height, camera.width), dtype=np.float32)
     gray = np.empty_like(depth) if shaded else np.empty((len(poses), 0, 0), dtype=np.float32)
     if texture is None:
-        _render_kernel(*mesh, poses, camera.fx, camera.fy, camera.cx, camera.cy, znear, zfar, LIGHT_DIRECTION,
-                       AMBIENT, background, depth, gray)
+        render_kernel(*mesh, poses, camera.fx, camera.fy, camera.cx, camera.cy, znear, zfar, LIGHT_DIRECTION,
+                      AMBIENT, background, depth, gray)
     else:
-        _render_kernel(*mesh, poses, camera.fx, camera.fy, camera.cx, camera.cy, znear, zfar, LIGHT_DIRECTION,
-                       AMBIENT, background, depth, gray, tuple(texture))
+        render_kernel(*mesh, poses, camera.fx, camera.fy, camera.cx, camera.cy, znear, zfar, LIGHT_DIRECTION,
+                      AMBIENT, background, depth, gray, tuple(texture))
     return depth, gray if shaded else None
 
 
@@ -183,10 +184,15 @@ _FLUSH = 2048  # pixel wins shaded at a time
 
 
 @numba.njit(cache=True, nogil=True)
-def _render_kernel(vertices, faces, planes, albedo, normals, poses, fx, fy, cx, cy, znear, zfar, light, ambient,
-                   background, depth, gray, texture=None):
-    """Rasterise pose ``b`` into ``depth[b]`` and, unless ``gray`` has no pixels, shade it into ``gray[b]``;
-    ``texture``: ``None`` or the tuple ``(uv, texels, levels)`` of the mesh's :class:`RasterTexture`."""
+def render_kernel(vertices, faces, planes, albedo, normals, poses, fx, fy, cx, cy, znear, zfar, light, ambient,
+                  background, depth, gray, texture=None):
+    """:func:`rasterise` into given arrays, unchecked; releases the GIL. Rasterises pose ``b`` of ``poses`` ``(B, 7)``
+    float64 (unit quaternions) into ``depth[b]`` and, unless ``gray`` has no pixels, shades it into ``gray[b]``
+    (``depth``, ``gray`` ``(B, h, w)`` float32, overwritten; ``(0, 0)`` grey pixels: depth only). The mesh's
+    :class:`RasterMesh` fields come first; ``fx, fy, cx, cy`` are the intrinsics of the image written (the principal
+    point moved by a window's corner to render that window), ``znear, zfar`` metres, ``light``, ``ambient`` (the
+    module's ``LIGHT_DIRECTION`` and ``AMBIENT``) and the grey ``background``; ``texture``: ``None`` or the tuple
+    ``(uv, texels, levels)`` of the mesh's :class:`RasterTexture`."""
     B, H, W = depth.shape
     proj = np.empty(5 * vertices.shape[0])
     front, seen = np.empty(faces.shape[0], dtype=np.int64), np.empty(faces.shape[0], dtype=np.bool_)
@@ -194,7 +200,7 @@ def _render_kernel(vertices, faces, planes, albedo, normals, poses, fx, fy, cx, 
     size = max(H * W, _FLUSH)  # _draw's queue never holds more
     wins, weights = np.empty((size, 2), dtype=np.int32), np.empty((size, 2), dtype=np.float32)
     for b in range(B):
-        R, t = _nb_quat_to_matrix(poses[b, 3], poses[b, 4], poses[b, 5], poses[b, 6]), poses[b, :3]
+        R, t = nb_quat_to_matrix(poses[b, 3], poses[b, 4], poses[b, 5], poses[b, 6]), poses[b, :3]
         _project(vertices.reshape(-1), R, t, fx, fy, cx, cy, znear, proj)
         # the camera centre in the object frame, -R^T t, and the faces it sees the front of
         c0 = -(R[0, 0] * t[0] + R[1, 0] * t[1] + R[2, 0] * t[2])
@@ -460,7 +466,7 @@ class RasterRenderer:
         zfar: float = 20.0,
         background: float = 0.0,
     ) -> None:
-        _check_renderer_args(mesh, camera, znear, zfar, background)
+        check_renderer_args(mesh, camera, znear, zfar, background)
         self.camera = camera
         self.znear, self.zfar = float(znear), float(zfar)
         self.background = float(background)
@@ -504,8 +510,8 @@ class RasterRenderer:
         ``shaded=False`` for depth only)."""
         if self._mesh is None:
             raise RuntimeError("renderer is closed")
-        cam = self.camera if roi is None else self.camera.crop(*_check_roi(roi))
-        depth, gray = self.render_unit(_unit_poses(poses), cam, shaded)
+        cam = self.camera if roi is None else self.camera.crop(*check_roi(roi))
+        depth, gray = self.render_unit(unit_poses(poses), cam, shaded)
         return Render(depth=torch.from_numpy(depth), gray=None if gray is None else torch.from_numpy(gray), camera=cam)
 
     def render_unit(self, poses: np.ndarray, camera: Camera,

@@ -6,7 +6,14 @@ warp, in compiled loops. This module is the dense torch form of the same steps (
 (:func:`edge_map`, :func:`dog`), the warp of one render to 13 hypothesis templates (:func:`warp_canvas`,
 :func:`hypothesis_templates`, cubic B-spline sampling) and the score (:func:`score`). Tests use it as the oracle of
 the compiled kernels; ``tools/bench_template.py`` compares the two. :func:`correct_warp` is the full correction with
-warped templates, a drop-in for :func:`torchevtrack.stages.template.correct`.
+warped templates, a drop-in for :func:`correct`.
+
+The decision rules of the correction (item 5 of :mod:`torchevtrack.stages.template`) are here too: the hypothesis
+steps (:func:`hypothesis_steps`), the paper's argmax and EDOPT's group rule (:func:`select`), the torch Newton step
+(:func:`newton_step`) and the search over them (:func:`search`, :func:`rule_search`), with the functional correction
+:func:`correct`. The tracker reaches the argmax and group rules through the ablation switch ``template.rule``
+(:func:`torchevtrack.stages.template.correct_canvas`); its default ``"newton"`` runs the compiled
+:func:`~torchevtrack.stages.template.newton_search`, of which :func:`newton_step` is the oracle.
 
 Conventions as in :mod:`torchevtrack.stages.template`: poses ``(B, 7)`` ``[t (m), q]``, renders ``(B, h, w)``
 depth in metres (0 = background) of a window whose top-left frame pixel is ``origin``, canvases ``(B, N, N)``.
@@ -24,6 +31,7 @@ from __future__ import annotations
 
 import functools
 import inspect
+import math
 from typing import NamedTuple
 
 import numba
@@ -31,13 +39,15 @@ import torch
 import torch.nn.functional as F
 
 from torchevtrack.camera import Camera
-from torchevtrack.geometry import quat_conj, quat_mul, quat_rotate, quat_to_matrix
-from torchevtrack.stages.template import (_PREFILTER_RADIUS, Correction, _check_correct, _check_images, _extent, _fill,
-                                          _gaussian, _odd, _origin, _prefilter_kernel, apply_steps, canvas_intrinsics,
-                                          correct, search, to_canvas)
+from torchevtrack.geometry import quat_canonical, quat_exp, quat_mul, quat_to_matrix
+from torchevtrack.stages.template import (NEWTON_DAMPING, NEWTON_MAX_STEP, NUM_HYPOTHESES, PREFILTER_RADIUS, Correction,
+                                          TemplateModel, apply_steps, batch_origin, canvas_intrinsics, check_correct,
+                                          check_images, correct_canvas, fill_kernel, gaussian_taps, odd_size,
+                                          prefilter_taps, template_model, to_canvas, window_extent)
 
 __all__ = ["canvas_box", "edge_map", "dog", "radial_gain", "warp_canvas", "CanvasRender", "prepare_canvas",
-           "hypothesis_templates", "score", "correct_warp"]
+           "hypothesis_templates", "score", "GROUPS", "hypothesis_steps", "select", "newton_step", "search",
+           "rule_search", "correct", "correct_model", "correct_warp"]
 
 
 def canvas_box(depth: torch.Tensor, origin, margin_px: float = 20.0) -> torch.Tensor:
@@ -53,14 +63,14 @@ def canvas_box(depth: torch.Tensor, origin, margin_px: float = 20.0) -> torch.Te
 
     Shape: ``(B, h, w), (B, 2) -> (B, 3)``.
     """
-    depth = _check_images(depth, "depth")
+    depth = check_images(depth, "depth")
     return _box_of(_object_extent(depth, origin), depth, origin, margin_px)
 
 
 def _box_of(extent: torch.Tensor, depth: torch.Tensor, origin, margin_px: float) -> torch.Tensor:
     """:func:`canvas_box` from the :func:`_object_extent` of the render ``depth``."""
     B, h, w = depth.shape
-    origin = _origin(origin, B, depth.dtype)
+    origin = batch_origin(origin, B, depth.dtype)
     e = extent.to(depth.dtype)
     umin, umax, vmin, vmax = e[:, 0], e[:, 1], e[:, 2], e[:, 3]
     empty = e[:, 5] == 0
@@ -78,7 +88,7 @@ def _object_extent(depth: torch.Tensor, origin, camera: Camera | None = None) ->
     ``camera``) and their count.
     """
     B = depth.shape[0]
-    o = _origin(origin, B, torch.float64)
+    o = batch_origin(origin, B, torch.float64)
     c = (0.0, 0.0) if camera is None else (camera.cx, camera.cy)
     out = torch.empty(B, 6, dtype=torch.float64)
     _extent_kernel(depth.detach().numpy(), o.numpy(), c[0], c[1], camera is not None, out.numpy())
@@ -88,7 +98,7 @@ def _object_extent(depth: torch.Tensor, origin, camera: Camera | None = None) ->
 @numba.njit(cache=True, nogil=True)
 def _extent_kernel(depth, origin, cx, cy, gain, out):
     for b in range(depth.shape[0]):
-        out[b] = _extent(depth[b], origin[b, 0], origin[b, 1], cx, cy, gain)
+        out[b] = window_extent(depth[b], origin[b, 0], origin[b, 1], cx, cy, gain)
 
 
 def edge_map(gray: torch.Tensor | None, mask: torch.Tensor | None, edge_clip: float = 0.1) -> torch.Tensor:
@@ -116,13 +126,13 @@ def edge_map(gray: torch.Tensor | None, mask: torch.Tensor | None, edge_clip: fl
 
 @functools.lru_cache(maxsize=16)
 def _blur_matrix(k: int, n: int, dtype: torch.dtype) -> torch.Tensor:
-    """``(n, n)`` matrix of the 1-D blur with :func:`_gaussian` ``k`` and zero padding (``A @ x``).
+    """``(n, n)`` matrix of the 1-D blur with :func:`gaussian_taps` ``k`` and zero padding (``A @ x``).
 
     Cached (a constant of ``k, n, dtype``; never modified in place).
     """
     i = torch.arange(n)
     off = i[None, :] - i[:, None] + k // 2  # column j contributes to row i with tap j - i + k // 2
-    g = _gaussian(k, dtype)
+    g = gaussian_taps(k, dtype)
     return torch.where((off >= 0) & (off < k), g[off.clamp(0, k - 1)], torch.zeros((), dtype=dtype))
 
 
@@ -136,7 +146,7 @@ def dog(edges: torch.Tensor, canvas: int) -> torch.Tensor:
     """
     _, H, W = edges.shape
     out = None
-    for sign, k in ((1.0, _odd(canvas / 20)), (-1.0, _odd(canvas / 8))):
+    for sign, k in ((1.0, odd_size(canvas / 20)), (-1.0, odd_size(canvas / 8))):
         blur = _blur_matrix(k, H, edges.dtype) @ edges @ _blur_matrix(k, W, edges.dtype).T
         out = blur if out is None else out + sign * blur
     return out
@@ -155,7 +165,7 @@ def radial_gain(depth: torch.Tensor, origin, camera: Camera) -> torch.Tensor:
 
     Shape: ``(B, h, w), (B, 2) -> (B,)``.
     """
-    depth = _check_images(depth, "depth")
+    depth = check_images(depth, "depth")
     return _gain_of(_object_extent(depth, origin, camera), depth.dtype)
 
 
@@ -175,7 +185,7 @@ def _fill_depth(depth: torch.Tensor, fallback: torch.Tensor, radius: int) -> tor
 def _fill_kernel(depth, fallback, r):
     """:func:`_fill_depth` in place."""
     for b in range(depth.shape[0]):
-        _fill(depth[b], fallback[b], r)
+        fill_kernel(depth[b], fallback[b], r)
 
 
 def _spline_prefilter(x: torch.Tensor) -> torch.Tensor:
@@ -183,10 +193,10 @@ def _spline_prefilter(x: torch.Tensor) -> torch.Tensor:
 
     Shape: ``(B, C, H, W) -> (B, C, H, W)``.
     """
-    kern = _prefilter_kernel(x.dtype)
+    kern = prefilter_taps(x.dtype)
     B, C, H, W = x.shape
-    y = F.conv2d(x.reshape(B * C, 1, H, W), kern.view(1, 1, 1, -1), padding=(0, _PREFILTER_RADIUS))
-    y = F.conv2d(y, kern.view(1, 1, -1, 1), padding=(_PREFILTER_RADIUS, 0))
+    y = F.conv2d(x.reshape(B * C, 1, H, W), kern.view(1, 1, 1, -1), padding=(0, PREFILTER_RADIUS))
+    y = F.conv2d(y, kern.view(1, 1, -1, 1), padding=(PREFILTER_RADIUS, 0))
     return y.reshape(B, C, H, W)
 
 
@@ -306,7 +316,7 @@ def _crop_to_boxes(depth: torch.Tensor, gray: torch.Tensor | None, origin, box: 
     Returns ``(depth, gray, origin)`` of the crop; resampling it gives the same canvas as the window.
     """
     B, h, w = depth.shape
-    o = _origin(origin, B, box.dtype)
+    o = batch_origin(origin, B, box.dtype)
     half = box[:, 2] / 2
     lo = torch.stack((box[:, 0] - half - o[:, 0], box[:, 1] - half - o[:, 1]), -1).amin(0).floor() - 1
     hi = torch.stack((box[:, 0] + half - o[:, 0], box[:, 1] + half - o[:, 1]), -1).amax(0).ceil() + 2
@@ -321,7 +331,7 @@ def _crop_to_boxes(depth: torch.Tensor, gray: torch.Tensor | None, origin, box: 
 
 def _canvas_and_gain(depth, gray, origin, camera: Camera, canvas: int, margin_px: float):
     """:func:`prepare_canvas` and :func:`radial_gain` of a render, both from the crop the canvas samples."""
-    depth = _check_images(depth, "depth")
+    depth = check_images(depth, "depth")
     extent = _object_extent(depth, origin, camera)  # the crop below holds every object pixel: same gain
     box = _box_of(extent, depth, origin, margin_px)
     depth, gray, origin = _crop_to_boxes(depth, gray, origin, box)
@@ -342,7 +352,7 @@ def prepare_canvas(
 
     Shape: ``(B, h, w), (B, h, w) or None, (B, 2) -> CanvasRender`` with ``N = canvas``.
     """
-    depth = _check_images(depth, "depth")
+    depth = check_images(depth, "depth")
     if box is None:
         box = canvas_box(depth, origin, margin_px)
         depth, gray, origin = _crop_to_boxes(depth, gray, origin, box)
@@ -393,15 +403,263 @@ def score(templates: torch.Tensor, observation: torch.Tensor) -> torch.Tensor:
     return torch.einsum("bkhw,bhw->bk", templates, observation.to(templates.dtype))
 
 
-def correct_warp(pose: torch.Tensor, depth: torch.Tensor, gray: torch.Tensor | None, origin, observation: torch.Tensor,
-                 camera: Camera, *, warp: str = "template", **options) -> Correction:
-    """:func:`torchevtrack.stages.template.correct` with warped templates instead of the second-order score model.
+# -- the correction's decision rules: the paper's argmax, EDOPT's groups and the torch Newton step ------------------
+# EDOPT's groups of axes whose image motions look alike, as axis indices into AXES.
+GROUPS = ((0, 4), (1, 3), (5,), (2,))
+
+
+def hypothesis_steps(
+    pose: torch.Tensor, camera: Camera, gain: torch.Tensor, dp_px: float = 1.0, dtheta_deg: float = 0.5
+) -> torch.Tensor:
+    """The 13 hypothesis steps ``[dt (m), phi (rad)]`` around each pose (:mod:`torchevtrack.stages.template`, item 3).
 
     Args:
-        pose, depth, gray, origin, observation, camera: as for :func:`torchevtrack.stages.template.correct`.
+        pose: ``(B, 7)`` poses; ``z = tz`` sets the x / y step.
+        camera: frame camera (``fx``, ``fy``).
+        gain: ``(B,)`` :func:`radial_gain` of the object (``dz = dp / gain``; 0 gives ``dz = 0``).
+        dp_px: image motion of a translation step, pixels.
+        dtheta_deg: rotation step, degrees.
+
+    Shape: ``(B, 7), (B,) -> (B, 13, 6)``; row 0 is zero, row ``1 + 2 a`` is ``+`` along ``AXES[a]``.
+    """
+    z = pose[:, 2]
+    gain = gain.to(pose.dtype)
+    dz = torch.where(gain > 0, dp_px / gain.clamp_min(1e-12), torch.zeros_like(gain))
+    th = torch.full_like(z, math.radians(dtheta_deg))
+    mag = torch.stack((z * dp_px / camera.fx, z * dp_px / camera.fy, dz, th, th, th), -1)  # (B, 6)
+    plus = mag[:, :, None] * torch.eye(6, dtype=pose.dtype)  # (B, axis, 6)
+    steps = torch.stack((plus, -plus), 2).reshape(-1, 12, 6)
+    return torch.cat((torch.zeros_like(steps[:, :1]), steps), 1)
+
+
+def select(
+    pose: torch.Tensor, steps: torch.Tensor, scores: torch.Tensor, rule: str = "argmax"
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Apply the update rule to hypothesis scores.
+
+    ``"argmax"``: the best hypothesis (ties go to the lowest index, so to the null).
+    ``"group"``: per group ``GROUPS`` the best ``+/-`` step of its axes, applied if it beats the null
+    score strictly; applied steps compose in group order (translations add, rotations
+    ``exp(phi_last) ... exp(phi_first) (x) q``).
+
+    Shape: ``(B, 7), (B, 13, 6), (B, 13) -> (B, 7) pose, (B, 13) bool applied``.
+    """
+    B = pose.shape[0]
+    if rule == "argmax":
+        idx = scores.argmax(1)
+        applied = F.one_hot(idx, NUM_HYPOTHESES).bool() & (idx > 0)[:, None]
+        return apply_steps(pose, steps.gather(1, idx[:, None, None].expand(B, 1, 6)))[:, 0], applied
+    if rule != "group":
+        raise ValueError(f"rule must be 'argmax' or 'group', got {rule!r}")
+    applied = torch.zeros(B, NUM_HYPOTHESES, dtype=torch.bool, device=scores.device)
+    t = pose[:, :3].clone()
+    q = pose[:, 3:]
+    for axes in GROUPS:
+        cand = torch.tensor([1 + 2 * a + s for a in axes for s in (0, 1)], device=scores.device)
+        best = scores[:, cand].argmax(1)
+        idx = cand[best]
+        ok = scores.gather(1, idx[:, None])[:, 0] > scores[:, 0]
+        step = steps.gather(1, idx[:, None, None].expand(B, 1, 6))[:, 0] * ok[:, None].to(steps.dtype)
+        t = t + step[:, :3].to(t.dtype)
+        q = quat_mul(quat_exp(step[:, 3:].to(q.dtype)), q)
+        applied[torch.arange(B), idx] |= ok
+    return torch.cat((t, quat_canonical(q)), -1), applied
+
+
+def newton_step(score_steps, unit: torch.Tensor, max_step: float = NEWTON_MAX_STEP,
+                damping: float = NEWTON_DAMPING) -> torch.Tensor:
+    """Damped Newton step of a score over the six axes, in units of the hypothesis steps.
+
+    The score is fitted by a quadratic ``s0 + g . u + u^T H u / 2`` in step units ``u`` (``u_a = 1`` is
+    one hypothesis step along ``AXES[a]``) from 28 evaluations (the centre, ``+/- e_a`` and
+    ``e_a + e_b``; exact for the Taylor score model), and the maximiser of the damped model
+    ``u = -(H - lambda I)^-1 g`` is clipped to ``[-max_step, max_step]`` per axis. ``lambda`` exceeds the
+    largest eigenvalue of ``H`` by ``damping`` times the mean curvature magnitude, so flat or convex
+    directions take short steps. All axes move together: coupled axes (``tx`` and ``ry``) share the
+    evidence through ``H`` instead of both taking it.
+
+    Args:
+        score_steps: steps ``(B, K, 6)`` ``[dt (m), phi (rad)]`` -> scores ``(B, K)``.
+        unit: ``(B, 6)`` step magnitudes (m, rad), as the diagonal of :func:`hypothesis_steps`.
+
+    Shape: ``(B, 6) -> (B, 6)`` step ``[dt, phi]`` in metres and radians.
+    """
+    B, n = unit.shape
+    eye = torch.eye(n, dtype=torch.float64, device=unit.device)
+    iu, ju = torch.triu_indices(n, n, 1)
+    pts = torch.cat((torch.zeros_like(eye[:1]), eye, -eye, eye[iu] + eye[ju])).to(unit.dtype)  # (28, 6)
+    s = score_steps(pts[None] * unit[:, None]).double()
+    s0, sp, sm, sij = s[:, 0], s[:, 1:1 + n], s[:, 1 + n:1 + 2 * n], s[:, 1 + 2 * n:]
+    g = 0.5 * (sp - sm)
+    H = torch.diag_embed(sp + sm - 2 * s0[:, None])
+    off = sij - sp[:, iu] - sp[:, ju] + s0[:, None]
+    H[:, iu, ju] = off
+    H[:, ju, iu] = off
+    lam = torch.linalg.eigvalsh(H)[:, -1].clamp_min(0) + damping * H.diagonal(dim1=1, dim2=2).abs().mean(1) + 1e-12
+    u = torch.linalg.solve(lam[:, None, None] * eye - H, g[..., None])[..., 0]
+    return u.clamp(-max_step, max_step).to(unit.dtype) * unit
+
+
+def search(
+    pose: torch.Tensor,
+    scorer,
+    gain: torch.Tensor,
+    camera: Camera,
+    *,
+    dp_px: float = 1.0,
+    dtheta_deg: float = 0.5,
+    rule: str = "argmax",
+    iterations: int = 1,
+) -> Correction:
+    """Hypothesis search (:mod:`torchevtrack.stages.template`, items 3 and 5) with any scorer of poses.
+
+    Args:
+        pose: ``(B, 7)`` start poses.
+        scorer: callable ``centre (B, 7) -> (score_steps, score_poses)``, called once per iteration
+            with the current poses: ``score_steps`` maps steps ``(B, K, 6)`` to the scores ``(B, K)``
+            of ``apply_steps(centre, steps)``, ``score_poses`` poses ``(B, P, 7)`` to scores.
+        gain: ``(B,)`` :func:`~torchevtrack.reference.radial_gain` (sets the z step).
+        camera, dp_px, dtheta_deg, rule, iterations: see :func:`correct`.
+
+    Shape: ``(B, 7) -> Correction``.
+    """
+    B = pose.shape[0]
+    current = pose
+    current_score = None
+    active = torch.ones(B, dtype=torch.bool)
+    moved = torch.zeros(B, dtype=torch.int64)
+    first = None
+    for _ in range(iterations):
+        score_steps, score_poses = scorer(current)
+        steps = hypothesis_steps(current, camera, gain, dp_px, dtheta_deg)
+        s = score_steps(steps)
+        if rule == "newton":
+            # The pose moves only if the step's score beats the null; "applied" then flags no hypothesis.
+            delta = newton_step(score_steps, steps[:, 1::2].diagonal(dim1=1, dim2=2))
+            new_score = score_steps(delta[:, None])[:, 0]
+            moves = new_score > s[:, 0]
+            new_pose = apply_steps(current, delta[:, None])[:, 0]
+            applied = torch.zeros_like(s, dtype=torch.bool)
+        else:
+            new_pose, applied = select(current, steps, s, rule)
+            moves = applied.any(1)
+            if rule == "argmax":
+                new_score = s.gather(1, s.argmax(1, keepdim=True))[:, 0]
+            else:
+                new_score = score_poses(new_pose[:, None])[:, 0]
+        if first is None:
+            first = (s, s.argmax(1), applied)
+            current_score = s[:, 0]
+        step = active & moves
+        current = torch.where(step[:, None], new_pose, current)
+        current_score = torch.where(step, new_score, current_score)
+        moved += step.long()
+        active = step & (new_score > s[:, 0])
+        if not bool(active.any()):
+            break
+    return Correction(current, current_score, first[0], first[1], first[2], moved)
+
+
+def correct(
+    pose: torch.Tensor,
+    depth: torch.Tensor,
+    gray: torch.Tensor | None,
+    origin,
+    observation: torch.Tensor,
+    camera: Camera,
+    *,
+    observation_origin=(0, 0),
+    canvas: int = 128,
+    margin_px: float = 20.0,
+    dp_px: float = 1.0,
+    dtheta_deg: float = 0.5,
+    rule: str = "argmax",
+    iterations: int = 1,
+    edge_clip: float = 0.1,
+    silhouette: bool = True,
+) -> Correction:
+    """Correct propagated poses by matching templates predicted from one render against the observation.
+
+    Args:
+        pose: ``(B, 7)`` propagated poses (the render's poses).
+        depth: ``(B, h, w)`` render depth (metres, 0 = background) of the window at ``origin``.
+        gray: ``(B, h, w)`` shaded grey render in ``[0, 1]`` (background 0), or ``None`` for
+            silhouette edges only.
+        origin: ``(B, 2)`` or ``(2,)`` frame pixel of the render window's top-left pixel.
+        observation: ``(B, H, W)`` observation surface in ``[0, 1]`` (median-blurred EROS).
+        camera: the frame camera.
+        observation_origin: frame pixel of the observation's top-left pixel (default: full frame).
+        canvas: canvas size in pixels (100..150 in the paper).
+        margin_px: margin around the object's bounding box, frame pixels.
+        dp_px, dtheta_deg: translation step (image pixels) and rotation step (degrees).
+        rule: ``"argmax"`` (the paper), ``"group"`` (EDOPT) or ``"newton"`` (all axes, sub-step; item 5).
+        iterations: maximum corrections per call; repeats while the score keeps improving.
+        edge_clip: Sobel magnitude at which edges saturate (:func:`edge_map`).
+        silhouette: add the mask's edges to the grey edges.
+
+    Returns:
+        :class:`~torchevtrack.stages.template.Correction`.
+
+    Shape: ``(B, 7), (B, h, w), (B, h, w), (B, 2), (B, H, W) -> Correction``.
+    """
+    check_correct(pose, depth, gray, observation, canvas=canvas, rule=rule, iterations=iterations,
+                  silhouette=silhouette)
+    model = template_model(pose, depth, gray, origin, camera, canvas=canvas, margin_px=margin_px,
+                           edge_clip=edge_clip, silhouette=silhouette)
+    return correct_model(model, pose, observation, camera, observation_origin=observation_origin, dp_px=dp_px,
+                         dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
+
+
+def correct_model(
+    model: TemplateModel,
+    pose: torch.Tensor,
+    observation: torch.Tensor,
+    camera: Camera,
+    *,
+    observation_origin=(0, 0),
+    dp_px: float = 1.0,
+    dtheta_deg: float = 0.5,
+    rule: str = "argmax",
+    iterations: int = 1,
+) -> Correction:
+    """:func:`correct` with a render's :class:`~torchevtrack.stages.template.TemplateModel`, around any pose near the
+    render's: :func:`~torchevtrack.stages.template.correct_canvas` of the observation resampled into the model's canvas
+    (:meth:`~torchevtrack.stages.template.TemplateModel.observe`).
+
+    Shape: ``TemplateModel, (B, 7), (B, H, W) -> Correction``.
+    """
+    return correct_canvas(model, pose, model.observe(observation, observation_origin), camera, dp_px=dp_px,
+                          dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
+
+
+def rule_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, camera: Camera, *, dp_px: float,
+                dtheta_deg: float, rule: str, iterations: int) -> Correction:
+    """:func:`search` with the model's second-order score (:meth:`~torchevtrack.stages.template.TemplateModel.at`
+    and ``fit_canvas``, refitted at every iteration's pose), unchecked: the ``"argmax"`` and ``"group"`` rules of
+    :func:`~torchevtrack.stages.template.correct_canvas` (which checks the inputs and runs this), or ``"newton"``
+    with the torch step :func:`newton_step` (the oracle of :func:`~torchevtrack.stages.template.newton_search`).
+
+    Shape: ``TemplateModel, (B, 7), (B, N * N) -> Correction``; scores in the render's dtype.
+    """
+    dtype = model.depth.dtype
+
+    def scorer(centre: torch.Tensor):
+        quad = model.at(centre).fit_canvas(obs)
+        return lambda steps: quad.at_steps(steps).to(dtype), lambda poses: quad.evaluate(poses).to(dtype)
+
+    return search(pose, scorer, model.gain, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule,
+                  iterations=iterations)
+
+
+def correct_warp(pose: torch.Tensor, depth: torch.Tensor, gray: torch.Tensor | None, origin, observation: torch.Tensor,
+                 camera: Camera, *, warp: str = "template", **options) -> Correction:
+    """:func:`correct` with warped templates instead of the second-order score model.
+
+    Args:
+        pose, depth, gray, origin, observation, camera: as for :func:`correct`.
         warp: ``"template"`` (warp the finished template) or ``"image"`` (warp grey and mask, then filter each
             hypothesis).
-        options: the keyword options of :func:`torchevtrack.stages.template.correct` (same defaults).
+        options: the keyword options of :func:`correct` (same defaults).
 
     Returns:
         :class:`~torchevtrack.stages.template.Correction`, scores in the render's dtype.
@@ -411,7 +669,7 @@ def correct_warp(pose: torch.Tensor, depth: torch.Tensor, gray: torch.Tensor | N
     o = {**_CORRECT_DEFAULTS, **options}
     if set(o) != set(_CORRECT_DEFAULTS):
         raise TypeError(f"unknown options {sorted(set(o) - set(_CORRECT_DEFAULTS))}")
-    _check_correct(pose, depth, gray, observation, **o)
+    check_correct(pose, depth, gray, observation, **o)
     if warp not in ("template", "image"):
         raise ValueError(f"warp must be 'template' or 'image', got {warp!r}")
     cr, gain = _canvas_and_gain(depth, gray, origin, camera, o["canvas"], o["margin_px"])

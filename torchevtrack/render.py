@@ -60,9 +60,10 @@ import trimesh
 from PIL import Image
 
 from torchevtrack.camera import Camera
-from torchevtrack.geometry import _nb_normalise_quaternions, pose_to_matrix
+from torchevtrack.geometry import nb_normalise_quaternions, pose_to_matrix
 
-__all__ = ["AMBIENT", "BACKENDS", "DEFAULT_ALBEDO", "LIGHT_DIRECTION", "Render", "Renderer", "make_renderer"]
+__all__ = ["AMBIENT", "BACKENDS", "DEFAULT_ALBEDO", "LIGHT_DIRECTION", "Render", "Renderer", "ShadingMesh",
+           "check_renderer_args", "check_roi", "make_renderer", "shading_mesh", "unit_poses"]
 
 # Camera node pose: the OpenGL camera frame (x right, y up, z backwards) seen from the OpenCV frame.
 _GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -170,7 +171,7 @@ class Renderer:
         zfar: float = 20.0,
         background: float = 0.0,
     ) -> None:
-        _check_renderer_args(mesh, camera, znear, zfar, background)
+        check_renderer_args(mesh, camera, znear, zfar, background)
         _load_gl()
         self.camera = camera
         self.background = float(background)
@@ -249,7 +250,7 @@ class Renderer:
         if self._scene is None:
             raise RuntimeError("renderer is closed")
         T = _pose_matrices(poses)
-        cam = self.camera if roi is None else self.camera.crop(*_check_roi(roi))
+        cam = self.camera if roi is None else self.camera.crop(*check_roi(roi))
         self._cam.fx, self._cam.fy = cam.fx, cam.fy
         self._cam.cx, self._cam.cy = cam.cx + 0.5, cam.cy + 0.5
         P = self._cam.get_projection_matrix(cam.width, cam.height)
@@ -417,8 +418,8 @@ def _shade(rgba: np.ndarray, mask: np.ndarray, R: np.ndarray, background: float)
     return gray
 
 
-class _ShadingMesh(NamedTuple):
-    """The triangles and per-vertex shading attributes every backend interpolates (:func:`_shading_mesh`).
+class ShadingMesh(NamedTuple):
+    """The triangles and per-vertex shading attributes every backend interpolates (:func:`shading_mesh`).
 
     Shape:
         vertices: ``(V, 3)`` float64 metres; faces: ``(F, 3)`` int64, counter-clockwise seen from outside.
@@ -436,7 +437,7 @@ class _ShadingMesh(NamedTuple):
     texture: np.ndarray | None
 
 
-def _shading_mesh(mesh: trimesh.Trimesh) -> _ShadingMesh:
+def shading_mesh(mesh: trimesh.Trimesh) -> ShadingMesh:
     """The triangles and per-vertex shading attributes every backend interpolates: normals are smooth
     except across creases sharper than 30 degrees, where vertices are split.
 
@@ -449,17 +450,17 @@ def _shading_mesh(mesh: trimesh.Trimesh) -> _ShadingMesh:
     if texture is not None:
         uv, image = texture
         vertices, faces, normals, uv = _split_shading(mesh, uv[mesh.faces])
-        return _ShadingMesh(vertices, faces, np.ones(len(vertices)), normals, uv, image)
+        return ShadingMesh(vertices, faces, np.ones(len(vertices)), normals, uv, image)
     if mesh.visual.kind == "face":
         face_albedo = np.asarray(mesh.visual.face_colors[:, :3], dtype=np.float64) @ _LUMA / 255.0
         vertices, faces, normals, albedo = _split_shading(mesh, np.repeat(face_albedo[:, None, None], 3, axis=1))
-        return _ShadingMesh(vertices, faces, albedo[:, 0], normals, None, None)
+        return ShadingMesh(vertices, faces, albedo[:, 0], normals, None, None)
     smooth = trimesh.graph.smooth_shade(mesh, angle=_CREASE_ANGLE)
     if smooth.visual.kind == "vertex":
         albedo = np.asarray(smooth.visual.vertex_colors[:, :3], dtype=np.float64) @ _LUMA / 255.0
     else:
         albedo = np.full(len(smooth.vertices), DEFAULT_ALBEDO)
-    return _ShadingMesh(np.asarray(smooth.vertices, dtype=np.float64), np.asarray(smooth.faces, dtype=np.int64),
+    return ShadingMesh(np.asarray(smooth.vertices, dtype=np.float64), np.asarray(smooth.faces, dtype=np.int64),
                         albedo, np.asarray(smooth.vertex_normals, dtype=np.float64), None, None)
 
 
@@ -511,10 +512,10 @@ def _split_shading(mesh: trimesh.Trimesh, corner: np.ndarray) -> tuple[np.ndarra
 
 
 def _pyrender_mesh(mesh: trimesh.Trimesh) -> pyrender.Mesh:
-    """pyrender mesh of :func:`_shading_mesh` whose vertex colours carry (albedo, normal * 0.5 + 0.5) for
+    """pyrender mesh of :func:`shading_mesh` whose vertex colours carry (albedo, normal * 0.5 + 0.5) for
     the flat pass; a texture becomes the base colour texture (luminance in red, 1 in green, blue and alpha),
     which the flat pass multiplies into those colours (trilinear mipmapped sampling, repeating)."""
-    shading = _shading_mesh(mesh)
+    shading = shading_mesh(mesh)
     attributes = np.concatenate((shading.albedo[:, None], shading.normals * 0.5 + 0.5), axis=1)
     texture = None
     if shading.texture is not None:
@@ -535,9 +536,10 @@ def _pyrender_mesh(mesh: trimesh.Trimesh) -> pyrender.Mesh:
     return pyrender.Mesh(primitives=[primitive])
 
 
-def _check_renderer_args(mesh: trimesh.Trimesh, camera: Camera, znear: float, zfar: float,
-                         background: float) -> None:
-    """The constructor checks every backend shares (see :class:`Renderer`)."""
+def check_renderer_args(mesh: trimesh.Trimesh, camera: Camera, znear: float, zfar: float,
+                        background: float) -> None:
+    """The constructor checks every backend shares (see :class:`Renderer`): a one-line ``TypeError`` /
+    ``ValueError`` for the first bad argument, else ``None``."""
     if not isinstance(mesh, trimesh.Trimesh):
         raise TypeError(f"mesh must be a trimesh.Trimesh, got {type(mesh).__name__}")
     if len(mesh.faces) == 0:
@@ -552,11 +554,12 @@ def _check_renderer_args(mesh: trimesh.Trimesh, camera: Camera, znear: float, zf
 
 def _pose_matrices(poses: torch.Tensor) -> np.ndarray:
     """Validated ``(B, 4, 4)`` float64 object-to-camera (OpenCV) transforms."""
-    return pose_to_matrix(torch.from_numpy(_unit_poses(poses))).numpy()
+    return pose_to_matrix(torch.from_numpy(unit_poses(poses))).numpy()
 
 
-def _unit_poses(poses: torch.Tensor) -> np.ndarray:
-    """Validated ``(B, 7)`` float64 poses with their quaternions normalised (numpy: a render's few numbers)."""
+def unit_poses(poses: torch.Tensor) -> np.ndarray:
+    """Validated ``(B, 7)`` float64 poses (a ``(7,)`` pose as one row) with their quaternions normalised (numpy: a
+    render's few numbers); a one-line ``ValueError`` / ``TypeError`` for bad poses."""
     poses = torch.as_tensor(poses)
     if poses.ndim == 1:
         poses = poses[None]
@@ -577,11 +580,13 @@ def _normalise_quaternions(p: np.ndarray) -> np.ndarray:
     """Divide the quaternions of poses ``(B, 7)`` by their norms, in place, and return those norms ``(B,)`` (the
     one rule by which renders normalise their poses)."""
     norm = np.empty(p.shape[0])
-    _nb_normalise_quaternions(p, norm)
+    nb_normalise_quaternions(p, norm)
     return norm
 
 
-def _check_roi(roi) -> tuple[int, int, int, int]:
+def check_roi(roi) -> tuple[int, int, int, int]:
+    """A render's ``roi`` ``(u0, v0, width, height)`` as four ints (positive size; a one-line ``ValueError``
+    otherwise)."""
     try:
         u0, v0, w, h = (int(x) for x in roi)
         exact = all(float(x) == int(x) for x in roi)

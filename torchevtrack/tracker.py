@@ -19,7 +19,7 @@ sequences and runs, in the paper's order:
 4. the mesh is rendered once, in a window around the propagated pose; by default (``render.ahead``) around
    the pose the previous update predicted for this one (its propagated pose moved on by its twist), so that
    with the pipeline the render and its template model are made on the pipeline's thread during the previous
-   update's step 5, in one compiled call (:func:`~torchevtrack.stages.render_model.render_model_step`);
+   update's step 5, in one compiled call (:class:`~torchevtrack.update.RenderModelBinding`);
 5. :class:`~torchevtrack.stages.template.TemplateCorrector` scores hypotheses around the propagated pose,
    warped from that render, against the EROS observation (optionally weighted toward its newest events, ``eros.recency_us``)
    and moves the pose to the best (the paper's argmax of 13, or a Newton step over all six axes:
@@ -69,7 +69,7 @@ from tqdm.auto import tqdm
 
 from torchevtrack.camera import Camera
 from torchevtrack.config import TrackerConfig
-from torchevtrack.events import EventStream, _first_invalid, check_window
+from torchevtrack.events import EventStream, check_window, first_invalid, pack_streams
 from torchevtrack.geometry import check_pose, quat_rotate
 from torchevtrack.loss import LossDetector, LossUpdate, OnLost
 from torchevtrack.kernels import announce_compile
@@ -80,16 +80,15 @@ from torchevtrack.render import make_renderer
 from torchevtrack.schedule import Job, Schedule
 from torchevtrack.stages import batch_mask, periods
 from torchevtrack.stages.burst import BurstGuard, keep_events
-from torchevtrack.stages.correction import CorrectionStep, bind_correction
 from torchevtrack.stages.denoise import BackgroundActivityFilter
 from torchevtrack.stages.eros import EROS, TimeSurface, bind_observe
 from torchevtrack.stages.flow import FlowField, TripletFlow
 from torchevtrack.stages.propagate import invalid_poses, propagate
-from torchevtrack.stages.render_model import bind_render_model
 from torchevtrack.stages.template import Correction, TemplateCorrector, TemplateModel, window_of
 from torchevtrack.stages.ukf import PoseUKF
 from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, shift_twist
-from torchevtrack.update import MotionArgs, OutputArgs, bind_intake, motion, output, render_ahead
+from torchevtrack.update import (CorrectionStep, MotionArgs, OutputArgs, RenderModelBinding, bind_correction,
+                                 bind_intake, motion, output, render_ahead)
 
 if TYPE_CHECKING:
     from torchevtrack.render import Renderer
@@ -146,7 +145,7 @@ class EventPoseTracker(nn.Module):
             ``min(B, usable cores)``, 1 runs everything in the calling thread. Results do not depend on it.
         pipeline: with one worker, let a thread of its own share each update. With ``render.ahead`` (default),
             one sequence, the compiled rasteriser and the template on, that thread makes the next update's render
-            and template model (:func:`~torchevtrack.stages.render_model.render_model_step`) while an update
+            and template model (:class:`~torchevtrack.update.RenderModelBinding`) while an update
             searches, and takes each window into the EROS and the time surface and observes it
             (:func:`~torchevtrack.stages.eros.bind_observe`) while the calling thread runs the flow. Otherwise it
             takes the next window's events into the EROS and the flow
@@ -241,8 +240,8 @@ class EventPoseTracker(nn.Module):
         o = self.corrector.options
         # each compiled rasteriser's render (and template model) of a pose in its window, in one compiled call
         self._render_bindings = [
-            bind_render_model(r, radius, margin_px=cfg.render.margin_px, canvas=o["canvas"],
-                              box_margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"])
+            RenderModelBinding(r, radius, margin_px=cfg.render.margin_px, canvas=o["canvas"],
+                               box_margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"])
             if isinstance(r, RasterRenderer) else None for r, radius in zip(self._renderers, self._radius)]
         self._render_one = self._render_bindings[0] if B == 1 else None  # one stream: the render is the buffer
         # The pipeline's thread takes a known next window in ahead, unless it makes each update's render and template
@@ -399,7 +398,8 @@ class EventPoseTracker(nn.Module):
                 this update searches (until the next call, those stages' state belongs to the intake thread), and
                 the next call must be for exactly these tensors (else RuntimeError); otherwise it is ignored. Only
                 a window already in the kernels' dtypes (an :class:`EventStream`'s: int16 x and y, int64 t, int8
-                p, int64 b) that passes the checks is taken in ahead.
+                p, int64 b) that passes the checks is taken in ahead. A loop that passes it ends with
+                :meth:`drop_ahead`.
             check: validate the window (:func:`~torchevtrack.events.check_window`, and time going back across
                 windows), raising a one-line ``ValueError`` that names the tensor and the event, and cast it once
                 to the kernels' dtypes (other integer dtypes would compile every kernel again). ``False`` skips
@@ -437,6 +437,15 @@ class EventPoseTracker(nn.Module):
                     self._run.observing = None
         return torch.from_numpy((self.pose if self.recover is None else self.recover.pose).numpy().copy())
 
+    def drop_ahead(self) -> None:
+        """Forget a window given as ``next_window`` to :meth:`forward` whose update will not come: a caller that feeds
+        windows ahead calls it when its loop ends (in a ``finally``; nothing happens if no window is ahead). It waits
+        for the pipeline's thread to finish taking that window in; the state then holds its events (the next update
+        must not be for them). A render made ahead stays: it depends on the poses only."""
+        if self._run.ahead is not None:
+            self._run.ahead.flow.wait()  # not .result(): in a finally, its error would hide the one that stopped the loop
+            self._run.ahead = None
+
     def _check(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor, b: torch.Tensor | None,
                last: np.ndarray) -> tuple[torch.Tensor, ...]:
         """A window checked and in the kernels' dtypes (:func:`~torchevtrack.events.check_window`), none of whose
@@ -450,7 +459,7 @@ class EventPoseTracker(nn.Module):
             and x.dtype == y.dtype == torch.int16 and t.dtype == torch.int64 and p.dtype == torch.int8 \
             and x.shape == y.shape == t.shape == p.shape
         if fast and t.numel():
-            fast = _first_invalid(x.numpy(), y.numpy(), t.numpy(), W, H)[0] == 0 and \
+            fast = first_invalid(x.numpy(), y.numpy(), t.numpy(), W, H)[0] == 0 and \
                 int(p.numpy().view(np.uint8).max()) <= 1
         if not fast:
             x, y, t, p, b = check_window(x, y, t, p, b, width=W, height=H, batch=self.batch_size)
@@ -622,7 +631,7 @@ class EventPoseTracker(nn.Module):
         lost = torch.zeros(B, n, dtype=torch.bool)
 
         def window(i: int) -> tuple | None:
-            return _pack([s[int(bd[i]): int(bd[i + 1])] for s, bd in zip(streams, bounds)]) if i < n else None
+            return pack_streams([s[int(bd[i]): int(bd[i + 1])] for s, bd in zip(streams, bounds)]) if i < n else None
 
         ahead = window(0)
         try:
@@ -632,7 +641,7 @@ class EventPoseTracker(nn.Module):
                 if return_lost:
                     lost[:, i] = self.lost
         finally:
-            self._drop_ahead()
+            self.drop_ahead()
         return (times, poses, lost) if return_lost else (times, poses)
 
     def _checked_stream(self, s: EventStream, k: int) -> EventStream:
@@ -808,7 +817,7 @@ class EventPoseTracker(nn.Module):
     def _render_soon(self, poses: np.ndarray, shaded: bool, model: bool) -> None:
         """Make the next update's render at ``poses`` and, with ``model``, its template model on the intake thread
         (one element, compiled rasteriser), in one compiled call
-        (:func:`~torchevtrack.stages.render_model.bind_render_model`)."""
+        (:class:`~torchevtrack.update.RenderModelBinding`)."""
         if self._render_one is not None:  # only the compiled call on that thread: it needs the GIL only to start
             r = self._render_one
             self._run.rendering = self._schedule.submit(r.kernel, *r.start(poses, shaded, model))
@@ -958,13 +967,6 @@ class EventPoseTracker(nn.Module):
             raise RuntimeError("the update is not for the window taken in ahead (an interrupted track or push?)")
         return flow
 
-    def _drop_ahead(self) -> None:
-        """Forget a window taken in ahead whose update will not come (the loop ended early): wait for the thread. (A
-        render made ahead stays: it depends on the poses only, and the next update still renders there.)"""
-        if self._run.ahead is not None:
-            self._run.ahead.flow.wait()  # not .result(): in a finally, its error would hide the one that stopped the loop
-            self._run.ahead = None
-
     def _retake_ahead(self, m: torch.Tensor) -> None:
         """After a reset of the elements ``m`` ``(B,)`` bool: take their events of the window already taken in
         ahead into their cleared EROS and flow again (the others keep theirs), as if the reset came first."""
@@ -1057,14 +1059,3 @@ def _per_stream(value, default: list[int], name: str) -> list[int]:
         raise ValueError(f"{name} needs one value per stream ({len(default)}), got {len(value)}")
     return [int(v) for v in value]
 
-
-def _pack(parts: Sequence[EventStream]):
-    """Concatenate per-element windows into packed tensors with a batch index (``None`` for one element), in the
-    streams' own integer types (the kernels take them as they are: no int64 copies)."""
-    if len(parts) == 1:
-        q = parts[0]
-        return q.x, q.y, q.t, q.p, None
-    sizes = torch.tensor([len(q) for q in parts])
-    b = torch.repeat_interleave(torch.arange(len(parts)), sizes)
-    cat = lambda f: torch.cat([getattr(q, f) for q in parts])  # noqa: E731
-    return cat("x"), cat("y"), cat("t"), cat("p"), b

@@ -4,7 +4,8 @@ An update's small per-element operations cost less as one compiled call than as 
 them, and on the tracker's threads a call that holds the GIL delays the other thread. Each fused step here is built
 from the stages' public compiled pieces (their ``arrays()`` records, ``*_step`` and ``*_kernel`` functions), runs on
 numpy views of their buffers, unchecked but for the events, and gives exactly the numbers of the stage calls one after
-the other (``tests/test_intake.py``, ``tests/test_motion.py``, ``tests/test_output.py``):
+the other (``tests/test_intake.py``, ``tests/test_motion.py``, ``tests/test_render_model.py``,
+``tests/test_correction.py``, ``tests/test_output.py``):
 
 - :func:`bind_intake`, step 1: a window's events into the :class:`~torchevtrack.stages.eros.EROS`, its
   :class:`~torchevtrack.stages.eros.TimeSurface` and the :class:`~torchevtrack.stages.flow.TripletFlow`. Each reads
@@ -16,6 +17,17 @@ the other (``tests/test_intake.py``, ``tests/test_motion.py``, ``tests/test_outp
   back about the camera); ``"poses"``: :func:`~torchevtrack.stages.propagate.twist_between` the last two poses;
   ``"none"``: zero twist. Then :func:`~torchevtrack.stages.propagate.propagate_step` by ``dt``, which keeps the pose
   with zero twist where the prediction is not valid.
+- :class:`RenderModelBinding`, steps 4-5's render and template model of one pose: the window
+  (:func:`~torchevtrack.stages.template.window_of`), the compiled rasteriser's render in it
+  (:func:`~torchevtrack.raster.rasterise`) and the template model of that render
+  (:func:`~torchevtrack.stages.template.template_model`) at the pose's float32 rounding. One call without the GIL:
+  with ``render.ahead`` the tracker's pipeline thread makes the next update's render and model while the calling
+  thread searches, and as separate calls that job would hold the GIL between its kernels.
+- :func:`bind_correction`, step 5: the canvas box of the render's extent, the observation under it
+  (:func:`~torchevtrack.stages.eros.canvas_observation`), then the rest of the template model and the search
+  (:func:`~torchevtrack.stages.template.newton_search`; the ablation's argmax and group rules through
+  :func:`~torchevtrack.stages.template.correct_canvas`). Once the observation is made it tells the caller
+  (``on_observed``): the next window's events may then update the surfaces while the model and the search run.
 - :func:`output`, step 6: the correction's rate into the
   :class:`~torchevtrack.stages.velocity.CorrectionFeedback` (:func:`~torchevtrack.stages.propagate.twist_between`
   the predicted and measured poses about the predicted centre, :func:`~torchevtrack.stages.velocity.feedback_step`),
@@ -26,20 +38,29 @@ the other (``tests/test_intake.py``, ``tests/test_motion.py``, ``tests/test_outp
 
 from __future__ import annotations
 
+import math
 from typing import Callable, NamedTuple
 
 import numba
 import numpy as np
 import torch
 
-from torchevtrack.stages.eros import EROS, TimeSurface, eros_kernel, prepare_events, time_kernel
+from torchevtrack.camera import Camera
+from torchevtrack.geometry import nb_normalise_quaternions
+from torchevtrack.raster import AMBIENT, LIGHT_DIRECTION, RasterRenderer, render_kernel
+from torchevtrack.stages.eros import (EROS, TimeSurface, canvas_kernel, decay_table, eros_kernel, prepare_events,
+                                      time_kernel)
 from torchevtrack.stages.flow import (FlowField, TripletFlow, event_arrays, events_in_range, flow_packet, range_error,
                                       smooth_flow)
 from torchevtrack.stages.propagate import propagate_kernel, propagate_step, twist_between_kernel, valid_pose
+from torchevtrack.stages.template import (NEWTON_DAMPING, NEWTON_MAX_STEP, NUM_HYPOTHESES, Correction, TemplateModel,
+                                          box_kernel, camera_array, correct_canvas, model_filters, model_in_box,
+                                          model_kernel, newton_kernel, render_box, window_kernel)
 from torchevtrack.stages.ukf import UKFArrays, ukf_step
 from torchevtrack.stages.velocity import FeedbackArrays, KFArrays, feedback_step, shift_twist_kernel, velocity_step
 
-__all__ = ["MotionArgs", "OutputArgs", "bind_intake", "motion", "output", "render_ahead"]
+__all__ = ["CorrectionStep", "MotionArgs", "OutputArgs", "RenderModelBinding", "Rendered", "bind_correction",
+           "bind_intake", "motion", "output", "render_ahead"]
 
 
 def bind_intake(eros: EROS, time_surface: TimeSurface | None, flow: TripletFlow,
@@ -196,6 +217,198 @@ def render_ahead(predicted, twist, dt, min_depth, ahead, ahead_ok, now, now32):
     propagate_kernel(predicted, twist, dt, ahead)
     for b in range(predicted.shape[0]):
         ahead_ok[b] = valid_pose(ahead[b], min_depth[b])
+
+
+class Rendered(NamedTuple):
+    """A render of one pose in its window and, if asked for, its template model (:class:`RenderModelBinding`).
+
+    Attributes:
+        depth: ``(1, h, w)`` float32 metres (0 off the object); gray: ``(1, h, w)`` float32 or ``None``.
+        window: ``(1, 4)`` int64 ``(u0, v0, w, h)`` of the frame.
+        model: the :class:`~torchevtrack.stages.template.TemplateModel` of the render, or ``None``.
+    """
+
+    depth: torch.Tensor
+    gray: torch.Tensor | None
+    window: np.ndarray
+    model: TemplateModel | None
+
+
+@numba.njit(cache=True, nogil=True)
+def _render_model_kernel(pose, radius, cam, W, H, margin, vertices, faces, planes, albedo, normals, znear, zfar, light,
+                         ambient, background, shaded, model, box_margin, silhouette, edge_scale, g1, g2, pre, N, step,
+                         P, observed_box, texture):
+    """:class:`RenderModelBinding`'s compiled call: the window of ``pose`` (``(1, 4)``), its render there at its
+    normalised copy (the renderers' rule), its float32 rounding ``pose32`` (the model's pose), and with ``model`` the
+    template model's arrays at ``pose32`` (``box, K, gain, render_template, depth, coef, points, valid``), its box
+    also into ``observed_box`` as float64. ``texture``: the mesh's :class:`~torchevtrack.raster.RasterTexture` as a
+    tuple, or ``None`` (untextured)."""
+    unit = pose.copy()
+    nb_normalise_quaternions(unit, np.empty(1))
+    pose32 = pose.astype(np.float32).astype(np.float64)
+    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
+    win = np.empty((1, 4), dtype=np.int64)
+    window_kernel(np.ascontiguousarray(pose[:, :3]), radius, fx, fy, cx, cy, margin, W, H, True, win)
+    u0, v0, w, h = win[0, 0], win[0, 1], win[0, 2], win[0, 3]
+    depth = np.empty((1, h, w), dtype=np.float32)
+    gray = np.empty((1, h, w) if shaded else (1, 0, 0), dtype=np.float32)
+    render_kernel(vertices, faces, planes, albedo, normals, unit, fx, fy, cx - u0, cy - v0, znear, zfar, light,
+                  ambient, background, depth, gray, texture)
+    box = np.empty((1, 3))
+    gain = np.empty(1, dtype=np.float32)
+    box32, K = np.empty((1, 3), dtype=np.float32), np.empty((1, 4), dtype=np.float32)
+    n, m = (N, P) if model else (0, 0)  # without the model: empty arrays (a render alone allocates nothing more)
+    T, Z = np.empty((1, n, n), dtype=np.float32), np.empty((1, n, n), dtype=np.float32)
+    coef = np.zeros((1, n + 6, n + 6) if model else (1, 0, 0), dtype=np.float32)
+    points, valid = np.empty((1, m, 3), dtype=np.float32), np.empty((1, m), dtype=np.bool_)
+    if model:
+        origin = win[:, :2].astype(np.float64)
+        box_kernel(depth, origin, cam, box_margin, box, gain)
+        model_kernel(depth, gray, origin, box, cam, np.ascontiguousarray(pose32[:, 2]), True, silhouette,
+                     edge_scale, g1, g2, pre, step, step, box32, K, T, coef, Z, points, valid)
+        for k in range(3):
+            observed_box[0, k] = box32[0, k]
+    return win, depth, gray, pose32, (box32, K, gain, T, Z, coef, points, valid)
+
+
+
+class RenderModelBinding:
+    """Steps 4-5's render and template model of one pose (see the module docstring), bound to a compiled rasteriser
+    and the options, unchecked: for a caller whose poses are valid (finite, ``z > 0``, non-zero quaternion).
+
+    ``binding(pose, shaded, model) -> Rendered`` renders ``pose`` ``(1, 7)`` float64 (object in the camera frame;
+    its quaternion normalised as the renderers do) in its window (:func:`~torchevtrack.stages.template.window_of`
+    with ``margin_px``, clipped to the frame), the grey image too with ``shaded``, and with ``model`` (needs
+    ``shaded``) the template model (:func:`~torchevtrack.stages.template.template_model` with ``canvas``,
+    ``box_margin_px`` as its ``margin_px``, ``edge_clip`` and ``silhouette``) at the pose's float32 rounding. A caller
+    that runs the compiled call on another thread without the GIL in between calls it in three parts: ``args =
+    binding.start(pose, shaded, model)`` (the Python part before it), ``raw = binding.kernel(*args)`` (the compiled
+    call) and ``binding.finish(raw)``.
+
+    Args:
+        renderer: the object's :class:`~torchevtrack.raster.RasterRenderer` (its camera is the frame's).
+        radius: the object's bounding radius (metres).
+
+    Attributes:
+        observed_box: ``(1, 3)`` float64, the canvas box of the last model made (its float32 box, under which the
+            observation is made), written by the compiled call.
+
+    Example:
+        >>> import torch
+        >>> from torchevtrack.camera import Camera
+        >>> from torchevtrack.mesh import load_mesh
+        >>> from torchevtrack.raster import RasterRenderer
+        >>> r = RasterRenderer(load_mesh("can"), Camera(64, 48, 50.0, 50.0, 32.0, 24.0))
+        >>> bind = RenderModelBinding(r, 0.06, margin_px=24, canvas=32, box_margin_px=20.0, edge_clip=0.1,
+        ...                           silhouette=True)
+        >>> out = bind(torch.tensor([[0.0, 0.0, 0.3, 1.0, 0.0, 0.0, 0.0]], dtype=torch.float64).numpy(), True, True)
+        >>> out.window.tolist(), tuple(out.model.coef.shape)
+        ([[0, 0, 64, 48]], (1, 38, 38))
+    """
+
+    kernel = staticmethod(_render_model_kernel)  # the compiled call
+
+    def __init__(self, renderer: RasterRenderer, radius: float, *, margin_px: int, canvas: int,
+                 box_margin_px: float, edge_clip: float, silhouette: bool) -> None:
+        mesh, cam = renderer.raster_mesh, renderer.camera
+        self.observed_box = np.zeros((1, 3))
+        step = max(1, canvas // 16)  # the model's object points: every step-th canvas pixel
+        points = len(range(step // 2, canvas, step)) ** 2
+        texture = renderer.raster_texture
+        self._args = (np.full(1, float(radius)), np.array([cam.fx, cam.fy, cam.cx, cam.cy]), cam.width, cam.height,
+                      float(margin_px), *mesh, renderer.znear, renderer.zfar, LIGHT_DIRECTION, AMBIENT,
+                      renderer.background)
+        self._model_args = (float(box_margin_px), silhouette, 0.125 / edge_clip, *model_filters(canvas), canvas, step,
+                            points, self.observed_box, None if texture is None else tuple(texture))
+
+    def __call__(self, pose: np.ndarray, shaded: bool, model: bool) -> Rendered:
+        return self.finish(self.kernel(*self.start(pose, shaded, model)))
+
+    def start(self, pose: np.ndarray, shaded: bool, model: bool) -> tuple:
+        """The arguments of :attr:`kernel` for ``pose``."""
+        return pose, *self._args, shaded, model, *self._model_args
+
+    @staticmethod
+    def finish(raw: tuple) -> Rendered:
+        """The :class:`Rendered` of :attr:`kernel`'s result (a window has pixels, so an empty grey image means an
+        unshaded render, and empty model arrays a render without its model)."""
+        win, depth, gray, pose32, made = raw
+        made_model = None
+        if made[3].size:  # the template
+            p = torch.from_numpy(pose32)
+            made_model = TemplateModel(p, p, *(torch.from_numpy(a) for a in made))
+        return Rendered(torch.from_numpy(depth), torch.from_numpy(gray) if gray.size else None, win, made_model)
+
+class CorrectionStep(NamedTuple):
+    """Result of :func:`bind_correction`'s ``run``: the template ``model`` of the render (or the one given) and the
+    ``correction`` of the predicted poses, as :func:`~torchevtrack.stages.template.newton_search` (or
+    :func:`~torchevtrack.stages.template.correct_canvas` for the other rules) returns it, its fields as numpy
+    arrays."""
+
+    model: TemplateModel
+    correction: Correction
+
+
+def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *, canvas: int, margin_px: float,
+                    edge_clip: float, silhouette: bool, dp_px: float, dtheta_deg: float, rule: str, iterations: int,
+                    max_age_us: int, recency_us: float) -> Callable[..., CorrectionStep]:
+    """Step 5 (see the module docstring) bound to the EROS ``surface`` ``(B, H, W)`` float32 and the time surface
+    ``last_us`` ``(B, C, H, W)`` int64 (numpy views, read at each call) and the options, unchecked.
+
+    Options: ``canvas, margin_px, edge_clip, silhouette`` as for
+    :func:`~torchevtrack.stages.template.template_model`; ``dp_px, dtheta_deg, rule, iterations`` as for
+    :func:`~torchevtrack.stages.template.correct_canvas`; ``max_age_us, recency_us`` as for
+    :func:`~torchevtrack.stages.eros.canvas_observation`.
+
+    Returns ``run(render_pose, predicted, depth, gray, origin, t_now_us, model=None, on_observed=None, obs=None)``
+    of numpy arrays: the render ``depth`` ``(B, h, w)`` float32 made at ``render_pose`` ``(B, 7)`` float32, its grey
+    image ``gray`` (or ``None``: silhouette only), its window's top-left pixel ``origin`` ``(B, 2)`` int64, the start
+    poses ``predicted`` ``(B, 7)`` float64 and ``t_now_us`` ``(B,)`` int64; or ``render_pose``, ``depth``, ``gray``,
+    ``origin`` ``None`` with the ``model`` of an earlier render to reuse. ``on_observed`` is called (no arguments) once
+    the observation is made: ``surface`` and ``last_us`` are not read after that. ``obs``: the observation
+    ``(B, N, N)`` float32 under the ``model``'s box if it was made elsewhere
+    (:func:`~torchevtrack.stages.eros.bind_observe`); the surfaces are then not read. ``run`` gives the
+    :class:`CorrectionStep`, equal to ``template_model``, ``canvas_observation`` under the model's box and
+    ``newton_search`` (or ``correct_canvas``) one after the other.
+    """
+    cam = camera_array(camera)
+    max_age_us, recency_us = int(max_age_us), float(recency_us)
+    table = decay_table(recency_us, max_age_us)
+    dp, dtheta = float(dp_px), math.radians(dtheta_deg)
+
+    def run(render_pose, predicted, depth, gray, origin, t_now_us, model=None, on_observed=None,
+            obs=None) -> CorrectionStep:
+        B = predicted.shape[0]
+        if model is None:  # the canvas box first: the observation needs only that, the rest of the model can wait
+            origin64 = origin.astype(np.float64)
+            box, gain = render_box(depth, origin64, cam, margin_px)
+            N, observed_box = canvas, box.astype(np.float32).astype(np.float64)  # as the model's box (float32) gives it
+        else:
+            N = model.depth.shape[-1]
+        if obs is None:
+            obs = np.empty((B, N, N), dtype=np.float32)
+            canvas_kernel(surface, last_us, observed_box if model is None else model.box.numpy().astype(np.float64),
+                          t_now_us.astype(np.int64, copy=False), max_age_us, recency_us, table, obs)
+        if on_observed is not None:
+            on_observed()
+        if model is None:
+            model = model_in_box(render_pose.astype(np.float64), depth, depth if gray is None else gray,
+                                 gray is not None, origin64, cam, box, gain, N, edge_clip, silhouette)
+        if rule != "newton":
+            c = correct_canvas(model, torch.from_numpy(predicted), torch.from_numpy(obs), camera, dp_px=dp_px,
+                               dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
+            return CorrectionStep(model, Correction(*(f.numpy() for f in c)))
+        pose = np.empty((B, 7))
+        score, scores, moved = np.empty(B), np.empty((B, NUM_HYPOTHESES)), np.empty(B, dtype=np.int64)
+        newton_kernel(model.coef.numpy(), model.depth.numpy(), model.K.numpy().astype(np.float64),
+                      model.render_pose.numpy(), predicted, obs.reshape(B, N * N),
+                      model.gain.numpy().astype(np.float64), camera.fx, camera.fy, dp, dtheta, iterations,
+                      NEWTON_DAMPING, NEWTON_MAX_STEP, pose, score, scores, moved)
+        dt = model.depth.numpy().dtype
+        scores = scores.astype(dt)  # argmax: the first of ties, as torch's
+        return CorrectionStep(model, Correction(pose, score.astype(dt), scores, scores.argmax(1),
+                                                np.zeros((B, NUM_HYPOTHESES), dtype=np.bool_), moved))
+    return run
 
 
 class OutputArgs(NamedTuple):

@@ -38,9 +38,9 @@ from torch import nn
 from torchevtrack.config import ErosConfig
 from torchevtrack.stages import NEVER, batch_mask, canvas_taps
 
-__all__ = ["EROS", "TimeSurface", "bind_observe", "canvas_observation", "check_fields", "check_times", "eros_kernel",
-           "eros_update", "eros_update_", "events_inside", "observation", "prepare_events", "recent_observation",
-           "time_kernel", "time_surface_update_"]
+__all__ = ["EROS", "TimeSurface", "bind_observe", "canvas_kernel", "canvas_observation", "check_fields", "check_times",
+           "decay_table", "eros_kernel", "eros_update", "eros_update_", "events_inside", "observation", "prepare_events",
+           "recent_observation", "time_kernel", "time_surface_update_"]
 
 
 def prepare_events(x: torch.Tensor, y: torch.Tensor, b: torch.Tensor | None, height: int, width: int,
@@ -231,7 +231,7 @@ def recent_observation(surface: torch.Tensor, last_us: torch.Tensor, origin: tor
     out = torch.empty(B, h, w, dtype=torch.float32)
     _recent_kernel(surface.detach().numpy(), last_us.detach().numpy(), o.contiguous().numpy(),  # views: no copies
                    t_now_us.long().contiguous().numpy(), int(max_age_us), float(recency_us),
-                   _decay_table(float(recency_us), int(max_age_us)), out.numpy())
+                   decay_table(float(recency_us), int(max_age_us)), out.numpy())
     return out
 
 
@@ -255,9 +255,9 @@ def canvas_observation(surface: torch.Tensor, last_us: torch.Tensor, box: torch.
     if box.shape != (B, 3):
         raise ValueError(f"box must have shape ({B}, 3) [cu, cv, side], got {tuple(box.shape)}")
     out = torch.empty(B, canvas, canvas, dtype=torch.float32)
-    _canvas_kernel(surface.detach().numpy(), last_us.detach().numpy(), box.double().contiguous().numpy(),
-                   t_now_us.long().contiguous().numpy(), int(max_age_us), float(recency_us),
-                   _decay_table(float(recency_us), int(max_age_us)), out.numpy())
+    canvas_kernel(surface.detach().numpy(), last_us.detach().numpy(), box.double().contiguous().numpy(),
+                  t_now_us.long().contiguous().numpy(), int(max_age_us), float(recency_us),
+                   decay_table(float(recency_us), int(max_age_us)), out.numpy())
     return out
 
 
@@ -268,10 +268,13 @@ def _check_time_surface(last_us: torch.Tensor, B: int, H: int, W: int) -> None:
 
 
 @functools.lru_cache(maxsize=8)
-def _decay_table(tau: float, max_age: int) -> np.ndarray:
-    """The age weights :func:`_decay` of the ages ``0 .. n - 1`` us (cached, read-only), ``n`` the ages that can
-    carry weight (below ``max_age``, if positive) up to ``16 tau`` and at most ``_DECAY_TABLE`` entries; empty
-    for ``tau <= 0`` (no weights)."""
+def decay_table(tau: float, max_age: int) -> np.ndarray:
+    """The age weights ``exp(-age / tau)`` (float32, :func:`_decay`) of the ages ``0 .. n - 1`` us, for the ``decay``
+    argument of :func:`canvas_kernel`: ``n`` the ages that can carry weight (below ``max_age`` us, if positive) up
+    to ``16 tau`` and at most ``_DECAY_TABLE`` entries; empty for ``tau <= 0`` (no weights). Cached and read-only.
+
+    Shape: ``(n,)`` float32.
+    """
     n = 0 if tau <= 0 else min(max_age if max_age > 0 else math.ceil(16 * tau), _DECAY_TABLE)
     table = _decay_fill(np.float32(1.0 / tau) if tau > 0 else np.float32(0.0), np.empty(n, dtype=np.float32))
     table.flags.writeable = False
@@ -302,8 +305,13 @@ def _recent_kernel(surface, last, origin, t_now, max_age, tau, decay, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def _canvas_kernel(surface, last, box, t_now, max_age, tau, decay, out):
-    """:func:`canvas_observation` into ``out`` ``(B, N, N)``."""
+def canvas_kernel(surface, last, box, t_now, max_age, tau, decay, out):
+    """:func:`canvas_observation` on numpy arrays, unchecked, into ``out``; releases the GIL.
+
+    Args: ``surface`` ``(B, H, W)`` float32 EROS, ``last`` ``(B, C, H, W)`` int64 time surface (us), ``box``
+    ``(B, 3)`` float64 ``[cu, cv, side]`` frame pixels, ``t_now`` ``(B,)`` int64 us, ``max_age`` int us, ``tau``
+    float us (``recency_us``), ``decay`` its :func:`decay_table`; ``out`` ``(B, N, N)`` float32, overwritten.
+    """
     B, N = out.shape[0], out.shape[1]
     H, W = surface.shape[1], surface.shape[2]
     for b in range(B):
@@ -345,7 +353,7 @@ def _bilinear(img, cu, cv, step, out):
 def _recent_window(surface, last, u0, v0, t_now, max_age, tau, decay, out):
     """The age-weighted, 3x3-median observation of one element's window at ``(u0, v0)`` into ``out`` ``(h, w)``
     (:func:`recent_observation`); ``surface`` ``(H, W)``, ``last`` ``(C, H, W)``, ``decay`` the weights of the
-    first ages (:func:`_decay_table`)."""
+    first ages (:func:`decay_table`)."""
     h, w = out.shape
     C = last.shape[0]
     buf = np.empty((h + 2, w + 2), dtype=np.float32)  # the weighted window, mirror-padded by one pixel
@@ -564,7 +572,7 @@ def bind_observe(eros: EROS, time_surface: TimeSurface, *, canvas: int, max_age_
         raise ValueError(f"the EROS and the time surface must have the same shape, got {s.shape} and {last.shape}")
     lam, r = s.dtype.type(eros.lam), eros.kernel_size // 2
     max_age_us, recency_us = int(max_age_us), float(recency_us)
-    table = _decay_table(recency_us, max_age_us)
+    table = decay_table(recency_us, max_age_us)
     none, no_box = np.zeros(1, dtype=np.int64), np.empty((0, 3))
 
     def run(x: np.ndarray, y: np.ndarray, t: np.ndarray, b: np.ndarray | None, box: np.ndarray | None,
@@ -579,7 +587,7 @@ def bind_observe(eros: EROS, time_surface: TimeSurface, *, canvas: int, max_age_
 
 @numba.njit(cache=True, nogil=True)
 def _observe_kernel(surface, lam, r, last, x, y, t, b, batched, box, t_now, max_age, tau, decay, out):
-    """:func:`eros_kernel` and :func:`time_kernel`, then (if ``box`` has rows) :func:`_canvas_kernel` into ``out``;
+    """:func:`eros_kernel` and :func:`time_kernel`, then (if ``box`` has rows) :func:`canvas_kernel` into ``out``;
     False, nothing written, if an event lies outside the surfaces."""
     if x.shape[0]:
         if not eros_kernel(surface, x, y, b, batched, r, lam):
@@ -587,5 +595,5 @@ def _observe_kernel(surface, lam, r, last, x, y, t, b, batched, box, t_now, max_
         time_kernel(last, x, y, t, b, batched)
     if box.shape[0]:
         B, H, W = last.shape
-        _canvas_kernel(surface, last.reshape(B, 1, H, W), box, t_now, max_age, tau, decay, out)
+        canvas_kernel(surface, last.reshape(B, 1, H, W), box, t_now, max_age, tau, decay, out)
     return True

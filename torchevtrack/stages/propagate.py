@@ -33,12 +33,12 @@ import numpy as np
 import torch
 
 from torchevtrack.geometry import (
-    _nb_cross,
-    _nb_quat_canonical,
-    _nb_quat_exp,
-    _nb_quat_log,
-    _nb_quat_mul,
-    _nb_quat_rotate,
+    nb_cross,
+    nb_quat_canonical,
+    nb_quat_exp,
+    nb_quat_log,
+    nb_quat_mul,
+    nb_quat_rotate,
     quat_exp,
     quat_rotate,
 )
@@ -78,15 +78,15 @@ def propagate_kernel(pose, twist, dt, out):
         else:
             a = math.sqrt(a2)
             c1, c2 = (1.0 - math.cos(a)) / a2, (a - math.sin(a)) / (a2 * a)
-        e0, e1, e2 = _nb_cross(p0, p1, p2, r0, r1, r2)
-        f0, f1, f2 = _nb_cross(p0, p1, p2, e0, e1, e2)
-        q0, q1, q2, q3 = _nb_quat_exp(p0, p1, p2)
-        t0, t1, t2 = _nb_quat_rotate(q0, q1, q2, q3, pose[i, 0], pose[i, 1], pose[i, 2])
+        e0, e1, e2 = nb_cross(p0, p1, p2, r0, r1, r2)
+        f0, f1, f2 = nb_cross(p0, p1, p2, e0, e1, e2)
+        q0, q1, q2, q3 = nb_quat_exp(p0, p1, p2)
+        t0, t1, t2 = nb_quat_rotate(q0, q1, q2, q3, pose[i, 0], pose[i, 1], pose[i, 2])
         out[i, 0] = t0 + (r0 + c1 * e0 + c2 * f0)
         out[i, 1] = t1 + (r1 + c1 * e1 + c2 * f1)
         out[i, 2] = t2 + (r2 + c1 * e2 + c2 * f2)
-        q0, q1, q2, q3 = _nb_quat_mul(q0, q1, q2, q3, pose[i, 3], pose[i, 4], pose[i, 5], pose[i, 6])
-        out[i, 3], out[i, 4], out[i, 5], out[i, 6] = _nb_quat_canonical(q0, q1, q2, q3)
+        q0, q1, q2, q3 = nb_quat_mul(q0, q1, q2, q3, pose[i, 3], pose[i, 4], pose[i, 5], pose[i, 6])
+        out[i, 3], out[i, 4], out[i, 5], out[i, 6] = nb_quat_canonical(q0, q1, q2, q3)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -94,10 +94,10 @@ def twist_between_kernel(start, end, dt, out):
     """:func:`twist_between` row by row, unchecked, for compiled callers: float64 numpy ``start, end (N, 7)`` and
     ``dt (N,)`` seconds into ``out (N, 6)`` ``[v (m/s), w (rad/s)]``."""
     for i in range(start.shape[0]):
-        q0, q1, q2, q3 = _nb_quat_mul(end[i, 3], end[i, 4], end[i, 5], end[i, 6],
-                                      start[i, 3], -start[i, 4], -start[i, 5], -start[i, 6])
-        p0, p1, p2 = _nb_quat_log(q0, q1, q2, q3)
-        s0, s1, s2 = _nb_quat_rotate(q0, q1, q2, q3, start[i, 0], start[i, 1], start[i, 2])
+        q0, q1, q2, q3 = nb_quat_mul(end[i, 3], end[i, 4], end[i, 5], end[i, 6],
+                                     start[i, 3], -start[i, 4], -start[i, 5], -start[i, 6])
+        p0, p1, p2 = nb_quat_log(q0, q1, q2, q3)
+        s0, s1, s2 = nb_quat_rotate(q0, q1, q2, q3, start[i, 0], start[i, 1], start[i, 2])
         d0, d1, d2 = end[i, 0] - s0, end[i, 1] - s1, end[i, 2] - s2
         a2 = (p0 * p0 + p1 * p1) + p2 * p2
         if a2 < 1e-8:
@@ -105,8 +105,8 @@ def twist_between_kernel(start, end, dt, out):
         else:
             a = math.sqrt(a2)
             c = (1.0 - a * math.sin(a) / (2.0 * (1.0 - math.cos(a)))) / a2
-        e0, e1, e2 = _nb_cross(p0, p1, p2, d0, d1, d2)
-        f0, f1, f2 = _nb_cross(p0, p1, p2, e0, e1, e2)
+        e0, e1, e2 = nb_cross(p0, p1, p2, d0, d1, d2)
+        f0, f1, f2 = nb_cross(p0, p1, p2, e0, e1, e2)
         T = dt[i]
         out[i, 0] = (d0 - 0.5 * e0 + c * f0) / T
         out[i, 1] = (d1 - 0.5 * e1 + c * f1) / T

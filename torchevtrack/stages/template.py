@@ -19,16 +19,14 @@ path (:func:`template_model`, :func:`quadratic_score`, :func:`newton_search`) ru
    ``0.5 / max`` of the null hypothesis' DoG (one factor for all 13 hypotheses, so no hypothesis is
    favoured by its normalisation; zero stays zero) and clipped to ``[-0.5, 0.5]``.
    Score = ``sum(template * observation)`` over the canvas.
-3. **Hypotheses** (:func:`hypothesis_steps`): index 0 is the null motion, then ``+/-`` steps along
-   ``tx, ty, tz, rx, ry, rz`` (index ``1 + 2 a`` is ``+``, ``2 + 2 a`` is ``-`` for axis ``a``).
-   A step ``[dt, phi]`` moves the pose as ``t' = t + dt``, ``q' = exp(phi) (x) q``: a translation
-   in the camera frame, or a rotation about a **camera** axis through the **object origin** (the
-   rotation is applied on the left, as everywhere in :mod:`torchevtrack.geometry`). Names:
-   pitch = ``rx``, yaw = ``ry``, roll = ``rz`` (the optical axis). Step sizes (paper Eqs. 10-11,
-   object motion, so ``+x`` moves the image by ``+dp``): ``dx = z dp / fx``, ``dy = z dp / fy``,
-   ``dz = dp / mean_i(|(u_i - cx, v_i - cy)| / Z_i)`` over the object's pixels (Eq. 10 with the
-   per-pixel depth ``Z_i``; for a fronto-parallel object it is ``z dp / pbar``), rotations
-   ``dtheta``.
+3. **Hypotheses** (:func:`~torchevtrack.reference.hypothesis_steps`): index 0 is the null motion, then ``+/-`` steps
+   along ``tx, ty, tz, rx, ry, rz`` (index ``1 + 2 a`` is ``+``, ``2 + 2 a`` is ``-`` for axis ``a``). A step ``[dt,
+   phi]`` moves the pose as ``t' = t + dt``, ``q' = exp(phi) (x) q``: a translation in the camera frame, or a
+   rotation about a **camera** axis through the **object origin** (the rotation is applied on the left, as
+   everywhere in :mod:`torchevtrack.geometry`). Names: pitch = ``rx``, yaw = ``ry``, roll = ``rz`` (the optical
+   axis). Step sizes (paper Eqs. 10-11, object motion, so ``+x`` moves the image by ``+dp``): ``dx = z dp / fx``,
+   ``dy = z dp / fy``, ``dz = dp / mean_i(|(u_i - cx, v_i - cy)| / Z_i)`` over the object's pixels (Eq. 10 with the
+   per-pixel depth ``Z_i``; for a fronto-parallel object it is ``z dp / pbar``), rotations ``dtheta``.
 4. **Warp** (:func:`~torchevtrack.reference.warp_canvas`): one render gives all 13 templates. For each canvas pixel ``q`` of a
    hypothesis image, ``q`` is back-projected with the *base* depth at ``q``, moved by the inverse of
    the hypothesis' rigid motion ``T_h T_0^-1`` and projected: that is where ``q``'s content came from
@@ -44,17 +42,17 @@ path (:func:`template_model`, :func:`quadratic_score`, :func:`newton_search`) ru
    band of the template. The finished template (DoG output) is warped: the DoG is isotropic, so it
    commutes exactly with the translation and roll warps and up to the scale change (``dp / pbar``, ~1 %)
    with the others.
-5. **Update** (:func:`select`): ``"argmax"`` (the paper) applies the best of the 13 (the null wins
-   ties). ``"group"`` (EDOPT) takes, in each group ``{tx, ry}, {ty, rx}, {rz}, {tz}``, the best of its
-   hypotheses and applies it if it beats the null score; the applied steps are composed in that group
-   order (translations add, rotations ``exp(phi_4) ... exp(phi_1) (x) q``). ``"newton"`` moves all six
-   axes at once by sub-step amounts: the score is fitted by a quadratic in step units from 28 scores
-   around the pose, and the damped Newton step, clipped to one step per axis, is applied if its score
-   beats the null (:func:`newton_step`). The argmax moves one axis by one whole step per round, so an
-   object that turns and shifts at once needs several rounds; Newton follows both, and by fractions of
-   a step. With ``iterations > 1``
-   the correction repeats around the new pose while the score of the corrected pose keeps improving,
-   re-warping the same render (a first-order warp, accurate for a few pixels of cumulative motion).
+5. **Update** (:func:`~torchevtrack.reference.select`): ``"argmax"`` (the paper) applies the best of the 13 (the
+   null wins ties). ``"group"`` (EDOPT) takes, in each group ``{tx, ry}, {ty, rx}, {rz}, {tz}``, the best of its
+   hypotheses and applies it if it beats the null score; the applied steps are composed in that group order
+   (translations add, rotations ``exp(phi_4) ... exp(phi_1) (x) q``). ``"newton"`` moves all six axes at once by
+   sub-step amounts: the score is fitted by a quadratic in step units from 28 scores around the pose, and the damped
+   Newton step, clipped to one step per axis, is applied if its score beats the null
+   (:func:`~torchevtrack.reference.newton_step`; compiled: :func:`newton_search`). The argmax moves one axis by one
+   whole step per round, so an object that turns and shifts at once needs several rounds; Newton follows both, and
+   by fractions of a step. With ``iterations > 1`` the correction repeats around the new pose while the score of the
+   corrected pose keeps improving, re-warping the same render (a first-order warp, accurate for a few pixels of
+   cumulative motion).
 6. **Scores without warping** (the production path; item 4 is its torch reference, :mod:`torchevtrack.reference`).
    Around a centre pose ``P`` a step ``delta = [dt, phi]`` moves canvas
    pixel ``q`` by ``J(q) delta`` to first order (the interaction matrix of the canvas intrinsics at
@@ -107,50 +105,60 @@ from torch import nn
 
 from torchevtrack.camera import Camera
 from torchevtrack.config import RULES, TemplateConfig
-from torchevtrack.geometry import (_nb_quat_canonical, _nb_quat_exp, _nb_quat_mul,
-                                  _nb_quat_to_matrix, quat_canonical, quat_conj, quat_exp, quat_log, quat_mul,
+from torchevtrack.geometry import (nb_quat_canonical, nb_quat_exp, nb_quat_mul,
+                                  nb_quat_to_matrix, quat_canonical, quat_conj, quat_exp, quat_log, quat_mul,
                                   quat_rotate)
 from torchevtrack.linalg import cholesky, cholesky_solve, eigh
 from torchevtrack.stages import canvas_taps
 
 __all__ = [
     "AXES",
-    "GROUPS",
     "NUM_HYPOTHESES",
     "NEWTON_DAMPING",
     "NEWTON_MAX_STEP",
     "RULES",
     "Correction",
     "render_window",
+    "window_extent",
     "window_of",
+    "window_kernel",
     "canvas_intrinsics",
     "to_canvas",
-    "hypothesis_steps",
+    "odd_size",
+    "gaussian_taps",
+    "fill_kernel",
+    "PREFILTER_RADIUS",
+    "prefilter_taps",
     "apply_steps",
     "pose_delta",
     "QuadraticScore",
     "quadratic_score",
     "TemplateModel",
     "template_model",
-    "select",
-    "newton_step",
+    "camera_array",
+    "render_box",
+    "model_in_box",
+    "box_kernel",
+    "model_kernel",
+    "model_filters",
     "newton_search",
-    "search",
-    "correct",
-    "correct_model",
+    "newton_kernel",
     "correct_canvas",
     "TemplateCorrector",
+    "check_options",
+    "check_poses",
+    "check_correct",
+    "check_images",
+    "batch_origin",
 ]
 
 AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
 NUM_HYPOTHESES = 1 + 2 * len(AXES)
-NEWTON_DAMPING, NEWTON_MAX_STEP = 0.5, 1.0  # newton_step's damping and step clip (hypothesis steps per axis)
-# EDOPT's groups of axes whose image motions look alike, as axis indices into AXES.
-GROUPS = ((0, 4), (1, 3), (5,), (2,))
+NEWTON_DAMPING, NEWTON_MAX_STEP = 0.5, 1.0  # the Newton step's damping and step clip (hypothesis steps per axis)
 
 
 class Correction(NamedTuple):
-    """Result of :func:`correct`.
+    """Result of a template correction (:func:`correct_canvas`, :class:`TemplateCorrector`).
 
     Attributes:
         pose: ``(B, 7)`` corrected pose.
@@ -181,7 +189,7 @@ def render_window(pose: torch.Tensor, camera: Camera, radius: float | torch.Tens
 
     Shape: ``(B, 7) -> (B, 4)`` int64.
     """
-    pose = _check_poses(pose, "pose")
+    pose = check_poses(pose, "pose")
     if isinstance(radius, torch.Tensor):
         if radius.shape != pose.shape[:1] or not bool((radius > 0).all()):
             raise ValueError(f"radius must be positive (metres), one per pose, got {radius}")
@@ -200,14 +208,16 @@ def window_of(t: np.ndarray, camera: Camera, radius: float | np.ndarray, margin_
     Shape: ``(B, 3), (), () or (B,) -> (B, 4)`` int64.
     """
     out = np.empty((len(t), 4), dtype=np.int64)
-    _window_kernel(np.ascontiguousarray(t, dtype=np.float64), np.broadcast_to(np.asarray(radius, np.float64), len(t)),
-                   camera.fx, camera.fy, camera.cx, camera.cy, float(margin_px), camera.width, camera.height, clip, out)
+    window_kernel(np.ascontiguousarray(t, dtype=np.float64), np.broadcast_to(np.asarray(radius, np.float64), len(t)),
+                  camera.fx, camera.fy, camera.cx, camera.cy, float(margin_px), camera.width, camera.height, clip, out)
     return out
 
 
 @numba.njit(cache=True, nogil=True)
-def _window_kernel(t, radius, fx, fy, cx, cy, margin, W, H, clip, out):
-    """:func:`window_of` into ``out`` ``(B, 4)``: the square around the projected bounding sphere plus ``margin``."""
+def window_kernel(t, radius, fx, fy, cx, cy, margin, W, H, clip, out):
+    """:func:`window_of` into ``out`` ``(B, 4)`` int64 ``(u0, v0, w, h)``: the square around the projected bounding
+    sphere plus ``margin`` pixels; ``t`` ``(B, 3)`` float64 object positions (m), ``radius`` ``(B,)`` float64 (m), the
+    frame's intrinsics ``fx, fy, cx, cy`` and size ``W, H``, ``clip`` as for :func:`window_of`."""
     for b in range(t.shape[0]):
         r = radius[b]
         z = max(t[b, 2], r * 1.05)
@@ -222,8 +232,11 @@ def _window_kernel(t, radius, fx, fy, cx, cy, margin, W, H, clip, out):
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
-def _extent(depth, u0, v0, cx, cy, gain):
-    """:func:`_object_extent` of one window ``(h, w)`` at ``(u0, v0)``: a 6-tuple."""
+def window_extent(depth, u0, v0, cx, cy, gain):
+    """The object's extent in one render window ``depth`` ``(h, w)`` whose top-left frame pixel is ``(u0, v0)``
+    (compiled; :func:`~torchevtrack.reference.canvas_box` and :func:`~torchevtrack.reference.radial_gain` reduce it):
+    ``(umin, umax, vmin, vmax, total, n)`` floats, the window pixel bounds of the ``n`` object pixels (``depth > 0``;
+    all 0 if none) and, with ``gain``, ``total`` the sum of their ``|(u - cx, v - cy)| / z`` (else 0)."""
     h, w = depth.shape
     umin, umax, vmin, vmax, total, n = w, -1, h, -1, 0.0, 0
     for v in range(h):
@@ -281,7 +294,7 @@ def to_canvas(image: torch.Tensor, box: torch.Tensor, canvas: int, origin=(0, 0)
     B, _, h, w = x.shape
     if box.shape != (B, 3):
         raise ValueError(f"box must have shape ({B}, 3) [cu, cv, side], got {tuple(box.shape)}")
-    origin = _origin(origin, B, x.dtype)
+    origin = batch_origin(origin, B, x.dtype)
     box = box.to(x.dtype)
     offs = (torch.arange(canvas, dtype=x.dtype) + 0.5 - canvas / 2.0) * (box[:, 2:] / canvas)  # (B, N)
     u = box[:, :1] + offs - origin[:, :1]
@@ -293,15 +306,20 @@ def to_canvas(image: torch.Tensor, box: torch.Tensor, canvas: int, origin=(0, 0)
 
 
 # -- templates --------------------------------------------------------------------------------
-def _odd(n: float) -> int:
+def odd_size(n: float) -> int:
+    """The odd kernel size nearest ``n`` from above (at least 3): the DoG's sizes ``odd_size(canvas / 20)`` and
+    ``odd_size(canvas / 8)``."""
     k = max(3, round(n))
     return k if k % 2 else k + 1
 
 
 @functools.lru_cache(maxsize=16)
-def _gaussian(k: int, dtype: torch.dtype) -> torch.Tensor:
+def gaussian_taps(k: int, dtype: torch.dtype) -> torch.Tensor:
     """Normalised Gaussian kernel of odd size ``k``, sigma ``0.3 ((k - 1) / 2 - 1) + 0.8`` (OpenCV's default;
-    cached constant, never modified in place)."""
+    cached constant, never modified in place).
+
+    Shape: ``(k,)`` in ``dtype``.
+    """
     s = 0.3 * ((k - 1) / 2 - 1) + 0.8
     x = torch.arange(k, dtype=torch.float64) - k // 2
     g = torch.exp(-x * x / (2 * s * s))
@@ -309,28 +327,6 @@ def _gaussian(k: int, dtype: torch.dtype) -> torch.Tensor:
 
 
 # -- hypotheses -------------------------------------------------------------------------------
-def hypothesis_steps(
-    pose: torch.Tensor, camera: Camera, gain: torch.Tensor, dp_px: float = 1.0, dtheta_deg: float = 0.5
-) -> torch.Tensor:
-    """The 13 hypothesis steps ``[dt (m), phi (rad)]`` around each pose (module docstring, item 3).
-
-    Args:
-        pose: ``(B, 7)`` poses; ``z = tz`` sets the x / y step.
-        camera: frame camera (``fx``, ``fy``).
-        gain: ``(B,)`` :func:`~torchevtrack.reference.radial_gain` of the object (``dz = dp / gain``; 0 gives ``dz = 0``).
-        dp_px: image motion of a translation step, pixels.
-        dtheta_deg: rotation step, degrees.
-
-    Shape: ``(B, 7), (B,) -> (B, 13, 6)``; row 0 is zero, row ``1 + 2 a`` is ``+`` along ``AXES[a]``.
-    """
-    z = pose[:, 2]
-    gain = gain.to(pose.dtype)
-    dz = torch.where(gain > 0, dp_px / gain.clamp_min(1e-12), torch.zeros_like(gain))
-    th = torch.full_like(z, math.radians(dtheta_deg))
-    mag = torch.stack((z * dp_px / camera.fx, z * dp_px / camera.fy, dz, th, th, th), -1)  # (B, 6)
-    plus = mag[:, :, None] * torch.eye(6, dtype=pose.dtype)  # (B, axis, 6)
-    steps = torch.stack((plus, -plus), 2).reshape(-1, 12, 6)
-    return torch.cat((torch.zeros_like(steps[:, :1]), steps), 1)
 
 
 def apply_steps(pose: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
@@ -346,10 +342,12 @@ def apply_steps(pose: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
 
 # -- warping and scoring ----------------------------------------------------------------------
 @numba.njit(cache=True, nogil=True)
-def _fill(depth, fallback, r):
-    """:func:`~torchevtrack.reference._fill_depth` of one image ``(h, w)`` in place, from float64 box sums of the object depths and counts:
-    running sums over ``2 r + 1`` rows, then prefix sums along the rows (zero-padded by ``r``, so the window
-    of pixel ``u`` is ``P[u + 2 r + 1] - P[u]``)."""
+def fill_kernel(depth, fallback, r):
+    """The background fill of one canvas depth ``depth`` ``(h, w)``, in place (compiled): each background pixel
+    (``<= 0``) takes the mean object depth in the ``(2 r + 1)`` square around it, or ``fallback`` (metres) where that
+    square holds no object pixel (:func:`~torchevtrack.reference._fill_depth` fills a batch with it). From float64 box
+    sums of the object depths and counts: running sums over ``2 r + 1`` rows, then prefix sums along the rows
+    (zero-padded by ``r``, so the window of pixel ``u`` is ``P[u + 2 r + 1] - P[u]``)."""
     h, w = depth.shape
     S, C = np.zeros((h, w + 2 * r + 1)), np.zeros((h, w + 2 * r + 1))
     s, c = np.zeros(w), np.zeros(w)  # sums over the rows [v - r, v + r]
@@ -384,13 +382,17 @@ def _fill(depth, fallback, r):
 # Cubic B-spline interpolation for the warp (module docstring, item 4): exact at the samples and
 # neither blurring nor sharpening a sub-pixel sample of the smooth template.
 _POLE = math.sqrt(3.0) - 2.0
-_PREFILTER_RADIUS = 8  # |pole| ** 9 < 1e-5: truncation error of the FIR inverse of [1, 4, 1] / 6
+PREFILTER_RADIUS = 8  # of prefilter_taps; |pole| ** 9 < 1e-5: truncation error of the FIR inverse of [1, 4, 1] / 6
 
 
 @functools.lru_cache(maxsize=8)
-def _prefilter_kernel(dtype: torch.dtype) -> torch.Tensor:
-    """FIR taps of the B-spline prefilter (cached constant, never modified in place)."""
-    k = torch.arange(-_PREFILTER_RADIUS, _PREFILTER_RADIUS + 1, dtype=torch.float64)
+def prefilter_taps(dtype: torch.dtype) -> torch.Tensor:
+    """FIR taps of the cubic B-spline prefilter (the inverse of ``[1, 4, 1] / 6`` truncated at ``PREFILTER_RADIUS``;
+    cached constant, never modified in place).
+
+    Shape: ``(2 PREFILTER_RADIUS + 1,)`` in ``dtype``.
+    """
+    k = torch.arange(-PREFILTER_RADIUS, PREFILTER_RADIUS + 1, dtype=torch.float64)
     return ((-6 * _POLE / (1 - _POLE**2)) * _POLE ** k.abs()).to(dtype)
 
 
@@ -419,7 +421,7 @@ def _bspline_weights(x):
 def _rotation(q):
     """Rotation matrix of a ``(w, x, y, z)`` quaternion (normalised first)."""
     n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    return _nb_quat_to_matrix(q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+    return nb_quat_to_matrix(q[0] / n, q[1] / n, q[2] / n, q[3] / n)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -607,23 +609,29 @@ def _apply_step(pose, delta):
     """:func:`apply_steps` of one step ``[dt, phi]`` to one pose (float64)."""
     out = np.empty(7)
     out[:3] = pose[:3] + delta[:3]
-    e0, e1, e2, e3 = _nb_quat_exp(delta[3], delta[4], delta[5])
-    q0, q1, q2, q3 = _nb_quat_mul(e0, e1, e2, e3, pose[3], pose[4], pose[5], pose[6])
-    out[3], out[4], out[5], out[6] = _nb_quat_canonical(q0, q1, q2, q3)
+    e0, e1, e2, e3 = nb_quat_exp(delta[3], delta[4], delta[5])
+    q0, q1, q2, q3 = nb_quat_mul(e0, e1, e2, e3, pose[3], pose[4], pose[5], pose[6])
+    out[3], out[4], out[5], out[6] = nb_quat_canonical(q0, q1, q2, q3)
     return out
 
 
 @numba.njit(cache=True, nogil=True)
-def _newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, iterations, damping, max_step,
-                   out_pose, out_score, out_scores, out_moved):
-    """The ``"newton"`` rule of :func:`search` on the exact second-order model, per element (:func:`newton_search`).
+def newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, iterations, damping, max_step,
+                  out_pose, out_score, out_scores, out_moved):
+    """:func:`newton_search` on numpy arrays, unchecked, into ``out_pose`` ``(B, 7)``, ``out_score`` ``(B,)``,
+    ``out_scores`` ``(B, 13)`` (float64) and ``out_moved`` ``(B,)`` int64; releases the GIL. The model's fields
+    (``coef``, ``Z = depth``, ``K`` float64, ``render_pose``, ``gain`` float64), the start poses ``pose`` ``(B, 7)``
+    float64, ``obs`` ``(B, N * N)``, the frame's ``fx, fy``, the steps ``dp`` (pixels) and ``dtheta`` (radians), and
+    ``iterations, damping, max_step`` as for :func:`newton_search`.
 
-    Each round fits the model at the current pose (:func:`_quadratic_terms`), where in step units ``u`` the
-    score is ``s0 + gu . u + u^T Hu u / 2`` with ``gu = -g unit``, ``Hu = unit M unit``; the damped step
-    ``u = (lambda I - Hu)^-1 gu`` (:func:`newton_step`'s ``lambda``), clipped per axis, is taken if its score
+    The ``"newton"`` rule of :func:`~torchevtrack.reference.search` on the exact second-order model, per element.
+
+    Each round fits the model at the current pose (:func:`_quadratic_terms`), where in step units ``u`` the score is
+    ``s0 + gu . u + u^T Hu u / 2`` with ``gu = -g unit``, ``Hu = unit M unit``; the damped step ``u = (lambda I -
+    Hu)^-1 gu`` (:func:`~torchevtrack.reference.newton_step`'s ``lambda``), clipped per axis, is taken if its score
     beats ``s0``, else the search stops. ``unit`` holds the hypothesis step sizes of the start pose per axis
-    (:func:`hypothesis_steps` of ``gain``, the frame's ``fx``, ``fy``, ``dp`` pixels and ``dtheta`` radians); the
-    translation units scale with the current depth.
+    (:func:`~torchevtrack.reference.hypothesis_steps` of ``gain``, the frame's ``fx``, ``fy``, ``dp`` pixels and
+    ``dtheta`` radians); the translation units scale with the current depth.
     """
     for b in range(coef.shape[0]):
         z = pose[b, 2]
@@ -787,7 +795,7 @@ class TemplateModel(NamedTuple):
     def observe(self, observation: torch.Tensor, observation_origin=(0, 0)) -> torch.Tensor:
         """Observation ``(B, H, W)`` (top-left pixel at ``observation_origin``) resampled into the canvas, ``(B, N * N)``."""
         B, N, _ = self.depth.shape
-        obs = _check_images(observation, "observation")
+        obs = check_images(observation, "observation")
         if obs.shape[0] != B:
             raise ValueError(f"observation must have one image per pose ({B}), got {tuple(obs.shape)}")
         return to_canvas(obs.to(self.depth.dtype), self.box, N, observation_origin).reshape(B, N * N)
@@ -876,15 +884,17 @@ def _edges(x, y, scale, E):
 
 
 @numba.njit(cache=True, nogil=True)
-def _box_kernel(depth, origin, cam, margin, box, gain):
-    """The first part of :func:`template_model`: the object's extent in each window ``depth`` ``(B, h, w)`` at
-    ``origin`` gives the canvas ``box`` ``(B, 3)`` float64 (:func:`~torchevtrack.reference.canvas_box`) and the ``gain``
-    (:func:`~torchevtrack.reference.radial_gain`); :func:`_model_kernel` makes the rest in that box."""
+def box_kernel(depth, origin, cam, margin, box, gain):
+    """The first part of :func:`template_model`, unchecked: the object's extent in each window ``depth`` ``(B, h, w)``
+    at ``origin`` ``(B, 2)`` float64 (frame pixels; ``cam`` from :func:`camera_array`, ``margin`` pixels) gives the
+    canvas ``box`` ``(B, 3)`` float64 ``[cu, cv, side]`` (:func:`~torchevtrack.reference.canvas_box`) and the ``gain``
+    ``(B,)`` (:func:`~torchevtrack.reference.radial_gain`), both written; :func:`model_kernel` makes the rest in that
+    box."""
     B, h, w = depth.shape
     cx, cy = cam[2], cam[3]
     for b in range(B):
         ou, ov = origin[b, 0], origin[b, 1]
-        umin, umax, vmin, vmax, total, n = _extent(depth[b], ou, ov, cx, cy, True)
+        umin, umax, vmin, vmax, total, n = window_extent(depth[b], ou, ov, cx, cy, True)
         if n == 0:
             box[b, 0], box[b, 1], box[b, 2] = (w - 1) / 2.0 + ou, (h - 1) / 2.0 + ov, float(max(h, w))
         else:
@@ -894,10 +904,17 @@ def _box_kernel(depth, origin, cam, margin, box, gain):
 
 
 @numba.njit(cache=True, nogil=True)
-def _model_kernel(depth, gray, origin, box64, cam, z_fallback, use_gray, use_mask, edge_scale, g1, g2, pre, fill_radius,
-                  point_step, box, K, T, coef, Z, points, valid):
-    """:func:`template_model` of each window ``depth`` / ``gray`` ``(B, h, w)`` at ``origin`` in its canvas box
-    ``box64`` (:func:`_box_kernel`), in one pass per element.
+def model_kernel(depth, gray, origin, box64, cam, z_fallback, use_gray, use_mask, edge_scale, g1, g2, pre, fill_radius,
+                 point_step, box, K, T, coef, Z, points, valid):
+    """:func:`template_model` of each window ``depth`` / ``gray`` ``(B, h, w)`` at ``origin`` ``(B, 2)`` float64 in its
+    canvas box ``box64`` (:func:`box_kernel`), unchecked, in one pass per element; releases the GIL.
+
+    Inputs besides those: ``cam`` (:func:`camera_array`), ``z_fallback`` ``(B,)`` float64 depth of the background far
+    from the object (the pose's ``tz``), ``use_gray`` (else ``gray`` is the depth), ``use_mask`` (the silhouette's
+    edges too), ``edge_scale = 0.125 / edge_clip``, the filters ``g1, g2, pre`` of :func:`model_filters`, the
+    ``fill_radius`` of the background fill and the ``point_step`` between object points (both ``max(1, N // 16)``).
+    Outputs, overwritten: the fields ``box, K, render_template = T, coef, depth = Z, points, valid`` of a
+    :class:`TemplateModel` in the render's dtype (``coef`` zeroed beforehand: only its interior is written).
 
     The box (also into ``box``, in its dtype) gives the canvas intrinsics ``K`` (:func:`canvas_intrinsics`); the
     window resampled into the box (:func:`~torchevtrack.reference.prepare_canvas`) gives the template (Sobel edges, DoG, scale and clip: the
@@ -935,7 +952,7 @@ def _model_kernel(depth, gray, origin, box64, cam, z_fallback, use_gray, use_mas
         _dog_template(B1, B2, T[b], Tp)
         _blur(Tp, pre, tmp, B1)
         coef[b, 3:N + 3, 3:N + 3] = B1[:, p:p + N]  # the B-spline coefficients
-        _fill(Z[b], z_fallback[b], fill_radius)
+        fill_kernel(Z[b], z_fallback[b], fill_radius)
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
@@ -992,11 +1009,12 @@ def _resample(depth, gray, cu, cv, step, use_gray, c_depth, c_mask, c_gray):
 
 
 @functools.lru_cache(maxsize=8)
-def _model_filters(canvas: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The DoG's two Gaussians and the B-spline prefilter of a canvas size, float32 (cached constants)."""
+def model_filters(canvas: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The DoG's two Gaussians and the B-spline prefilter of a canvas size, the ``g1, g2, pre`` of
+    :func:`model_kernel`: three 1-D float32 arrays (cached constants, never modified)."""
     f32 = torch.float32
-    return (_gaussian(_odd(canvas / 20), f32).numpy(), _gaussian(_odd(canvas / 8), f32).numpy(),
-            _prefilter_kernel(f32).numpy())
+    return (gaussian_taps(odd_size(canvas / 20), f32).numpy(), gaussian_taps(odd_size(canvas / 8), f32).numpy(),
+            prefilter_taps(f32).numpy())
 
 
 def template_model(
@@ -1019,256 +1037,63 @@ def template_model(
         raise ValueError("without a grey render the template needs silhouette=True")
     if not edge_clip > 0:
         raise ValueError(f"edge_clip must be positive, got {edge_clip}")
-    depth = _check_images(depth, "depth")
+    depth = check_images(depth, "depth")
     B, dt = pose.shape[0], depth.dtype
-    d, o, cam = depth.detach().numpy(), _origin(origin, B, torch.float64).contiguous().numpy(), _camera_array(camera)
-    box, gain = _render_box(d, o, cam, margin_px)
-    return _model_in_box(pose.detach().double().numpy(), d, (depth if gray is None else gray.to(dt)).detach().numpy(),
-                         gray is not None, o, cam, box, gain, canvas, edge_clip, silhouette)
+    d, cam = depth.detach().numpy(), camera_array(camera)
+    o = batch_origin(origin, B, torch.float64).contiguous().numpy()
+    box, gain = render_box(d, o, cam, margin_px)
+    return model_in_box(pose.detach().double().numpy(), d, (depth if gray is None else gray.to(dt)).detach().numpy(),
+                        gray is not None, o, cam, box, gain, canvas, edge_clip, silhouette)
 
 
-def _camera_array(camera: Camera) -> np.ndarray:
-    """``[fx, fy, cx, cy]`` float64, as the compiled template kernels take a camera."""
+def camera_array(camera: Camera) -> np.ndarray:
+    """``[fx, fy, cx, cy]`` float64, the ``cam`` argument of the compiled template kernels.
+
+    Shape: ``(4,)``.
+    """
     return np.array([camera.fx, camera.fy, camera.cx, camera.cy])
 
 
-def _render_box(depth: np.ndarray, origin: np.ndarray, cam: np.ndarray,
-                margin_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """The first part of :func:`template_model` (:func:`_box_kernel`): the canvas box ``(B, 3)`` float64 and the gain
-    ``(B,)`` in the render's dtype, of renders ``depth`` ``(B, h, w)`` at ``origin`` ``(B, 2)`` float64."""
+def render_box(depth: np.ndarray, origin: np.ndarray, cam: np.ndarray,
+               margin_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The first part of :func:`template_model` on numpy arrays, unchecked (:func:`box_kernel`): the canvas box
+    ``(B, 3)`` float64 and the gain ``(B,)`` in the render's dtype, of renders ``depth`` ``(B, h, w)`` at ``origin``
+    ``(B, 2)`` float64, ``cam`` from :func:`camera_array`. The observation needs only the box: the model can follow
+    (:func:`model_in_box`)."""
     box, gain = np.empty((len(depth), 3)), np.empty(len(depth), dtype=depth.dtype)
-    _box_kernel(depth, origin, cam, float(margin_px), box, gain)
+    box_kernel(depth, origin, cam, float(margin_px), box, gain)
     return box, gain
 
 
-def _model_in_box(pose: np.ndarray, depth: np.ndarray, shade: np.ndarray, use_gray: bool, origin: np.ndarray,
-                  cam: np.ndarray, box64: np.ndarray, gain: np.ndarray, N: int, edge_clip: float,
-                  silhouette: bool) -> TemplateModel:
-    """The rest of :func:`template_model` in the canvas box of :func:`_render_box` (:func:`_model_kernel`), on numpy
-    buffers in the render's dtype; ``pose`` ``(B, 7)`` float64 is the render's, ``shade`` the grey render (or the
-    depth when ``use_gray`` is false)."""
+def model_in_box(pose: np.ndarray, depth: np.ndarray, shade: np.ndarray, use_gray: bool, origin: np.ndarray,
+                 cam: np.ndarray, box64: np.ndarray, gain: np.ndarray, N: int, edge_clip: float,
+                 silhouette: bool) -> TemplateModel:
+    """The rest of :func:`template_model` in the canvas box of :func:`render_box` (:func:`model_kernel`), on numpy
+    arrays, unchecked: ``pose`` ``(B, 7)`` float64 is the render's, ``depth`` ``(B, h, w)`` at ``origin`` ``(B, 2)``
+    float64 the render, ``shade`` the grey render (or the depth when ``use_gray`` is false), ``box64`` and ``gain``
+    :func:`render_box`'s, ``N`` the canvas side; ``edge_clip`` and ``silhouette`` as for :func:`template_model`.
+
+    Shape: returns the :class:`TemplateModel` (tensors sharing the new arrays, in the render's dtype).
+    """
     B, dt = len(depth), depth.dtype
     step = max(1, N // 16)  # object points for shift_px: every step-th canvas pixel
     P = len(range(step // 2, N, step)) ** 2
     box, K = np.empty((B, 3), dt), np.empty((B, 4), dt)
     T, Z, coef = np.empty((B, N, N), dt), np.empty((B, N, N), dt), np.zeros((B, N + 6, N + 6), dt)
     points, valid = np.empty((B, P, 3), dt), np.empty((B, P), dtype=np.bool_)
-    _model_kernel(depth, shade, origin, box64, cam, np.ascontiguousarray(pose[:, 2]), use_gray, silhouette,
-                  0.125 / edge_clip, *_model_filters(N), step, step, box, K, T, coef, Z, points, valid)
+    model_kernel(depth, shade, origin, box64, cam, np.ascontiguousarray(pose[:, 2]), use_gray, silhouette,
+                  0.125 / edge_clip, *model_filters(N), step, step, box, K, T, coef, Z, points, valid)
     pose = torch.from_numpy(pose)
     return TemplateModel(pose, pose, *(torch.from_numpy(a) for a in (box, K, gain, T, Z, coef, points, valid)))
 
 
-def select(
-    pose: torch.Tensor, steps: torch.Tensor, scores: torch.Tensor, rule: str = "argmax"
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Apply the update rule to hypothesis scores.
-
-    ``"argmax"``: the best hypothesis (ties go to the lowest index, so to the null).
-    ``"group"``: per group ``GROUPS`` the best ``+/-`` step of its axes, applied if it beats the null
-    score strictly; applied steps compose in group order (translations add, rotations
-    ``exp(phi_last) ... exp(phi_first) (x) q``).
-
-    Shape: ``(B, 7), (B, 13, 6), (B, 13) -> (B, 7) pose, (B, 13) bool applied``.
-    """
-    B = pose.shape[0]
-    if rule == "argmax":
-        idx = scores.argmax(1)
-        applied = F.one_hot(idx, NUM_HYPOTHESES).bool() & (idx > 0)[:, None]
-        return apply_steps(pose, steps.gather(1, idx[:, None, None].expand(B, 1, 6)))[:, 0], applied
-    if rule != "group":
-        raise ValueError(f"rule must be 'argmax' or 'group', got {rule!r}")
-    applied = torch.zeros(B, NUM_HYPOTHESES, dtype=torch.bool, device=scores.device)
-    t = pose[:, :3].clone()
-    q = pose[:, 3:]
-    for axes in GROUPS:
-        cand = torch.tensor([1 + 2 * a + s for a in axes for s in (0, 1)], device=scores.device)
-        best = scores[:, cand].argmax(1)
-        idx = cand[best]
-        ok = scores.gather(1, idx[:, None])[:, 0] > scores[:, 0]
-        step = steps.gather(1, idx[:, None, None].expand(B, 1, 6))[:, 0] * ok[:, None].to(steps.dtype)
-        t = t + step[:, :3].to(t.dtype)
-        q = quat_mul(quat_exp(step[:, 3:].to(q.dtype)), q)
-        applied[torch.arange(B), idx] |= ok
-    return torch.cat((t, quat_canonical(q)), -1), applied
-
-
-def newton_step(score_steps, unit: torch.Tensor, max_step: float = NEWTON_MAX_STEP,
-                damping: float = NEWTON_DAMPING) -> torch.Tensor:
-    """Damped Newton step of a score over the six axes, in units of the hypothesis steps.
-
-    The score is fitted by a quadratic ``s0 + g . u + u^T H u / 2`` in step units ``u`` (``u_a = 1`` is
-    one hypothesis step along ``AXES[a]``) from 28 evaluations (the centre, ``+/- e_a`` and
-    ``e_a + e_b``; exact for the Taylor score model), and the maximiser of the damped model
-    ``u = -(H - lambda I)^-1 g`` is clipped to ``[-max_step, max_step]`` per axis. ``lambda`` exceeds the
-    largest eigenvalue of ``H`` by ``damping`` times the mean curvature magnitude, so flat or convex
-    directions take short steps. All axes move together: coupled axes (``tx`` and ``ry``) share the
-    evidence through ``H`` instead of both taking it.
-
-    Args:
-        score_steps: steps ``(B, K, 6)`` ``[dt (m), phi (rad)]`` -> scores ``(B, K)``.
-        unit: ``(B, 6)`` step magnitudes (m, rad), as the diagonal of :func:`hypothesis_steps`.
-
-    Shape: ``(B, 6) -> (B, 6)`` step ``[dt, phi]`` in metres and radians.
-    """
-    B, n = unit.shape
-    eye = torch.eye(n, dtype=torch.float64, device=unit.device)
-    iu, ju = torch.triu_indices(n, n, 1)
-    pts = torch.cat((torch.zeros_like(eye[:1]), eye, -eye, eye[iu] + eye[ju])).to(unit.dtype)  # (28, 6)
-    s = score_steps(pts[None] * unit[:, None]).double()
-    s0, sp, sm, sij = s[:, 0], s[:, 1:1 + n], s[:, 1 + n:1 + 2 * n], s[:, 1 + 2 * n:]
-    g = 0.5 * (sp - sm)
-    H = torch.diag_embed(sp + sm - 2 * s0[:, None])
-    off = sij - sp[:, iu] - sp[:, ju] + s0[:, None]
-    H[:, iu, ju] = off
-    H[:, ju, iu] = off
-    lam = torch.linalg.eigvalsh(H)[:, -1].clamp_min(0) + damping * H.diagonal(dim1=1, dim2=2).abs().mean(1) + 1e-12
-    u = torch.linalg.solve(lam[:, None, None] * eye - H, g[..., None])[..., 0]
-    return u.clamp(-max_step, max_step).to(unit.dtype) * unit
-
-
 # -- the stage --------------------------------------------------------------------------------
-def _check_options(rule, iterations) -> None:
+def check_options(rule, iterations) -> None:
+    """A one-line ``ValueError`` unless ``rule`` is one of ``RULES`` and ``iterations`` an integer >= 1."""
     if rule not in RULES:
         raise ValueError(f"rule must be one of {RULES}, got {rule!r}")
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
         raise ValueError(f"iterations must be an integer >= 1, got {iterations!r}")
-
-
-def search(
-    pose: torch.Tensor,
-    scorer,
-    gain: torch.Tensor,
-    camera: Camera,
-    *,
-    dp_px: float = 1.0,
-    dtheta_deg: float = 0.5,
-    rule: str = "argmax",
-    iterations: int = 1,
-) -> Correction:
-    """Hypothesis search (module docstring, items 3 and 5) with any scorer of poses.
-
-    Args:
-        pose: ``(B, 7)`` start poses.
-        scorer: callable ``centre (B, 7) -> (score_steps, score_poses)``, called once per iteration
-            with the current poses: ``score_steps`` maps steps ``(B, K, 6)`` to the scores ``(B, K)``
-            of ``apply_steps(centre, steps)``, ``score_poses`` poses ``(B, P, 7)`` to scores.
-        gain: ``(B,)`` :func:`~torchevtrack.reference.radial_gain` (sets the z step).
-        camera, dp_px, dtheta_deg, rule, iterations: see :func:`correct`.
-
-    Shape: ``(B, 7) -> Correction``.
-    """
-    B = pose.shape[0]
-    current = pose
-    current_score = None
-    active = torch.ones(B, dtype=torch.bool)
-    moved = torch.zeros(B, dtype=torch.int64)
-    first = None
-    for _ in range(iterations):
-        score_steps, score_poses = scorer(current)
-        steps = hypothesis_steps(current, camera, gain, dp_px, dtheta_deg)
-        s = score_steps(steps)
-        if rule == "newton":
-            # The pose moves only if the step's score beats the null; "applied" then flags no hypothesis.
-            delta = newton_step(score_steps, steps[:, 1::2].diagonal(dim1=1, dim2=2))
-            new_score = score_steps(delta[:, None])[:, 0]
-            moves = new_score > s[:, 0]
-            new_pose = apply_steps(current, delta[:, None])[:, 0]
-            applied = torch.zeros_like(s, dtype=torch.bool)
-        else:
-            new_pose, applied = select(current, steps, s, rule)
-            moves = applied.any(1)
-            if rule == "argmax":
-                new_score = s.gather(1, s.argmax(1, keepdim=True))[:, 0]
-            else:
-                new_score = score_poses(new_pose[:, None])[:, 0]
-        if first is None:
-            first = (s, s.argmax(1), applied)
-            current_score = s[:, 0]
-        step = active & moves
-        current = torch.where(step[:, None], new_pose, current)
-        current_score = torch.where(step, new_score, current_score)
-        moved += step.long()
-        active = step & (new_score > s[:, 0])
-        if not bool(active.any()):
-            break
-    return Correction(current, current_score, first[0], first[1], first[2], moved)
-
-
-def correct(
-    pose: torch.Tensor,
-    depth: torch.Tensor,
-    gray: torch.Tensor | None,
-    origin,
-    observation: torch.Tensor,
-    camera: Camera,
-    *,
-    observation_origin=(0, 0),
-    canvas: int = 128,
-    margin_px: float = 20.0,
-    dp_px: float = 1.0,
-    dtheta_deg: float = 0.5,
-    rule: str = "argmax",
-    iterations: int = 1,
-    edge_clip: float = 0.1,
-    silhouette: bool = True,
-) -> Correction:
-    """Correct propagated poses by matching templates predicted from one render against the observation.
-
-    Args:
-        pose: ``(B, 7)`` propagated poses (the render's poses).
-        depth: ``(B, h, w)`` render depth (metres, 0 = background) of the window at ``origin``.
-        gray: ``(B, h, w)`` shaded grey render in ``[0, 1]`` (background 0), or ``None`` for
-            silhouette edges only.
-        origin: ``(B, 2)`` or ``(2,)`` frame pixel of the render window's top-left pixel.
-        observation: ``(B, H, W)`` observation surface in ``[0, 1]`` (median-blurred EROS).
-        camera: the frame camera.
-        observation_origin: frame pixel of the observation's top-left pixel (default: full frame).
-        canvas: canvas size in pixels (100..150 in the paper).
-        margin_px: margin around the object's bounding box, frame pixels.
-        dp_px, dtheta_deg: translation step (image pixels) and rotation step (degrees).
-        rule: ``"argmax"`` (the paper), ``"group"`` (EDOPT) or ``"newton"`` (all axes, sub-step; item 5).
-        iterations: maximum corrections per call; repeats while the score keeps improving.
-        edge_clip: Sobel magnitude at which edges saturate (:func:`~torchevtrack.reference.edge_map`).
-        silhouette: add the mask's edges to the grey edges.
-
-    Returns:
-        :class:`Correction`.
-
-    Shape: ``(B, 7), (B, h, w), (B, h, w), (B, 2), (B, H, W) -> Correction``.
-    """
-    _check_correct(pose, depth, gray, observation, canvas=canvas, rule=rule, iterations=iterations,
-                   silhouette=silhouette)
-    model = template_model(pose, depth, gray, origin, camera, canvas=canvas, margin_px=margin_px,
-                           edge_clip=edge_clip, silhouette=silhouette)
-    return correct_model(model, pose, observation, camera, observation_origin=observation_origin, dp_px=dp_px,
-                         dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
-
-
-def correct_model(
-    model: TemplateModel,
-    pose: torch.Tensor,
-    observation: torch.Tensor,
-    camera: Camera,
-    *,
-    observation_origin=(0, 0),
-    dp_px: float = 1.0,
-    dtheta_deg: float = 0.5,
-    rule: str = "argmax",
-    iterations: int = 1,
-) -> Correction:
-    """:func:`correct` with a render's :class:`TemplateModel`, around any pose near the render's.
-
-    Every iteration fits the model at its current pose (the render's template warped there,
-    :func:`quadratic_score`), so ``pose`` may differ from the render's pose (reuse of an earlier render);
-    keep ``model.shift_px(pose)`` small, as the warp approximates a render for small motions only.
-    ``rule="newton"`` runs the whole search in one compiled call (:func:`newton_search`); the other rules
-    go through :func:`search`. The returned pose has ``pose``'s dtype, the scores the render's.
-
-    Shape: ``TemplateModel, (B, 7), (B, H, W) -> Correction``.
-    """
-    return correct_canvas(model, pose, model.observe(observation, observation_origin), camera, dp_px=dp_px,
-                          dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
 
 
 def correct_canvas(
@@ -1279,16 +1104,27 @@ def correct_canvas(
     *,
     dp_px: float = 1.0,
     dtheta_deg: float = 0.5,
-    rule: str = "argmax",
+    rule: str = "newton",
     iterations: int = 1,
 ) -> Correction:
-    """:func:`correct_model` with the observation already in the model's canvas (:meth:`TemplateModel.observe`,
-    or :func:`torchevtrack.stages.eros.canvas_observation` of ``model.box``).
+    """Correct poses near a render's with its :class:`TemplateModel` against an observation already in the model's
+    canvas (:meth:`TemplateModel.observe`, or :func:`torchevtrack.stages.eros.canvas_observation` of ``model.box``).
+
+    Every iteration fits the model at its current pose (the render's template warped there), so ``pose`` may differ
+    from the render's pose (reuse of an earlier render); keep ``model.shift_px(pose)`` small, as the warp approximates
+    a render for small motions only. ``rule="newton"`` runs :func:`newton_search` (compiled); the paper's ``"argmax"``
+    and EDOPT's ``"group"`` (the ablation switch ``template.rule``) run the torch search of
+    :func:`torchevtrack.reference.rule_search`. The returned pose has ``pose``'s dtype, the scores the render's.
+
+    Args:
+        dp_px, dtheta_deg: translation step (image pixels) and rotation step (degrees) of the hypotheses (module
+            docstring, item 3); rule: ``"newton"``, ``"argmax"`` or ``"group"`` (item 5); iterations: maximum
+            corrections, repeated while the score keeps improving.
 
     Shape: ``TemplateModel, (B, 7), (B, N, N) or (B, N * N) -> Correction``.
     """
-    pose = _check_poses(pose, "pose")
-    _check_options(rule, iterations)
+    pose = check_poses(pose, "pose")
+    check_options(rule, iterations)
     B, N = model.pose.shape[0], model.depth.shape[-1]
     if pose.shape[0] != B:
         raise ValueError(f"pose must have one row per model element ({B}), got {tuple(pose.shape)}")
@@ -1297,42 +1133,38 @@ def correct_canvas(
     obs = obs.reshape(B, N * N)
     if rule == "newton":
         return newton_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, iterations=iterations)
+    from torchevtrack.reference import rule_search  # the ablation switch (reference imports this module)
 
-    dtype = model.depth.dtype  # scores in the render's dtype
-
-    def scorer(centre: torch.Tensor):
-        quad = model.at(centre).fit_canvas(obs)
-        return lambda steps: quad.at_steps(steps).to(dtype), lambda poses: quad.evaluate(poses).to(dtype)
-
-    return search(pose, scorer, model.gain, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule,
-                  iterations=iterations)
+    return rule_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
 
 
 def newton_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, camera: Camera, *,
                   dp_px: float = 1.0, dtheta_deg: float = 0.5, iterations: int = 1,
                   damping: float = NEWTON_DAMPING, max_step: float = NEWTON_MAX_STEP) -> Correction:
-    """:func:`search` with ``rule="newton"`` on the model's exact quadratic, compiled in one call.
+    """The ``"newton"`` rule's search on the model's exact quadratic, compiled in one call (the tracker's).
 
-    The same search as ``search(pose, scorer, ...)`` with the scorer of :func:`correct_model` (the quadratic
-    model refitted at every iteration's pose, the damped Newton step of :func:`newton_step`, stopping when a
-    step does not raise the score), but the model's ``g`` and ``M`` give the step directly (the 28-score fit of
-    :func:`newton_step` recovers them exactly) and everything runs in float64, without per-iteration tensors.
+    The same search as :func:`~torchevtrack.reference.search` with ``rule="newton"`` and the scorer of
+    :func:`~torchevtrack.reference.rule_search` (the quadratic model refitted at every iteration's pose, the damped
+    Newton step of :func:`~torchevtrack.reference.newton_step`, stopping when a step does not raise the score), but the
+    model's ``g`` and ``M`` give the step directly (the 28-score fit of the torch step recovers them exactly) and
+    everything runs in float64, without per-iteration tensors.
 
     Args:
         model: the render's :class:`TemplateModel`; pose: ``(B, 7)`` start poses; obs: ``(B, N * N)``
             observation in the canvas (:meth:`TemplateModel.observe`).
-        dp_px, dtheta_deg, iterations: see :func:`correct`; damping, max_step: see :func:`newton_step`.
+        dp_px, dtheta_deg, iterations: see :func:`correct_canvas`; damping, max_step: see
+            :func:`~torchevtrack.reference.newton_step`.
 
-    Shape: ``(B, 7), (B, N * N) -> Correction`` (``applied`` all false, as with :func:`search`).
+    Shape: ``(B, 7), (B, N * N) -> Correction`` (``applied`` all false: the step is not one of the hypotheses).
     """
     B = pose.shape[0]
     start = pose.double()
     out_pose = torch.empty(B, 7, dtype=torch.float64)
     score, scores = torch.empty(B, dtype=torch.float64), torch.empty(B, NUM_HYPOTHESES, dtype=torch.float64)
     moved = torch.empty(B, dtype=torch.int64)
-    _newton_kernel(_np(model.coef), _np(model.depth), _np(model.K.double()), _np(model.render_pose), _np(start),
-                   _np(obs), _np(model.gain.double()), camera.fx, camera.fy, float(dp_px), math.radians(dtheta_deg),
-                   iterations, damping, max_step, out_pose.numpy(), score.numpy(), scores.numpy(), moved.numpy())
+    newton_kernel(_np(model.coef), _np(model.depth), _np(model.K.double()), _np(model.render_pose), _np(start),
+                  _np(obs), _np(model.gain.double()), camera.fx, camera.fy, float(dp_px), math.radians(dtheta_deg),
+                  iterations, damping, max_step, out_pose.numpy(), score.numpy(), scores.numpy(), moved.numpy())
     dtype = model.depth.dtype
     scores = scores.to(dtype)
     return Correction(out_pose.to(pose.dtype), score.to(dtype), scores, scores.argmax(1),
@@ -1340,17 +1172,23 @@ def newton_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, c
 
 
 class TemplateCorrector(nn.Module):
-    """Stage 5, local template correction: the options of :func:`correct` bound to a camera.
+    """Stage 5, local template correction of propagated poses: the template of one render matched against the
+    observation (module docstring), with the options bound to a camera.
 
     Args:
         camera: the frame camera.
-        canvas, margin_px, dp_px, dtheta_deg, rule, iterations, edge_clip, silhouette: see :func:`correct`
-            (defaults: the config section ``template``, :class:`~torchevtrack.config.TemplateConfig`).
+        canvas: canvas size in pixels (100..150 in the paper); margin_px: margin around the object's bounding box,
+            frame pixels; edge_clip: Sobel magnitude at which edges saturate; silhouette: add the mask's edges to
+            the grey edges (:func:`template_model`).
+        dp_px, dtheta_deg, rule, iterations: see :func:`correct_canvas`.
+        (Defaults: the config section ``template``, :class:`~torchevtrack.config.TemplateConfig`.)
 
     Calls:
-        ``forward(pose, depth, gray, origin, observation, observation_origin=(0, 0)) -> Correction``:
-        :func:`correct`. To reuse one render over several updates, ``model = template_model(pose, depth, gray,
-        origin)`` once, then ``correct_model(model, pose, observation, observation_origin)`` (or
+        ``forward(pose, depth, gray, origin, observation, observation_origin=(0, 0)) -> Correction``: the render
+        ``depth`` (metres, 0 = background) and ``gray`` (``[0, 1]``, or ``None``: silhouette edges only) of the window
+        at ``origin`` made at ``pose``, against ``observation`` (median-blurred EROS, top-left frame pixel
+        ``observation_origin``). To reuse one render over several updates, ``model = template_model(pose, depth,
+        gray, origin)`` once, then ``correct_model(model, pose, observation, observation_origin)`` (or
         ``correct_canvas(model, pose, obs)`` with the observation already in the model's canvas) while
         ``model.shift_px(pose)`` stays below about a pixel.
 
@@ -1378,7 +1216,7 @@ class TemplateCorrector(nn.Module):
         super().__init__()
         if not isinstance(camera, Camera):
             raise TypeError(f"camera must be a torchevtrack Camera, got {type(camera).__name__}")
-        _check_options(rule, iterations)
+        check_options(rule, iterations)
         if not (dp_px > 0 and dtheta_deg > 0 and margin_px >= 0 and edge_clip > 0):
             raise ValueError("dp_px, dtheta_deg and edge_clip must be positive and margin_px non-negative")
         self.camera = camera
@@ -1394,19 +1232,19 @@ class TemplateCorrector(nn.Module):
                    rule=cfg.rule, iterations=cfg.iterations)
 
     def forward(self, pose, depth, gray, origin, observation, observation_origin=(0, 0)) -> Correction:
-        return correct(
-            pose, depth, gray, origin, observation, self.camera, observation_origin=observation_origin, **self.options
-        )
+        check_correct(pose, depth, gray, observation, **self.options)
+        return self.correct_model(self.template_model(pose, depth, gray, origin), pose, observation, observation_origin)
 
     def template_model(self, pose, depth, gray, origin) -> TemplateModel:
         """:func:`template_model` of a render (window at ``origin``) made at ``pose``."""
         o = self.options
-        return template_model(_check_poses(pose, "pose"), _check_images(depth, "depth"), gray, origin, self.camera,
+        return template_model(check_poses(pose, "pose"), check_images(depth, "depth"), gray, origin, self.camera,
                               canvas=o["canvas"], margin_px=o["margin_px"], edge_clip=o["edge_clip"],
                               silhouette=o["silhouette"])
 
     def correct_model(self, model: TemplateModel, pose, observation, observation_origin=(0, 0)) -> Correction:
-        """:func:`correct_model` with this corrector's steps, rule and iterations."""
+        """:meth:`correct_canvas` of the ``observation`` ``(B, H, W)`` (top-left frame pixel ``observation_origin``)
+        resampled into the model's canvas."""
         return self.correct_canvas(model, pose, model.observe(observation, observation_origin))
 
     def correct_canvas(self, model: TemplateModel, pose, obs) -> Correction:
@@ -1420,25 +1258,29 @@ class TemplateCorrector(nn.Module):
 
 
 # -- input checks -----------------------------------------------------------------------------
-def _check_correct(pose, depth, gray, observation, *, canvas, rule, iterations, silhouette, **_) -> None:
-    """The checks of :func:`correct`'s inputs and options (one line each)."""
-    _check_poses(pose, "pose")
-    B = _check_images(depth, "depth").shape[0]
+def check_correct(pose, depth, gray, observation, *, canvas, rule, iterations, silhouette, **_) -> None:
+    """The checks of a correction's inputs and options (:meth:`TemplateCorrector.forward`,
+    :func:`~torchevtrack.reference.correct`): a one-line ``TypeError`` / ``ValueError`` for the first problem, else
+    ``None``."""
+    check_poses(pose, "pose")
+    B = check_images(depth, "depth").shape[0]
     if B != pose.shape[0]:
         raise ValueError(f"depth must have one image per pose ({pose.shape[0]}), got {tuple(depth.shape)}")
     if gray is not None:
-        if _check_images(gray, "gray").shape != depth.shape:
+        if check_images(gray, "gray").shape != depth.shape:
             raise ValueError(f"gray must match depth {tuple(depth.shape)}, got {tuple(gray.shape)}")
     elif not silhouette:
         raise ValueError("without a grey render the template needs silhouette=True")
-    if _check_images(observation, "observation").shape[0] != B:
+    if check_images(observation, "observation").shape[0] != B:
         raise ValueError(f"observation must have one image per pose ({B}), got {tuple(observation.shape)}")
-    _check_options(rule, iterations)
+    check_options(rule, iterations)
     if isinstance(canvas, bool) or not isinstance(canvas, int) or canvas < 16:
         raise ValueError(f"canvas must be an integer >= 16 pixels, got {canvas!r}")
 
 
-def _check_poses(pose, name: str) -> torch.Tensor:
+def check_poses(pose, name: str) -> torch.Tensor:
+    """``pose`` if it is a floating-point ``(B, 7)`` tensor with the object in front of the camera, else a one-line
+    ``TypeError`` / ``ValueError`` naming ``name``."""
     if not isinstance(pose, torch.Tensor) or not pose.is_floating_point():
         raise TypeError(f"{name} must be a floating-point tensor (B, 7), got {type(pose).__name__}")
     if pose.ndim != 2 or pose.shape[1] != 7:
@@ -1448,7 +1290,9 @@ def _check_poses(pose, name: str) -> torch.Tensor:
     return pose
 
 
-def _check_images(x, name: str) -> torch.Tensor:
+def check_images(x, name: str) -> torch.Tensor:
+    """``x`` if it is a floating-point ``(B, H, W)`` tensor with pixels, else a one-line ``TypeError`` /
+    ``ValueError`` naming ``name``."""
     if not isinstance(x, torch.Tensor) or not x.is_floating_point():
         raise TypeError(f"{name} must be a floating-point tensor (B, H, W), got {type(x).__name__}")
     if x.ndim != 3 or x.shape[1] == 0 or x.shape[2] == 0:
@@ -1456,7 +1300,9 @@ def _check_images(x, name: str) -> torch.Tensor:
     return x
 
 
-def _origin(origin, B: int, dtype: torch.dtype) -> torch.Tensor:
+def batch_origin(origin, B: int, dtype: torch.dtype) -> torch.Tensor:
+    """A window origin ``(u0, v0)`` or ``(B, 2)`` as a ``(B, 2)`` tensor of ``dtype`` (one-line ``ValueError`` for
+    another shape)."""
     o = torch.as_tensor(origin, dtype=dtype)
     if o.shape == (2,):
         o = o.expand(B, 2)

@@ -45,11 +45,11 @@ import torch
 from torch import nn
 
 from torchevtrack.geometry import (
-    _nb_cross,
-    _nb_quat_canonical,
-    _nb_quat_exp,
-    _nb_quat_log,
-    _nb_quat_mul,
+    nb_cross,
+    nb_quat_canonical,
+    nb_quat_exp,
+    nb_quat_log,
+    nb_quat_mul,
     quat_canonical,
     quat_conj,
     quat_exp,
@@ -137,9 +137,9 @@ def _nb_boxplus(x, d, sign, out):
     """``out = x [+] sign * d`` (:func:`boxplus`) for ``x`` ``(13,)``, ``d`` ``(12,)``."""
     for i in range(9):
         out[i] = x[i] + sign * d[i]
-    e0, e1, e2, e3 = _nb_quat_exp(sign * d[9], sign * d[10], sign * d[11])
-    q0, q1, q2, q3 = _nb_quat_mul(e0, e1, e2, e3, x[9], x[10], x[11], x[12])
-    out[9], out[10], out[11], out[12] = _nb_quat_canonical(q0, q1, q2, q3)
+    e0, e1, e2, e3 = nb_quat_exp(sign * d[9], sign * d[10], sign * d[11])
+    q0, q1, q2, q3 = nb_quat_mul(e0, e1, e2, e3, x[9], x[10], x[11], x[12])
+    out[9], out[10], out[11], out[12] = nb_quat_canonical(q0, q1, q2, q3)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -178,14 +178,14 @@ def _nb_quat_mean(X, Wm, out):
     for i in range(1, 4):
         if d[i] > d[top]:
             top = i
-    out[0], out[1], out[2], out[3] = _nb_quat_canonical(V[0, top], V[1, top], V[2, top], V[3, top])
+    out[0], out[1], out[2], out[3] = nb_quat_canonical(V[0, top], V[1, top], V[2, top], V[3, top])
 
 
 @numba.njit(cache=True, nogil=True)
 def _nb_rot_error(X, s, q, out, k):
     """``out[k:k+3] = log(X[s, 9:13] (x) q^-1)``."""
-    a0, a1, a2, a3 = _nb_quat_mul(X[s, 9], X[s, 10], X[s, 11], X[s, 12], q[0], -q[1], -q[2], -q[3])
-    out[k], out[k + 1], out[k + 2] = _nb_quat_log(a0, a1, a2, a3)
+    a0, a1, a2, a3 = nb_quat_mul(X[s, 9], X[s, 10], X[s, 11], X[s, 12], q[0], -q[1], -q[2], -q[3])
+    out[k], out[k + 1], out[k + 2] = nb_quat_log(a0, a1, a2, a3)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -232,7 +232,7 @@ def _ukf_predict_kernel(x, P, T, q, q_diag, twist, has_twist, Wm, Wc, spread, x_
         for i in range(13):
             xb[i] = x[b, i]
         if has_twist:  # p_dot = v + w x p, w given
-            c0, c1, c2 = _nb_cross(twist[b, 3], twist[b, 4], twist[b, 5], xb[6], xb[7], xb[8])
+            c0, c1, c2 = nb_cross(twist[b, 3], twist[b, 4], twist[b, 5], xb[6], xb[7], xb[8])
             xb[0], xb[1], xb[2] = twist[b, 0] + c0, twist[b, 1] + c1, twist[b, 2] + c2
             xb[3], xb[4], xb[5] = twist[b, 3], twist[b, 4], twist[b, 5]
         if not _nb_sigma_points(xb, P[b], spread, X, Sc, L):
@@ -240,9 +240,9 @@ def _ukf_predict_kernel(x, P, T, q, q_diag, twist, has_twist, Wm, Wc, spread, x_
         Tb = T[b]
         for s in range(25):  # p+ = p + p_dot T, q+ = exp(w T) (x) q
             X[s, 6], X[s, 7], X[s, 8] = X[s, 6] + X[s, 0] * Tb, X[s, 7] + X[s, 1] * Tb, X[s, 8] + X[s, 2] * Tb
-            e0, e1, e2, e3 = _nb_quat_exp(X[s, 3] * Tb, X[s, 4] * Tb, X[s, 5] * Tb)
-            q0, q1, q2, q3 = _nb_quat_mul(e0, e1, e2, e3, X[s, 9], X[s, 10], X[s, 11], X[s, 12])
-            X[s, 9], X[s, 10], X[s, 11], X[s, 12] = _nb_quat_canonical(q0, q1, q2, q3)
+            e0, e1, e2, e3 = nb_quat_exp(X[s, 3] * Tb, X[s, 4] * Tb, X[s, 5] * Tb)
+            q0, q1, q2, q3 = nb_quat_mul(e0, e1, e2, e3, X[s, 9], X[s, 10], X[s, 11], X[s, 12])
+            X[s, 9], X[s, 10], X[s, 11], X[s, 12] = nb_quat_canonical(q0, q1, q2, q3)
         _nb_weighted_mean(X, Wm, 0, xn[b, :9])
         _nb_quat_mean(X, Wm, xn[b, 9:13])
         for s in range(25):
@@ -295,8 +295,8 @@ def _ukf_update_kernel(x, P, z, R, r_diag, Wm, Wc, spread, x_out, P_out):
             return b
         for i in range(3):
             nu[i] = z[b, i] - zp[i]
-        a0, a1, a2, a3 = _nb_quat_mul(z[b, 3], z[b, 4], z[b, 5], z[b, 6], zq[0], -zq[1], -zq[2], -zq[3])
-        nu[3], nu[4], nu[5] = _nb_quat_log(a0, a1, a2, a3)
+        a0, a1, a2, a3 = nb_quat_mul(z[b, 3], z[b, 4], z[b, 5], z[b, 6], zq[0], -zq[1], -zq[2], -zq[3])
+        nu[3], nu[4], nu[5] = nb_quat_log(a0, a1, a2, a3)
         for i in range(12):
             m = 0.0
             for j in range(6):
