@@ -110,6 +110,7 @@ def warmup(progress: bool = True) -> int:
         tracker = EventPoseTracker(camera, mesh, TrackerConfig().replace(denoise={"enabled": True}))
         tracker.track(events, pose0, progress=False)
         tracker.close()
+        _compile_relocaliser(np)
         missing |= set(uncached_kernels())  # the modules the tracker loaded
     finally:
         done.set()
@@ -119,6 +120,16 @@ def warmup(progress: bool = True) -> int:
     bar.update(compiled - bar.n)
     bar.close()
     return compiled
+
+
+def _compile_relocaliser(np) -> None:
+    """Compile the re-localiser's edge and distance kernels (``--recover``), which a run that never loses the
+    object does not call, on a tiny image."""
+    from torchevtrack.chamfer import distance_map, model_edges
+
+    depth = np.zeros((1, 8, 8), np.float32)
+    depth[0, 2:6, 2:6] = 1.0
+    distance_map(model_edges(depth, depth), 4.0)
 
 
 def _warmup_events(camera, mesh, renderer_cls, stream_cls, np, torch):
