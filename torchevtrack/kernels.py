@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import sys
 import threading
-import time
 
 __all__ = ["COLD_START_S", "announce_compile", "uncached_kernels", "warmup"]
 

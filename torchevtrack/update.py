@@ -271,7 +271,6 @@ def _render_model_kernel(pose, radius, cam, W, H, margin, vertices, faces, plane
     return win, depth, gray, pose32, (box32, K, gain, T, Z, coef, points, valid)
 
 
-
 class RenderModelBinding:
     """Steps 4-5's render and template model of one pose (see the module docstring), bound to a compiled rasteriser
     and the options, unchecked: for a caller whose poses are valid (finite, ``z > 0``, non-zero quaternion).
@@ -338,6 +337,7 @@ class RenderModelBinding:
             p = torch.from_numpy(pose32)
             made_model = TemplateModel(p, p, *(torch.from_numpy(a) for a in made))
         return Rendered(torch.from_numpy(depth), torch.from_numpy(gray) if gray.size else None, win, made_model)
+
 
 class CorrectionStep(NamedTuple):
     """Result of :func:`bind_correction`'s ``run``: the template ``model`` of the render (or the one given) and the
