@@ -126,7 +126,7 @@ class EventStream:
             return self
         no_limit = 1 << 62
         kind, i = first_invalid(self.x.numpy(), self.y.numpy(), self.t.numpy(),
-                                 no_limit if width is None else width, no_limit if height is None else height)
+                                no_limit if width is None else width, no_limit if height is None else height)
         if kind == 1:
             raise ValueError(f"negative timestamp {int(self.t[0])} us at event 0")
         if kind == 2:

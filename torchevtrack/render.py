@@ -461,7 +461,7 @@ def shading_mesh(mesh: trimesh.Trimesh) -> ShadingMesh:
     else:
         albedo = np.full(len(smooth.vertices), DEFAULT_ALBEDO)
     return ShadingMesh(np.asarray(smooth.vertices, dtype=np.float64), np.asarray(smooth.faces, dtype=np.int64),
-                        albedo, np.asarray(smooth.vertex_normals, dtype=np.float64), None, None)
+                       albedo, np.asarray(smooth.vertex_normals, dtype=np.float64), None, None)
 
 
 def _texture_of(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray] | None:

@@ -257,7 +257,7 @@ def canvas_observation(surface: torch.Tensor, last_us: torch.Tensor, box: torch.
     out = torch.empty(B, canvas, canvas, dtype=torch.float32)
     canvas_kernel(surface.detach().numpy(), last_us.detach().numpy(), box.double().contiguous().numpy(),
                   t_now_us.long().contiguous().numpy(), int(max_age_us), float(recency_us),
-                   decay_table(float(recency_us), int(max_age_us)), out.numpy())
+                  decay_table(float(recency_us), int(max_age_us)), out.numpy())
     return out
 
 

@@ -106,8 +106,8 @@ from torch import nn
 from torchevtrack.camera import Camera
 from torchevtrack.config import RULES, TemplateConfig
 from torchevtrack.geometry import (nb_quat_canonical, nb_quat_exp, nb_quat_mul,
-                                  nb_quat_to_matrix, quat_canonical, quat_conj, quat_exp, quat_log, quat_mul,
-                                  quat_rotate)
+                                   nb_quat_to_matrix, quat_canonical, quat_conj, quat_exp, quat_log, quat_mul,
+                                   quat_rotate)
 from torchevtrack.linalg import cholesky, cholesky_solve, eigh
 from torchevtrack.stages import canvas_taps
 
@@ -1082,7 +1082,7 @@ def model_in_box(pose: np.ndarray, depth: np.ndarray, shade: np.ndarray, use_gra
     T, Z, coef = np.empty((B, N, N), dt), np.empty((B, N, N), dt), np.zeros((B, N + 6, N + 6), dt)
     points, valid = np.empty((B, P, 3), dt), np.empty((B, P), dtype=np.bool_)
     model_kernel(depth, shade, origin, box64, cam, np.ascontiguousarray(pose[:, 2]), use_gray, silhouette,
-                  0.125 / edge_clip, *model_filters(N), step, step, box, K, T, coef, Z, points, valid)
+                 0.125 / edge_clip, *model_filters(N), step, step, box, K, T, coef, Z, points, valid)
     pose = torch.from_numpy(pose)
     return TemplateModel(pose, pose, *(torch.from_numpy(a) for a in (box, K, gain, T, Z, coef, points, valid)))
 
