@@ -25,7 +25,7 @@ the other (``tests/test_intake.py``, ``tests/test_motion.py``, ``tests/test_rend
   thread searches, and as separate calls that job would hold the GIL between its kernels.
 - :func:`bind_correction`, step 5: the canvas box of the render's extent, the observation under it
   (:func:`~torchevtrack.stages.eros.canvas_observation`), then the rest of the template model and the search
-  (:func:`~torchevtrack.stages.template.newton_search`; the ablation's argmax and group rules through
+  (:func:`~torchevtrack.stages.template.newton_arrays`; the ablation's argmax and group rules through
   :func:`~torchevtrack.stages.template.correct_canvas`). Once the observation is made it tells the caller
   (``on_observed``): the next window's events may then update the surfaces while the model and the search run.
 - :func:`output`, step 6: the correction's rate into the
@@ -53,9 +53,9 @@ from torchevtrack.stages.eros import (EROS, TimeSurface, canvas_kernel, decay_ta
 from torchevtrack.stages.flow import (FlowField, TripletFlow, event_arrays, events_in_range, flow_packet, range_error,
                                       smooth_flow)
 from torchevtrack.stages.propagate import propagate_kernel, propagate_step, twist_between_kernel, valid_pose
-from torchevtrack.stages.template import (NEWTON_DAMPING, NEWTON_MAX_STEP, NUM_HYPOTHESES, Correction, TemplateModel,
-                                          box_kernel, camera_array, correct_canvas, model_filters, model_in_box,
-                                          model_kernel, newton_kernel, render_box, window_kernel)
+from torchevtrack.stages.template import (Correction, TemplateModel, box_kernel, camera_array, correct_canvas,
+                                          model_filters, model_in_box, model_kernel, newton_arrays, render_box,
+                                          window_kernel)
 from torchevtrack.stages.ukf import UKFArrays, ukf_step
 from torchevtrack.stages.velocity import FeedbackArrays, KFArrays, feedback_step, shift_twist_kernel, velocity_step
 
@@ -341,7 +341,7 @@ class RenderModelBinding:
 
 class CorrectionStep(NamedTuple):
     """Result of :func:`bind_correction`'s ``run``: the template ``model`` of the render (or the one given) and the
-    ``correction`` of the predicted poses, as :func:`~torchevtrack.stages.template.newton_search` (or
+    ``correction`` of the predicted poses, as :func:`~torchevtrack.stages.template.newton_arrays` (or
     :func:`~torchevtrack.stages.template.correct_canvas` for the other rules) returns it, its fields as numpy
     arrays."""
 
@@ -398,16 +398,8 @@ def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *,
             c = correct_canvas(model, torch.from_numpy(predicted), torch.from_numpy(obs), camera, dp_px=dp_px,
                                dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
             return CorrectionStep(model, Correction(*(f.numpy() for f in c)))
-        pose = np.empty((B, 7))
-        score, scores, moved = np.empty(B), np.empty((B, NUM_HYPOTHESES)), np.empty(B, dtype=np.int64)
-        newton_kernel(model.coef.numpy(), model.depth.numpy(), model.K.numpy().astype(np.float64),
-                      model.render_pose.numpy(), predicted, obs.reshape(B, N * N),
-                      model.gain.numpy().astype(np.float64), camera.fx, camera.fy, dp, dtheta, iterations,
-                      NEWTON_DAMPING, NEWTON_MAX_STEP, pose, score, scores, moved)
-        dt = model.depth.numpy().dtype
-        scores = scores.astype(dt)  # argmax: the first of ties, as torch's
-        return CorrectionStep(model, Correction(pose, score.astype(dt), scores, scores.argmax(1),
-                                                np.zeros((B, NUM_HYPOTHESES), dtype=np.bool_), moved))
+        c = newton_arrays(model, predicted, obs, camera.fx, camera.fy, dp, dtheta, iterations)
+        return CorrectionStep(model, c)
     return run
 
 

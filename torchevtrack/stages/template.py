@@ -142,6 +142,7 @@ __all__ = [
     "model_kernel",
     "model_filters",
     "newton_search",
+    "newton_arrays",
     "newton_kernel",
     "correct_canvas",
     "TemplateCorrector",
@@ -1138,37 +1139,52 @@ def correct_canvas(
     return rule_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
 
 
+def newton_arrays(model: TemplateModel, pose: np.ndarray, obs: np.ndarray, fx: float, fy: float, dp: float,
+                  dtheta: float, iterations: int) -> Correction:
+    """The compiled Newton search of :func:`newton_search` on numpy arrays (the tracker's hot path calls this).
+
+    Args:
+        model: the render's :class:`TemplateModel`; pose: ``(B, 7)`` float64 start poses; obs: ``(B, N, N)`` or
+            ``(B, N * N)`` observation in the canvas; fx, fy: the frame's focal lengths (px); dp: the image step
+            (px); dtheta: the rotation step (radians); iterations: the maximum number of Newton rounds.
+    Returns: a :class:`Correction` of numpy arrays: ``pose`` ``(B, 7)`` float64, ``score`` ``(B,)`` and ``scores``
+        ``(B, 13)`` in the model's dtype, ``index`` (the first of ties, as torch's ``argmax``), ``applied`` all false
+        (the step is not one of the hypotheses) and ``iterations`` ``(B,)`` int64 (the rounds that moved).
+    """
+    B = pose.shape[0]
+    out = np.empty((B, 7))
+    score, scores, moved = np.empty(B), np.empty((B, NUM_HYPOTHESES)), np.empty(B, dtype=np.int64)
+    newton_kernel(_np(model.coef), _np(model.depth), _np(model.K).astype(np.float64, copy=False),
+                  _np(model.render_pose), np.ascontiguousarray(pose, dtype=np.float64), obs.reshape(B, -1),
+                  _np(model.gain).astype(np.float64, copy=False), float(fx), float(fy), float(dp), float(dtheta),
+                  int(iterations), NEWTON_DAMPING, NEWTON_MAX_STEP, out, score, scores, moved)
+    dtype = _np(model.depth).dtype
+    scores = scores.astype(dtype)
+    return Correction(out, score.astype(dtype), scores, scores.argmax(1),
+                      np.zeros((B, NUM_HYPOTHESES), dtype=np.bool_), moved)
+
+
 def newton_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, camera: Camera, *,
-                  dp_px: float = 1.0, dtheta_deg: float = 0.5, iterations: int = 1,
-                  damping: float = NEWTON_DAMPING, max_step: float = NEWTON_MAX_STEP) -> Correction:
+                  dp_px: float = 1.0, dtheta_deg: float = 0.5, iterations: int = 1) -> Correction:
     """The ``"newton"`` rule's search on the model's exact quadratic, compiled in one call (the tracker's).
 
     The same search as :func:`~torchevtrack.reference.search` with ``rule="newton"`` and the scorer of
     :func:`~torchevtrack.reference.rule_search` (the quadratic model refitted at every iteration's pose, the damped
-    Newton step of :func:`~torchevtrack.reference.newton_step`, stopping when a step does not raise the score), but the
-    model's ``g`` and ``M`` give the step directly (the 28-score fit of the torch step recovers them exactly) and
-    everything runs in float64, without per-iteration tensors.
+    Newton step of :func:`~torchevtrack.reference.newton_step` with ``NEWTON_DAMPING`` and ``NEWTON_MAX_STEP``,
+    stopping when a step does not raise the score), but the model's ``g`` and ``M`` give the step directly (the
+    28-score fit of the torch step recovers them exactly) and everything runs in float64, without per-iteration
+    tensors. :func:`newton_arrays` is the same search on numpy arrays.
 
     Args:
         model: the render's :class:`TemplateModel`; pose: ``(B, 7)`` start poses; obs: ``(B, N * N)``
             observation in the canvas (:meth:`TemplateModel.observe`).
-        dp_px, dtheta_deg, iterations: see :func:`correct_canvas`; damping, max_step: see
-            :func:`~torchevtrack.reference.newton_step`.
+        dp_px, dtheta_deg, iterations: see :func:`correct_canvas`.
 
     Shape: ``(B, 7), (B, N * N) -> Correction`` (``applied`` all false: the step is not one of the hypotheses).
     """
-    B = pose.shape[0]
-    start = pose.double()
-    out_pose = torch.empty(B, 7, dtype=torch.float64)
-    score, scores = torch.empty(B, dtype=torch.float64), torch.empty(B, NUM_HYPOTHESES, dtype=torch.float64)
-    moved = torch.empty(B, dtype=torch.int64)
-    newton_kernel(_np(model.coef), _np(model.depth), _np(model.K.double()), _np(model.render_pose), _np(start),
-                  _np(obs), _np(model.gain.double()), camera.fx, camera.fy, float(dp_px), math.radians(dtheta_deg),
-                  iterations, damping, max_step, out_pose.numpy(), score.numpy(), scores.numpy(), moved.numpy())
-    dtype = model.depth.dtype
-    scores = scores.to(dtype)
-    return Correction(out_pose.to(pose.dtype), score.to(dtype), scores, scores.argmax(1),
-                      torch.zeros(B, NUM_HYPOTHESES, dtype=torch.bool), moved)
+    c = newton_arrays(model, _np(pose.double()), _np(obs), camera.fx, camera.fy, dp_px, math.radians(dtheta_deg),
+                      iterations)
+    return Correction(torch.from_numpy(c.pose).to(pose.dtype), *(torch.from_numpy(f) for f in c[1:]))
 
 
 class TemplateCorrector(nn.Module):
