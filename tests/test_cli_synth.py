@@ -1,4 +1,5 @@
 import json
+import warnings
 
 import h5py
 import numpy as np
@@ -68,6 +69,25 @@ def test_frames_move_at_most_half_a_pixel():
     uv = Camera.default().project(transform_points(poses[idx], V))
     step = torch.linalg.norm(torch.diff(uv, dim=0), dim=-1).amax(-1)
     assert float(step.max()) <= 0.5 + 1e-9 and float(step.median()) > 0.3  # not oversampled either
+
+
+def test_a_depth_range_the_object_cannot_fit_is_raised_with_a_warning():
+    mesh = trimesh.creation.box((0.05, 0.06, 0.07))  # bounding radius 0.052 m: fits CAM from ~0.21 m
+    with pytest.warns(UserWarning, match="depth range 0.1-0.2 m raised"):
+        _, poses = make_trajectory("regular", 0.05, 0, CAM, mesh, depth_range=(0.1, 0.2))
+    assert float(poses[:, 2].min()) > 0.2  # above the whole requested range
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a range the object fits: no warning, depths inside it
+        _, poses = make_trajectory("regular", 0.05, 0, CAM, mesh, depth_range=(0.4, 0.6))
+    assert 0.4 <= float(poses[:, 2].min()) and float(poses[:, 2].max()) <= 0.6
+
+
+def test_synth_says_in_one_line_when_the_depth_range_was_raised(tmp_path, capsys):
+    rc = main(["synth", "--object", "box", "--duration", "0.02", "--depth", "0.05,0.1", "--out", str(tmp_path / "s"),
+               *TINY])
+    err = capsys.readouterr().err
+    assert rc == 0 and "torchevtrack synth: warning: the object" in err and "raised to" in err
+    assert "UserWarning" not in err and len(err.strip().splitlines()) == 1
 
 
 @pytest.fixture(scope="module")

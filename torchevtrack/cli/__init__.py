@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import warnings
 
 # command: (module in this package, help in `torchevtrack --help`), in the order --help shows them
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -53,11 +54,19 @@ def _command_of(argv: list[str]) -> str | None:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser(_command_of(argv)).parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError, ImportError) as e:  # bad input, or an optional extra not installed
-        print(f"torchevtrack {args.command}: error: {e}", file=sys.stderr)
-        return 2
+    with warnings.catch_warnings():  # warnings as one line each, like the errors (restored on return)
+        warnings.showwarning = _one_line_warnings(args.command)
+        try:
+            return int(args.func(args) or 0)
+        except (ValueError, FileNotFoundError, ImportError) as e:  # bad input, or an optional extra not installed
+            print(f"torchevtrack {args.command}: error: {e}", file=sys.stderr)
+            return 2
+
+
+def _one_line_warnings(command: str):
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        print(f"torchevtrack {command}: warning: {message}", file=sys.stderr if file is None else file)
+    return show
 
 
 if __name__ == "__main__":

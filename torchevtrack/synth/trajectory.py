@@ -37,6 +37,7 @@ Example:
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -176,7 +177,8 @@ def make_trajectory(
         camera: the pinhole camera.
         mesh: ``trimesh.Trimesh`` in metres, object origin at its bounding-box centre.
         dt_us: sampling period, microseconds.
-        depth_range: ``(z_min, z_max)`` metres; ``z_min`` is raised when the object would not fit.
+        depth_range: ``(z_min, z_max)`` metres; ``z_min`` is raised when the object would not fit (with a warning
+            when that lifts the whole range: ``z_max`` then becomes ``z_min + 0.1``).
         margin_px: the projected bounding box keeps this distance to the image border
             (default ``max(2, 2 % of the smaller image side)``).
 
@@ -202,6 +204,10 @@ def make_trajectory(
     z_fit = radius + f * radius / (0.75 * half_min)
     z_lo = max(depth_range[0], z_fit)
     z_hi = max(depth_range[1], z_lo + 0.1)
+    if z_fit > depth_range[1]:
+        warnings.warn(f"the object (bounding radius {radius:.3f} m) fits a {camera.width}x{camera.height} image with "
+                      f"f = {f:g} px only from {z_fit:.2f} m: depth range {depth_range[0]:g}-{depth_range[1]:g} m "
+                      f"raised to {z_lo:.2f}-{z_hi:.2f} m", stacklevel=2)
     r_px = f * radius / (z_lo - radius)
 
     n = int(round(duration_s * 1e6 / dt_us)) + 1
