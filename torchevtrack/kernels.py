@@ -18,7 +18,7 @@ import threading
 
 __all__ = ["COLD_START_S", "announce_compile", "uncached_kernels", "warmup"]
 
-COLD_START_S = 60  # seconds to compile all the tracker's kernels on a free core (40-57 s measured from an empty cache)
+COLD_START_S = 140  # seconds to compile all the tracker's kernels: 140 s from an empty cache on an idle 2-core VM (README)
 _announced = False
 
 
