@@ -3,7 +3,7 @@ and :func:`warmup`, which compiles the tracker's kernels ahead (``torchevtrack w
 
 Numba compiles a kernel on its first call in a process and caches the machine code in ``__pycache__``
 next to the module (or in ``NUMBA_CACHE_DIR``); later processes load it in milliseconds. A fresh
-install therefore spends its first tracking run compiling (:data:`COLD_START_S` seconds on one core).
+install therefore spends its first tracking run compiling (about :data:`SECONDS_PER_KERNEL` seconds per kernel).
 
 Example:
     >>> from torchevtrack.kernels import uncached_kernels
@@ -16,9 +16,9 @@ from __future__ import annotations
 import sys
 import threading
 
-__all__ = ["COLD_START_S", "announce_compile", "uncached_kernels", "warmup"]
+__all__ = ["SECONDS_PER_KERNEL", "announce_compile", "uncached_kernels", "warmup"]
 
-COLD_START_S = 140  # seconds to compile all the tracker's kernels: 140 s from an empty cache on an idle 2-core VM (README)
+SECONDS_PER_KERNEL = 1.6  # a first `track` from an empty cache compiles 90 kernels in 140 s (idle 2-core VM, README)
 _announced = False
 
 
@@ -65,8 +65,7 @@ def announce_compile() -> None:
     missing = uncached_kernels()
     if missing:
         _announced = True
-        total = max(1, len(_kernels()))
-        wait = max(5, round(COLD_START_S * len(missing) / total / 5) * 5)
+        wait = max(5, round(SECONDS_PER_KERNEL * len(missing) / 5) * 5)
         print(f"torchevtrack: compiling {len(missing)} numba kernels on first use (about {wait} s on a free core, "
               "once: cached afterwards; `torchevtrack warmup` does it ahead)", file=sys.stderr, flush=True)
 

@@ -172,7 +172,7 @@ def rasterise(mesh: RasterMesh, poses: np.ndarray, camera: Camera, *, znear: flo
     gray = np.empty_like(depth) if shaded else np.empty((len(poses), 0, 0), dtype=np.float32)
     if texture is None:
         render_kernel(*mesh, poses, camera.fx, camera.fy, camera.cx, camera.cy, znear, zfar, LIGHT_DIRECTION,
-                      AMBIENT, background, depth, gray)
+                      AMBIENT, background, depth, gray, None)
     else:
         render_kernel(*mesh, poses, camera.fx, camera.fy, camera.cx, camera.cy, znear, zfar, LIGHT_DIRECTION,
                       AMBIENT, background, depth, gray, tuple(texture))
@@ -230,12 +230,12 @@ def _draw(proj, faces, front, znear, zfar, depth, shading, box, edges, wins, wei
     shaded = shading[-1].size != 0
     for start in range(0, len(front), _CHUNK):
         k = _face_setups(proj, faces, front[start:start + _CHUNK], znear, zfar, W, H, box, edges)
-        m = 0
+        m = np.int64(0)
         for r in range(k):
             if m + (box[r, 1] - box[r, 0] + 1) * (box[r, 3] - box[r, 2] + 1) > _FLUSH:
                 if shaded:
                     _shade_chunk(box, edges, wins[:m], weights, W, shading, texture)
-                m = 0
+                m = np.int64(0)
             m = _cover(box[r], edges[r], r, W, znear, zfar, depth, wins, weights, m)
         if shaded:
             _shade_chunk(box, edges, wins[:m], weights, W, shading, texture)

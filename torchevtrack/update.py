@@ -264,7 +264,7 @@ def _render_model_kernel(pose, radius, cam, W, H, margin, vertices, faces, plane
     if model:
         origin = win[:, :2].astype(np.float64)
         box_kernel(depth, origin, cam, box_margin, box, gain)
-        model_kernel(depth, gray, origin, box, cam, np.ascontiguousarray(pose32[:, 2]), True, silhouette,
+        model_kernel(depth, gray, origin, box, cam, np.ascontiguousarray(pose32[:, 2]), np.bool_(True), silhouette,
                      edge_scale, g1, g2, pre, step, step, box32, K, T, coef, Z, points, valid)
         for k in range(3):
             observed_box[0, k] = box32[0, k]

@@ -248,7 +248,7 @@ def _match_packet(sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, chu
     if not events_in_range(x, y, p, b, C, batched, planes // C, Hp - 2 * pad, Wp - 2 * pad):
         return event[:0], flow[:0], False
     if n <= chunk:
-        s = _triplet_kernel(sae3, x, y, t, p, b, C, batched, 0, n, dirs, pad, dt_max_us, tol, event, flow)
+        s = _triplet_kernel(sae3, x, y, t, p, b, C, batched, np.int64(0), n, dirs, pad, dt_max_us, tol, event, flow)
         return event[:s], flow[:s], True
     out_event, out_flow = np.empty(size, dtype=np.int64), np.empty((size, 2), dtype=np.float32)
     S = 0
@@ -460,7 +460,7 @@ def _register_all(block_id, event, flow, pixel, min_samples, max_candidates, tie
     if not in_order:  # stably by event: the grouping keeps that order
         perm = np.argsort(event, kind="mergesort")
         block_id, event, flow, pixel = block_id[perm], event[perm], flow[perm], pixel[perm]
-    cap = 1
+    cap = np.int64(1)
     for k in range(n_blocks):
         valid[k] = count[k] >= min_samples
         if valid[k]:
@@ -563,7 +563,7 @@ def _register_block(F0, F1, ev, px, py, tie_tol, normal, inlier, work):
     E = ev[K - 1] + 1
     cand, lo, hi, exact = work.idx[2, :K], work.f64[0, :K], work.f64[1, :K], work.exact[:K]
     _sum_bounds(F0, F1, ev, cand, lo, hi, exact, work)
-    c_min = _least(F0, F1, ev, cand, lo, hi, exact, work, True)[1]
+    c_min = _least(F0, F1, ev, cand, lo, hi, exact, work, np.bool_(True))[1]
     # Among the near-optimal candidates, C <= C_min + tie_tol E |F|, the one closest to all samples.
     thr, norm, undecided, near = work.f64[2, :K], work.f64[4, :K], work.idx[0], work.idx[1]
     for c in range(K):
@@ -580,7 +580,7 @@ def _register_block(F0, F1, ev, px, py, tie_tol, normal, inlier, work):
         n += hi[c] <= thr[c]
     near, lo, hi, exact = near[:n], lo[:n], hi[:n], exact[:n]
     _sum_bounds(F0, F1, cand, near, lo, hi, exact, work)  # ranks cand = 0 .. K - 1: the spreads sum_j |F - F_j|
-    q = _least(F0, F1, cand, near, lo, hi, exact, work, False)[0]
+    q = _least(F0, F1, cand, near, lo, hi, exact, work, np.bool_(False))[0]
     return _inlier_fit(F0, F1, ev, px, py, norm, near[q] if q >= 0 else 0, normal, inlier, work)
 
 

@@ -855,7 +855,7 @@ def _blur(x, k, tmp, out):
     p, r = (x.shape[0] - n) // 2, len(k) // 2
     xf, t = x.reshape(-1), tmp.reshape(-1)
     _taps_pass(xf[(p - r) * W:], k, W, t)  # along the columns
-    _taps_pass(t[p - r:], k, 1, out.reshape(-1)[p:n * W - p])  # along the rows (the pads keep rows apart)
+    _taps_pass(t[p - r:], k, np.int64(1), out.reshape(-1)[p:n * W - p])  # along the rows (the pads keep rows apart)
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)

@@ -243,12 +243,12 @@ def _ukf_predict_kernel(x, P, T, q, q_diag, twist, has_twist, Wm, Wc, spread, x_
             e0, e1, e2, e3 = nb_quat_exp(X[s, 3] * Tb, X[s, 4] * Tb, X[s, 5] * Tb)
             q0, q1, q2, q3 = nb_quat_mul(e0, e1, e2, e3, X[s, 9], X[s, 10], X[s, 11], X[s, 12])
             X[s, 9], X[s, 10], X[s, 11], X[s, 12] = nb_quat_canonical(q0, q1, q2, q3)
-        _nb_weighted_mean(X, Wm, 0, xn[b, :9])
+        _nb_weighted_mean(X, Wm, np.int64(0), xn[b, :9])
         _nb_quat_mean(X, Wm, xn[b, 9:13])
         for s in range(25):
             for i in range(9):
                 D[s, i] = X[s, i] - xn[b, i]
-            _nb_rot_error(X, s, xn[b, 9:13], D[s], 9)
+            _nb_rot_error(X, s, xn[b, 9:13], D[s], np.int64(9))
         _nb_weighted_outer(D, D, Wc, Pm)
         for i in range(12):
             for j in range(12):
@@ -276,15 +276,15 @@ def _ukf_update_kernel(x, P, z, R, r_diag, Wm, Wc, spread, x_out, P_out):
     for b in range(B):
         if not _nb_sigma_points(x[b], P[b], spread, X, Sc, L):
             return b
-        _nb_weighted_mean(X, Wm, 6, zp)
+        _nb_weighted_mean(X, Wm, np.int64(6), zp)
         _nb_quat_mean(X, Wm, zq)
         for s in range(25):
             for i in range(3):
                 DZ[s, i] = X[s, 6 + i] - zp[i]
-            _nb_rot_error(X, s, zq, DZ[s], 3)
+            _nb_rot_error(X, s, zq, DZ[s], np.int64(3))
             for i in range(9):
                 DX[s, i] = X[s, i] - x[b, i]
-            _nb_rot_error(X, s, x[b, 9:13], DX[s], 9)
+            _nb_rot_error(X, s, x[b, 9:13], DX[s], np.int64(9))
         _nb_weighted_outer(DZ, DZ, Wc, S)
         _nb_weighted_outer(DX, DZ, Wc, Pxz)
         Pzx[:] = Pxz.T
