@@ -45,10 +45,10 @@ from torchevtrack.update import RenderModelBinding
 KERNELS = {
     "torchevtrack.stages.eros": ["eros_kernel", "_observe_kernel"],
     "torchevtrack.stages.flow": ["flow_packet"],
-    "torchevtrack.update": ["_intake_kernel", "_motion_kernel", "_render_model_kernel", "canvas_kernel", "newton_kernel",
+    "torchevtrack.update": ["_intake_kernel", "_motion_kernel", "_render_model_kernel", "canvas_kernel",
                             "_output_kernel"],
     "torchevtrack.raster": ["render_kernel"],
-    "torchevtrack.stages.template": ["box_kernel", "model_kernel"],
+    "torchevtrack.stages.template": ["box_kernel", "model_kernel", "newton_kernel"],
 }
 
 
