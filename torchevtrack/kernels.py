@@ -5,6 +5,10 @@ Numba compiles a kernel on its first call in a process and caches the machine co
 next to the module (or in ``NUMBA_CACHE_DIR``); later processes load it in milliseconds. A fresh
 install therefore spends its first tracking run compiling (about :data:`SECONDS_PER_KERNEL` seconds per kernel).
 
+Each distinct argument type signature compiles a kernel again. Numba types a constant passed by a compiled caller
+as a literal (``Literal[int](0)``, not ``int64``), so such call sites pass typed values (``np.int64(0)``,
+``np.bool_(True)``) and optional arguments are given the same way from every caller: one signature per kernel.
+
 Example:
     >>> from torchevtrack.kernels import uncached_kernels
     >>> isinstance(uncached_kernels(), list)
