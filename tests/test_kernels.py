@@ -39,3 +39,21 @@ def test_warmup_leaves_no_tracker_module_cold(capsys):
     # in the same process may have loaded it without compiling all of it
     assert [n for n in uncached_kernels() if not n.startswith("torchevtrack.reference.")] == []
     assert "compiling" not in capsys.readouterr().err  # warmup reports through its own bar, not the notice
+
+
+def test_propagate_from_python_and_from_the_update_compile_once(tmp_path):
+    # A second signature of a kernel is a second compilation on a cold start (10-15 s each). The update passes its
+    # read-only periods (stages.periods) to the compiled propagate_step; Python's propagate must type its dt alike.
+    script = (
+        "import numpy as np, torch\n"
+        "from torchevtrack.stages import periods\n"
+        "from torchevtrack.stages.propagate import propagate, propagate_kernel, propagate_step\n"
+        "pose = np.tile([0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0], (2, 1)); twist = np.ones((2, 6))\n"
+        "propagate_step(pose, twist, periods(2, 0.002), np.zeros(2), np.empty((2, 7)), np.empty(2, np.bool_))\n"
+        "propagate(torch.from_numpy(pose), torch.ones(2, 6), 0.002)\n"
+        "propagate(torch.from_numpy(pose), torch.ones(2, 6), torch.full((2,), 0.002, dtype=torch.float64))\n"
+        "print(len(propagate_kernel.signatures))\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_CACHE_DIR": str(tmp_path)}
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=600, check=True)
+    assert r.stdout.split() == ["1"]

@@ -157,6 +157,8 @@ def propagate(pose: torch.Tensor, twist: torch.Tensor, dt: torch.Tensor | float)
     if not isinstance(twist, torch.Tensor) or twist.shape[-1:] != (6,):
         raise ValueError(f"twist must be a tensor of shape (B, 6), got {getattr(twist, 'shape', type(twist))}")
     p, tw, dt, lead, dtype = _rows(pose, twist, dt, 7, 6)
+    dt = dt.view()
+    dt.flags.writeable = False  # typed as the tracker's read-only periods: one compiled signature, not two
     out = torch.empty(*lead, 7, dtype=torch.float64)
     propagate_kernel(p, tw, dt, out.view(-1, 7).numpy())
     return out if dtype == torch.float64 else out.to(dtype)
