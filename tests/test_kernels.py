@@ -1,5 +1,6 @@
 """The kernels' cache: a cold cache is detected (from an empty NUMBA_CACHE_DIR), announced once in one line, and
-warm after a first run; `warmup` leaves no module of the tracker cold."""
+warm after a first run; `warmup` leaves no module of the tracker cold; a kernel called from Python and from
+compiled steps compiles once."""
 
 import os
 import subprocess
@@ -7,6 +8,13 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def _run_cold(script: str, cache_dir: Path) -> subprocess.CompletedProcess:
+    """``script`` in a fresh Python process whose numba cache is the empty ``cache_dir``."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_CACHE_DIR": str(cache_dir)}
+    return subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=600,
+                          check=True)
 
 
 def test_a_cold_cache_is_announced_once_and_warm_after_first_use(tmp_path):
@@ -19,8 +27,7 @@ def test_a_cold_cache_is_announced_once_and_warm_after_first_use(tmp_path):
         "torchevtrack.events.EventStream.from_arrays([1], [2], [3], [1], width=4, height=4)\n"
         "print(sorted(uncached_kernels()))\n"
     )
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_CACHE_DIR": str(tmp_path)}
-    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=600, check=True)
+    r = _run_cold(script, tmp_path)
     before, after = r.stdout.splitlines()
     assert before == "['torchevtrack.events._first_outside', 'torchevtrack.events.first_invalid']"
     assert after == "[]"
@@ -54,6 +61,5 @@ def test_propagate_from_python_and_from_the_update_compile_once(tmp_path):
         "propagate(torch.from_numpy(pose), torch.ones(2, 6), torch.full((2,), 0.002, dtype=torch.float64))\n"
         "print(len(propagate_kernel.signatures))\n"
     )
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_CACHE_DIR": str(tmp_path)}
-    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=600, check=True)
+    r = _run_cold(script, tmp_path)
     assert r.stdout.split() == ["1"]
