@@ -48,18 +48,22 @@ def test_warmup_leaves_no_tracker_module_cold(capsys):
     assert "compiling" not in capsys.readouterr().err  # warmup reports through its own bar, not the notice
 
 
-def test_propagate_from_python_and_from_the_update_compile_once(tmp_path):
+def test_propagate_and_twist_between_from_python_and_from_the_update_compile_once(tmp_path):
     # A second signature of a kernel is a second compilation on a cold start (10-15 s each). The update passes its
-    # read-only periods (stages.periods) to the compiled propagate_step; Python's propagate must type its dt alike.
+    # read-only periods (stages.periods) to propagate_kernel and twist_between_kernel from compiled steps; Python's
+    # propagate and twist_between (metrics, recovery) must type their dt alike.
     script = (
         "import numpy as np, torch\n"
         "from torchevtrack.stages import periods\n"
-        "from torchevtrack.stages.propagate import propagate, propagate_kernel, propagate_step\n"
+        "from torchevtrack.stages.propagate import (propagate, propagate_kernel, propagate_step, twist_between,\n"
+        "                                           twist_between_kernel)\n"
         "pose = np.tile([0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0], (2, 1)); twist = np.ones((2, 6))\n"
         "propagate_step(pose, twist, periods(2, 0.002), np.zeros(2), np.empty((2, 7)), np.empty(2, np.bool_))\n"
-        "propagate(torch.from_numpy(pose), torch.ones(2, 6), 0.002)\n"
-        "propagate(torch.from_numpy(pose), torch.ones(2, 6), torch.full((2,), 0.002, dtype=torch.float64))\n"
-        "print(len(propagate_kernel.signatures))\n"
+        "twist_between_kernel(pose, pose, periods(2, 0.002), np.empty((2, 6)))\n"
+        "for dt in (0.002, torch.full((2,), 0.002, dtype=torch.float64)):\n"
+        "    propagate(torch.from_numpy(pose), torch.ones(2, 6), dt)\n"
+        "    twist_between(torch.from_numpy(pose), torch.from_numpy(pose), dt)\n"
+        "print(len(propagate_kernel.signatures), len(twist_between_kernel.signatures))\n"
     )
     r = _run_cold(script, tmp_path)
-    assert r.stdout.split() == ["1"]
+    assert r.stdout.split() == ["1", "1"]

@@ -116,7 +116,10 @@ def twist_between_kernel(start, end, dt, out):
 
 def _rows(a: torch.Tensor, b: torch.Tensor, dt, na: int, nb: int):
     """``a (..., na)``, ``b (..., nb)`` and ``dt`` (float, ``()`` or ``(...)``) broadcast over their leading dims,
-    as contiguous float64 numpy rows ``(N, na)``, ``(N, nb)``, ``(N,)``; and the leading shape and the dtype."""
+    as contiguous float64 numpy rows ``(N, na)``, ``(N, nb)``, ``(N,)``; and the leading shape and the dtype.
+
+    ``dt`` comes read-only, as the tracker's compiled steps pass their periods (:func:`~torchevtrack.stages.periods`):
+    the kernels then compile one signature for both kinds of caller, not two."""
     dtype = a.dtype
     if not isinstance(dt, torch.Tensor) and a.ndim == 2 and b.shape[:-1] == a.shape[:-1]:
         lead = a.shape[:-1]
@@ -126,6 +129,8 @@ def _rows(a: torch.Tensor, b: torch.Tensor, dt, na: int, nb: int):
         lead = torch.broadcast_shapes(a.shape[:-1], b.shape[:-1], dt.shape)
         a, b = a.expand(*lead, na), b.expand(*lead, nb)
         dt = dt.expand(lead).reshape(-1).contiguous().numpy()
+    dt = dt.view()
+    dt.flags.writeable = False
     return _f64_rows(a, na), _f64_rows(b, nb), dt, lead, dtype
 
 
@@ -157,8 +162,6 @@ def propagate(pose: torch.Tensor, twist: torch.Tensor, dt: torch.Tensor | float)
     if not isinstance(twist, torch.Tensor) or twist.shape[-1:] != (6,):
         raise ValueError(f"twist must be a tensor of shape (B, 6), got {getattr(twist, 'shape', type(twist))}")
     p, tw, dt, lead, dtype = _rows(pose, twist, dt, 7, 6)
-    dt = dt.view()
-    dt.flags.writeable = False  # typed as the tracker's read-only periods: one compiled signature, not two
     out = torch.empty(*lead, 7, dtype=torch.float64)
     propagate_kernel(p, tw, dt, out.view(-1, 7).numpy())
     return out if dtype == torch.float64 else out.to(dtype)
