@@ -7,7 +7,7 @@ from torchevtrack import geometry as g
 from torchevtrack.camera import Camera
 from torchevtrack.mesh import load_mesh
 from torchevtrack.raster import RasterRenderer
-from torchevtrack.stages.eros import canvas_observation
+from torchevtrack.stages.eros import canvas_observation, recency_arrays
 from torchevtrack.stages.template import Correction, correct_canvas, newton_search, template_model
 from torchevtrack.update import CorrectionStep, bind_correction
 
@@ -16,7 +16,8 @@ F64 = torch.float64
 T_NOW = 1_000_000
 OPTIONS = dict(canvas=64, margin_px=20.0, edge_clip=0.1, silhouette=True)
 SEARCH = dict(dp_px=1.0, dtheta_deg=0.5, iterations=4)
-AGE = dict(max_age_us=40_000, recency_us=5_000.0)
+MAX_AGE_US = 40_000
+RECENCY_US = torch.tensor([5_000.0, 2_250.0])  # one window per element
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +49,7 @@ def scene():
 
 def _oracle(pose32, predicted, depth, gray, origin, surface, last, t_now, rule="newton"):
     model = template_model(pose32, depth, gray, origin, CAM, **OPTIONS)
-    obs = canvas_observation(surface, last, model.box, OPTIONS["canvas"], t_now, **AGE)
+    obs = canvas_observation(surface, last, model.box, OPTIONS["canvas"], t_now, MAX_AGE_US, RECENCY_US)
     if rule == "newton":
         return model, newton_search(model, predicted, obs.flatten(1), CAM, **SEARCH)
     return model, correct_canvas(model, predicted, obs, CAM, rule=rule, **SEARCH)
@@ -57,7 +58,8 @@ def _oracle(pose32, predicted, depth, gray, origin, surface, last, t_now, rule="
 def _step(pose32, predicted, depth, gray, origin, surface, last, t_now, rule="newton", model=None, on_observed=None):
     """The tracker's call: the correction bound to the surfaces, on numpy arrays; the correction's fields as
     tensors."""
-    run = bind_correction(surface.numpy(), last.numpy(), CAM, **OPTIONS, **SEARCH, **AGE, rule=rule)
+    run = bind_correction(surface.numpy(), last.numpy(), CAM, **OPTIONS, **SEARCH, rule=rule, max_age_us=MAX_AGE_US,
+                          recency=recency_arrays(RECENCY_US, 2, MAX_AGE_US))
     np_ = lambda x: None if x is None else x.numpy()  # noqa: E731
     step = run(np_(pose32), predicted.numpy(), np_(depth), np_(gray), np_(origin), t_now.numpy(), model=model,
                on_observed=on_observed)

@@ -10,6 +10,7 @@ import torch
 from torchevtrack.stages.eros import (EROS, canvas_observation, eros_update, eros_update_, observation,
                                      recent_observation)
 from torchevtrack.stages.template import to_canvas
+from torchevtrack.config import TrackerConfig
 from torchevtrack.stages.flow import NEVER
 
 
@@ -143,14 +144,17 @@ def _recent_reference(surface, last_us, origin, size, t_now, max_age_us, recency
         age = t_now[i] - last_us[i, :, v0:v0 + h, u0:u0 + w].amax(0)
         if max_age_us > 0:
             crop = crop * (age < max_age_us)
-        if recency_us > 0:
-            crop = crop * torch.exp(-age.clamp_min(0).float() / recency_us)
+        tau = float(recency_us[i]) if isinstance(recency_us, torch.Tensor) else recency_us
+        if tau > 0:
+            crop = crop * torch.exp(-age.clamp_min(0).float() / tau)
         crops.append(crop)
     return observation(torch.stack(crops))
 
 
 @pytest.mark.parametrize("size", [(37, 52), (1, 9), (8, 1)])
-@pytest.mark.parametrize("max_age_us, recency_us", [(0, 0.0), (3000, 0.0), (0, 800.0), (3000, 800.0)])
+@pytest.mark.parametrize("max_age_us, recency_us", [(0, 0.0), (3000, 0.0), (0, 800.0), (3000, 800.0),
+                                                    (3000, torch.tensor([800.0, 2500.0])),  # one per element
+                                                    (0, torch.tensor([1200.0, 0.0]))])
 @pytest.mark.parametrize("channels", [2, 1])  # the flow's SAE (a strided view), the EROS side's time surface
 def test_recent_observation_matches_its_definition(size, max_age_us, recency_us, channels):
     gen = torch.Generator().manual_seed(21)
@@ -174,7 +178,7 @@ def test_recent_observation_matches_its_definition(size, max_age_us, recency_us,
         recent_observation(surface, last.float(), origin, size, t_now)
 
 
-@pytest.mark.parametrize("max_age_us, recency_us", [(0, 0.0), (3000, 800.0)])
+@pytest.mark.parametrize("max_age_us, recency_us", [(0, 0.0), (3000, 800.0), (3000, torch.tensor([2500.0, 800.0, 0.0]))])
 @pytest.mark.parametrize("channels", [2, 1])
 def test_canvas_observation_is_the_recent_observation_of_the_tap_window_in_the_canvas(max_age_us, recency_us,
                                                                                       channels):
@@ -195,7 +199,7 @@ def test_canvas_observation_is_the_recent_observation_of_the_tap_window_in_the_c
         u1, v1 = min(math.floor(cu + (N / 2 - 0.5) * s) + 2, W), min(math.floor(cv + (N / 2 - 0.5) * s) + 2, H)
         origin = torch.tensor([[u0, v0]])
         win = _recent_reference(surface[i:i + 1], last[i:i + 1], origin, (v1 - v0, u1 - u0), t_now[i:i + 1],
-                                max_age_us, recency_us)
+                                max_age_us, recency_us[i:i + 1] if isinstance(recency_us, torch.Tensor) else recency_us)
         ref = to_canvas(win, box[i:i + 1].float(), N, origin)
         assert torch.allclose(out[i:i + 1], ref, atol=2e-6), (out[i:i + 1] - ref).abs().max()
     with pytest.raises(ValueError, match="box"):
@@ -244,3 +248,53 @@ def test_time_surface_is_the_newest_event_per_pixel():
     assert ts.last_us.tolist() == want  # nothing written
     ts.reset()
     assert bool((ts.last_us == NEVER).all())
+
+
+def _follow_reference(flow, valid, px, min_us, max_us):
+    """The window a speed asks for, element by element: px over the median speed of the valid vectors, clamped;
+    None with fewer than three vectors."""
+    out = []
+    for f, v in zip(flow.tolist(), valid.tolist()):
+        speeds = [math.hypot(*fg) for fg, ok in zip(f, v) if ok]
+        out.append(None if len(speeds) < 3 else min(max(px / max(float(np.median(speeds)), 1e-6) * 1e6, min_us),
+                                                    max_us))
+    return out
+
+
+def test_recency_follows_the_median_flow_speed_on_its_grid():
+    """Recency against the per-element reference over a run of random flow fields: each call moves an element with
+    three or more valid vectors to the 250 us multiple nearest its window, the others keep theirs; reset restores
+    the start; fixed windows never move."""
+    from torchevtrack.stages.eros import Recency, follow_speed
+
+    gen = torch.Generator().manual_seed(8)
+    B, G, px = 4, 12, 2.5
+    rec = Recency(B, 2500.0, px=px, min_us=1250, max_us=10000)
+    fixed = Recency(B, 2500.0)
+    want = [2500.0] * B
+    assert rec.window_us.tolist() == want and len(rec.windows_us) == 36
+    for _ in range(20):
+        flow = torch.randn(B, G, 2, generator=gen) * torch.rand(B, 1, 1, generator=gen) * 3000
+        valid = torch.rand(B, G, generator=gen) < torch.rand(B, 1, generator=gen)
+        valid[0, :2], valid[0, 2:] = True, False  # two vectors: not enough
+        ref = _follow_reference(flow, valid, px, 1250.0, 10000.0)
+        raw = follow_speed(flow, valid, px, 1250.0, 10000.0)
+        for k, r in enumerate(ref):
+            assert (r is None and math.isnan(raw[k])) or math.isclose(raw[k], r, rel_tol=1e-9)
+            if r is not None:
+                want[k] = 250.0 * round(r / 250.0)
+        assert rec(flow, valid).tolist() == want
+        assert fixed(flow, valid).tolist() == [2500.0] * B
+    assert want[0] == 2500.0 and len(set(want)) > 1
+    rec.reset(torch.tensor([1, 3]))
+    assert rec.window_us.tolist() == [want[0], 2500.0, want[2], 2500.0]
+    rec.reset()
+    assert rec.window_us.tolist() == [2500.0] * B
+    with pytest.raises(ValueError, match="flow"):
+        rec(torch.zeros(B, G), valid)
+    with pytest.raises(ValueError, match="multiples of 250"):
+        Recency(1, 2600.0, px=2.5)
+    with pytest.raises(ValueError, match="min_us <= recency_us"):
+        Recency(1, 500.0, px=2.5)
+    with pytest.raises(ValueError, match="eros.recency"):
+        TrackerConfig().replace(eros={"recency_px": 2.5, "recency_max_us": 2000.0})

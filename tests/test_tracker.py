@@ -267,6 +267,44 @@ def test_observation_drops_old_pixels_and_weighs_recent_ones(seq, monkeypatch):
         TrackerConfig().replace(eros={"recency_us": -1.0})
 
 
+def test_the_observation_window_follows_the_last_updates_flow(seq, monkeypatch):
+    """With ``eros.recency_px``, each update observes with the window the previous update's flow asked for (the
+    first with ``recency_us``): the windows the correction's kernel was given, against the flow fields the recency
+    stage was given and the reference of that stage's test; a moving object's windows move."""
+    from torchevtrack import update
+
+    from test_eros import _follow_reference
+
+    used = []
+    kernel = update.canvas_kernel
+
+    def capture(*args):
+        taus, level = args[5], args[7]
+        used.append(float(taus[level[0]]))
+        kernel(*args)
+
+    monkeypatch.setattr(update, "canvas_kernel", capture)
+    cfg = TrackerConfig().replace(eros={"recency_px": 2.5})
+    tracker = EventPoseTracker(CAM, seq.mesh, cfg, pipeline=False)
+    flows, forward = [], tracker.recency.forward
+
+    def recorded(flow, valid):
+        flows.append((flow.clone(), valid.clone()))
+        return forward(flow, valid)
+
+    tracker.recency.forward = recorded
+    t0 = int(seq.gt_t_us[0])
+    tracker.track(seq.events, seq.gt_poses[0], t_start_us=t0, t_end_us=t0 + 60_000, progress=False)
+    tracker.close()
+    assert len(used) == len(flows) == 30
+    want = 2500.0
+    for k, (flow, valid) in enumerate(flows):
+        assert used[k] == want, k
+        ref = _follow_reference(flow, valid, 2.5, 1250.0, 10000.0)[0]
+        want = want if ref is None else 250.0 * round(ref / 250.0)
+    assert len(set(used)) > 2
+
+
 def test_correction_feedback_runs_only_with_flow_and_correction(seq):
     """The feedback needs both the flow twist it adds to and the corrections it integrates; the paper's
     ablations without either (and gain 0) run without it, the full method with it."""
@@ -325,12 +363,13 @@ def _counting_intake(monkeypatch):
     return calls
 
 
-@pytest.mark.parametrize("ablation", ["full", "velocity_only", "correction_only"])
+@pytest.mark.parametrize("ablation", ["full", "velocity_only", "correction_only", "full_recency_px"])
 def test_the_pipeline_gives_the_poses_of_the_serial_update(seq, ablation, monkeypatch):
     """Bit for bit, one stream and a batch on one worker. Every window but the first goes in on the pipeline's
     thread: taken in ahead, or (one stream with its template made ahead) into the EROS side with the observation."""
     calls = _counting_intake(monkeypatch)
-    cfg = TrackerConfig().replace(**ABLATIONS[ablation])
+    cfg = TrackerConfig().replace(eros={"recency_px": 2.5}) if ablation == "full_recency_px" else \
+        TrackerConfig().replace(**ABLATIONS[ablation])
     t0, t1 = int(seq.gt_t_us[0]), int(seq.gt_t_us[0]) + 40_000
     for batch in (1, 2):
         out = {}

@@ -42,12 +42,33 @@ TWIST_AXES = ("vx", "vy", "vz", "wx", "wy", "wz")  # names of the twist componen
 DEFAULT_YAML = Path(__file__).parent / "configs" / "default.yaml"  # every key with its default value
 
 
+RECENCY_STEP_US = 250  # a recency window that follows the image speed is a multiple of this
+
+
+def recency_windows(recency_us: float, px: float, min_us: float, max_us: float) -> tuple[float, ...]:
+    """The recency windows an element may take (microseconds, :class:`~torchevtrack.stages.eros.Recency`): just
+    ``recency_us`` if fixed (``px == 0``), else the multiples of :data:`RECENCY_STEP_US` from ``min_us`` to ``max_us``,
+    which must be such multiples, with ``recency_us`` one of them. Raises ValueError otherwise."""
+    if not (px >= 0 and recency_us >= 0):
+        raise ValueError(f"the recency window and its px must be >= 0, got {recency_us} us, {px} px")
+    if px == 0:
+        return (float(recency_us),)
+    step = RECENCY_STEP_US
+    if not 0 < min_us <= recency_us <= max_us or any(v % step for v in (min_us, max_us, recency_us)):
+        raise ValueError(f"a recency window that follows the speed needs min_us <= recency_us <= max_us, positive "
+                         f"multiples of {step} us, got {min_us}, {recency_us}, {max_us}")
+    return tuple(float(v) for v in range(int(min_us), int(max_us) + 1, step))
+
+
 @dataclass
 class ErosConfig:
     kernel_size: int = 7  # odd window size k
     decay: float = 0.3  # d; the per-event factor is d ** (1 / k)
     max_age_us: int = 30_000  # > 0: the observation drops pixels with no event for this long (0 = the paper)
     recency_us: float = 2500.0  # > 0: the observation weighs pixels by exp(-age / recency_us) (0 = the paper)
+    recency_px: float = 0.0  # > 0: recency_us follows the image speed, the time edges take to move this far
+    recency_min_us: float = 1250.0  # the bounds of a recency that follows the speed (multiples of 250 us)
+    recency_max_us: float = 10000.0
 
 
 @dataclass
@@ -188,6 +209,11 @@ class TrackerConfig:
             raise ValueError(f"rate_hz must be positive, got {self.rate_hz}")
         if self.eros.recency_us < 0 or self.eros.max_age_us < 0:
             raise ValueError("eros.max_age_us and eros.recency_us must be >= 0 (0 = off)")
+        e = self.eros
+        try:
+            recency_windows(e.recency_us, e.recency_px, e.recency_min_us, e.recency_max_us)
+        except ValueError as err:
+            raise ValueError(f"eros.recency_*: {err}") from None
         if self.velocity.source not in ("flow", "poses", "none"):
             raise ValueError(f"velocity.source must be 'flow', 'poses' or 'none', got {self.velocity.source!r}")
         v = self.velocity

@@ -21,8 +21,9 @@ sequences and runs, in the paper's order:
    with the pipeline the render and its template model are made on the pipeline's thread during the previous
    update's step 5, in one compiled call (:class:`~torchevtrack.update.RenderModelBinding`);
 5. :class:`~torchevtrack.stages.template.TemplateCorrector` scores hypotheses around the propagated pose,
-   warped from that render, against the EROS observation (optionally weighted toward its newest events, ``eros.recency_us``)
-   and moves the pose to the best (the paper's argmax of 13, or a Newton step over all six axes:
+   warped from that render, against the EROS observation (weighted toward its newest events: ``eros.recency_us``, a
+   window that with ``eros.recency_px`` follows the speed of the last update's flow,
+   :class:`~torchevtrack.stages.eros.Recency`) and moves the pose to the best (the paper's argmax of 13, or a Newton step over all six axes:
    ``template.rule``); the correction's rate feeds the feedback of step 3, if on;
 6. :class:`~torchevtrack.stages.ukf.PoseUKF` smooths the corrected pose into the output (with the correction
    feedback's update and the output checks, one compiled call: :func:`~torchevtrack.update.output`);
@@ -81,7 +82,7 @@ from torchevtrack.schedule import Job, Schedule
 from torchevtrack.stages import batch_mask, periods
 from torchevtrack.stages.burst import BurstGuard, keep_events
 from torchevtrack.stages.denoise import BackgroundActivityFilter
-from torchevtrack.stages.eros import EROS, TimeSurface, bind_observe
+from torchevtrack.stages.eros import EROS, Recency, TimeSurface, bind_observe
 from torchevtrack.stages.flow import FlowField, TripletFlow
 from torchevtrack.stages.propagate import invalid_poses, propagate
 from torchevtrack.stages.template import Correction, TemplateCorrector, TemplateModel, window_of
@@ -231,6 +232,7 @@ class EventPoseTracker(nn.Module):
 
         H, W = camera.height, camera.width
         self.eros = EROS.from_config(H, W, cfg.eros, batch_size=B)
+        self.recency = Recency.from_config(cfg.eros, batch_size=B)
         self.flow = TripletFlow.from_config(H, W, cfg.flow, batch_size=B)
         v, t = cfg.velocity, cfg.template
         self.velocity = VelocityKF.from_config(camera, v, normal=cfg.flow.estimate == "normal", batch_size=B)
@@ -349,6 +351,7 @@ class EventPoseTracker(nn.Module):
         if self.denoise is not None:
             self.denoise.reset(m)
         self.eros.reset(m)
+        self.recency.reset(m)
         if self.time_surface is not None:
             self.time_surface.reset(m)
         self.flow.reset(m)
@@ -545,6 +548,7 @@ class EventPoseTracker(nn.Module):
         axis = quat_rotate(torch.from_numpy(measured[:, 3:]), self._symmetry_axis).numpy() \
             if self.feedback is not None and self._symmetric else None
         out, bad = output(run.output, predicted, measured, twist, axis)
+        self.recency(torch.from_numpy(flow.flow), torch.from_numpy(flow.valid))  # the next observations' windows
         clock.lap("ukf")
         run.prev_pose[:] = run.pose
         run.pose[:] = out
@@ -739,13 +743,14 @@ class EventPoseTracker(nn.Module):
         correct = [bind_correction(self.eros.surface[r].numpy(), times[r].numpy(), self.camera, canvas=o["canvas"],
                                    margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"],
                                    dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"], rule=o["rule"],
-                                   iterations=o["iterations"], max_age_us=e.max_age_us, recency_us=e.recency_us)
+                                   iterations=o["iterations"], max_age_us=e.max_age_us,
+                                   recency=self.recency.arrays(e.max_age_us, r))
                    for r in self._schedule.shares]
         output = OutputArgs(self.pose.numpy(), dt, self._min_depth.numpy(),
                             self.ukf.arrays() if cfg.ukf.enabled else None, None if fb is None else fb.arrays())
         observe = None if self.time_surface is None else \
-            bind_observe(self.eros, self.time_surface, canvas=o["canvas"], max_age_us=e.max_age_us,
-                         recency_us=e.recency_us)
+            bind_observe(self.eros, self.time_surface, self.recency.arrays(e.max_age_us), canvas=o["canvas"],
+                         max_age_us=e.max_age_us)
         intake = [bind_intake(self.eros, self.time_surface, self.flow, r) for r in self._schedule.shares]
         self._run.bound = _Bound(intake, motion, correct, output, observe,
                              self.pose.numpy(), self.prev_pose.numpy(), self.origin.numpy(), self.events_seen.numpy(),

@@ -48,7 +48,7 @@ import torch
 from torchevtrack.camera import Camera
 from torchevtrack.geometry import nb_normalise_quaternions
 from torchevtrack.raster import AMBIENT, LIGHT_DIRECTION, RasterRenderer, render_kernel
-from torchevtrack.stages.eros import (EROS, TimeSurface, canvas_kernel, decay_table, eros_kernel, prepare_events,
+from torchevtrack.stages.eros import (EROS, RecencyArrays, TimeSurface, canvas_kernel, eros_kernel, prepare_events,
                                       time_kernel)
 from torchevtrack.stages.flow import (FlowField, TripletFlow, event_arrays, events_in_range, flow_packet, range_error,
                                       smooth_flow)
@@ -351,14 +351,15 @@ class CorrectionStep(NamedTuple):
 
 def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *, canvas: int, margin_px: float,
                     edge_clip: float, silhouette: bool, dp_px: float, dtheta_deg: float, rule: str, iterations: int,
-                    max_age_us: int, recency_us: float) -> Callable[..., CorrectionStep]:
+                    max_age_us: int, recency: RecencyArrays) -> Callable[..., CorrectionStep]:
     """Step 5 (see the module docstring) bound to the EROS ``surface`` ``(B, H, W)`` float32 and the time surface
     ``last_us`` ``(B, C, H, W)`` int64 (numpy views, read at each call) and the options, unchecked.
 
     Options: ``canvas, margin_px, edge_clip, silhouette`` as for
     :func:`~torchevtrack.stages.template.template_model`; ``dp_px, dtheta_deg, rule, iterations`` as for
-    :func:`~torchevtrack.stages.template.correct_canvas`; ``max_age_us, recency_us`` as for
-    :func:`~torchevtrack.stages.eros.canvas_observation`.
+    :func:`~torchevtrack.stages.template.correct_canvas`; ``max_age_us`` as for
+    :func:`~torchevtrack.stages.eros.canvas_observation`; ``recency`` the elements' recency windows
+    (:meth:`~torchevtrack.stages.eros.Recency.arrays`, read at each call).
 
     Returns ``run(render_pose, predicted, depth, gray, origin, t_now_us, model=None, on_observed=None, obs=None)``
     of numpy arrays: the render ``depth`` ``(B, h, w)`` float32 made at ``render_pose`` ``(B, 7)`` float32, its grey
@@ -372,8 +373,7 @@ def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *,
     ``newton_search`` (or ``correct_canvas``) one after the other.
     """
     cam = camera_array(camera)
-    max_age_us, recency_us = int(max_age_us), float(recency_us)
-    table = decay_table(recency_us, max_age_us)
+    max_age_us = int(max_age_us)
     dp, dtheta = float(dp_px), math.radians(dtheta_deg)
 
     def run(render_pose, predicted, depth, gray, origin, t_now_us, model=None, on_observed=None,
@@ -388,7 +388,7 @@ def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *,
         if obs is None:
             obs = np.empty((B, N, N), dtype=np.float32)
             canvas_kernel(surface, last_us, observed_box if model is None else model.box.numpy().astype(np.float64),
-                          t_now_us.astype(np.int64, copy=False), max_age_us, recency_us, table, obs)
+                          t_now_us.astype(np.int64, copy=False), max_age_us, *recency, obs)
         if on_observed is not None:
             on_observed()
         if model is None:

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import kornia
 import numba
@@ -35,11 +35,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from torchevtrack.config import ErosConfig
+from torchevtrack.config import RECENCY_STEP_US, ErosConfig, recency_windows
 from torchevtrack.stages import NEVER, batch_mask, canvas_taps
 
-__all__ = ["EROS", "TimeSurface", "bind_observe", "canvas_kernel", "canvas_observation", "check_fields", "check_times",
-           "decay_table", "eros_kernel", "eros_update", "eros_update_", "events_inside", "observation", "prepare_events",
+__all__ = ["EROS", "Recency", "RecencyArrays", "TimeSurface", "bind_observe", "canvas_kernel",
+           "canvas_observation", "check_fields", "check_times", "decay_tables", "eros_kernel", "eros_update",
+           "eros_update_", "events_inside", "follow_speed", "observation", "prepare_events", "recency_arrays",
            "recent_observation", "time_kernel", "time_surface_update_"]
 
 
@@ -208,7 +209,8 @@ def _median3(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
 
 
 def recent_observation(surface: torch.Tensor, last_us: torch.Tensor, origin: torch.Tensor, size: tuple[int, int],
-                       t_now_us: torch.Tensor, max_age_us: int = 0, recency_us: float = 0.0) -> torch.Tensor:
+                       t_now_us: torch.Tensor, max_age_us: int = 0,
+                       recency_us: float | torch.Tensor = 0.0) -> torch.Tensor:
     """The matching observation (:func:`observation`) of one window of each surface, weighed by event age.
 
     Every pixel of the window is ``S * [age < max_age_us] * exp(-max(age, 0) / recency_us)`` before the 3x3
@@ -219,6 +221,7 @@ def recent_observation(surface: torch.Tensor, last_us: torch.Tensor, origin: tor
         surface: ``(B, H, W)`` float32 EROS; last_us: ``(B, C, H, W)`` int64 time surface (microseconds).
         origin: ``(B, 2)`` int64 top-left pixel ``(u0, v0)`` of each window; size: ``(h, w)``, inside the frame.
         t_now_us: ``(B,)`` int64 current time per element.
+        recency_us: one recency window for all elements, or ``(B,)`` one per element (microseconds, ``>= 0``).
 
     Shape: returns ``(B, h, w)`` float32.
     """
@@ -230,13 +233,14 @@ def recent_observation(surface: torch.Tensor, last_us: torch.Tensor, origin: tor
         raise ValueError(f"windows of size {(h, w)} at origins {o.tolist()} must lie inside the {H}x{W} surface")
     out = torch.empty(B, h, w, dtype=torch.float32)
     _recent_kernel(surface.detach().numpy(), last_us.detach().numpy(), o.contiguous().numpy(),  # views: no copies
-                   t_now_us.long().contiguous().numpy(), int(max_age_us), float(recency_us),
-                   decay_table(float(recency_us), int(max_age_us)), out.numpy())
+                   t_now_us.long().contiguous().numpy(), int(max_age_us), *recency_arrays(recency_us, B, max_age_us),
+                   out.numpy())
     return out
 
 
 def canvas_observation(surface: torch.Tensor, last_us: torch.Tensor, box: torch.Tensor, canvas: int,
-                       t_now_us: torch.Tensor, max_age_us: int = 0, recency_us: float = 0.0) -> torch.Tensor:
+                       t_now_us: torch.Tensor, max_age_us: int = 0,
+                       recency_us: float | torch.Tensor = 0.0) -> torch.Tensor:
     """:func:`recent_observation` of the frame under each canvas box, resampled into the canvas.
 
     Canvas pixel ``i`` (column or row) samples frame coordinate ``c + (i + 0.5 - canvas / 2) side / canvas`` of
@@ -256,8 +260,8 @@ def canvas_observation(surface: torch.Tensor, last_us: torch.Tensor, box: torch.
         raise ValueError(f"box must have shape ({B}, 3) [cu, cv, side], got {tuple(box.shape)}")
     out = torch.empty(B, canvas, canvas, dtype=torch.float32)
     canvas_kernel(surface.detach().numpy(), last_us.detach().numpy(), box.double().contiguous().numpy(),
-                  t_now_us.long().contiguous().numpy(), int(max_age_us), float(recency_us),
-                  decay_table(float(recency_us), int(max_age_us)), out.numpy())
+                  t_now_us.long().contiguous().numpy(), int(max_age_us), *recency_arrays(recency_us, B, max_age_us),
+                  out.numpy())
     return out
 
 
@@ -267,16 +271,45 @@ def _check_time_surface(last_us: torch.Tensor, B: int, H: int, W: int) -> None:
                          f"{tuple(last_us.shape)}")
 
 
-@functools.lru_cache(maxsize=8)
-def decay_table(tau: float, max_age: int) -> np.ndarray:
-    """The age weights ``exp(-age / tau)`` (float32, :func:`_decay`) of the ages ``0 .. n - 1`` us, for the ``decay``
-    argument of :func:`canvas_kernel`: ``n`` the ages that can carry weight (below ``max_age`` us, if positive) up
-    to ``16 tau`` and at most ``_DECAY_TABLE`` entries; empty for ``tau <= 0`` (no weights). Cached and read-only.
+class RecencyArrays(NamedTuple):
+    """The recency windows of a batch, as the compiled observation takes them: the distinct windows ``taus`` ``(L,)``
+    float64 us (0: no weighting), their age weights ``decay`` ``(L, n)`` float32 (:func:`decay_tables`) and each
+    element's window ``level`` ``(B,)`` int64, a row of both (a view of :class:`Recency`'s buffer, read at each
+    call, or made once by :func:`recency_arrays`)."""
 
-    Shape: ``(n,)`` float32.
+    taus: np.ndarray
+    decay: np.ndarray
+    level: np.ndarray
+
+
+def recency_arrays(recency_us: float | torch.Tensor, B: int, max_age_us: int) -> RecencyArrays:
+    """:class:`RecencyArrays` of one window for all ``B`` elements (a number) or of one per element (``(B,)``),
+    microseconds, ``>= 0``."""
+    r = torch.as_tensor(recency_us, dtype=torch.float64)
+    if r.ndim == 0:
+        r = r.expand(B)
+    if r.shape != (B,) or not bool(((r >= 0) & torch.isfinite(r)).all()):
+        raise ValueError(f"recency_us must be one number or ({B},) numbers, finite and >= 0 (microseconds), got "
+                         f"{recency_us!r}")
+    taus, level = torch.unique(r, return_inverse=True)
+    taus = tuple(taus.tolist())
+    return RecencyArrays(np.array(taus), decay_tables(taus, int(max_age_us)), level.numpy())
+
+
+@functools.lru_cache(maxsize=8)
+def decay_tables(taus: tuple[float, ...], max_age: int) -> np.ndarray:
+    """The age weights ``exp(-age / tau)`` (float32, :func:`_decay`) of the ages ``0 .. n - 1`` us, one row per
+    window ``tau`` (us), for the ``decay`` argument of :func:`canvas_kernel`: ``n`` the ages that can carry weight
+    (below ``max_age`` us, if positive) up to ``16 tau`` of the longest window and at most ``_DECAY_TABLE`` entries;
+    no entries if every ``tau <= 0`` (no weights; a row of such a ``tau`` is never read). Cached and read-only.
+
+    Shape: ``(L, n)`` float32, ``L = len(taus)``.
     """
-    n = 0 if tau <= 0 else min(max_age if max_age > 0 else math.ceil(16 * tau), _DECAY_TABLE)
-    table = _decay_fill(np.float32(1.0 / tau) if tau > 0 else np.float32(0.0), np.empty(n, dtype=np.float32))
+    top = max(taus)
+    n = 0 if top <= 0 else min(max_age if max_age > 0 else math.ceil(16 * top), _DECAY_TABLE)
+    table = np.empty((len(taus), n), dtype=np.float32)
+    for row, tau in zip(table, taus):
+        _decay_fill(np.float32(1.0 / tau) if tau > 0 else np.float32(0.0), row)
     table.flags.writeable = False
     return table
 
@@ -298,19 +331,20 @@ def _decay(age, inv_tau):
 
 
 @numba.njit(cache=True, nogil=True)
-def _recent_kernel(surface, last, origin, t_now, max_age, tau, decay, out):
+def _recent_kernel(surface, last, origin, t_now, max_age, taus, decay, level, out):
     """:func:`recent_observation` into ``out`` ``(B, h, w)``."""
     for b in range(out.shape[0]):
-        _recent_window(surface[b], last[b], origin[b, 0], origin[b, 1], t_now[b], max_age, tau, decay, out[b])
+        k = level[b]
+        _recent_window(surface[b], last[b], origin[b, 0], origin[b, 1], t_now[b], max_age, taus[k], decay[k], out[b])
 
 
 @numba.njit(cache=True, nogil=True)
-def canvas_kernel(surface, last, box, t_now, max_age, tau, decay, out):
+def canvas_kernel(surface, last, box, t_now, max_age, taus, decay, level, out):
     """:func:`canvas_observation` on numpy arrays, unchecked, into ``out``; releases the GIL.
 
     Args: ``surface`` ``(B, H, W)`` float32 EROS, ``last`` ``(B, C, H, W)`` int64 time surface (us), ``box``
-    ``(B, 3)`` float64 ``[cu, cv, side]`` frame pixels, ``t_now`` ``(B,)`` int64 us, ``max_age`` int us, ``tau``
-    float us (``recency_us``), ``decay`` its :func:`decay_table`; ``out`` ``(B, N, N)`` float32, overwritten.
+    ``(B, 3)`` float64 ``[cu, cv, side]`` frame pixels, ``t_now`` ``(B,)`` int64 us, ``max_age`` int us, ``taus,
+    decay, level`` the recency windows (:class:`RecencyArrays`); ``out`` ``(B, N, N)`` float32, overwritten.
     """
     B, N = out.shape[0], out.shape[1]
     H, W = surface.shape[1], surface.shape[2]
@@ -323,7 +357,8 @@ def canvas_kernel(surface, last, box, t_now, max_age, tau, decay, out):
         if u1 <= u0 or v1 <= v0:
             continue
         win = np.empty((v1 - v0, u1 - u0), dtype=np.float32)
-        _recent_window(surface[b], last[b], u0, v0, t_now[b], max_age, tau, decay, win)
+        k = level[b]
+        _recent_window(surface[b], last[b], u0, v0, t_now[b], max_age, taus[k], decay[k], win)
         _bilinear(win, box[b, 0] - u0, box[b, 1] - v0, step, out[b])
 
 
@@ -352,8 +387,8 @@ def _bilinear(img, cu, cv, step, out):
 @numba.njit(cache=True, nogil=True)
 def _recent_window(surface, last, u0, v0, t_now, max_age, tau, decay, out):
     """The age-weighted, 3x3-median observation of one element's window at ``(u0, v0)`` into ``out`` ``(h, w)``
-    (:func:`recent_observation`); ``surface`` ``(H, W)``, ``last`` ``(C, H, W)``, ``decay`` the weights of the
-    first ages (:func:`decay_table`)."""
+    (:func:`recent_observation`); ``surface`` ``(H, W)``, ``last`` ``(C, H, W)``, ``tau`` the recency window (us),
+    ``decay`` the weights of its first ages (a row of :func:`decay_tables`)."""
     h, w = out.shape
     C = last.shape[0]
     buf = np.empty((h + 2, w + 2), dtype=np.float32)  # the weighted window, mirror-padded by one pixel
@@ -555,8 +590,144 @@ class TimeSurface(nn.Module):
         return f"height={H}, width={W}, batch_size={B}"
 
 
-def bind_observe(eros: EROS, time_surface: TimeSurface, *, canvas: int, max_age_us: int = 0,
-                 recency_us: float = 0.0) -> Callable[..., np.ndarray | None | bool]:
+MIN_FLOW_VECTORS = 3  # valid flow vectors an element needs for its speed to set its window
+
+
+def follow_speed(flow: torch.Tensor, valid: torch.Tensor, px: float, min_us: float, max_us: float) -> torch.Tensor:
+    """The recency window in which the edges move ``px`` pixels: ``px / v`` with ``v`` the median speed of an
+    element's valid flow vectors, clamped to ``[min_us, max_us]``, NaN for an element with fewer than
+    :data:`MIN_FLOW_VECTORS` valid vectors (its speed is not known). Not rounded (:class:`Recency` rounds).
+
+    Args:
+        flow: ``(B, G, 2)`` float32 flow, pixels/s (:class:`~torchevtrack.stages.flow.FlowField`); valid: ``(B, G)``
+            bool; px: pixels (> 0); min_us, max_us: microseconds, ``0 < min_us <= max_us``.
+
+    Shape: returns ``(B,)`` float64 microseconds.
+
+    Example:
+        >>> import torch
+        >>> flow = torch.tensor([[[500.0, 0.0], [0.0, 400.0], [300.0, 400.0], [9.0, 9.0]]])
+        >>> follow_speed(flow, torch.tensor([[True, True, True, False]]), 2.5, 1250.0, 10000.0)  # median 500 px/s
+        tensor([5000.], dtype=torch.float64)
+    """
+    taus = np.full(flow.shape[0], np.nan)
+    _follow_kernel(flow.numpy(), valid.numpy(), float(px), float(min_us), float(max_us), taus)
+    return torch.from_numpy(taus)
+
+
+@numba.njit(cache=True, nogil=True)
+def _follow_kernel(flow, valid, px, min_us, max_us, out):
+    """:func:`follow_speed` into ``out`` ``(B,)`` float64 (left as it is for an element without enough vectors)."""
+    speed = np.empty(valid.shape[1], dtype=np.float64)
+    for b in range(valid.shape[0]):
+        tau = _window_of(flow[b], valid[b], px, min_us, max_us, speed)
+        if tau > 0:
+            out[b] = tau
+
+
+@numba.njit(cache=True, nogil=True)
+def _follow_levels(flow, valid, px, min_us, max_us, level):
+    """:meth:`Recency.forward` into ``level`` ``(B,)`` int64: :func:`follow_speed` rounded to the window grid."""
+    speed = np.empty(valid.shape[1], dtype=np.float64)
+    for b in range(valid.shape[0]):
+        tau = _window_of(flow[b], valid[b], px, min_us, max_us, speed)
+        if tau > 0:
+            level[b] = round((tau - min_us) / RECENCY_STEP_US)
+
+
+@numba.njit(cache=True, nogil=True)
+def _window_of(flow, valid, px, min_us, max_us, speed):
+    """One element's :func:`follow_speed` (``flow`` ``(G, 2)``, ``valid`` ``(G,)``; ``speed`` ``(G,)`` scratch), or
+    -1 without enough vectors."""
+    n = 0
+    for g in range(valid.shape[0]):
+        if valid[g]:
+            speed[n] = math.hypot(np.float64(flow[g, 0]), np.float64(flow[g, 1]))
+            n += 1
+    if n < MIN_FLOW_VECTORS:
+        return -1.0
+    return min(max(px / max(np.median(speed[:n]), 1e-6) * 1e6, min_us), max_us)
+
+
+class Recency(nn.Module):
+    """The observation's recency window (``tau`` of ``exp(-age / tau)``, :func:`canvas_observation`) per element.
+
+    Fixed (``px = 0``): every element's window is ``recency_us``. Following the image speed (``px > 0``): each call
+    sets an element's window to :func:`follow_speed` of its flow, rounded to a multiple of :data:`RECENCY_STEP_US`
+    (an element without enough flow vectors keeps its window), so that the observation holds about ``px`` pixels
+    of each edge's motion: long windows when the object is slow (more of its edges), short ones when it is fast
+    (no smear). An element starts, and restarts at :meth:`reset`, at ``recency_us``.
+
+    Args:
+        batch_size: ``B``; recency_us: the fixed or starting window (microseconds, ``>= 0``, 0: no weighting);
+        px: pixels of motion a window holds (0: fixed); min_us, max_us: the window's bounds when it follows the
+            speed, multiples of :data:`RECENCY_STEP_US` with ``recency_us`` a multiple between them.
+
+    Buffers:
+        level: ``(B,)`` int64, each element's window as an index into :attr:`windows_us`.
+
+    ``forward(flow (B, G, 2) float32 px/s, valid (B, G) bool)`` updates the windows from a flow field and returns
+    :attr:`window_us`.
+
+    Example:
+        >>> import torch
+        >>> rec = Recency(1, 2500.0, px=2.5, min_us=1250, max_us=10000)
+        >>> rec(torch.tensor([[[1000.0, 0.0]] * 3]), torch.ones(1, 3, dtype=torch.bool))  # 2.5 px at 1000 px/s
+        tensor([2500.], dtype=torch.float64)
+        >>> rec(torch.tensor([[[600.0, 0.0]] * 3]), torch.ones(1, 3, dtype=torch.bool)).tolist()  # 4167 us, rounded
+        [4250.0]
+    """
+
+    level: torch.Tensor
+
+    def __init__(self, batch_size: int, recency_us: float, *, px: float = 0.0, min_us: float = 1250.0,
+                 max_us: float = 10000.0):
+        super().__init__()
+        self.px, self.min_us, self.max_us = float(px), float(min_us), float(max_us)
+        self.windows_us = recency_windows(recency_us, px, min_us, max_us)
+        self.start = self.windows_us.index(float(recency_us))
+        self._windows = torch.tensor(self.windows_us, dtype=torch.float64)
+        self.register_buffer("level", torch.full((batch_size,), self.start, dtype=torch.int64))
+
+    @classmethod
+    def from_config(cls, cfg: ErosConfig, batch_size: int = 1) -> "Recency":
+        """The windows of the config section ``eros`` (:class:`~torchevtrack.config.ErosConfig`)."""
+        return cls(batch_size, cfg.recency_us, px=cfg.recency_px, min_us=cfg.recency_min_us, max_us=cfg.recency_max_us)
+
+    @property
+    def window_us(self) -> torch.Tensor:
+        """``(B,)`` float64: each element's window, microseconds."""
+        return self._windows[self.level]
+
+    def forward(self, flow: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        B = self.level.shape[0]
+        if flow.ndim != 3 or flow.shape[0] != B or flow.shape[2] != 2 or valid.shape != flow.shape[:2]:
+            raise ValueError(f"expected flow ({B}, G, 2) and valid ({B}, G), got {tuple(flow.shape)} and "
+                             f"{tuple(valid.shape)}")
+        if self.px > 0:
+            _follow_levels(flow.numpy(), valid.numpy(), self.px, self.min_us, self.max_us, self.level.numpy())
+        return self.window_us
+
+    def arrays(self, max_age_us: int, rows: slice = slice(None)) -> RecencyArrays:
+        """The windows of the elements ``rows`` for the compiled observation (the level a view of the buffer)."""
+        return RecencyArrays(np.array(self.windows_us), decay_tables(self.windows_us, int(max_age_us)),
+                             self.level[rows].numpy())
+
+    def reset(self, mask: torch.Tensor | None = None) -> None:
+        """Every element's window, or those selected by ``mask`` (``(B,)`` bool or ``(K,)`` indices), back to
+        ``recency_us``."""
+        if mask is None:
+            self.level.fill_(self.start)
+        else:
+            self.level.masked_fill_(batch_mask(mask, self.level.shape[0]), self.start)
+
+    def extra_repr(self) -> str:
+        return (f"batch_size={self.level.shape[0]}, recency_us={self.windows_us[self.start]}, px={self.px}" +
+                (f", min_us={self.min_us}, max_us={self.max_us}" if self.px > 0 else ""))
+
+
+def bind_observe(eros: EROS, time_surface: TimeSurface, recency: RecencyArrays, *, canvas: int,
+                 max_age_us: int = 0) -> Callable[..., np.ndarray | None | bool]:
     """``eros(x, y, b)``, ``time_surface(x, y, t, b)`` and then :func:`canvas_observation` under a box, in one
     compiled call that releases the GIL, bound to the stages' buffers (numpy views, written in place at each call).
 
@@ -565,28 +736,30 @@ def bind_observe(eros: EROS, time_surface: TimeSurface, *, canvas: int, max_age_
     events ``(N,)`` (``t`` int64 us; ``b`` ``None``: all in element 0), the canvas boxes ``box`` ``(B, 3)`` float64
     ``[cu, cv, side]`` (or ``None``: no observation) and ``t_now_us`` ``(B,)`` int64. ``run`` gives the observation
     ``(B, canvas, canvas)`` float32 (``None`` without a box), or ``False``, nothing written, if an event lies outside
-    the surfaces. ``max_age_us``, ``recency_us``: as for :func:`canvas_observation`.
+    the surfaces. ``recency``: each element's recency window (:meth:`Recency.arrays`, read at each call);
+    ``max_age_us``: as for :func:`canvas_observation`.
     """
     s, last = eros.surface.numpy(), time_surface.last_us.numpy()
     if s.shape != last.shape:
         raise ValueError(f"the EROS and the time surface must have the same shape, got {s.shape} and {last.shape}")
     lam, r = s.dtype.type(eros.lam), eros.kernel_size // 2
-    max_age_us, recency_us = int(max_age_us), float(recency_us)
-    table = decay_table(recency_us, max_age_us)
+    max_age_us = int(max_age_us)
+    if recency.level.shape != (s.shape[0],):
+        raise ValueError(f"recency has {recency.level.shape[0]} elements, the EROS {s.shape[0]}")
     none, no_box = np.zeros(1, dtype=np.int64), np.empty((0, 3))
 
     def run(x: np.ndarray, y: np.ndarray, t: np.ndarray, b: np.ndarray | None, box: np.ndarray | None,
             t_now_us: np.ndarray) -> np.ndarray | None | bool:
         obs = np.empty((s.shape[0] if box is not None else 0, canvas, canvas), dtype=np.float32)
         if not _observe_kernel(s, lam, r, last, x, y, t, none if b is None else b, b is not None,
-                               no_box if box is None else box, t_now_us, max_age_us, recency_us, table, obs):
+                               no_box if box is None else box, t_now_us, max_age_us, *recency, obs):
             return False
         return obs if box is not None else None
     return run
 
 
 @numba.njit(cache=True, nogil=True)
-def _observe_kernel(surface, lam, r, last, x, y, t, b, batched, box, t_now, max_age, tau, decay, out):
+def _observe_kernel(surface, lam, r, last, x, y, t, b, batched, box, t_now, max_age, taus, decay, level, out):
     """:func:`eros_kernel` and :func:`time_kernel`, then (if ``box`` has rows) :func:`canvas_kernel` into ``out``;
     False, nothing written, if an event lies outside the surfaces."""
     if x.shape[0]:
@@ -595,5 +768,5 @@ def _observe_kernel(surface, lam, r, last, x, y, t, b, batched, box, t_now, max_
         time_kernel(last, x, y, t, b, batched)
     if box.shape[0]:
         B, H, W = last.shape
-        canvas_kernel(surface, last.reshape(B, 1, H, W), box, t_now, max_age, tau, decay, out)
+        canvas_kernel(surface, last.reshape(B, 1, H, W), box, t_now, max_age, taus, decay, level, out)
     return True
