@@ -272,6 +272,7 @@ def test_the_observation_window_follows_the_last_updates_flow(seq, monkeypatch):
     first with ``recency_us``): the windows the correction's kernel was given, against the flow fields the recency
     stage was given and the reference of that stage's test; a moving object's windows move."""
     from torchevtrack import update
+    from torchevtrack.stages import eros as eros_module
 
     from test_eros import _follow_reference
 
@@ -284,15 +285,14 @@ def test_the_observation_window_follows_the_last_updates_flow(seq, monkeypatch):
         kernel(*args)
 
     monkeypatch.setattr(update, "canvas_kernel", capture)
-    cfg = TrackerConfig().replace(eros={"recency_px": 2.5})
-    tracker = EventPoseTracker(CAM, seq.mesh, cfg, pipeline=False)
-    flows, forward = [], tracker.recency.forward
+    flows, follow = [], eros_module._follow_levels
 
-    def recorded(flow, valid):
-        flows.append((flow.clone(), valid.clone()))
-        return forward(flow, valid)
+    def recorded(flow, valid, *args):
+        flows.append((torch.from_numpy(flow.copy()), torch.from_numpy(valid.copy())))
+        return follow(flow, valid, *args)
 
-    tracker.recency.forward = recorded
+    monkeypatch.setattr(eros_module, "_follow_levels", recorded)
+    tracker = EventPoseTracker(CAM, seq.mesh, TrackerConfig().replace(eros={"recency_px": 2.5}), pipeline=False)
     t0 = int(seq.gt_t_us[0])
     tracker.track(seq.events, seq.gt_poses[0], t_start_us=t0, t_end_us=t0 + 60_000, progress=False)
     tracker.close()

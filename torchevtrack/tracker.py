@@ -548,7 +548,7 @@ class EventPoseTracker(nn.Module):
         axis = quat_rotate(torch.from_numpy(measured[:, 3:]), self._symmetry_axis).numpy() \
             if self.feedback is not None and self._symmetric else None
         out, bad = output(run.output, predicted, measured, twist, axis)
-        self.recency(torch.from_numpy(flow.flow), torch.from_numpy(flow.valid))  # the next observations' windows
+        run.recency(flow.flow, flow.valid)  # the next observations' windows
         clock.lap("ukf")
         run.prev_pose[:] = run.pose
         run.pose[:] = out
@@ -752,7 +752,7 @@ class EventPoseTracker(nn.Module):
             bind_observe(self.eros, self.time_surface, self.recency.arrays(e.max_age_us), canvas=o["canvas"],
                          max_age_us=e.max_age_us)
         intake = [bind_intake(self.eros, self.time_surface, self.flow, r) for r in self._schedule.shares]
-        self._run.bound = _Bound(intake, motion, correct, output, observe,
+        self._run.bound = _Bound(intake, motion, correct, output, observe, self.recency.bind(),
                              self.pose.numpy(), self.prev_pose.numpy(), self.origin.numpy(), self.events_seen.numpy(),
                              self.t_last.numpy(), self._min_depth.numpy(), self._render_next.numpy(),
                              self._render_next_ok.numpy())
@@ -1022,6 +1022,7 @@ class _Bound(NamedTuple):
     correct: list[Callable[..., CorrectionStep]]
     output: OutputArgs
     observe: Callable[..., np.ndarray | None | bool] | None
+    recency: Callable[[np.ndarray, np.ndarray], None]
     pose: np.ndarray
     prev_pose: np.ndarray
     origin: np.ndarray

@@ -708,6 +708,14 @@ class Recency(nn.Module):
             _follow_levels(flow.numpy(), valid.numpy(), self.px, self.min_us, self.max_us, self.level.numpy())
         return self.window_us
 
+    def bind(self) -> Callable[[np.ndarray, np.ndarray], None]:
+        """:meth:`forward` on numpy arrays, unchecked and returning nothing, bound to the ``level`` buffer (a view,
+        written in place): the tracker's step (a few microseconds; nothing to do for a fixed window)."""
+        if self.px == 0:
+            return lambda flow, valid: None
+        level, px, lo, hi = self.level.numpy(), self.px, self.min_us, self.max_us
+        return lambda flow, valid: _follow_levels(flow, valid, px, lo, hi, level)
+
     def arrays(self, max_age_us: int, rows: slice = slice(None)) -> RecencyArrays:
         """The windows of the elements ``rows`` for the compiled observation (the level a view of the buffer)."""
         return RecencyArrays(np.array(self.windows_us), decay_tables(self.windows_us, int(max_age_us)),
