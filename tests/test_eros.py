@@ -251,17 +251,17 @@ def test_time_surface_is_the_newest_event_per_pixel():
 
 
 def _follow_reference(flow, valid, px, min_us, max_us):
-    """The window a speed asks for, element by element: px over the median speed of the valid vectors, clamped;
-    None with fewer than three vectors."""
+    """The window a speed asks for, element by element: px over the upper quartile of the valid vectors' speeds,
+    clamped; None with fewer than three vectors."""
     out = []
     for f, v in zip(flow.tolist(), valid.tolist()):
         speeds = [math.hypot(*fg) for fg, ok in zip(f, v) if ok]
-        out.append(None if len(speeds) < 3 else min(max(px / max(float(np.median(speeds)), 1e-6) * 1e6, min_us),
+        out.append(None if len(speeds) < 3 else min(max(px / max(float(np.percentile(speeds, 75)), 1e-6) * 1e6, min_us),
                                                     max_us))
     return out
 
 
-def test_recency_follows_the_median_flow_speed_on_its_grid():
+def test_recency_follows_the_flow_speed_on_its_grid():
     """Recency against the per-element reference over a run of random flow fields: each call moves an element with
     three or more valid vectors to the 250 us multiple nearest its window, the others keep theirs; reset restores
     the start; fixed windows never move."""
