@@ -285,13 +285,13 @@ def test_the_observation_window_follows_the_last_updates_flow(seq, monkeypatch):
         kernel(*args)
 
     monkeypatch.setattr(update, "canvas_kernel", capture)
-    flows, follow = [], eros_module._follow_levels
+    flows, follow = [], eros_module._follow_kernel
 
     def recorded(flow, valid, *args):
         flows.append((torch.from_numpy(flow.copy()), torch.from_numpy(valid.copy())))
         return follow(flow, valid, *args)
 
-    monkeypatch.setattr(eros_module, "_follow_levels", recorded)
+    monkeypatch.setattr(eros_module, "_follow_kernel", recorded)
     tracker = EventPoseTracker(CAM, seq.mesh, TrackerConfig().replace(eros={"recency_px": 2.5}), pipeline=False)
     t0 = int(seq.gt_t_us[0])
     tracker.track(seq.events, seq.gt_poses[0], t_start_us=t0, t_end_us=t0 + 60_000, progress=False)

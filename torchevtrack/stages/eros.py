@@ -599,8 +599,9 @@ SPEED_PERCENTILE = 75.0
 
 def follow_speed(flow: torch.Tensor, valid: torch.Tensor, px: float, min_us: float, max_us: float) -> torch.Tensor:
     """The recency window in which the edges move ``px`` pixels: ``px / v`` with ``v`` the upper quartile
-    (:data:`SPEED_PERCENTILE`) of the speeds of an element's valid flow vectors, clamped to ``[min_us, max_us]``, NaN for an element with fewer than
-    :data:`MIN_FLOW_VECTORS` valid vectors (its speed is not known). Not rounded (:class:`Recency` rounds).
+    (:data:`SPEED_PERCENTILE`) of the speeds of an element's valid flow vectors, clamped to ``[min_us, max_us]`` and
+    rounded to a multiple of :data:`~torchevtrack.config.RECENCY_STEP_US` above ``min_us``; NaN for an element with
+    fewer than :data:`MIN_FLOW_VECTORS` valid vectors (its speed is not known).
 
     Args:
         flow: ``(B, G, 2)`` float32 flow, pixels/s (:class:`~torchevtrack.stages.flow.FlowField`); valid: ``(B, G)``
@@ -614,58 +615,40 @@ def follow_speed(flow: torch.Tensor, valid: torch.Tensor, px: float, min_us: flo
         >>> follow_speed(flow, torch.tensor([[True, True, True, False]]), 2.5, 1250.0, 10000.0)  # 400, 500, 500 px/s
         tensor([5000.], dtype=torch.float64)
     """
-    taus = np.full(flow.shape[0], np.nan)
-    _follow_kernel(flow.numpy(), valid.numpy(), float(px), float(min_us), float(max_us), taus)
-    return torch.from_numpy(taus)
+    level = np.full(flow.shape[0], -1, dtype=np.int64)
+    _follow_kernel(flow.numpy(), valid.numpy(), float(px), float(min_us), float(max_us), level)
+    return torch.from_numpy(np.where(level >= 0, min_us + RECENCY_STEP_US * level, np.nan))
 
 
 @numba.njit(cache=True, nogil=True)
-def _follow_kernel(flow, valid, px, min_us, max_us, out):
-    """:func:`follow_speed` into ``out`` ``(B,)`` float64 (left as it is for an element without enough vectors)."""
+def _follow_kernel(flow, valid, px, min_us, max_us, level):
+    """:func:`follow_speed` as the index of each window on the grid into ``level`` ``(B,)`` int64 (left as it is for
+    an element without enough vectors): :meth:`Recency.forward`."""
     speed = np.empty(valid.shape[1], dtype=np.float64)
     for b in range(valid.shape[0]):
-        tau = _window_of(flow[b], valid[b], px, min_us, max_us, speed)
-        if tau > 0:
-            out[b] = tau
-
-
-@numba.njit(cache=True, nogil=True)
-def _follow_levels(flow, valid, px, min_us, max_us, level):
-    """:meth:`Recency.forward` into ``level`` ``(B,)`` int64: :func:`follow_speed` rounded to the window grid."""
-    speed = np.empty(valid.shape[1], dtype=np.float64)
-    for b in range(valid.shape[0]):
-        tau = _window_of(flow[b], valid[b], px, min_us, max_us, speed)
-        if tau > 0:
+        n = 0
+        for g in range(valid.shape[1]):
+            if valid[b, g]:
+                speed[n] = math.hypot(np.float64(flow[b, g, 0]), np.float64(flow[b, g, 1]))
+                n += 1
+        if n >= MIN_FLOW_VECTORS:
+            tau = min(max(px / max(np.percentile(speed[:n], SPEED_PERCENTILE), 1e-6) * 1e6, min_us), max_us)
             level[b] = round((tau - min_us) / RECENCY_STEP_US)
-
-
-@numba.njit(cache=True, nogil=True)
-def _window_of(flow, valid, px, min_us, max_us, speed):
-    """One element's :func:`follow_speed` (``flow`` ``(G, 2)``, ``valid`` ``(G,)``; ``speed`` ``(G,)`` scratch), or
-    -1 without enough vectors."""
-    n = 0
-    for g in range(valid.shape[0]):
-        if valid[g]:
-            speed[n] = math.hypot(np.float64(flow[g, 0]), np.float64(flow[g, 1]))
-            n += 1
-    if n < MIN_FLOW_VECTORS:
-        return -1.0
-    return min(max(px / max(np.percentile(speed[:n], SPEED_PERCENTILE), 1e-6) * 1e6, min_us), max_us)
 
 
 class Recency(nn.Module):
     """The observation's recency window (``tau`` of ``exp(-age / tau)``, :func:`canvas_observation`) per element.
 
     Fixed (``px = 0``): every element's window is ``recency_us``. Following the image speed (``px > 0``): each call
-    sets an element's window to :func:`follow_speed` of its flow, rounded to a multiple of :data:`RECENCY_STEP_US`
-    (an element without enough flow vectors keeps its window), so that the observation holds about ``px`` pixels
+    sets an element's window to :func:`follow_speed` of its flow (an element without enough flow vectors keeps its
+    window), so that the observation holds about ``px`` pixels
     of each edge's motion: long windows when the object is slow (more of its edges), short ones when it is fast
     (no smear). An element starts, and restarts at :meth:`reset`, at ``recency_us``.
 
     Args:
         batch_size: ``B``; recency_us: the fixed or starting window (microseconds, ``>= 0``, 0: no weighting);
         px: pixels of motion a window holds (0: fixed); min_us, max_us: the window's bounds when it follows the
-            speed, multiples of :data:`RECENCY_STEP_US` with ``recency_us`` a multiple between them.
+            speed, multiples of :data:`~torchevtrack.config.RECENCY_STEP_US` with ``recency_us`` a multiple between them.
 
     Buffers:
         level: ``(B,)`` int64, each element's window as an index into :attr:`windows_us`.
@@ -709,7 +692,7 @@ class Recency(nn.Module):
             raise ValueError(f"expected flow ({B}, G, 2) and valid ({B}, G), got {tuple(flow.shape)} and "
                              f"{tuple(valid.shape)}")
         if self.px > 0:
-            _follow_levels(flow.numpy(), valid.numpy(), self.px, self.min_us, self.max_us, self.level.numpy())
+            _follow_kernel(flow.numpy(), valid.numpy(), self.px, self.min_us, self.max_us, self.level.numpy())
         return self.window_us
 
     def bind(self) -> Callable[[np.ndarray, np.ndarray], None]:
@@ -718,7 +701,7 @@ class Recency(nn.Module):
         if self.px == 0:
             return lambda flow, valid: None
         level, px, lo, hi = self.level.numpy(), self.px, self.min_us, self.max_us
-        return lambda flow, valid: _follow_levels(flow, valid, px, lo, hi, level)
+        return lambda flow, valid: _follow_kernel(flow, valid, px, lo, hi, level)
 
     def arrays(self, max_age_us: int, rows: slice = slice(None)) -> RecencyArrays:
         """The windows of the elements ``rows`` for the compiled observation (the level a view of the buffer)."""
