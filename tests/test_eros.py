@@ -178,7 +178,8 @@ def test_recent_observation_matches_its_definition(size, max_age_us, recency_us,
         recent_observation(surface, last.float(), origin, size, t_now)
 
 
-@pytest.mark.parametrize("max_age_us, recency_us", [(0, 0.0), (3000, 800.0), (3000, torch.tensor([2500.0, 800.0, 0.0]))])
+@pytest.mark.parametrize("max_age_us, recency_us", [(0, 0.0), (3000, 800.0),
+                                                    (3000, torch.tensor([2500.0, 800.0, 0.0]))])
 @pytest.mark.parametrize("channels", [2, 1])
 def test_canvas_observation_is_the_recent_observation_of_the_tap_window_in_the_canvas(max_age_us, recency_us,
                                                                                       channels):

@@ -23,8 +23,8 @@ sequences and runs, in the paper's order:
 5. :class:`~torchevtrack.stages.template.TemplateCorrector` scores hypotheses around the propagated pose,
    warped from that render, against the EROS observation (weighted toward its newest events: ``eros.recency_us``, a
    window that with ``eros.recency_px`` follows the speed of the last update's flow,
-   :class:`~torchevtrack.stages.eros.Recency`) and moves the pose to the best (the paper's argmax of 13, or a Newton step over all six axes:
-   ``template.rule``); the correction's rate feeds the feedback of step 3, if on;
+   :class:`~torchevtrack.stages.eros.Recency`) and moves the pose to the best (the paper's argmax of 13, or a Newton
+   step over all six axes: ``template.rule``); the correction's rate feeds the feedback of step 3, if on;
 6. :class:`~torchevtrack.stages.ukf.PoseUKF` smooths the corrected pose into the output (with the correction
    feedback's update and the output checks, one compiled call: :func:`~torchevtrack.update.output`);
 0. before all of them, the :class:`~torchevtrack.stages.burst.BurstGuard` (``config.burst``, on by default) counts
