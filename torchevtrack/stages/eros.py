@@ -1,5 +1,6 @@
 """Stage 1: EROS, the exponentially reduced ordinal surface (velocity-independent event image), and the timestamp
-surface of the newest event per pixel (:class:`TimeSurface`), which weighs the EROS by recency when it is observed.
+surface of the newest event per pixel (:class:`TimeSurface`), which weighs the EROS by recency when it is observed
+(:class:`Recency`: one window per element, fixed or following the image speed).
 
 Definition, per event at pixel ``(x, y)`` of batch element ``b``, in order: every pixel of the
 ``k x k`` window centred on ``(x, y)`` (clipped to the image, the event pixel included) is multiplied
@@ -641,9 +642,9 @@ class Recency(nn.Module):
 
     Fixed (``px = 0``): every element's window is ``recency_us``. Following the image speed (``px > 0``): each call
     sets an element's window to :func:`follow_speed` of its flow (an element without enough flow vectors keeps its
-    window), so that the observation holds about ``px`` pixels
-    of each edge's motion: long windows when the object is slow (more of its edges), short ones when it is fast
-    (no smear). An element starts, and restarts at :meth:`reset`, at ``recency_us``.
+    window), so that the observation holds about ``px`` pixels of each edge's motion: long windows when the object
+    is slow (more of its edges), short ones when it is fast (no smear). An element starts, and restarts at
+    :meth:`reset`, at ``recency_us``.
 
     Args:
         batch_size: ``B``; recency_us: the fixed or starting window (microseconds, ``>= 0``, 0: no weighting);
