@@ -37,8 +37,9 @@ def interpolate_gt(gt_t: torch.Tensor, gt: torch.Tensor, t: int) -> torch.Tensor
 
 
 def template_score(renderer: RasterRenderer, pose: torch.Tensor, tracker: EventPoseTracker, t_now: int,
-                   cfg: TrackerConfig) -> float:
-    """Template score of ``pose`` ``(7,)`` against the tracker's current EROS observation (own render, canvas)."""
+                   cfg: TrackerConfig, recency_us: torch.Tensor) -> float:
+    """Template score of ``pose`` ``(7,)`` against the tracker's current EROS observation (own render, canvas),
+    weighed with the recency window ``(1,)`` us the tracker's last update observed with."""
     r = renderer.render(pose[None])
     if not bool((r.depth > 0).any()):
         return float("nan")
@@ -46,7 +47,7 @@ def template_score(renderer: RasterRenderer, pose: torch.Tensor, tracker: EventP
                            canvas=cfg.template.canvas, margin_px=cfg.template.margin_px)
     times = tracker.flow.sae if tracker.time_surface is None else tracker.time_surface.last_us[:, None]
     obs = canvas_observation(tracker.eros.surface, times, model.box,
-                             cfg.template.canvas, torch.tensor([t_now]), cfg.eros.max_age_us, cfg.eros.recency_us)
+                             cfg.template.canvas, torch.tensor([t_now]), cfg.eros.max_age_us, recency_us)
     return float(model.fit_canvas(obs.reshape(1, -1)).s0[0])
 
 
@@ -77,6 +78,7 @@ def main() -> None:
     for i in range(n):
         a, b = int(bounds[i]), int(bounds[i + 1])
         t_now = t0 + (i + 1) * period
+        window = tracker.recency.window_us  # the update sets the next one: this is the window it observes with
         pose = tracker(ev.x[a:b], ev.y[a:b], ev.t[a:b], ev.p[a:b], t_us=t_now)[0]
         if gt_twist is not None:
             k = int(torch.searchsorted(gt_t, torch.tensor(t_now - period // 2)).clamp(0, len(gt_t) - 1))
@@ -89,7 +91,7 @@ def main() -> None:
             first_fail = i
         if i % args.every == 0 or (first_fail == i):
             q = tracker.quality
-            s_gt = template_score(renderer, g, tracker, t_now, cfg)
+            s_gt = template_score(renderer, g, tracker, t_now, cfg, window)
             print(f"{(t_now - t0) / 1000:7.1f} " + " ".join(f"{float(v):6.2f}" for v in dt_cm) + " "
                   + " ".join(f"{float(v):6.1f}" for v in rot)
                   + f" {int(q.events[0]):7d} {int(q.flow_vectors[0]):4d} {float(q.score[0]):6.1f} {s_gt:8.1f}"
