@@ -35,6 +35,7 @@ import torch
 
 from torchevtrack.cli.bench import _stream, packets
 from torchevtrack.config import TrackerConfig
+from torchevtrack.kernels import warmup
 from torchevtrack.online import OnlineTracker
 from torchevtrack.schedule import Job
 from torchevtrack import update
@@ -67,6 +68,9 @@ def main() -> None:
     torch.set_num_threads(1)
     main_thread = threading.get_ident()
 
+    # Compiled kernels call each other through module globals, which the timers replace: every kernel must be
+    # compiled (or loaded from the cache) before, or one compiled afterwards cannot type its wrapped callee.
+    warmup(progress=False)
     times: dict[str, float] = collections.defaultdict(float)
     for module, names in KERNELS.items():
         m = importlib.import_module(module)
