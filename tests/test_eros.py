@@ -7,10 +7,10 @@ import pytest
 import scipy.ndimage
 import torch
 
+from torchevtrack.config import TrackerConfig
 from torchevtrack.stages.eros import (EROS, canvas_observation, eros_update, eros_update_, observation,
                                      recent_observation)
 from torchevtrack.stages.template import to_canvas
-from torchevtrack.config import TrackerConfig
 from torchevtrack.stages.flow import NEVER
 
 
