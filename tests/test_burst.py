@@ -18,11 +18,13 @@ def oracle(counts, dt_us, floor, ratio, ema, max_run):
     """Scalar reference for one element: window counts -> burst flags."""
     rate, run, out = None, 0, []
     for n in counts:
-        above = rate is None or n > ratio * rate * dt_us * 1e-6
-        burst = n > floor and above and run < max_run
+        burst = rate is not None and n > floor and n > ratio * rate * dt_us * 1e-6 and run < max_run
         if not burst:
             r = n / (dt_us * 1e-6)
-            rate = r if rate is None or run >= max_run else (1 - ema) * rate + ema * r
+            if rate is None or run >= max_run:
+                rate = r if n > 0 else None  # the first window with events starts the rate
+            else:
+                rate = (1 - ema) * rate + ema * r
         run = run + 1 if burst else 0
         out.append(burst)
     return out
@@ -33,9 +35,9 @@ def reference_step(n, dt_us, rate, run, floor, ratio, ema, max_run):
     n = np.asarray(n).astype(np.float64)
     dt = dt_us * 1e-6
     fresh = np.isnan(rate)
-    burst = (n > floor) & (fresh | (n > ratio * np.where(fresh, 0.0, rate) * dt)) & (run < max_run)
+    burst = ~fresh & (n > floor) & (n > ratio * np.where(fresh, 0.0, rate) * dt) & (run < max_run)
     restart = fresh | (run >= max_run)
-    new_rate = np.where(restart, n / dt, (1 - ema) * np.where(fresh, 0.0, rate) + ema * n / dt)
+    new_rate = np.where(restart, np.where(n > 0, n / dt, np.nan), (1 - ema) * np.where(fresh, 0.0, rate) + ema * n / dt)
     return burst, np.where(burst, rate, new_rate), np.where(burst, run + 1, 0).astype(np.int64)
 
 
@@ -144,7 +146,7 @@ def test_the_guards_arrays_follow_copies_pickles_and_new_buffers():
     g.load_state_dict(twin.state_dict())
     assert g.run.tolist() == [0, 1] and g([4, 400], 1000).tolist() == [False, True] and g.run.tolist() == [0, 2]
     g.run = torch.zeros(2, dtype=torch.int64)  # a new buffer tensor
-    g.rate = torch.full((2,), float("nan"), dtype=torch.float64)
+    g.rate = torch.full((2,), 4000.0, dtype=torch.float64)  # 4 events per 1 ms window
     assert g([400, 400], 1000).tolist() == [True, True] and g.run.tolist() == [1, 1]
     g.float()
     with pytest.raises(ValueError, match="float64"):
@@ -172,6 +174,20 @@ def test_flash_detected_fast_motion_not():
     flags = [bool(g(torch.tensor([n]), 2000)) for n in [500] * 20 + fast + [2_500_000, 1_500_000] + fast]
     assert flags[70:72] == [True, True] and sum(flags) == 2
     assert math.isclose(float(g.rate[0]), 6e6, rel_tol=0.01)
+
+
+def test_a_dense_start_is_the_scene_not_a_burst():
+    """With no history nothing is far above normal: the first window with events starts the rate, however dense
+    (a 640x480 scene at 9.6 M events/s lost its first 30 ms when the first windows were judged bursts); empty
+    windows before it leave it unset, and a reset starts over."""
+    g = BurstGuard(100, 100)  # floor 500 events
+    counts = [0, 0, 5_000, 5_000, 5_000, 60_000, 5_000]
+    flags = [bool(g(torch.tensor([n]), 2000)) for n in counts]
+    assert flags == [False, False, False, False, False, True, False]
+    assert flags == oracle(counts, 2000, 500.0, 10.0, 0.05, 25)
+    assert math.isclose(float(g.rate[0]), 2.5e6)
+    g.reset()
+    assert not bool(g(torch.tensor([60_000]), 2000)) and math.isclose(float(g.rate[0]), 3e7)
 
 
 def test_keep_events_and_reset():
