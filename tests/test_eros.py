@@ -299,3 +299,7 @@ def test_recency_follows_the_flow_speed_on_its_grid():
         Recency(1, 500.0, px=2.5)
     with pytest.raises(ValueError, match="eros.recency"):
         TrackerConfig().replace(eros={"recency_px": 2.5, "recency_max_us": 2000.0})
+    # no weighting (the paper's observation) with the default px: nothing to follow, the window stays 0
+    paper = Recency.from_config(TrackerConfig().replace(eros={"recency_us": 0.0}).eros, batch_size=2)
+    assert TrackerConfig().eros.recency_px > 0 and paper.windows_us == (0.0,) and paper.px == 0
+    assert paper(flow[:2], valid[:2]).tolist() == [0.0, 0.0]

@@ -47,11 +47,11 @@ RECENCY_STEP_US = 250  # a recency window that follows the image speed is a mult
 
 def recency_windows(recency_us: float, px: float, min_us: float, max_us: float) -> tuple[float, ...]:
     """The recency windows an element may take (microseconds, :class:`~torchevtrack.stages.eros.Recency`): just
-    ``recency_us`` if fixed (``px == 0``), else the multiples of :data:`RECENCY_STEP_US` from ``min_us`` to ``max_us``,
+    ``recency_us`` if fixed (``px == 0``, or ``recency_us == 0``: no weighting, so nothing to follow), else the multiples of :data:`RECENCY_STEP_US` from ``min_us`` to ``max_us``,
     which must be such multiples, with ``recency_us`` one of them. Raises ValueError otherwise."""
     if not (px >= 0 and recency_us >= 0):
         raise ValueError(f"the recency window and its px must be >= 0, got {recency_us} us, {px} px")
-    if px == 0:
+    if px == 0 or recency_us == 0:
         return (float(recency_us),)
     step = RECENCY_STEP_US
     if not 0 < min_us <= recency_us <= max_us or any(v % step for v in (min_us, max_us, recency_us)):
@@ -66,9 +66,10 @@ class ErosConfig:
     decay: float = 0.3  # d; the per-event factor is d ** (1 / k)
     max_age_us: int = 30_000  # > 0: the observation drops pixels with no event for this long (0 = the paper)
     recency_us: float = 2500.0  # > 0: the observation weighs pixels by exp(-age / recency_us) (0 = the paper)
-    recency_px: float = 0.0  # > 0: recency_us follows the image speed, the time edges take to move this far
+    recency_px: float = 2.5  # > 0: recency_us (the first window) follows the image speed: the time edges take to
+    # move this far (0 = fixed at recency_us; ignored with recency_us 0)
     recency_min_us: float = 1250.0  # the bounds of a recency that follows the speed (multiples of 250 us)
-    recency_max_us: float = 10000.0
+    recency_max_us: float = 5000.0
 
 
 @dataclass

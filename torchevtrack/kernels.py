@@ -108,10 +108,8 @@ def warmup(progress: bool = True) -> int:
     watcher.start()
     try:
         events, pose0 = _warmup_events(camera, mesh, RasterRenderer, EventStream, np, torch)
-        # the optional denoise stage and speed-following recency on too: the denoise module loads with the tracker,
-        # and a cold one would be announced; the recency's kernel would compile silently on first use
-        tracker = EventPoseTracker(camera, mesh, TrackerConfig().replace(denoise={"enabled": True},
-                                                                         eros={"recency_px": 2.5}))
+        # the optional denoise stage on too: its module loads with the tracker, and a cold one would be announced
+        tracker = EventPoseTracker(camera, mesh, TrackerConfig().replace(denoise={"enabled": True}))
         tracker.track(events, pose0, progress=False)
         tracker.close()
         _compile_relocaliser(np)

@@ -648,7 +648,7 @@ class Recency(nn.Module):
 
     Args:
         batch_size: ``B``; recency_us: the fixed or starting window (microseconds, ``>= 0``, 0: no weighting);
-        px: pixels of motion a window holds (0: fixed); min_us, max_us: the window's bounds when it follows the
+        px: pixels of motion a window holds (0, or ``recency_us = 0``: fixed); min_us, max_us: the window's bounds when it follows the
             speed, multiples of :data:`~torchevtrack.config.RECENCY_STEP_US` with ``recency_us`` a multiple
             between them.
 
@@ -672,7 +672,8 @@ class Recency(nn.Module):
     def __init__(self, batch_size: int, recency_us: float, *, px: float = 0.0, min_us: float = 1250.0,
                  max_us: float = 10000.0):
         super().__init__()
-        self.px, self.min_us, self.max_us = float(px), float(min_us), float(max_us)
+        # no weighting (recency_us 0, the paper's observation): nothing to follow
+        self.px, self.min_us, self.max_us = float(px) if recency_us > 0 else 0.0, float(min_us), float(max_us)
         self.windows_us = recency_windows(recency_us, px, min_us, max_us)
         self.start = self.windows_us.index(float(recency_us))
         self._windows = torch.tensor(self.windows_us, dtype=torch.float64)
