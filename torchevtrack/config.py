@@ -47,8 +47,9 @@ RECENCY_STEP_US = 250  # a recency window that follows the image speed is a mult
 
 def recency_windows(recency_us: float, px: float, min_us: float, max_us: float) -> tuple[float, ...]:
     """The recency windows an element may take (microseconds, :class:`~torchevtrack.stages.eros.Recency`): just
-    ``recency_us`` if fixed (``px == 0``, or ``recency_us == 0``: no weighting, so nothing to follow), else the multiples of :data:`RECENCY_STEP_US` from ``min_us`` to ``max_us``,
-    which must be such multiples, with ``recency_us`` one of them. Raises ValueError otherwise."""
+    ``recency_us`` if fixed (``px == 0``, or ``recency_us == 0``: no weighting, so nothing to follow), else the
+    multiples of :data:`RECENCY_STEP_US` from ``min_us`` to ``max_us``, which must be such multiples, with
+    ``recency_us`` one of them. Raises ValueError otherwise."""
     if not (px >= 0 and recency_us >= 0):
         raise ValueError(f"the recency window and its px must be >= 0, got {recency_us} us, {px} px")
     if px == 0 or recency_us == 0:

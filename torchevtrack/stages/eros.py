@@ -648,9 +648,9 @@ class Recency(nn.Module):
 
     Args:
         batch_size: ``B``; recency_us: the fixed or starting window (microseconds, ``>= 0``, 0: no weighting);
-        px: pixels of motion a window holds (0, or ``recency_us = 0``: fixed); min_us, max_us: the window's bounds when it follows the
-            speed, multiples of :data:`~torchevtrack.config.RECENCY_STEP_US` with ``recency_us`` a multiple
-            between them.
+        px: pixels of motion a window holds (0, or ``recency_us = 0``: fixed); min_us, max_us: the window's bounds
+            when it follows the speed, multiples of :data:`~torchevtrack.config.RECENCY_STEP_US` with ``recency_us``
+            a multiple between them.
 
     Buffers:
         level: ``(B,)`` int64, each element's window as an index into :attr:`windows_us`.
