@@ -268,9 +268,9 @@ def test_observation_drops_old_pixels_and_weighs_recent_ones(seq, monkeypatch):
 
 
 def test_the_observation_window_follows_the_last_updates_flow(seq, monkeypatch):
-    """With ``eros.recency_px`` (the default), each update observes with the window the previous update's flow asked for (the
-    first with ``recency_us``): the windows the correction's kernel was given, against the flow fields the recency
-    stage was given and the reference of that stage's test; a moving object's windows move."""
+    """With ``eros.recency_px`` (the default), each update observes with the window the previous update's flow asked
+    for (the first with ``recency_us``): the windows the correction's kernel was given, against the flow fields the
+    recency stage was given and the reference of that stage's test; a moving object's windows move."""
     from torchevtrack import update
     from torchevtrack.stages import eros as eros_module
 
