@@ -672,9 +672,10 @@ class Recency(nn.Module):
     def __init__(self, batch_size: int, recency_us: float, *, px: float = 0.0, min_us: float = 1250.0,
                  max_us: float = 10000.0):
         super().__init__()
-        # no weighting (recency_us 0, the paper's observation): nothing to follow
-        self.px, self.min_us, self.max_us = float(px) if recency_us > 0 else 0.0, float(min_us), float(max_us)
         self.windows_us = recency_windows(recency_us, px, min_us, max_us)
+        # a single window (px 0, or recency_us 0: no weighting, nothing to follow) is fixed
+        self.px = float(px) if len(self.windows_us) > 1 else 0.0
+        self.min_us, self.max_us = float(min_us), float(max_us)
         self.start = self.windows_us.index(float(recency_us))
         self._windows = torch.tensor(self.windows_us, dtype=torch.float64)
         self.register_buffer("level", torch.full((batch_size,), self.start, dtype=torch.int64))
