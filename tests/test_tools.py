@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -45,3 +46,21 @@ def test_profile_update(sequence: Path) -> None:
 
 def test_bench_flow(sequence: Path) -> None:
     assert _run("tools/bench_flow.py", "--seq", str(sequence), "--duration", "0.04", "--repeat", "1").strip()
+
+
+def test_oracle_split(sequence: Path, tmp_path: Path) -> None:
+    """The true twist integrated without the correction follows the truth (the oracle checks itself); the estimated
+    and true-twist modes run and report every sequence."""
+    out = tmp_path / "oracle.json"
+    _run("tools/oracle_split.py", str(sequence.parent), "--duration", "0.05", "--json", str(out))
+    r = json.loads(out.read_text())
+    assert set(r) == {"estimated", "true-twist", "true-twist-only"}
+    assert all(list(m) == [sequence.name] for m in r.values())
+    only = r["true-twist-only"][sequence.name]
+    assert only["rmse_t_cm"] < 0.1 and only["rmse_r_deg"] < 0.2 and not only["failed"]
+
+
+def test_diagnose_loss_oracle(sequence: Path) -> None:
+    lines = _run("tools/diagnose_loss.py", str(sequence), "--duration", "0.04", "--every", "5",
+                 "--oracle-velocity").splitlines()
+    assert len(lines) >= 4 and lines[2].split()[0] == "2.0"

@@ -6,8 +6,9 @@ axis (cm), the rotation error per camera axis (deg; rx = pitch, ry = yaw, rz = r
 flow vectors the velocity filter used, the tracker's template score, and the template score of the **ground-truth
 pose** against the same EROS observation (its own render and template). When the truth scores clearly higher than
 the estimate, the observation still holds the object and the search did not reach it (basin/reach); when it does
-not, the observation itself is poor (noise, too few or blurred events). ``--oracle-velocity`` replaces the velocity
-filter's state by the true twist after each update (as ``tools/diagnose_velocity.py --oracle``).
+not, the observation itself is poor (noise, too few or blurred events). ``--oracle-velocity`` sets the velocity
+filter's state to the true twist of the coming window after each update, with the flow and the feedback switched off
+(``tools/oracle_split.py``'s ``true-twist`` mode), so the propagation follows the truth exactly.
 
     python tools/diagnose_loss.py SEQDIR --duration 0.5 --every 10 [--filter-events] [--config FILE]
 """
@@ -21,13 +22,13 @@ import torch
 
 from torchevtrack.config import TrackerConfig
 from torchevtrack.geometry import quat_conj, quat_log, quat_mul
-from torchevtrack.metrics import twists_from_poses
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.stages.eros import canvas_observation
 from torchevtrack.stages.template import template_model
-from torchevtrack.stages.velocity import shift_twist
 from torchevtrack.synth.sequence import Sequence
 from torchevtrack.tracker import EventPoseTracker
+
+from oracle_split import TRUE_TWIST, window_twist
 
 
 def interpolate_gt(gt_t: torch.Tensor, gt: torch.Tensor, t: int) -> torch.Tensor:
@@ -63,10 +64,11 @@ def main() -> None:
 
     seq = Sequence.load(args.seqdir)
     cfg = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
+    if args.oracle_velocity:
+        cfg = cfg.override(TRUE_TWIST)
     tracker = EventPoseTracker(seq.camera, seq.mesh, cfg, workers=1, pipeline=False)
     renderer = RasterRenderer(seq.mesh, seq.camera)
     gt_t, gt = seq.gt_t_us, seq.gt_poses
-    gt_twist = shift_twist(twists_from_poses(gt_t, gt), gt[:, :3]) if args.oracle_velocity else None
     ev = seq.events
     t0, period = int(gt_t[0]), tracker.period_us
     n = int(args.duration * 1e6) // period
@@ -79,10 +81,9 @@ def main() -> None:
         a, b = int(bounds[i]), int(bounds[i + 1])
         t_now = t0 + (i + 1) * period
         window = tracker.recency.window_us  # the update sets the next one: this is the window it observes with
+        if args.oracle_velocity:  # the twist of this window: the propagation follows the truth
+            tracker.velocity.x.copy_(window_twist(gt_t, gt, t_now - period, period).to(tracker.velocity.x.dtype))
         pose = tracker(ev.x[a:b], ev.y[a:b], ev.t[a:b], ev.p[a:b], t_us=t_now)[0]
-        if gt_twist is not None:
-            k = int(torch.searchsorted(gt_t, torch.tensor(t_now - period // 2)).clamp(0, len(gt_t) - 1))
-            tracker.velocity.x.copy_(gt_twist[k][None].to(tracker.velocity.x.dtype))
         g = interpolate_gt(gt_t, gt, t_now)
         dt_cm = (pose[:3] - g[:3]) * 100
         rot = torch.rad2deg(quat_log(quat_mul(pose[3:], quat_conj(g[3:]))))
