@@ -14,7 +14,7 @@ from torchevtrack.update import CorrectionStep, bind_correction
 CAM = Camera.default()
 F64 = torch.float64
 T_NOW = 1_000_000
-OPTIONS = dict(canvas=64, margin_px=20.0, edge_clip=0.1, silhouette=True)
+OPTIONS = dict(canvas=64, margin_px=20.0, edge_clip=0.1, silhouette=True, interior=0.7)
 SEARCH = dict(dp_px=1.0, dtheta_deg=0.5, iterations=4)
 MAX_AGE_US = 40_000
 RECENCY_US = torch.tensor([5_000.0, 2_250.0])  # one window per element
@@ -51,8 +51,8 @@ def _oracle(pose32, predicted, depth, gray, origin, surface, last, t_now, rule="
     model = template_model(pose32, depth, gray, origin, CAM, **OPTIONS)
     obs = canvas_observation(surface, last, model.box, OPTIONS["canvas"], t_now, MAX_AGE_US, RECENCY_US)
     if rule == "newton":
-        return model, newton_search(model, predicted, obs.flatten(1), CAM, **SEARCH)
-    return model, correct_canvas(model, predicted, obs, CAM, rule=rule, **SEARCH)
+        return model, newton_search(model, predicted, obs.flatten(1), CAM, interior=OPTIONS["interior"], **SEARCH)
+    return model, correct_canvas(model, predicted, obs, CAM, rule=rule, interior=OPTIONS["interior"], **SEARCH)
 
 
 def _step(pose32, predicted, depth, gray, origin, surface, last, t_now, rule="newton", model=None, on_observed=None):

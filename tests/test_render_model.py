@@ -14,12 +14,14 @@ from torchevtrack.stages.template import render_window, template_model
 from torchevtrack.update import RenderModelBinding
 
 CAM = Camera(160, 120, 150.0, 150.0, 79.5, 59.5)
-OPTIONS = dict(canvas=64, box_margin_px=12.0, edge_clip=0.2, silhouette=True)
+OPTIONS = dict(canvas=64, box_margin_px=12.0, edge_clip=0.2, silhouette=True, interior=0.7)
 
 
-def render_model(renderer, pose, radius, margin_px=24, shaded=True, model=True):
-    """The tracker's call: the binding of a renderer and the options, on a float64 (1, 7) pose."""
-    return RenderModelBinding(renderer, radius, margin_px=margin_px, **OPTIONS)(pose.numpy(), shaded, model)
+def render_model(renderer, pose, radius, margin_px=24, shaded=True, model=True, **changes):
+    """The tracker's call: the binding of a renderer and the options (``changes`` replace some), on a float64 (1, 7)
+    pose."""
+    return RenderModelBinding(renderer, radius, margin_px=margin_px, **{**OPTIONS, **changes})(pose.numpy(), shaded,
+                                                                                               model)
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +61,8 @@ def test_the_binding_is_the_stage_calls_bit_for_bit(renderer, pose):
     assert float(want.depth.max()) > 0  # the comparison covers real pixels
     model = template_model(pose.float().double(), want.depth, want.gray, torch.tensor([[u1, v1]]), CAM,
                            canvas=OPTIONS["canvas"], margin_px=OPTIONS["box_margin_px"],
-                           edge_clip=OPTIONS["edge_clip"], silhouette=OPTIONS["silhouette"])
+                           edge_clip=OPTIONS["edge_clip"], silhouette=OPTIONS["silhouette"],
+                           interior=OPTIONS["interior"])
     for name, a, c in zip(model._fields, got.model, model):
         assert a.dtype == c.dtype and torch.equal(a, c), name
     assert float(model.render_template.abs().max()) > 0
@@ -95,7 +98,7 @@ def test_a_textured_mesh_renders_its_texture_into_the_template():
     radius = _radius(printed)
     energy, gradient = [], []
     for r in (plain, printed):
-        got = render_model(r, pose, radius, margin_px=10)
+        got = render_model(r, pose, radius, margin_px=10, interior=0.0)  # the edges alone
         u0, v0, w, h = got.window[0].tolist()
         want = r.render(pose, roi=(u0, v0, w, h))
         assert torch.equal(got.gray, want.gray)

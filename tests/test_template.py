@@ -320,7 +320,7 @@ def test_render_window_contains_the_object_and_a_window_corrects_as_the_full_fra
     assert float(box_f[0, 2]) == max(int(u.max() - u.min()), int(v.max() - v.min())) + 1 + 40
     obs = torch.zeros(1, CAM.height, CAM.width)
     obs[0, roi[1] : roi[1] + roi[3], roi[0] : roi[0] + roi[2]] = _edges(base)[0]
-    corr = tm.TemplateCorrector(CAM, rule="argmax", iterations=1)
+    corr = tm.TemplateCorrector(CAM, rule="argmax", iterations=1, interior=0.0)
     a = corr(POSE, base.depth, base.gray, roi[:2], obs)
     b = corr(POSE, full.depth, full.gray, (0, 0), obs)
     # (the renderer's window and full-frame grey differ by up to ~2/255 on a few % of pixels)
@@ -510,22 +510,24 @@ def test_canvas_box_and_radial_gain_match_their_definitions():
 
 
 @pytest.mark.parametrize("name", ["box", "006_mustard_bottle"])
-@pytest.mark.parametrize("grey, silhouette", [(True, True), (False, True), (True, False)])
-def test_template_model_is_the_template_of_the_canvas_render(scenes, name, grey, silhouette):
+@pytest.mark.parametrize("grey, silhouette, interior", [(True, True, 0.0), (False, True, 0.0), (True, False, 0.0),
+                                                        (True, True, 0.7)])
+def test_template_model_is_the_template_of_the_canvas_render(scenes, name, grey, silhouette, interior):
     # the oracle: the tensor functions the compiled model builder fuses (prepare_canvas, edge_map, dog, ...)
     _, roi, base = scenes[name]
     depth, gray = base.depth.expand(2, -1, -1), base.gray.expand(2, -1, -1) if grey else None
     origin = torch.tensor([roi[:2], [roi[0] - 3, roi[1] + 5]])  # the second window seen at another place
     pose = POSE.expand(2, 7)
-    model = tm.template_model(pose, depth, gray, origin, CAM, silhouette=silhouette)
+    model = tm.template_model(pose, depth, gray, origin, CAM, silhouette=silhouette, interior=interior)
     cr = reference.prepare_canvas(depth, gray, origin, CAM, 128, 20.0)
     edges = reference.dog(reference.edge_map(cr.gray, cr.mask if silhouette else None, 0.1), 128)[:, None]
-    T = reference._scale(edges, edges)[:, 0]
+    T = reference._scale(edges, edges)[:, 0] + interior * cr.mask
     assert torch.equal(model.box, cr.box) and torch.allclose(model.K, cr.K, rtol=1e-6)  # K: float64, then rounded
     assert torch.allclose(model.gain, reference.radial_gain(depth, origin, CAM))
     assert torch.allclose(model.render_template, T, atol=1e-5)
-    assert torch.allclose(model.coef, torch.nn.functional.pad(reference._spline_prefilter(T[:, None])[:, 0], (3,) * 4),
-                          atol=1e-5)
+    coef = torch.nn.functional.pad(reference._spline_prefilter(T[:, None])[:, 0], (3,) * 4)
+    # float32 sums of the prefilter's taps: their rounding grows with the template's values (up to 0.5 + interior)
+    assert torch.allclose(model.coef, coef, atol=1e-5 * (1 + 4 * interior)), float((model.coef - coef).abs().max())
     assert torch.allclose(model.depth, reference._fill_depth(cr.depth, pose[:, 2], 8), atol=1e-6)
     assert (model.render_template.abs() > 0.1).any()  # a template, not an empty canvas
 
@@ -730,6 +732,86 @@ def test_compiled_newton_search_equals_the_generic_search(scenes, name):
         assert torch.equal(out.index, ref.index) and not out.applied.any()
 
 
+def test_area_weight_is_the_two_rate_density_threshold_times_the_area():
+    # the oracle: the object's cells of the model's point grid spread over the canvas, then the two means
+    N, step = 64, 4
+    gen = torch.Generator().manual_seed(3)
+    valid = torch.zeros(16, 16, dtype=torch.bool)
+    valid[4:11, 5:13] = True
+    on = torch.repeat_interleave(torch.repeat_interleave(valid, step, 0), step, 1)
+    obs = torch.rand(N, N, generator=gen, dtype=torch.float64) * torch.where(on, 0.2, 0.01)
+    rho_f, rho_b = float(obs[on].mean()), float(obs[~on].mean())
+    want = 0.8 * (rho_f - rho_b) / math.log(rho_f / rho_b) * int(on.sum())
+    got = tm.area_weight(obs.flatten().numpy(), valid.flatten().numpy(), N, 0.8)
+    assert got == pytest.approx(want, rel=1e-12)
+    assert tm.area_weight(obs.flatten().numpy(), valid.flatten().numpy(), N, 0.0) == 0.0
+    flipped = torch.where(on, 0.0, obs).flatten().numpy()  # no more events on the object than off it: no area term
+    assert tm.area_weight(flipped, valid.flatten().numpy(), N, 0.8) == 0.0
+
+
+@pytest.mark.parametrize("name", ["box", "006_mustard_bottle"])
+def test_compiled_newton_search_with_interior_equals_the_generic_search(scenes, name):
+    # the oracle: search() on the refitted quadratic of the template (with its interior) minus the area term's
+    # second-order Taylor model in tz around each centre, a = interior tau A from area_weight
+    _, roi, base = scenes[name]
+    interior = 0.8
+    model = tm.template_model(POSE, base.depth.double(), base.gray.double(), roi[:2], CAM, interior=interior)
+    unit = _steps(POSE, base, roi)[0, 1::2].diagonal()
+    gen = torch.Generator().manual_seed(5)
+    off = (torch.rand(6, 6, generator=gen, dtype=torch.float64) * 2 - 1) * unit * 1.5
+    starts = tm.apply_steps(POSE, off[None])[0]
+    B = len(starts)
+    model = tm.TemplateModel(*(x.expand(B, *x.shape[1:]) for x in model))
+    inside = (base.depth > 0).double()  # events on the object too (a texture), some off it
+    obs = model.observe((_edges(base).double() + 0.3 * inside * (torch.rand(inside.shape, generator=gen) < 0.2))
+                        .expand(B, -1, -1), roi[:2])
+    a = torch.tensor([tm.area_weight(obs[b].numpy(), model.valid[b].numpy(), 128, interior) for b in range(B)])
+    assert (a > 0).all()
+    z_r = model.render_pose[:, 2]
+
+    def scorer(centre):
+        quad = model.at(centre).fit_canvas(obs)
+        zc = centre[:, 2]
+        ac = a * (z_r / zc) ** 2
+
+        def area(dz):
+            return -ac[:, None] * (1 - 2 * dz / zc[:, None] + 3 * dz ** 2 / zc[:, None] ** 2)
+        return (lambda steps: quad.at_steps(steps) + area(steps[..., 2]),
+                lambda poses: quad.evaluate(poses) + area(poses[..., 2] - zc[:, None]))
+
+    for iterations in (1, 4):
+        ref = reference.search(starts, scorer, model.gain, CAM, rule="newton", iterations=iterations)
+        out = tm.newton_search(model, starts, obs, CAM, iterations=iterations, interior=interior)
+        assert torch.equal(out.iterations, ref.iterations) and (ref.iterations > 0).any()
+        assert torch.allclose(out.pose, ref.pose, atol=1e-9)
+        # the scores carry the area term's constant (hundreds): the 28-score fit of the oracle rounds at ~1e-8 of it
+        assert torch.allclose(out.score, ref.score, rtol=1e-7) and torch.allclose(out.scores, ref.scores, rtol=1e-7)
+        # the ablations' path (rule_search) pays the same area term
+        via = reference.rule_search(model, starts, obs, CAM, dp_px=1.0, dtheta_deg=0.5, rule="newton",
+                                    iterations=iterations, interior=interior)
+        assert torch.allclose(via.pose, ref.pose, atol=1e-12) and torch.equal(via.iterations, ref.iterations)
+
+
+@pytest.mark.parametrize("name", ["box", "006_mustard_bottle"])
+def test_interior_term_keeps_a_printed_texture_from_pulling_the_depth(scenes, name):
+    # events on the object's side of its outline, plus a texture the mesh does not have (a fifth of the object's
+    # pixels): the edge template alone takes the texture for outline and moves the object away as the texture
+    # thickens; with the interior term the texture moves it less than half as far
+    _, roi, base = scenes[name]
+    m = (base.depth > 0).double()
+    outline = m + torch.nn.functional.max_pool2d(-m[:, None], 3, 1, 1)[:, 0]  # the object's outermost pixels
+    gen = torch.Generator().manual_seed(7)
+    texture = m * (torch.rand(m.shape, generator=gen, dtype=torch.float64) < 0.2)
+    moves = {}
+    for interior in (0.0, 1.0):
+        c = tm.TemplateCorrector(CAM, iterations=5, interior=interior)
+        moves[interior] = [float(c(POSE, base.depth.double(), base.gray.double(), roi[:2], obs, roi[:2]).pose[0, 2]
+                                 - POSE[0, 2]) for obs in (outline, torch.maximum(outline, texture))]
+    pulled = {k: v[1] - v[0] for k, v in moves.items()}
+    assert pulled[0.0] > 0.003  # the texture takes the edge template's object 3+ mm away
+    assert abs(pulled[1.0]) < 0.5 * pulled[0.0]
+
+
 # -- (g) reusing a render at a nearby pose ----------------------------------------------------
 def test_reused_model_matches_a_fresh_render(scenes):
     r, roi, base = scenes["box"]
@@ -742,7 +824,7 @@ def test_reused_model_matches_a_fresh_render(scenes):
     wobble = (torch.rand(6, 6, generator=g_, dtype=torch.float64) * 2 - 1) * steps[0, 1::2].diagonal() * 0.3
     refs = tm.apply_steps(starts, wobble[:, None])[:, 0]
     rd = r.render(refs.float(), roi=roi)
-    corr = tm.TemplateCorrector(CAM, rule="argmax", iterations=1)
+    corr = tm.TemplateCorrector(CAM, rule="argmax", iterations=1, interior=0.0)  # the reference templates: edges
     model = corr.template_model(refs, rd.depth, rd.gray, roi[:2])
     shift = model.shift_px(starts)
     assert (shift > 0.2).all() and (shift < 1.3).all()

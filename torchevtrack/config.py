@@ -14,6 +14,7 @@ Example:
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -113,6 +114,7 @@ class TemplateConfig:
     rule: str = "newton"  # "newton" (all axes, sub-step), "argmax" (the paper) or "group" (EDOPT)
     iterations: int = 5  # correction rounds per update while the score improves (1 = the paper)
     warmup_events: int = 2000  # events an element must have seen since reset before its pose is corrected
+    interior: float = 1.0  # weight of the object's coverage added to the edge template, with its area term (0: edges)
 
 
 @dataclass
@@ -227,6 +229,8 @@ class TrackerConfig:
                              f"{v.feedback_leak!r}, {v.feedback_axes!r}, {v.feedback_max_v!r}, {v.feedback_max_w!r}")
         if self.template.rule not in RULES:
             raise ValueError(f"template.rule must be one of {RULES}, got {self.template.rule!r}")
+        if not (math.isfinite(self.template.interior) and self.template.interior >= 0):
+            raise ValueError(f"template.interior must be finite and >= 0, got {self.template.interior!r}")
         if self.render.backend not in BACKENDS:
             raise ValueError(f"render.backend must be one of {BACKENDS}, got {self.render.backend!r}")
         r = self.recover

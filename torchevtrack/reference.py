@@ -41,7 +41,7 @@ import torch.nn.functional as F
 from torchevtrack.camera import Camera
 from torchevtrack.geometry import quat_canonical, quat_exp, quat_mul, quat_to_matrix
 from torchevtrack.stages.template import (NEWTON_DAMPING, NEWTON_MAX_STEP, NUM_HYPOTHESES, PREFILTER_RADIUS, Correction,
-                                          TemplateModel, apply_steps, batch_origin, canvas_intrinsics, check_correct,
+                                          TemplateModel, apply_steps, area_weight, batch_origin, canvas_intrinsics, check_correct,
                                           check_images, correct_canvas, fill_kernel, gaussian_taps, odd_size,
                                           prefilter_taps, template_model, to_canvas, window_extent)
 
@@ -633,19 +633,33 @@ def correct_model(
 
 
 def rule_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, camera: Camera, *, dp_px: float,
-                dtheta_deg: float, rule: str, iterations: int) -> Correction:
+                dtheta_deg: float, rule: str, iterations: int, interior: float = 0.0) -> Correction:
     """:func:`search` with the model's second-order score (:meth:`~torchevtrack.stages.template.TemplateModel.at`
     and ``fit_canvas``, refitted at every iteration's pose), unchecked: the ``"argmax"`` and ``"group"`` rules of
     :func:`~torchevtrack.stages.template.correct_canvas` (which checks the inputs and runs this), or ``"newton"``
     with the torch step :func:`newton_step` (the oracle of :func:`~torchevtrack.stages.template.newton_search`).
+    With ``interior > 0`` (the model's) every score pays the area term of
+    :func:`~torchevtrack.stages.template.newton_kernel`: ``-a (z_r / z)^2`` as its second-order Taylor model in
+    ``tz`` around each centre, ``a`` from :func:`~torchevtrack.stages.template.area_weight`.
 
     Shape: ``TemplateModel, (B, 7), (B, N * N) -> Correction``; scores in the render's dtype.
     """
     dtype = model.depth.dtype
+    N = model.depth.shape[-1]
+    area = torch.tensor([area_weight(obs[b].double().numpy(), model.valid[b].numpy(), N, float(interior))
+                         for b in range(obs.shape[0])], dtype=torch.float64)
+    z_r = model.render_pose[:, 2]
 
     def scorer(centre: torch.Tensor):
         quad = model.at(centre).fit_canvas(obs)
-        return lambda steps: quad.at_steps(steps).to(dtype), lambda poses: quad.evaluate(poses).to(dtype)
+        zc = centre[:, 2:3].double()
+        ac = (area * (z_r / centre[:, 2]) ** 2)[:, None]
+
+        def area_term(dz):  # -ac (zc / (zc + dz))^2 to second order
+            return -ac * (1 - 2 * dz / zc + 3 * dz ** 2 / zc ** 2)
+
+        return (lambda steps: (quad.at_steps(steps) + area_term(steps[..., 2].double())).to(dtype),
+                lambda poses: (quad.evaluate(poses) + area_term(poses[..., 2].double() - zc)).to(dtype))
 
     return search(pose, scorer, model.gain, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule,
                   iterations=iterations)

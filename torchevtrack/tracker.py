@@ -243,7 +243,8 @@ class EventPoseTracker(nn.Module):
         # each compiled rasteriser's render (and template model) of a pose in its window, in one compiled call
         self._render_bindings = [
             RenderModelBinding(r, radius, margin_px=cfg.render.margin_px, canvas=o["canvas"],
-                               box_margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"])
+                               box_margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"],
+                               interior=o["interior"])
             if isinstance(r, RasterRenderer) else None for r, radius in zip(self._renderers, self._radius)]
         self._render_one = self._render_bindings[0] if B == 1 else None  # one stream: the render is the buffer
         # The pipeline's thread takes a known next window in ahead, unless it makes each update's render and template
@@ -742,7 +743,7 @@ class EventPoseTracker(nn.Module):
         times = self.flow.sae if self.time_surface is None else self.time_surface.last_us[:, None]  # (B, C, H, W)
         correct = [bind_correction(self.eros.surface[r].numpy(), times[r].numpy(), self.camera, canvas=o["canvas"],
                                    margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"],
-                                   dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"], rule=o["rule"],
+                                   interior=o["interior"], dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"], rule=o["rule"],
                                    iterations=o["iterations"], max_age_us=e.max_age_us,
                                    recency=self.recency.arrays(e.max_age_us, r))
                    for r in self._schedule.shares]

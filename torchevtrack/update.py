@@ -236,8 +236,8 @@ class Rendered(NamedTuple):
 
 @numba.njit(cache=True, nogil=True)
 def _render_model_kernel(pose, radius, cam, W, H, margin, vertices, faces, planes, albedo, normals, znear, zfar, light,
-                         ambient, background, shaded, model, box_margin, silhouette, edge_scale, g1, g2, pre, N, step,
-                         P, observed_box, texture):
+                         ambient, background, shaded, model, box_margin, silhouette, edge_scale, interior, g1, g2, pre, N,
+                         step, P, observed_box, texture):
     """:class:`RenderModelBinding`'s compiled call: the window of ``pose`` (``(1, 4)``), its render there at its
     normalised copy (the renderers' rule), its float32 rounding ``pose32`` (the model's pose), and with ``model`` the
     template model's arrays at ``pose32`` (``box, K, gain, render_template, depth, coef, points, valid``), its box
@@ -265,7 +265,7 @@ def _render_model_kernel(pose, radius, cam, W, H, margin, vertices, faces, plane
         origin = win[:, :2].astype(np.float64)
         box_kernel(depth, origin, cam, box_margin, box, gain)
         model_kernel(depth, gray, origin, box, cam, np.ascontiguousarray(pose32[:, 2]), np.bool_(True), silhouette,
-                     edge_scale, g1, g2, pre, step, step, box32, K, T, coef, Z, points, valid)
+                     edge_scale, interior, g1, g2, pre, step, step, box32, K, T, coef, Z, points, valid)
         for k in range(3):
             observed_box[0, k] = box32[0, k]
     return win, depth, gray, pose32, (box32, K, gain, T, Z, coef, points, valid)
@@ -279,7 +279,8 @@ class RenderModelBinding:
     its quaternion normalised as the renderers do) in its window (:func:`~torchevtrack.stages.template.window_of`
     with ``margin_px``, clipped to the frame), the grey image too with ``shaded``, and with ``model`` (needs
     ``shaded``) the template model (:func:`~torchevtrack.stages.template.template_model` with ``canvas``,
-    ``box_margin_px`` as its ``margin_px``, ``edge_clip`` and ``silhouette``) at the pose's float32 rounding. A caller
+    ``box_margin_px`` as its ``margin_px``, ``edge_clip``, ``silhouette`` and ``interior``) at the pose's float32
+    rounding. A caller
     that runs the compiled call on another thread without the GIL in between calls it in three parts: ``args =
     binding.start(pose, shaded, model)`` (the Python part before it), ``raw = binding.kernel(*args)`` (the compiled
     call) and ``binding.finish(raw)``.
@@ -299,7 +300,7 @@ class RenderModelBinding:
         >>> from torchevtrack.raster import RasterRenderer
         >>> r = RasterRenderer(load_mesh("can"), Camera(64, 48, 50.0, 50.0, 32.0, 24.0))
         >>> bind = RenderModelBinding(r, 0.06, margin_px=24, canvas=32, box_margin_px=20.0, edge_clip=0.1,
-        ...                           silhouette=True)
+        ...                           silhouette=True, interior=1.0)
         >>> out = bind(torch.tensor([[0.0, 0.0, 0.3, 1.0, 0.0, 0.0, 0.0]], dtype=torch.float64).numpy(), True, True)
         >>> out.window.tolist(), tuple(out.model.coef.shape)
         ([[0, 0, 64, 48]], (1, 38, 38))
@@ -308,7 +309,7 @@ class RenderModelBinding:
     kernel = staticmethod(_render_model_kernel)  # the compiled call
 
     def __init__(self, renderer: RasterRenderer, radius: float, *, margin_px: int, canvas: int,
-                 box_margin_px: float, edge_clip: float, silhouette: bool) -> None:
+                 box_margin_px: float, edge_clip: float, silhouette: bool, interior: float) -> None:
         mesh, cam = renderer.raster_mesh, renderer.camera
         self.observed_box = np.zeros((1, 3))
         step = max(1, canvas // 16)  # the model's object points: every step-th canvas pixel
@@ -317,8 +318,8 @@ class RenderModelBinding:
         self._args = (np.full(1, float(radius)), np.array([cam.fx, cam.fy, cam.cx, cam.cy]), cam.width, cam.height,
                       float(margin_px), *mesh, renderer.znear, renderer.zfar, LIGHT_DIRECTION, AMBIENT,
                       renderer.background)
-        self._model_args = (float(box_margin_px), silhouette, 0.125 / edge_clip, *model_filters(canvas), canvas, step,
-                            points, self.observed_box, None if texture is None else tuple(texture))
+        self._model_args = (float(box_margin_px), silhouette, 0.125 / edge_clip, float(interior), *model_filters(canvas),
+                            canvas, step, points, self.observed_box, None if texture is None else tuple(texture))
 
     def __call__(self, pose: np.ndarray, shaded: bool, model: bool) -> Rendered:
         return self.finish(self.kernel(*self.start(pose, shaded, model)))
@@ -350,12 +351,12 @@ class CorrectionStep(NamedTuple):
 
 
 def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *, canvas: int, margin_px: float,
-                    edge_clip: float, silhouette: bool, dp_px: float, dtheta_deg: float, rule: str, iterations: int,
-                    max_age_us: int, recency: RecencyArrays) -> Callable[..., CorrectionStep]:
+                    edge_clip: float, silhouette: bool, interior: float, dp_px: float, dtheta_deg: float, rule: str,
+                    iterations: int, max_age_us: int, recency: RecencyArrays) -> Callable[..., CorrectionStep]:
     """Step 5 (see the module docstring) bound to the EROS ``surface`` ``(B, H, W)`` float32 and the time surface
     ``last_us`` ``(B, C, H, W)`` int64 (numpy views, read at each call) and the options, unchecked.
 
-    Options: ``canvas, margin_px, edge_clip, silhouette`` as for
+    Options: ``canvas, margin_px, edge_clip, silhouette, interior`` as for
     :func:`~torchevtrack.stages.template.template_model`; ``dp_px, dtheta_deg, rule, iterations`` as for
     :func:`~torchevtrack.stages.template.correct_canvas`; ``max_age_us`` as for
     :func:`~torchevtrack.stages.eros.canvas_observation`; ``recency`` the elements' recency windows
@@ -393,12 +394,12 @@ def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *,
             on_observed()
         if model is None:
             model = model_in_box(render_pose.astype(np.float64), depth, depth if gray is None else gray,
-                                 gray is not None, origin64, cam, box, gain, N, edge_clip, silhouette)
+                                 gray is not None, origin64, cam, box, gain, N, edge_clip, silhouette, interior)
         if rule != "newton":
             c = correct_canvas(model, torch.from_numpy(predicted), torch.from_numpy(obs), camera, dp_px=dp_px,
-                               dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
+                               dtheta_deg=dtheta_deg, rule=rule, iterations=iterations, interior=interior)
             return CorrectionStep(model, Correction(*(f.numpy() for f in c)))
-        c = newton_arrays(model, predicted, obs, camera.fx, camera.fy, dp, dtheta, iterations)
+        c = newton_arrays(model, predicted, obs, camera.fx, camera.fy, dp, dtheta, iterations, interior)
         return CorrectionStep(model, c)
     return run
 

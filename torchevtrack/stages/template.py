@@ -142,6 +142,7 @@ __all__ = [
     "model_kernel",
     "model_filters",
     "newton_search",
+    "area_weight",
     "newton_arrays",
     "newton_kernel",
     "correct_canvas",
@@ -617,15 +618,51 @@ def _apply_step(pose, delta):
 
 
 @numba.njit(cache=True, nogil=True)
+def area_weight(obs, valid, N, interior):
+    """The area term's weight ``a = interior tau A`` of one element (see :func:`newton_kernel`), float64.
+
+    ``obs`` ``(N * N,)`` the canvas observation, ``valid`` ``(P,)`` the model's object points (the canvas grid of
+    :func:`model_kernel`, every ``max(1, N // 16)``-th pixel): a canvas pixel is on the object when its grid cell's
+    point is. ``A`` is the object's area (canvas pixels), ``rho_f`` and ``rho_b`` the mean observation on and off
+    it (``rho_b`` at least ``1e-5``) and ``tau = (rho_f - rho_b) / log(rho_f / rho_b)``, the density at which a pixel
+    is as likely the object's as the background's under two Poisson rates (0 when ``rho_f <= rho_b``).
+    """
+    step = max(1, N // 16)
+    n1 = (N - step // 2 + step - 1) // step
+    on = off = 0.0
+    area = 0
+    for v in range(N):
+        row = min(v // step, n1 - 1) * n1
+        for u in range(N):
+            o = obs[v * N + u]
+            if valid[row + min(u // step, n1 - 1)]:
+                on += o
+                area += 1
+            else:
+                off += o
+    if area == 0 or interior == 0.0:
+        return 0.0
+    rho_f = on / area
+    rho_b = max(off / max(N * N - area, 1), 1e-5)
+    if not rho_f > rho_b:
+        return 0.0
+    return interior * (rho_f - rho_b) / math.log(rho_f / rho_b) * area
+
+
+@numba.njit(cache=True, nogil=True)
 def newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, iterations, damping, max_step,
-                  out_pose, out_score, out_scores, out_moved):
+                  valid, interior, out_pose, out_score, out_scores, out_moved):
     """:func:`newton_search` on numpy arrays, unchecked, into ``out_pose`` ``(B, 7)``, ``out_score`` ``(B,)``,
     ``out_scores`` ``(B, 13)`` (float64) and ``out_moved`` ``(B,)`` int64; releases the GIL. The model's fields
     (``coef``, ``Z = depth``, ``K`` float64, ``render_pose``, ``gain`` float64), the start poses ``pose`` ``(B, 7)``
     float64, ``obs`` ``(B, N * N)``, the frame's ``fx, fy``, the steps ``dp`` (pixels) and ``dtheta`` (radians), and
-    ``iterations, damping, max_step`` as for :func:`newton_search`.
+    ``iterations, damping, max_step`` as for :func:`newton_search`, the model's ``valid`` object points and the
+    ``interior`` weight of its template.
 
     The ``"newton"`` rule of :func:`~torchevtrack.reference.search` on the exact second-order model, per element.
+    With ``interior > 0`` the score also pays ``tau`` per canvas pixel the object covers (:func:`area_weight`): the
+    term ``-a (z_r / z)^2`` of a pose at depth ``z`` (the render's ``z_r``: the area scales with the inverse square
+    of the depth), added to each round's model as its second-order Taylor terms in ``tz``.
 
     Each round fits the model at the current pose (:func:`_quadratic_terms`), where in step units ``u`` the score is
     ``s0 + gu . u + u^T Hu u / 2`` with ``gu = -g unit``, ``Hu = unit M unit``; the damped step ``u = (lambda I -
@@ -641,11 +678,18 @@ def newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, 
         cur = pose[b].copy()
         moved = 0
         o, X = _observed_points(Z[b], K[b], obs[b])
+        area = area_weight(obs[b], valid[b], Z.shape[-1], interior)
         gu, step, delta = np.empty(6), np.empty(6), np.empty(6)
         Hu, A, L, work, vecs = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
         eig = np.empty(6)
         for it in range(iterations):
             s0, g, M = _quadratic_terms(coef[b], K[b], render_pose[b], cur, o, X)
+            if area > 0.0:  # -a (z_r / z)^2 around z = cur's depth: s0 - g . delta + delta^T M delta / 2 in tz
+                zc = cur[2]
+                ac = area * (render_pose[b, 2] / zc) ** 2
+                s0 -= ac
+                g[2] -= 2.0 * ac / zc
+                M[2, 2] -= 6.0 * ac / (zc * zc)
             un = unit.copy()
             un[:2] *= cur[2] / pose[b, 2]
             if it == 0:
@@ -905,14 +949,15 @@ def box_kernel(depth, origin, cam, margin, box, gain):
 
 
 @numba.njit(cache=True, nogil=True)
-def model_kernel(depth, gray, origin, box64, cam, z_fallback, use_gray, use_mask, edge_scale, g1, g2, pre, fill_radius,
-                 point_step, box, K, T, coef, Z, points, valid):
+def model_kernel(depth, gray, origin, box64, cam, z_fallback, use_gray, use_mask, edge_scale, interior, g1, g2, pre,
+                 fill_radius, point_step, box, K, T, coef, Z, points, valid):
     """:func:`template_model` of each window ``depth`` / ``gray`` ``(B, h, w)`` at ``origin`` ``(B, 2)`` float64 in its
     canvas box ``box64`` (:func:`box_kernel`), unchecked, in one pass per element; releases the GIL.
 
     Inputs besides those: ``cam`` (:func:`camera_array`), ``z_fallback`` ``(B,)`` float64 depth of the background far
     from the object (the pose's ``tz``), ``use_gray`` (else ``gray`` is the depth), ``use_mask`` (the silhouette's
-    edges too), ``edge_scale = 0.125 / edge_clip``, the filters ``g1, g2, pre`` of :func:`model_filters`, the
+    edges too), ``edge_scale = 0.125 / edge_clip``, ``interior`` (the weight of the object's coverage added to the
+    template, :func:`template_model`), the filters ``g1, g2, pre`` of :func:`model_filters`, the
     ``fill_radius`` of the background fill and the ``point_step`` between object points (both ``max(1, N // 16)``).
     Outputs, overwritten: the fields ``box, K, render_template = T, coef, depth = Z, points, valid`` of a
     :class:`TemplateModel` in the render's dtype (``coef`` zeroed beforehand: only its interior is written).
@@ -951,9 +996,22 @@ def model_kernel(depth, gray, origin, box64, cam, z_fallback, use_gray, use_mask
         _blur(E, g1, tmp, B1)
         _blur(E, g2, tmp, B2)  # Difference of Gaussians B1 - B2
         _dog_template(B1, B2, T[b], Tp)
+        if interior != 0.0:
+            _add_interior(mask, np.float32(interior), T[b], Tp)
         _blur(Tp, pre, tmp, B1)
         coef[b, 3:N + 3, 3:N + 3] = B1[:, p:p + N]  # the B-spline coefficients
         fill_kernel(Z[b], z_fallback[b], fill_radius)
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_interior(mask, c, T, Tp):
+    """``T += c * mask`` and the same into the zero-padded copy ``Tp`` (the object's coverage of each canvas pixel)."""
+    N = T.shape[0]
+    p = (Tp.shape[0] - N) // 2
+    for v in range(N):
+        for u in range(N):
+            T[v, u] += c * mask[v, u]
+            Tp[v + p, u + p] += c * mask[v, u]
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
@@ -1029,8 +1087,14 @@ def template_model(
     margin_px: float = 20.0,
     edge_clip: float = 0.1,
     silhouette: bool = True,
+    interior: float = 0.0,
 ) -> TemplateModel:
     """Build the :class:`TemplateModel` of a render (window at ``origin``) made at ``pose``, in one compiled call.
+
+    ``interior`` adds the object's coverage of each canvas pixel, times ``interior``, to the template (the module
+    docstring's item 2): the score then also counts the events on the object, which a printed texture the mesh does
+    not have puts there, so that they pull the outline no more inwards than outwards; the Newton search pays for the
+    area the object covers (:func:`newton_kernel`). ``0`` is the edge template alone.
 
     Shape: ``(B, 7), (B, h, w), (B, h, w) or None, (B, 2) -> TemplateModel`` with ``N = canvas``.
     """
@@ -1038,13 +1102,15 @@ def template_model(
         raise ValueError("without a grey render the template needs silhouette=True")
     if not edge_clip > 0:
         raise ValueError(f"edge_clip must be positive, got {edge_clip}")
+    if not (math.isfinite(interior) and interior >= 0):
+        raise ValueError(f"interior must be finite and >= 0, got {interior}")
     depth = check_images(depth, "depth")
     B, dt = pose.shape[0], depth.dtype
     d, cam = depth.detach().numpy(), camera_array(camera)
     o = batch_origin(origin, B, torch.float64).contiguous().numpy()
     box, gain = render_box(d, o, cam, margin_px)
     return model_in_box(pose.detach().double().numpy(), d, (depth if gray is None else gray.to(dt)).detach().numpy(),
-                        gray is not None, o, cam, box, gain, canvas, edge_clip, silhouette)
+                        gray is not None, o, cam, box, gain, canvas, edge_clip, silhouette, interior)
 
 
 def camera_array(camera: Camera) -> np.ndarray:
@@ -1068,11 +1134,12 @@ def render_box(depth: np.ndarray, origin: np.ndarray, cam: np.ndarray,
 
 def model_in_box(pose: np.ndarray, depth: np.ndarray, shade: np.ndarray, use_gray: bool, origin: np.ndarray,
                  cam: np.ndarray, box64: np.ndarray, gain: np.ndarray, N: int, edge_clip: float,
-                 silhouette: bool) -> TemplateModel:
+                 silhouette: bool, interior: float = 0.0) -> TemplateModel:
     """The rest of :func:`template_model` in the canvas box of :func:`render_box` (:func:`model_kernel`), on numpy
     arrays, unchecked: ``pose`` ``(B, 7)`` float64 is the render's, ``depth`` ``(B, h, w)`` at ``origin`` ``(B, 2)``
     float64 the render, ``shade`` the grey render (or the depth when ``use_gray`` is false), ``box64`` and ``gain``
-    :func:`render_box`'s, ``N`` the canvas side; ``edge_clip`` and ``silhouette`` as for :func:`template_model`.
+    :func:`render_box`'s, ``N`` the canvas side; ``edge_clip``, ``silhouette`` and ``interior`` as for
+    :func:`template_model`.
 
     Shape: returns the :class:`TemplateModel` (tensors sharing the new arrays, in the render's dtype).
     """
@@ -1083,7 +1150,7 @@ def model_in_box(pose: np.ndarray, depth: np.ndarray, shade: np.ndarray, use_gra
     T, Z, coef = np.empty((B, N, N), dt), np.empty((B, N, N), dt), np.zeros((B, N + 6, N + 6), dt)
     points, valid = np.empty((B, P, 3), dt), np.empty((B, P), dtype=np.bool_)
     model_kernel(depth, shade, origin, box64, cam, np.ascontiguousarray(pose[:, 2]), use_gray, silhouette,
-                 0.125 / edge_clip, *model_filters(N), step, step, box, K, T, coef, Z, points, valid)
+                 0.125 / edge_clip, float(interior), *model_filters(N), step, step, box, K, T, coef, Z, points, valid)
     pose = torch.from_numpy(pose)
     return TemplateModel(pose, pose, *(torch.from_numpy(a) for a in (box, K, gain, T, Z, coef, points, valid)))
 
@@ -1107,6 +1174,7 @@ def correct_canvas(
     dtheta_deg: float = 0.5,
     rule: str = "newton",
     iterations: int = 1,
+    interior: float = 0.0,
 ) -> Correction:
     """Correct poses near a render's with its :class:`TemplateModel` against an observation already in the model's
     canvas (:meth:`TemplateModel.observe`, or :func:`torchevtrack.stages.eros.canvas_observation` of ``model.box``).
@@ -1120,7 +1188,8 @@ def correct_canvas(
     Args:
         dp_px, dtheta_deg: translation step (image pixels) and rotation step (degrees) of the hypotheses (module
             docstring, item 3); rule: ``"newton"``, ``"argmax"`` or ``"group"`` (item 5); iterations: maximum
-            corrections, repeated while the score keeps improving.
+            corrections, repeated while the score keeps improving; interior: the model's (:func:`template_model`),
+            for the area term every rule's scores pay (:func:`newton_kernel`).
 
     Shape: ``TemplateModel, (B, 7), (B, N, N) or (B, N * N) -> Correction``.
     """
@@ -1133,20 +1202,23 @@ def correct_canvas(
         raise ValueError(f"obs must be the ({B}, {N}, {N}) canvas observation, got {tuple(obs.shape)}")
     obs = obs.reshape(B, N * N)
     if rule == "newton":
-        return newton_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, iterations=iterations)
+        return newton_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, iterations=iterations,
+                             interior=interior)
     from torchevtrack.reference import rule_search  # the ablation switch (reference imports this module)
 
-    return rule_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
+    return rule_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule, iterations=iterations,
+                       interior=interior)
 
 
 def newton_arrays(model: TemplateModel, pose: np.ndarray, obs: np.ndarray, fx: float, fy: float, dp: float,
-                  dtheta: float, iterations: int) -> Correction:
+                  dtheta: float, iterations: int, interior: float = 0.0) -> Correction:
     """The compiled Newton search of :func:`newton_search` on numpy arrays (the tracker's hot path calls this).
 
     Args:
         model: the render's :class:`TemplateModel`; pose: ``(B, 7)`` float64 start poses; obs: ``(B, N, N)`` or
             ``(B, N * N)`` observation in the canvas; fx, fy: the frame's focal lengths (px); dp: the image step
-            (px); dtheta: the rotation step (radians); iterations: the maximum number of Newton rounds.
+            (px); dtheta: the rotation step (radians); iterations: the maximum number of Newton rounds; interior: the
+            weight of the object's coverage in the model's template (:func:`template_model`; its area term).
     Returns: a :class:`Correction` of numpy arrays: ``pose`` ``(B, 7)`` float64, ``score`` ``(B,)`` and ``scores``
         ``(B, 13)`` in the model's dtype, ``index`` (the first of ties, as torch's ``argmax``), ``applied`` all false
         (the step is not one of the hypotheses) and ``iterations`` ``(B,)`` int64 (the rounds that moved).
@@ -1157,7 +1229,8 @@ def newton_arrays(model: TemplateModel, pose: np.ndarray, obs: np.ndarray, fx: f
     newton_kernel(_np(model.coef), _np(model.depth), _np(model.K).astype(np.float64, copy=False),
                   _np(model.render_pose), np.ascontiguousarray(pose, dtype=np.float64), obs.reshape(B, -1),
                   _np(model.gain).astype(np.float64, copy=False), float(fx), float(fy), float(dp), float(dtheta),
-                  int(iterations), NEWTON_DAMPING, NEWTON_MAX_STEP, out, score, scores, moved)
+                  int(iterations), NEWTON_DAMPING, NEWTON_MAX_STEP, _np(model.valid), float(interior), out, score, scores,
+                  moved)
     dtype = _np(model.depth).dtype
     scores = scores.astype(dtype)
     return Correction(out, score.astype(dtype), scores, scores.argmax(1),
@@ -1165,7 +1238,7 @@ def newton_arrays(model: TemplateModel, pose: np.ndarray, obs: np.ndarray, fx: f
 
 
 def newton_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, camera: Camera, *,
-                  dp_px: float = 1.0, dtheta_deg: float = 0.5, iterations: int = 1) -> Correction:
+                  dp_px: float = 1.0, dtheta_deg: float = 0.5, iterations: int = 1, interior: float = 0.0) -> Correction:
     """The ``"newton"`` rule's search on the model's exact quadratic, compiled in one call (the tracker's).
 
     The same search as :func:`~torchevtrack.reference.search` with ``rule="newton"`` and the scorer of
@@ -1178,12 +1251,12 @@ def newton_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, c
     Args:
         model: the render's :class:`TemplateModel`; pose: ``(B, 7)`` start poses; obs: ``(B, N * N)``
             observation in the canvas (:meth:`TemplateModel.observe`).
-        dp_px, dtheta_deg, iterations: see :func:`correct_canvas`.
+        dp_px, dtheta_deg, iterations, interior: see :func:`correct_canvas`.
 
     Shape: ``(B, 7), (B, N * N) -> Correction`` (``applied`` all false: the step is not one of the hypotheses).
     """
     c = newton_arrays(model, _np(pose.double()), _np(obs), camera.fx, camera.fy, dp_px, math.radians(dtheta_deg),
-                      iterations)
+                      iterations, interior)
     return Correction(torch.from_numpy(c.pose).to(pose.dtype), *(torch.from_numpy(f) for f in c[1:]))
 
 
@@ -1195,7 +1268,7 @@ class TemplateCorrector(nn.Module):
         camera: the frame camera.
         canvas: canvas size in pixels (100..150 in the paper); margin_px: margin around the object's bounding box,
             frame pixels; edge_clip: Sobel magnitude at which edges saturate; silhouette: add the mask's edges to
-            the grey edges (:func:`template_model`).
+            the grey edges; interior: weight of the object's coverage in the template (:func:`template_model`).
         dp_px, dtheta_deg, rule, iterations: see :func:`correct_canvas`.
         (Defaults: the config section ``template``, :class:`~torchevtrack.config.TemplateConfig`.)
 
@@ -1228,6 +1301,7 @@ class TemplateCorrector(nn.Module):
         iterations: int = TemplateConfig.iterations,
         edge_clip: float = 0.1,
         silhouette: bool = True,
+        interior: float = TemplateConfig.interior,
     ) -> None:
         super().__init__()
         if not isinstance(camera, Camera):
@@ -1235,17 +1309,19 @@ class TemplateCorrector(nn.Module):
         check_options(rule, iterations)
         if not (dp_px > 0 and dtheta_deg > 0 and margin_px >= 0 and edge_clip > 0):
             raise ValueError("dp_px, dtheta_deg and edge_clip must be positive and margin_px non-negative")
+        if not (math.isfinite(interior) and interior >= 0):
+            raise ValueError(f"interior must be finite and >= 0, got {interior}")
         self.camera = camera
         self.options = dict(
             canvas=canvas, margin_px=margin_px, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule,
-            iterations=iterations, edge_clip=edge_clip, silhouette=silhouette,
+            iterations=iterations, edge_clip=edge_clip, silhouette=silhouette, interior=interior,
         )
 
     @classmethod
     def from_config(cls, camera: Camera, cfg: TemplateConfig) -> "TemplateCorrector":
         """The correction of the config section ``template`` (:class:`~torchevtrack.config.TemplateConfig`)."""
         return cls(camera, canvas=cfg.canvas, margin_px=cfg.margin_px, dp_px=cfg.dp_px, dtheta_deg=cfg.dtheta_deg,
-                   rule=cfg.rule, iterations=cfg.iterations)
+                   rule=cfg.rule, iterations=cfg.iterations, interior=cfg.interior)
 
     def forward(self, pose, depth, gray, origin, observation, observation_origin=(0, 0)) -> Correction:
         check_correct(pose, depth, gray, observation, **self.options)
@@ -1256,7 +1332,7 @@ class TemplateCorrector(nn.Module):
         o = self.options
         return template_model(check_poses(pose, "pose"), check_images(depth, "depth"), gray, origin, self.camera,
                               canvas=o["canvas"], margin_px=o["margin_px"], edge_clip=o["edge_clip"],
-                              silhouette=o["silhouette"])
+                              silhouette=o["silhouette"], interior=o["interior"])
 
     def correct_model(self, model: TemplateModel, pose, observation, observation_origin=(0, 0)) -> Correction:
         """:meth:`correct_canvas` of the ``observation`` ``(B, H, W)`` (top-left frame pixel ``observation_origin``)
@@ -1267,7 +1343,7 @@ class TemplateCorrector(nn.Module):
         """:func:`correct_canvas` (the observation already in the model's canvas) with this corrector's options."""
         o = self.options
         return correct_canvas(model, pose, obs, self.camera, dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"],
-                              rule=o["rule"], iterations=o["iterations"])
+                              rule=o["rule"], iterations=o["iterations"], interior=o["interior"])
 
     def extra_repr(self) -> str:
         return ", ".join(f"{k}={v!r}" for k, v in self.options.items())
