@@ -706,18 +706,26 @@ def test_correct_taylor_equals_warp_on_one_step_offsets(scenes, rule):
 
 
 
-@pytest.mark.parametrize("name", ["box", "006_mustard_bottle"])
-def test_compiled_newton_search_equals_the_generic_search(scenes, name):
-    # the oracle: search() with rule="newton" on the refitted quadratic, step from the 28-score fit
-    _, roi, base = scenes[name]
-    model = tm.template_model(POSE, base.depth.double(), base.gray.double(), roi[:2], CAM)  # float64: no rounding
+def _search_case(scene, seed: int, interior: float = 0.0, texture: float = 0.0):
+    """A float64 model of ``scene``'s render (no rounding), six starts up to 1.5 steps off on every axis, and the
+    observation of its edges (plus, on the object, ``texture`` on a random fifth of its pixels) for each start."""
+    _, roi, base = scene
+    model = tm.template_model(POSE, base.depth.double(), base.gray.double(), roi[:2], CAM, interior=interior)
     unit = _steps(POSE, base, roi)[0, 1::2].diagonal()
-    gen = torch.Generator().manual_seed(12)
+    gen = torch.Generator().manual_seed(seed)
     off = (torch.rand(6, 6, generator=gen, dtype=torch.float64) * 2 - 1) * unit * 1.5
     starts = tm.apply_steps(POSE, off[None])[0]
     B = len(starts)
     model = tm.TemplateModel(*(x.expand(B, *x.shape[1:]) for x in model))
-    obs = model.observe(_edges(base).double().expand(B, -1, -1), roi[:2])
+    inside = (base.depth > 0).double() * (torch.rand(base.depth.shape, generator=gen) < 0.2)
+    obs = model.observe((_edges(base).double() + texture * inside).expand(B, -1, -1), roi[:2])
+    return model, starts, obs
+
+
+@pytest.mark.parametrize("name", ["box", "006_mustard_bottle"])
+def test_compiled_newton_search_equals_the_generic_search(scenes, name):
+    # the oracle: search() with rule="newton" on the refitted quadratic, step from the 28-score fit
+    model, starts, obs = _search_case(scenes[name], 12)
 
     def scorer(centre):
         quad = model.at(centre).fit_canvas(obs)
@@ -753,18 +761,9 @@ def test_area_weight_is_the_two_rate_density_threshold_times_the_area():
 def test_compiled_newton_search_with_interior_equals_the_generic_search(scenes, name):
     # the oracle: search() on the refitted quadratic of the template (with its interior) minus the area term's
     # second-order Taylor model in tz around each centre, a = interior tau A from area_weight
-    _, roi, base = scenes[name]
     interior = 0.8
-    model = tm.template_model(POSE, base.depth.double(), base.gray.double(), roi[:2], CAM, interior=interior)
-    unit = _steps(POSE, base, roi)[0, 1::2].diagonal()
-    gen = torch.Generator().manual_seed(5)
-    off = (torch.rand(6, 6, generator=gen, dtype=torch.float64) * 2 - 1) * unit * 1.5
-    starts = tm.apply_steps(POSE, off[None])[0]
+    model, starts, obs = _search_case(scenes[name], 5, interior, texture=0.3)  # events on the object too
     B = len(starts)
-    model = tm.TemplateModel(*(x.expand(B, *x.shape[1:]) for x in model))
-    inside = (base.depth > 0).double()  # events on the object too (a texture), some off it
-    obs = model.observe((_edges(base).double() + 0.3 * inside * (torch.rand(inside.shape, generator=gen) < 0.2))
-                        .expand(B, -1, -1), roi[:2])
     a = torch.tensor([tm.area_weight(obs[b].numpy(), model.valid[b].numpy(), 128, interior) for b in range(B)])
     assert (a > 0).all()
     z_r = model.render_pose[:, 2]
