@@ -280,10 +280,9 @@ class RenderModelBinding:
     with ``margin_px``, clipped to the frame), the grey image too with ``shaded``, and with ``model`` (needs
     ``shaded``) the template model (:func:`~torchevtrack.stages.template.template_model` with ``canvas``,
     ``box_margin_px`` as its ``margin_px``, ``edge_clip``, ``silhouette`` and ``interior``) at the pose's float32
-    rounding. A caller
-    that runs the compiled call on another thread without the GIL in between calls it in three parts: ``args =
-    binding.start(pose, shaded, model)`` (the Python part before it), ``raw = binding.kernel(*args)`` (the compiled
-    call) and ``binding.finish(raw)``.
+    rounding. A caller that runs the compiled call on another thread without the GIL in between calls it in three
+    parts: ``args = binding.start(pose, shaded, model)`` (the Python part before it), ``raw = binding.kernel(*args)``
+    (the compiled call) and ``binding.finish(raw)``.
 
     Args:
         renderer: the object's :class:`~torchevtrack.raster.RasterRenderer` (its camera is the frame's).

@@ -17,8 +17,12 @@ path (:func:`template_model`, :func:`quadratic_score`, :func:`newton_search`) ru
    ``odd(canvas / 20)`` and ``odd(canvas / 8)`` (7 and 17 at 128 px) with OpenCV's default sigma for
    a kernel size (``0.3 ((k - 1) / 2 - 1) + 0.8``: 1.4 and 2.9 px). The DoG is scaled by
    ``0.5 / max`` of the null hypothesis' DoG (one factor for all 13 hypotheses, so no hypothesis is
-   favoured by its normalisation; zero stays zero) and clipped to ``[-0.5, 0.5]``.
-   Score = ``sum(template * observation)`` over the canvas.
+   favoured by its normalisation; zero stays zero) and clipped to ``[-0.5, 0.5]``. With ``interior > 0`` the
+   object's coverage of each canvas pixel, times ``interior``, is added (events inside the outline, e.g. of a print
+   the mesh lacks, then count for the object rather than pull its outline inwards).
+   Score = ``sum(template * observation)`` over the canvas, less, with ``interior > 0``, ``interior tau`` per canvas
+   pixel the object covers (:func:`area_weight`, :func:`newton_kernel`): together the two-rate Poisson likelihood of
+   the events on and off the object.
 3. **Hypotheses** (:func:`~torchevtrack.reference.hypothesis_steps`): index 0 is the null motion, then ``+/-`` steps
    along ``tx, ty, tz, rx, ry, rz`` (index ``1 + 2 a`` is ``+``, ``2 + 2 a`` is ``-`` for axis ``a``). A step ``[dt,
    phi]`` moves the pose as ``t' = t + dt``, ``q' = exp(phi) (x) q``: a translation in the camera frame, or a
