@@ -41,9 +41,9 @@ import torch.nn.functional as F
 from torchevtrack.camera import Camera
 from torchevtrack.geometry import quat_canonical, quat_exp, quat_mul, quat_to_matrix
 from torchevtrack.stages.template import (NEWTON_DAMPING, NEWTON_MAX_STEP, NUM_HYPOTHESES, PREFILTER_RADIUS, Correction,
-                                          TemplateModel, apply_steps, area_weight, batch_origin, canvas_intrinsics, check_correct,
-                                          check_images, correct_canvas, fill_kernel, gaussian_taps, odd_size,
-                                          prefilter_taps, template_model, to_canvas, window_extent)
+                                          TemplateModel, apply_steps, area_weight, batch_origin, canvas_intrinsics,
+                                          check_correct, check_images, correct_canvas, fill_kernel, gaussian_taps,
+                                          odd_size, prefilter_taps, template_model, to_canvas, window_extent)
 
 __all__ = ["canvas_box", "edge_map", "dog", "radial_gain", "warp_canvas", "CanvasRender", "prepare_canvas",
            "hypothesis_templates", "score", "GROUPS", "hypothesis_steps", "select", "newton_step", "search",
