@@ -22,6 +22,19 @@ def test_partial_yaml_and_unknown_keys(tmp_path):
         TrackerConfig.from_yaml(tmp_path / "missing.yaml")
 
 
+def test_a_key_given_twice_is_an_error(tmp_path):
+    f = tmp_path / "c.yaml"
+    f.write_text("template:\n  interior: 1.0\n  interior: 0.0\n")
+    with pytest.raises(ValueError, match="'interior' given twice"):
+        TrackerConfig.from_yaml(f)
+    f.write_text("rate_hz: 250\nrate_hz: 500\n")
+    with pytest.raises(ValueError, match="'rate_hz' given twice"):
+        TrackerConfig.from_yaml(f)
+    f.write_text("ukf: [unclosed\n")
+    with pytest.raises(ValueError, match="c.yaml"):
+        TrackerConfig.from_yaml(f)
+
+
 def test_invalid_values_are_rejected():
     with pytest.raises(ValueError, match="velocity.source"):
         TrackerConfig.from_dict({"velocity": {"source": "magic"}})

@@ -43,6 +43,19 @@ TWIST_AXES = ("vx", "vy", "vz", "wx", "wy", "wz")  # names of the twist componen
 DEFAULT_YAML = Path(__file__).parent / "configs" / "default.yaml"  # every key with its default value
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader that refuses a key given twice in one mapping (plain YAML keeps the last silently)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(None, None, f"key {key!r} given twice", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
 RECENCY_STEP_US = 250  # a recency window that follows the image speed is a multiple of this
 
 
@@ -260,7 +273,10 @@ class TrackerConfig:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"config file not found: {path}")
-        d = yaml.safe_load(path.read_text()) or {}
+        try:
+            d = yaml.load(path.read_text(), Loader=_UniqueKeyLoader) or {}
+        except yaml.YAMLError as e:
+            raise ValueError(f"{path}: {' '.join(str(e).split())}") from None
         if not isinstance(d, dict):
             raise ValueError(f"{path}: expected a mapping at the top level")
         return _build(cls, d, str(path))
