@@ -64,3 +64,17 @@ def test_diagnose_loss_oracle(sequence: Path) -> None:
     lines = _run("tools/diagnose_loss.py", str(sequence), "--duration", "0.04", "--every", "5",
                  "--oracle-velocity").splitlines()
     assert len(lines) >= 4 and lines[2].split()[0] == "2.0"
+
+
+def test_recovery_trials(sequence: Path) -> None:
+    """A start at the truth is counted within the bounds one update later, a start 5 cm off is not (20 ms cannot
+    close that); a blackout trial reports the error before the gap and is judged after it (loose bounds: this tiny
+    160x120 sequence drifts ~4 cm in 60 ms)."""
+    args = ("tools/recovery_trials.py", str(sequence.parent), "--mode")
+    near = _run(*args, "start", "--draws", "2", "--offset-mm", "0", "--offset-deg", "0", "--settle", "0.002")
+    assert "start: 2 of 2 within" in near and near.count(" ok") == 2
+    far = _run(*args, "start", "--draws", "1", "--offset-mm", "50", "--offset-deg", "0", "--settle", "0.02")
+    assert "start: 0 of 1 within" in far and "MISS" in far
+    gap = _run(*args, "blackout", "--at", "0.02", "--gap-ms", "10", "--settle", "0.02", "--max-cm", "50",
+               "--max-deg", "90")
+    assert "before" in gap and "blackout: 1 of 1 within" in gap

@@ -1,0 +1,127 @@
+"""Issue 25's recovery targets, measured on the sequences of a benchmark directory.
+
+Two kinds of trial, each judged against the ground truth at one instant (within ``--max-cm`` and ``--max-deg``;
+the rotation about a hidden symmetry axis of an untextured symmetric object left out, as the benchmark does):
+
+* ``start``: the tracker starts ``--offset-mm`` millimetres and ``--offset-deg`` degrees off the first true pose
+  (random directions, :func:`~torchevtrack.geometry.perturb_pose`, ``--draws`` per sequence, seeds 0, 1, ...) and
+  must be there ``--settle`` seconds later.
+* ``blackout``: started at the true pose, the events of ``[--at, --at + --gap-ms)`` are removed while the object
+  keeps moving, and the tracker must be there ``--settle`` seconds after the events return. A trial whose tracker
+  was already off before the gap (at ``--at``) is reported but not counted.
+
+Each sequence's draws run as one batch; the loss detector runs (passively unless ``recover.enabled``) and each
+trial's count of updates flagged lost is printed. ``--set`` changes the tracker config as ``track --set`` does, e.g.
+``--set recover.enabled=true --set loss.enabled=true --set recover.start_search=true``.
+
+    python tools/recovery_trials.py DIR --mode start [--draws 5] [--only A,B] [--set KEY=VALUE ...]
+    python tools/recovery_trials.py DIR --mode blackout [--at 0.3] [--gap-ms 200] [--settle 0.1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import torch
+
+from torchevtrack.benchmark import find_sequences
+from torchevtrack.config import TrackerConfig
+from torchevtrack.geometry import perturb_pose
+from torchevtrack.mesh import hidden_symmetry_axis
+from torchevtrack.metrics import per_pose_errors
+from torchevtrack.synth.sequence import Sequence
+from torchevtrack.tracker import EventPoseTracker
+
+
+def error_at(seq: Sequence, t_us: torch.Tensor, poses: torch.Tensor, t_query: int) -> tuple[float, float]:
+    """Translation (cm) and rotation (deg, symmetry axis left out) error of the last pose at or before
+    ``t_query``."""
+    i = int(torch.searchsorted(t_us, torch.tensor(t_query), right=True)) - 1
+    if i < 0:
+        raise ValueError(f"no pose at or before {t_query} us")
+    axis = hidden_symmetry_axis(seq.mesh)
+    e = per_pose_errors(t_us[i:i + 1], poses[i:i + 1], seq.gt_t_us, seq.gt_poses,
+                        symmetry_axis=None if axis is None else torch.as_tensor(axis))
+    rot = e["re_sym"] if "re_sym" in e else e["re"]
+    return float(e["te"][0]) * 100.0, math.degrees(float(rot[0]))
+
+
+def trial_batch(path, mode: str, args, cfg: TrackerConfig) -> list[dict]:
+    """Track one sequence's draws as a batch; one record per draw."""
+    seq = Sequence.load(path)
+    t0 = int(seq.gt_t_us[0])
+    events = seq.events
+    if mode == "start":
+        draws = args.draws
+        gen = torch.Generator().manual_seed(args.seed)
+        starts = torch.stack([perturb_pose(seq.gt_poses[0], args.offset_mm / 1e3, math.radians(args.offset_deg), gen)
+                              for _ in range(draws)])
+        t_before, t_judge = None, t0 + round(args.settle * 1e6)
+    else:
+        draws = 1
+        starts = seq.gt_poses[:1]
+        gap0 = t0 + round(args.at * 1e6)
+        gap1 = gap0 + round(args.gap_ms * 1e3)
+        events = events.select((events.t < gap0) | (events.t >= gap1))
+        t_before, t_judge = gap0, gap1 + round(args.settle * 1e6)
+    t_end = min(int(seq.gt_t_us[-1]), t_judge + cfg.period_us)
+    if t_judge > int(seq.gt_t_us[-1]):
+        raise SystemExit(f"{path.name}: the sequence ends before the judged instant ({t_judge / 1e6:.3f} s)")
+    tracker = EventPoseTracker(seq.camera, [str(path / "mesh.ply")] * draws, cfg.replace(loss={"enabled": True}))
+    try:
+        times, poses, lost = tracker.track([events] * draws, starts, t_start_us=t0, t_end_us=t_end,
+                                           return_lost=True)
+    finally:
+        tracker.close()
+    out = []
+    for b in range(draws):
+        rec = {"sequence": path.name, "draw": b}
+        if t_before is not None:
+            rec["before"] = error_at(seq, times[b], poses[b], t_before)
+        rec["after"] = error_at(seq, times[b], poses[b], t_judge)
+        rec["lost_flags"] = int(lost[b].sum())
+        out.append(rec)
+    return out
+
+
+def within(e: tuple[float, float], args) -> bool:
+    return e[0] <= args.max_cm and e[1] <= args.max_deg
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("benchdir")
+    ap.add_argument("--mode", choices=("start", "blackout"), required=True)
+    ap.add_argument("--only", default=None, help="comma-separated sequence names")
+    ap.add_argument("--draws", type=int, default=5, help="start mode: start draws per sequence")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--offset-mm", type=float, default=20.0)
+    ap.add_argument("--offset-deg", type=float, default=10.0)
+    ap.add_argument("--at", type=float, default=0.3, help="blackout mode: the gap's start (s after the first pose)")
+    ap.add_argument("--gap-ms", type=float, default=200.0)
+    ap.add_argument("--settle", type=float, default=None,
+                    help="seconds after the start (start mode, default 0.2) or after the gap (blackout, default 0.1)")
+    ap.add_argument("--max-cm", type=float, default=1.0)
+    ap.add_argument("--max-deg", type=float, default=5.0)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    args = ap.parse_args(argv)
+    if args.settle is None:
+        args.settle = 0.2 if args.mode == "start" else 0.1
+    cfg = TrackerConfig().override(args.set)
+    paths = find_sequences(args.benchdir, None if args.only is None else args.only.split(","))
+    records = []
+    for path in paths:
+        for r in trial_batch(path, args.mode, args, cfg):
+            records.append(r)
+            before = "" if "before" not in r else f"  before {r['before'][0]:6.2f} cm {r['before'][1]:6.2f} deg"
+            print(f"{r['sequence']:34s} {r['draw']:2d}{before}  after {r['after'][0]:6.2f} cm {r['after'][1]:6.2f} deg"
+                  f"  lost flags {r['lost_flags']:4d}  {'ok' if within(r['after'], args) else 'MISS'}", flush=True)
+    counted = [r for r in records if "before" not in r or within(r["before"], args)]
+    ok = sum(within(r["after"], args) for r in counted)
+    print(f"{args.mode}: {ok} of {len(counted)} within {args.max_cm} cm / {args.max_deg} deg "
+          f"({len(records) - len(counted)} trials off before the gap, not counted)")
+
+
+if __name__ == "__main__":
+    main()
