@@ -71,7 +71,7 @@ def trial_batch(path, mode: str, args, cfg: TrackerConfig) -> list[dict]:
     tracker = EventPoseTracker(seq.camera, [str(path / "mesh.ply")] * draws, cfg.replace(loss={"enabled": True}))
     try:
         times, poses, lost = tracker.track([events] * draws, starts, t_start_us=t0, t_end_us=t_end,
-                                           return_lost=True)
+                                           return_lost=True, progress=False)
     finally:
         tracker.close()
     out = []

@@ -500,10 +500,10 @@ class VelocityKF(nn.Module):
 
     Args:
         camera: intrinsics of the flow pixel coordinates.
-        rho: velocity decay of the motion model (paper: 0.5).
+        rho: velocity decay of the motion model per update (paper: 0.5; default 0.75).
         q_v, q_w: process noise standard deviations per update (m/s, rad/s). With ``rho = 0.5`` the
-            prior mean halves at every step, so these must be of the order of the velocities themselves
-            for the filter to follow the flow rather than decay to zero.
+            prior mean halves at every step (``rho = 0.75``: a quarter is lost), so these must be of the order
+            of the velocities themselves for the filter to follow the flow rather than decay to zero.
         r_px: flow noise standard deviation, px of displacement per update.
         p0_v, p0_w: initial standard deviations (m/s, rad/s) after :meth:`reset`.
         min_vectors: filters with fewer valid vectors only predict.
