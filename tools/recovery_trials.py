@@ -106,6 +106,8 @@ def main(argv=None) -> None:
     ap.add_argument("--max-deg", type=float, default=5.0)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = ap.parse_args(argv)
+    if args.draws < 1 or args.gap_ms < 0 or args.at < 0 or (args.settle is not None and args.settle < 0):
+        ap.error("--draws must be >= 1 and --at, --gap-ms, --settle >= 0")
     if args.settle is None:
         args.settle = 0.2 if args.mode == "start" else 0.1
     cfg = TrackerConfig().override(args.set)

@@ -102,7 +102,7 @@ class FlowConfig:
 @dataclass
 class VelocityConfig:
     source: str = "flow"  # "flow" (the paper), "poses" (EDOPT_Vel: from consecutive poses) or "none"
-    rho: float = 0.75  # velocity decay per update (paper: 0.5; 0.75 holds more dev runs, docs/notebook.md 2026-11-27)
+    rho: float = 0.75  # velocity decay per update (paper: 0.5; 0.75 holds more dev runs: docs/notebook.md, 2026-11-28)
     q_v: float = 0.5  # process noise std of the centre velocity per update, m/s
     q_w: float = 3.0  # process noise std of w per update, rad/s
     r_px: float = 1.0  # measurement std per flow vector, pixels of displacement per update
