@@ -97,6 +97,26 @@ def test_after_a_blackout_the_search_restarts_the_lost_element_on_the_object(seq
     assert float((held[0, :3] - poses[first_lost - 1, :3]).norm()) < 0.01  # (the last good update came before)
 
 
+def test_the_real_search_restarts_a_640x480_box_after_a_blackout_at_the_default_clear_cost():
+    """End to end, no oracle: 200 ms without events while a box moves; 100 ms after the events return the tracker is
+    within 1 cm / 5 deg with the default clear-winner cost (3 px), and not with the stricter 1.5 px of before (the
+    smeared edges after a blackout cost the found pose ~2-4 px, so no search was clear)."""
+    vga = Camera(640, 480, 502.3, 502.3, 319.5, 239.5)
+    box = generate_sequence("box", "regular", 0.52, seed=3, camera=vga, progress=False)
+    dark, t0 = blackout(box, 200_000, 400_000), int(box.gt_t_us[0])
+    end = t0 + 500_000
+    result = {}
+    for cost in (1.5, RECOVER.recover.max_cost_px):
+        tracker = EventPoseTracker(vga, box.mesh, RECOVER.replace(recover={"max_cost_px": cost}))
+        times, poses = tracker.track(dark.events, box.gt_poses[0], t_start_us=t0, t_end_us=end, progress=False)
+        tracker.close()
+        _, te, re = errors(box, times[0], poses[0])
+        result[cost] = (float(te[-1]), float(re[-1]), tracker.recover.restarts)
+    assert RECOVER.recover.max_cost_px == 3.0
+    assert result[3.0][0] <= 0.01 and result[3.0][1] <= 5.0 and result[3.0][2] >= 1, result
+    assert result[1.5][0] > 0.01 and result[1.5][2] == 0, result
+
+
 def test_a_start_search_moves_a_wrong_start_into_the_basin(seq, truth_search):
     t0 = int(seq.gt_t_us[0])
     start = perturb_pose(seq.gt_poses[0], 0.02, math.radians(10.0), torch.Generator().manual_seed(5))

@@ -198,12 +198,15 @@ class RecoverConfig:
     # within the last retry_us; the element restarts at a clear result. start_search: one such search start_after_us
     # after each (re)start, from the tracker's pose then. search_m: the search's image-plane half-width (metres at
     # the object's depth; its depth offsets scale with it); the search blocks the update (~0.3-1.5 s of wall time).
+    # max_cost_px: a result is clear (restarts the element) at a chamfer cost of at most this many pixels (and a
+    # runner-up 0.5 px worse): after a blackout the object's recent edges are smeared, and found poses cost 1.6-4 px.
     enabled: bool = False
     retry_us: int = 20_000
     min_events: int = 500
     search_m: float = 0.10
     start_search: bool = False
     start_after_us: int = 24_000
+    max_cost_px: float = 3.0
 
 
 @dataclass
@@ -251,9 +254,10 @@ class TrackerConfig:
             raise ValueError("recover.enabled needs the loss detector: set loss.enabled")
         if r.start_search and not r.enabled:
             raise ValueError("recover.start_search needs recover.enabled")
-        if r.retry_us <= 0 or r.min_events < 0 or not r.search_m > 0 or r.start_after_us <= 0:
-            raise ValueError(f"recover.retry_us and start_after_us must be positive, min_events >= 0 and search_m > 0, "
-                             f"got {r.retry_us!r}, {r.start_after_us!r}, {r.min_events!r}, {r.search_m!r}")
+        if r.retry_us <= 0 or r.min_events < 0 or not r.search_m > 0 or r.start_after_us <= 0 or not r.max_cost_px > 0:
+            raise ValueError(f"recover.retry_us and start_after_us must be positive, min_events >= 0, search_m and "
+                             f"max_cost_px > 0, got {r.retry_us!r}, {r.start_after_us!r}, {r.min_events!r}, "
+                             f"{r.search_m!r}, {r.max_cost_px!r}")
         if self.render.ahead and self.render.reuse_px > 0:
             raise ValueError("render.reuse_px > 0 needs render.ahead: false (each chooses where to render)")
 

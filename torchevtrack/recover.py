@@ -145,9 +145,11 @@ class Recoverer(nn.Module):
                     radii: Sequence[float]) -> "Recoverer":
         """One relocaliser per distinct loaded mesh of ``meshes`` (the tracker's, already decimated as it renders
         them) with its bounding radius of ``radii`` (metres), :func:`search_levels` of ``cfg.search_m`` and the
-        shape's :func:`~torchevtrack.mesh.symmetry_axis`; ``owner`` gives each of the ``B`` elements its mesh."""
+        shape's :func:`~torchevtrack.mesh.symmetry_axis` and the config's clear-winner cost ``max_cost_px``;
+        ``owner`` gives each of the ``B`` elements its mesh."""
         relocs = [Relocaliser(RasterRenderer(mesh, camera), radius, levels=search_levels(cfg.search_m),
-                              symmetry_axis=symmetry_axis(mesh)) for mesh, radius in zip(meshes, radii)]
+                              max_cost_px=cfg.max_cost_px, symmetry_axis=symmetry_axis(mesh))
+                  for mesh, radius in zip(meshes, radii)]
         return cls(relocs, owner, retry_us=cfg.retry_us, min_events=cfg.min_events, start_search=cfg.start_search,
                    start_after_us=cfg.start_after_us)
 
