@@ -34,13 +34,12 @@ from torchevtrack.synth.sequence import Sequence
 from torchevtrack.tracker import EventPoseTracker
 
 
-def error_at(seq: Sequence, t_us: torch.Tensor, poses: torch.Tensor, t_query: int) -> tuple[float, float]:
-    """Translation (cm) and rotation (deg, symmetry axis left out) error of the last pose at or before
-    ``t_query``."""
+def error_at(seq: Sequence, axis, t_us: torch.Tensor, poses: torch.Tensor, t_query: int) -> tuple[float, float]:
+    """Translation (cm) and rotation (deg, about ``axis`` left out: the sequence's hidden symmetry axis or ``None``)
+    error of the last pose at or before ``t_query``."""
     i = int(torch.searchsorted(t_us, torch.tensor(t_query), right=True)) - 1
     if i < 0:
         raise ValueError(f"no pose at or before {t_query} us")
-    axis = hidden_symmetry_axis(seq.mesh)
     e = per_pose_errors(t_us[i:i + 1], poses[i:i + 1], seq.gt_t_us, seq.gt_poses,
                         symmetry_axis=None if axis is None else torch.as_tensor(axis))
     rot = e["re_sym"] if "re_sym" in e else e["re"]
@@ -74,12 +73,12 @@ def trial_batch(path, mode: str, args, cfg: TrackerConfig) -> list[dict]:
                                            return_lost=True, progress=False)
     finally:
         tracker.close()
-    out = []
+    axis, out = hidden_symmetry_axis(seq.mesh), []
     for b in range(draws):
         rec = {"sequence": path.name, "draw": b}
         if t_before is not None:
-            rec["before"] = error_at(seq, times[b], poses[b], t_before)
-        rec["after"] = error_at(seq, times[b], poses[b], t_judge)
+            rec["before"] = error_at(seq, axis, times[b], poses[b], t_before)
+        rec["after"] = error_at(seq, axis, times[b], poses[b], t_judge)
         rec["lost_flags"] = int(lost[b].sum())
         out.append(rec)
     return out
