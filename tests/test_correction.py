@@ -51,8 +51,8 @@ def _oracle(pose32, predicted, depth, gray, origin, surface, last, t_now, rule="
     model = template_model(pose32, depth, gray, origin, CAM, **OPTIONS)
     obs = canvas_observation(surface, last, model.box, OPTIONS["canvas"], t_now, MAX_AGE_US, RECENCY_US)
     if rule == "newton":
-        return model, newton_search(model, predicted, obs.flatten(1), CAM, interior=OPTIONS["interior"], **SEARCH)
-    return model, correct_canvas(model, predicted, obs, CAM, rule=rule, interior=OPTIONS["interior"], **SEARCH)
+        return model, newton_search(model, predicted, obs.flatten(1), CAM, **SEARCH)
+    return model, correct_canvas(model, predicted, obs, CAM, rule=rule, **SEARCH)
 
 
 def _step(pose32, predicted, depth, gray, origin, surface, last, t_now, rule="newton", model=None, on_observed=None):

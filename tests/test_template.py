@@ -767,8 +767,8 @@ def test_compiled_newton_search_with_interior_equals_the_generic_search(scenes, 
     assert min(a) > 0  # the area term is on
     for iterations in (1, 4):
         ref = reference.rule_search(model, starts, obs, CAM, dp_px=1.0, dtheta_deg=0.5, rule="newton",
-                                    iterations=iterations, interior=interior)
-        out = tm.newton_search(model, starts, obs, CAM, iterations=iterations, interior=interior)
+                                    iterations=iterations)
+        out = tm.newton_search(model, starts, obs, CAM, iterations=iterations)
         assert torch.equal(out.iterations, ref.iterations) and (ref.iterations > 0).any()
         assert torch.allclose(out.pose, ref.pose, atol=1e-9)
         # the scores carry the area term's constant (hundreds): the 28-score fit of the oracle rounds at ~1e-8 of it

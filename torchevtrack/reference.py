@@ -633,12 +633,12 @@ def correct_model(
 
 
 def rule_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, camera: Camera, *, dp_px: float,
-                dtheta_deg: float, rule: str, iterations: int, interior: float = 0.0) -> Correction:
+                dtheta_deg: float, rule: str, iterations: int) -> Correction:
     """:func:`search` with the model's second-order score (:meth:`~torchevtrack.stages.template.TemplateModel.at`
     and ``fit_canvas``, refitted at every iteration's pose), unchecked: the ``"argmax"`` and ``"group"`` rules of
     :func:`~torchevtrack.stages.template.correct_canvas` (which checks the inputs and runs this), or ``"newton"``
     with the torch step :func:`newton_step` (the oracle of :func:`~torchevtrack.stages.template.newton_search`).
-    With ``interior > 0`` (the model's) every score pays the area term of
+    With the model's ``interior > 0`` every score pays the area term of
     :func:`~torchevtrack.stages.template.newton_kernel`: ``-a (z_r / z)^2`` as its second-order Taylor model in
     ``tz`` around each centre, ``a`` from :func:`~torchevtrack.stages.template.area_weight`.
 
@@ -646,7 +646,7 @@ def rule_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, cam
     """
     dtype = model.depth.dtype
     N = model.depth.shape[-1]
-    area = torch.tensor([area_weight(obs[b].double().numpy(), model.valid[b].numpy(), N, float(interior))
+    area = torch.tensor([area_weight(obs[b].double().numpy(), model.valid[b].numpy(), N, float(model.interior[b]))
                          for b in range(obs.shape[0])], dtype=torch.float64)
     z_r = model.render_pose[:, 2]
 

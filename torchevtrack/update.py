@@ -240,9 +240,9 @@ def _render_model_kernel(pose, radius, cam, W, H, margin, vertices, faces, plane
                          step, P, observed_box, texture):
     """:class:`RenderModelBinding`'s compiled call: the window of ``pose`` (``(1, 4)``), its render there at its
     normalised copy (the renderers' rule), its float32 rounding ``pose32`` (the model's pose), and with ``model`` the
-    template model's arrays at ``pose32`` (``box, K, gain, render_template, depth, coef, points, valid``), its box
-    also into ``observed_box`` as float64. ``texture``: the mesh's :class:`~torchevtrack.raster.RasterTexture` as a
-    tuple, or ``None`` (untextured)."""
+    template model's arrays at ``pose32`` (``box, K, gain, render_template, depth, coef, points, valid,
+    interior``), its box also into ``observed_box`` as float64. ``texture``: the mesh's
+    :class:`~torchevtrack.raster.RasterTexture` as a tuple, or ``None`` (untextured)."""
     unit = pose.copy()
     nb_normalise_quaternions(unit, np.empty(1))
     pose32 = pose.astype(np.float32).astype(np.float64)
@@ -268,7 +268,7 @@ def _render_model_kernel(pose, radius, cam, W, H, margin, vertices, faces, plane
                      edge_scale, interior, g1, g2, pre, step, step, box32, K, T, coef, Z, points, valid)
         for k in range(3):
             observed_box[0, k] = box32[0, k]
-    return win, depth, gray, pose32, (box32, K, gain, T, Z, coef, points, valid)
+    return win, depth, gray, pose32, (box32, K, gain, T, Z, coef, points, valid, np.full(1, interior))
 
 
 class RenderModelBinding:
@@ -396,9 +396,9 @@ def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *,
                                  gray is not None, origin64, cam, box, gain, N, edge_clip, silhouette, interior)
         if rule != "newton":
             c = correct_canvas(model, torch.from_numpy(predicted), torch.from_numpy(obs), camera, dp_px=dp_px,
-                               dtheta_deg=dtheta_deg, rule=rule, iterations=iterations, interior=interior)
+                               dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
             return CorrectionStep(model, Correction(*(f.numpy() for f in c)))
-        c = newton_arrays(model, predicted, obs, camera.fx, camera.fy, dp, dtheta, iterations, interior)
+        c = newton_arrays(model, predicted, obs, camera.fx, camera.fy, dp, dtheta, iterations)
         return CorrectionStep(model, c)
     return run
 

@@ -666,7 +666,7 @@ def newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, 
     (``coef``, ``Z = depth``, ``K`` float64, ``render_pose``, ``gain`` float64), the start poses ``pose`` ``(B, 7)``
     float64, ``obs`` ``(B, N * N)``, the frame's ``fx, fy``, the steps ``dp`` (pixels) and ``dtheta`` (radians), and
     ``iterations, damping, max_step`` as for :func:`newton_search`, the model's ``valid`` object points and the
-    ``interior`` weight of its template.
+    ``interior`` weights ``(B,)`` float64 of its template.
 
     The ``"newton"`` rule of :func:`~torchevtrack.reference.search` on the exact second-order model, per element.
     With ``interior > 0`` the score also pays ``tau`` per canvas pixel the object covers (:func:`area_weight`): the
@@ -687,7 +687,7 @@ def newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, 
         cur = pose[b].copy()
         moved = 0
         o, X = _observed_points(Z[b], K[b], obs[b])
-        area = area_weight(obs[b], valid[b], Z.shape[-1], interior)
+        area = area_weight(obs[b], valid[b], Z.shape[-1], interior[b])
         gu, step, delta = np.empty(6), np.empty(6), np.empty(6)
         Hu, A, L, work, vecs = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
         eig = np.empty(6)
@@ -833,6 +833,8 @@ class TemplateModel(NamedTuple):
         coef: ``(B, N + 6, N + 6)`` cubic B-spline coefficients of ``render_template`` (the warp's interpolant),
             zero-padded by 3 pixels (the taps of a point up to 2 pixels outside the canvas).
         points: ``(B, P, 3)`` object points of the render (camera frame, metres); valid: ``(B, P)`` bool.
+        interior: ``(B,)`` float64 weight of the object's coverage in the template (:func:`template_model`); every
+            search of the model pays the matching area term (:func:`newton_kernel`).
     """
 
     pose: torch.Tensor
@@ -845,6 +847,7 @@ class TemplateModel(NamedTuple):
     coef: torch.Tensor
     points: torch.Tensor
     valid: torch.Tensor
+    interior: torch.Tensor
 
     def observe(self, observation: torch.Tensor, observation_origin=(0, 0)) -> torch.Tensor:
         """Observation ``(B, H, W)`` (top-left pixel at ``observation_origin``) resampled into the canvas, ``(B, N * N)``."""
@@ -1161,7 +1164,8 @@ def model_in_box(pose: np.ndarray, depth: np.ndarray, shade: np.ndarray, use_gra
     model_kernel(depth, shade, origin, box64, cam, np.ascontiguousarray(pose[:, 2]), use_gray, silhouette,
                  0.125 / edge_clip, float(interior), *model_filters(N), step, step, box, K, T, coef, Z, points, valid)
     pose = torch.from_numpy(pose)
-    return TemplateModel(pose, pose, *(torch.from_numpy(a) for a in (box, K, gain, T, Z, coef, points, valid)))
+    return TemplateModel(pose, pose, *(torch.from_numpy(a) for a in (box, K, gain, T, Z, coef, points, valid)),
+                         torch.full((B,), float(interior), dtype=torch.float64))
 
 
 # -- the stage --------------------------------------------------------------------------------
@@ -1183,7 +1187,6 @@ def correct_canvas(
     dtheta_deg: float = 0.5,
     rule: str = "newton",
     iterations: int = 1,
-    interior: float = 0.0,
 ) -> Correction:
     """Correct poses near a render's with its :class:`TemplateModel` against an observation already in the model's
     canvas (:meth:`TemplateModel.observe`, or :func:`torchevtrack.stages.eros.canvas_observation` of ``model.box``).
@@ -1197,8 +1200,8 @@ def correct_canvas(
     Args:
         dp_px, dtheta_deg: translation step (image pixels) and rotation step (degrees) of the hypotheses (module
             docstring, item 3); rule: ``"newton"``, ``"argmax"`` or ``"group"`` (item 5); iterations: maximum
-            corrections, repeated while the score keeps improving; interior: the model's (:func:`template_model`),
-            for the area term every rule's scores pay (:func:`newton_kernel`).
+            corrections, repeated while the score keeps improving. Every rule's scores pay the area term of the
+            model's ``interior`` (:func:`newton_kernel`).
 
     Shape: ``TemplateModel, (B, 7), (B, N, N) or (B, N * N) -> Correction``.
     """
@@ -1211,23 +1214,21 @@ def correct_canvas(
         raise ValueError(f"obs must be the ({B}, {N}, {N}) canvas observation, got {tuple(obs.shape)}")
     obs = obs.reshape(B, N * N)
     if rule == "newton":
-        return newton_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, iterations=iterations,
-                             interior=interior)
+        return newton_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, iterations=iterations)
     from torchevtrack.reference import rule_search  # the ablation switch (reference imports this module)
 
-    return rule_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule, iterations=iterations,
-                       interior=interior)
+    return rule_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
 
 
 def newton_arrays(model: TemplateModel, pose: np.ndarray, obs: np.ndarray, fx: float, fy: float, dp: float,
-                  dtheta: float, iterations: int, interior: float = 0.0) -> Correction:
+                  dtheta: float, iterations: int) -> Correction:
     """The compiled Newton search of :func:`newton_search` on numpy arrays (the tracker's hot path calls this).
 
     Args:
         model: the render's :class:`TemplateModel`; pose: ``(B, 7)`` float64 start poses; obs: ``(B, N, N)`` or
             ``(B, N * N)`` observation in the canvas; fx, fy: the frame's focal lengths (px); dp: the image step
-            (px); dtheta: the rotation step (radians); iterations: the maximum number of Newton rounds; interior: the
-            weight of the object's coverage in the model's template (:func:`template_model`; its area term).
+            (px); dtheta: the rotation step (radians); iterations: the maximum number of Newton rounds (the area
+            term of the model's ``interior`` included).
     Returns: a :class:`Correction` of numpy arrays: ``pose`` ``(B, 7)`` float64, ``score`` ``(B,)`` and ``scores``
         ``(B, 13)`` in the model's dtype, ``index`` (the first of ties, as torch's ``argmax``), ``applied`` all false
         (the step is not one of the hypotheses) and ``iterations`` ``(B,)`` int64 (the rounds that moved).
@@ -1238,8 +1239,8 @@ def newton_arrays(model: TemplateModel, pose: np.ndarray, obs: np.ndarray, fx: f
     newton_kernel(_np(model.coef), _np(model.depth), _np(model.K).astype(np.float64, copy=False),
                   _np(model.render_pose), np.ascontiguousarray(pose, dtype=np.float64), obs.reshape(B, -1),
                   _np(model.gain).astype(np.float64, copy=False), float(fx), float(fy), float(dp), float(dtheta),
-                  int(iterations), NEWTON_DAMPING, NEWTON_MAX_STEP, _np(model.valid), float(interior), out, score, scores,
-                  moved)
+                  int(iterations), NEWTON_DAMPING, NEWTON_MAX_STEP, _np(model.valid), _np(model.interior), out, score,
+                  scores, moved)
     dtype = _np(model.depth).dtype
     scores = scores.astype(dtype)
     return Correction(out, score.astype(dtype), scores, scores.argmax(1),
@@ -1247,7 +1248,7 @@ def newton_arrays(model: TemplateModel, pose: np.ndarray, obs: np.ndarray, fx: f
 
 
 def newton_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, camera: Camera, *,
-                  dp_px: float = 1.0, dtheta_deg: float = 0.5, iterations: int = 1, interior: float = 0.0) -> Correction:
+                  dp_px: float = 1.0, dtheta_deg: float = 0.5, iterations: int = 1) -> Correction:
     """The ``"newton"`` rule's search on the model's exact quadratic, compiled in one call (the tracker's).
 
     The same search as :func:`~torchevtrack.reference.search` with ``rule="newton"`` and the scorer of
@@ -1260,12 +1261,12 @@ def newton_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, c
     Args:
         model: the render's :class:`TemplateModel`; pose: ``(B, 7)`` start poses; obs: ``(B, N * N)``
             observation in the canvas (:meth:`TemplateModel.observe`).
-        dp_px, dtheta_deg, iterations, interior: see :func:`correct_canvas`.
+        dp_px, dtheta_deg, iterations: see :func:`correct_canvas`.
 
     Shape: ``(B, 7), (B, N * N) -> Correction`` (``applied`` all false: the step is not one of the hypotheses).
     """
     c = newton_arrays(model, _np(pose.double()), _np(obs), camera.fx, camera.fy, dp_px, math.radians(dtheta_deg),
-                      iterations, interior)
+                      iterations)
     return Correction(torch.from_numpy(c.pose).to(pose.dtype), *(torch.from_numpy(f) for f in c[1:]))
 
 
@@ -1352,7 +1353,7 @@ class TemplateCorrector(nn.Module):
         """:func:`correct_canvas` (the observation already in the model's canvas) with this corrector's options."""
         o = self.options
         return correct_canvas(model, pose, obs, self.camera, dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"],
-                              rule=o["rule"], iterations=o["iterations"], interior=o["interior"])
+                              rule=o["rule"], iterations=o["iterations"])
 
     def extra_repr(self) -> str:
         return ", ".join(f"{k}={v!r}" for k, v in self.options.items())
