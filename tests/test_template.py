@@ -807,7 +807,7 @@ def test_reused_model_matches_a_fresh_render(scenes):
     wobble = (torch.rand(6, 6, generator=g_, dtype=torch.float64) * 2 - 1) * steps[0, 1::2].diagonal() * 0.3
     refs = tm.apply_steps(starts, wobble[:, None])[:, 0]
     rd = r.render(refs.float(), roi=roi)
-    corr = tm.TemplateCorrector(CAM, rule="argmax", iterations=1, interior=0.0)  # the reference templates: edges
+    corr = tm.TemplateCorrector(CAM, rule="argmax", iterations=1, interior=0.0, dtheta_deg=0.5)  # as _steps
     model = corr.template_model(refs, rd.depth, rd.gray, roi[:2])
     shift = model.shift_px(starts)
     assert (shift > 0.2).all() and (shift < 1.3).all()

@@ -123,7 +123,7 @@ class TemplateConfig:
     canvas: int = 128
     margin_px: int = 20
     dp_px: float = 1.0
-    dtheta_deg: float = 0.5
+    dtheta_deg: float = 1.0
     rule: str = "newton"  # "newton" (all axes, sub-step), "argmax" (the paper) or "group" (EDOPT)
     iterations: int = 5  # correction rounds per update while the score improves (1 = the paper)
     warmup_events: int = 2000  # events an element must have seen since reset before its pose is corrected

@@ -19,8 +19,9 @@ camera frame, its velocity ``p_dot = dp/dt``, the camera-frame angular velocity 
 :meth:`PoseUKF.reset` and :attr:`PoseUKF.twist` convert.
 
 Noise defaults. ROFT uses ``R_p = 1e-3, R_q = 1e-4, P0 = 1e-3``. Here the measurement is the template
-correction, which moves in 1 px / 0.5 deg steps: about 1 mm laterally and a few mm in depth at 0.5 m, and
-0.5 deg in rotation, hence ``r_p = 1e-5`` m^2 (3 mm) and ``r_q = 1e-4`` rad^2 (0.6 deg). ``p0 = 1e-3``
+correction, which moves in 1 px / 1 deg steps (sub-step with the Newton rule): about 1 mm laterally and a few mm in
+depth at 0.5 m, hence ``r_p = 1e-5`` m^2 (3 mm) and ``r_q = 1e-4`` rad^2 (0.6 deg; 3e-4 for the 1 deg step held
+fewer wide-dev runs, docs/notebook.md 2026-11-28). ``p0 = 1e-3``
 (3 cm, 1.8 deg, 3 cm/s, 1.8 deg/s standard deviations) as ROFT.
 
 Example:
