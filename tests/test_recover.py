@@ -42,14 +42,15 @@ def blackout(seq, start_us: int, end_us: int):
 
 @pytest.fixture
 def truth_search(seq, monkeypatch):
-    """The relocaliser replaced by an oracle: the true pose at the search time, clear; records ``(t_us, centre)``."""
+    """The relocaliser replaced by an oracle: the true pose at the search time, clear and far below its centre's cost;
+    records ``(t_us, centre)``."""
     calls = []
 
     def search(self, pose, last_us, t_now_us):
         calls.append((int(t_now_us[0]), pose[0].clone()))
         found = interpolate_poses(seq.gt_t_us, seq.gt_poses, t_now_us)
         return Relocalisation(found, torch.zeros(1, dtype=torch.float64), torch.full((1,), math.inf),
-                              torch.ones(1, dtype=torch.bool))
+                              torch.ones(1, dtype=torch.bool), torch.full((1,), math.inf))
 
     monkeypatch.setattr(Relocaliser, "forward", search)
     return calls
@@ -171,3 +172,23 @@ def test_track_warns_and_flags_lost_after_a_wrong_init(seqdirs, tmp_path, capsys
     assert "lost" in err and "warning" in err
     _, lost = read_lost(lost_path(out))
     assert lost[-1] and lost.sum() > 5
+
+
+@pytest.mark.parametrize("cost, centre_cost, restarts", [(3.5, 9.0, 1), (1.0, 1.2, 0)])
+def test_a_start_search_restarts_where_it_beats_the_trackers_pose(seq, monkeypatch, cost, centre_cost, restarts):
+    """A start search restarts where the result beats the tracker's own pose by the margin, whatever its cost (3.5 px
+    is above the lost element's clear-winner cost); a result that costs about as much as the tracker's pose, clear or
+    not, leaves the element where it is."""
+    def search(self, pose, last_us, t_now_us):
+        found = interpolate_poses(seq.gt_t_us, seq.gt_poses, t_now_us)
+        f64 = dict(dtype=torch.float64)
+        return Relocalisation(found, torch.full((1,), cost, **f64), torch.full((1,), math.inf, **f64),
+                              torch.tensor([cost <= 3.0]), torch.full((1,), centre_cost, **f64))
+
+    monkeypatch.setattr(Relocaliser, "forward", search)
+    t0 = int(seq.gt_t_us[0])
+    tracker = EventPoseTracker(CAM, seq.mesh, RECOVER.replace(recover={"start_search": True}))
+    start = perturb_pose(seq.gt_poses[0], 0.02, math.radians(10.0), torch.Generator().manual_seed(5))
+    tracker.track(seq.events, start, t_start_us=t0, t_end_us=t0 + 40_000, progress=False)
+    tracker.close()
+    assert tracker.recover.searches == 1 and tracker.recover.restarts == restarts

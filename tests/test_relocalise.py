@@ -14,6 +14,7 @@ from torchevtrack.chamfer import chamfer, distance_map, model_edges, recent_even
 from torchevtrack.geometry import quat_conj, quat_log, quat_mul
 from torchevtrack.mesh import load_mesh
 from torchevtrack.raster import RasterRenderer
+from torchevtrack.recover import beats_start
 from torchevtrack.stages.relocalise import Relocaliser
 from torchevtrack.stages.template import apply_steps
 
@@ -60,6 +61,7 @@ def test_finds_pose_far_off(box, step):
     te, re = errors(out.pose)
     assert te < 0.01 and re < 5, (te, re)
     assert bool(out.clear[0]) and float(out.cost[0]) < float(out.runner_up[0])
+    assert float(out.centre_cost[0]) > float(out.cost[0]) + 1.0  # the far-off centre costs pixels more
 
 
 def test_not_clear_without_the_object(box):
@@ -154,3 +156,12 @@ def test_a_turn_about_the_symmetry_axis_is_no_distinct_pose():
         assert not bool(sym._distinct(pose, turned(own))[0])
         assert bool(sym._distinct(pose, turned(other))[0])
         assert bool(plain._distinct(pose, turned(own))[0])
+
+
+def test_a_search_from_the_truth_does_not_beat_its_centre(box):
+    """Centred on the true pose, the search finds nothing that beats the centre by a start search's margin."""
+    renderer, radius = box
+    reloc = Relocaliser(renderer, radius)
+    out = reloc(TRUTH, edge_surface(renderer), torch.tensor([1000]))
+    assert abs(float(out.centre_cost[0]) - float(out.cost[0])) < reloc.min_margin_px
+    assert not beats_start(out, reloc.min_margin_px)

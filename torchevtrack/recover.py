@@ -19,9 +19,9 @@ masked :meth:`~torchevtrack.tracker.EventPoseTracker.reset`. Per batch element:
   against the tracker's time surface. A ``clear`` result restarts the element there (twist zero) and it reports that
   pose from this update on.
 * **Start search** (``start_search``): ``start_after_us`` after each (re)start, once the time surface holds that
-  much of the object's motion, one search around the tracker's pose then; a clear result restarts the element
-  there, with the twist the UKF measured meanwhile (from a rough start pose, the local tracker alone may never reach
-  the basin of the true one).
+  much of the object's motion, one search around the tracker's pose then; a result that beats both its runner-up and
+  the tracker's pose (:func:`beats_start`) restarts the element there, with the twist the UKF measured meanwhile
+  (from a rough start pose, the local tracker alone may never reach the basin of the true one).
 
 The search runs inside the update and blocks it: about 0.3-1.5 s of wall time per search (the event time does not
 advance meanwhile, so offline tracking gives the same poses however long it takes). :attr:`Recoverer.searches`,
@@ -57,17 +57,26 @@ from torchevtrack.mesh import symmetry_axis
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.stages import batch_mask
 from torchevtrack.stages.propagate import propagate, twist_between
-from torchevtrack.stages.relocalise import LEVELS, Level, Relocaliser
+from torchevtrack.stages.relocalise import LEVELS, Level, Relocalisation, Relocaliser
 
 if TYPE_CHECKING:  # the tracker imports this module
     from torchevtrack.tracker import EventPoseTracker
 
-__all__ = ["Recoverer", "search_levels", "MAX_EXTRAPOLATION_US", "TWIST_SPAN_US"]
+__all__ = ["Recoverer", "beats_start", "search_levels", "MAX_EXTRAPOLATION_US", "TWIST_SPAN_US"]
 
 TWIST_SPAN_US = 20_000  # the good twist is measured over at least this span (one update's pose difference is noise)
 # the good pose is moved on by the good twist for at most this long: beyond, a constant twist is a guess that grows
 # worse than none (blackouts of 200 ms on synthetic sequences: search centres up to 40 cm off without this cap)
 MAX_EXTRAPOLATION_US = 100_000
+
+
+def beats_start(found: Relocalisation, margin_px: float) -> bool:
+    """Whether a start search's result (one element) clearly beats both the runner-up and the search's centre, the
+    tracker's own pose: by ``margin_px`` of the chamfer cost each. No cap on the cost itself, unlike a lost element's
+    ``clear``: right after a start the recent events are few and smeared, the true pose itself costs 4-4.5 px on the
+    standard ``potted_regular`` (a lost element has no pose of its own to compare with)."""
+    return bool(found.runner_up[0] - found.cost[0] >= margin_px) and bool(found.centre_cost[0] - found.cost[0]
+                                                                          >= margin_px)
 
 
 def search_levels(search_m: float) -> tuple[Level, ...]:
@@ -206,7 +215,7 @@ class Recoverer(nn.Module):
     @torch.inference_mode()
     def _search(self, tracker: "EventPoseTracker", t: np.ndarray, due: np.ndarray, starting: np.ndarray) -> None:
         """Search for the ``due`` lost elements that have recent event pixels and the ``starting`` ones (``(B,)``
-        bool); restart those whose search is clear."""
+        bool); restart those whose search is clear (a start search: :func:`beats_start`)."""
         B = len(self.owner)
         surface = tracker.time_surface.last_us if tracker.time_surface is not None else tracker.flow.sae
         pose = tracker.pose.clone()
@@ -232,7 +241,7 @@ class Recoverer(nn.Module):
             out = reloc(centre, surface[i:i + 1].clone(), torch.from_numpy(t[i:i + 1]))
             self.search_s += time.perf_counter() - start
             self.searches += 1
-            if bool(out.clear[0]):
+            if bool(out.clear[0]) if due[i] else beats_start(out, reloc.min_margin_px):
                 restart[i] = True
                 found[i] = out.pose[0]
         if bool(restart.any()):

@@ -26,7 +26,9 @@ recent events and the rendered model's edges (:mod:`torchevtrack.chamfer`).
 4. **Clear winner.** The result is the refined seed of lowest full-resolution cost; ``runner_up`` is the lowest
    cost of the other refined seeds that ended distinct from it (farther than ``distinct_m`` / ``distinct_deg``;
    ``inf`` if none did). The result is ``clear`` when its cost is at most ``max_cost_px`` and the runner-up costs
-   at least ``min_margin_px`` more. A caller restarts tracking only at a clear result.
+   at least ``min_margin_px`` more. A caller restarts tracking only at a clear result. The result also carries the
+   cost of the search's centre (``centre_cost``) for a caller with a pose of its own to compare with (the start
+   search, :func:`~torchevtrack.recover.beats_start`).
 
 Costs are in full-resolution pixels (lower is better). Batch elements are searched one after the other. The
 renderer may hold a decimated mesh (:func:`~torchevtrack.mesh.load_mesh` ``decimate``): the renders dominate the
@@ -86,13 +88,15 @@ class Relocalisation(NamedTuple):
         pose: ``(B, 7)`` float64 best pose found.
         cost: ``(B,)`` float64 its chamfer cost (full-resolution pixels, at the last level's scale).
         runner_up: ``(B,)`` float64 cost of the best first-level candidate distinct from ``pose``.
-        clear: ``(B,)`` bool, ``runner_up - cost >= min_margin_px``.
+        clear: ``(B,)`` bool, ``cost <= max_cost_px`` and ``runner_up - cost >= min_margin_px``.
+        centre_cost: ``(B,)`` float64 the same cost of the search's centre pose (where a caller's tracker is).
     """
 
     pose: torch.Tensor
     cost: torch.Tensor
     runner_up: torch.Tensor
     clear: torch.Tensor
+    centre_cost: torch.Tensor
 
 
 class _Region(NamedTuple):
@@ -276,7 +280,7 @@ class Relocaliser(nn.Module):
             rot = rot - (rot @ n)[:, None] * n
         return (d[:, :3].norm(dim=1) > self.distinct_m) | (rot.norm(dim=1) > self.distinct_rad)
 
-    def _one(self, pose: torch.Tensor, last_us: torch.Tensor, t_now: int) -> tuple[torch.Tensor, float, float]:
+    def _one(self, pose: torch.Tensor, last_us: torch.Tensor, t_now: int) -> tuple[torch.Tensor, float, float, float]:
         centre = pose.double()
         events = self._events(centre, last_us, t_now)
         first = self.levels[0]
@@ -309,7 +313,7 @@ class Relocaliser(nn.Module):
                 if c < cost:
                     cost, best = c, p
         others = [c for c, p in finals[1:] if bool(self._distinct(best, p)[0])]
-        return best[0], cost, min(others, default=math.inf)
+        return best[0], cost, min(others, default=math.inf), self._cost_full(centre, obs)
 
     # -- full resolution: cost and Gauss-Newton polish -------------------------------------------------------------
     def _edges_full(self, pose: torch.Tensor):
@@ -406,4 +410,5 @@ class Relocaliser(nn.Module):
         cost = torch.tensor([o[1] for o in out], dtype=torch.float64)
         runner = torch.tensor([o[2] for o in out], dtype=torch.float64)
         clear = (cost <= self.max_cost_px) & (runner - cost >= self.min_margin_px)
-        return Relocalisation(best, cost, runner, clear)
+        centre = torch.tensor([o[3] for o in out], dtype=torch.float64)
+        return Relocalisation(best, cost, runner, clear, centre)
