@@ -192,3 +192,16 @@ def test_a_start_search_restarts_where_it_beats_the_trackers_pose(seq, monkeypat
     tracker.track(seq.events, start, t_start_us=t0, t_end_us=t0 + 40_000, progress=False)
     tracker.close()
     assert tracker.recover.searches == 1 and tracker.recover.restarts == restarts
+
+
+def test_recover_on_the_command_line_may_be_refined_by_set():
+    """``--recover --set recover.start_search=true`` (track, benchmark): --recover comes first, --set refines it."""
+    import argparse
+
+    from torchevtrack.cli.options import config_from_args
+
+    args = argparse.Namespace(config=None, set=["recover.start_search=true"], recover=True)
+    cfg = config_from_args(args)
+    assert cfg.loss.enabled and cfg.recover.enabled and cfg.recover.start_search
+    with pytest.raises(ValueError, match="needs recover.enabled"):
+        config_from_args(argparse.Namespace(config=None, set=["recover.start_search=true"], recover=False))

@@ -196,8 +196,10 @@ class RecoverConfig:
     # lost reports its last good pose while a wide search (torchevtrack.stages.relocalise.Relocaliser), centred on
     # that pose moved on by its last good twist, runs every retry_us of event time while min_events pixels fired
     # within the last retry_us; the element restarts at a clear result. start_search: one such search start_after_us
-    # after each (re)start, from the tracker's pose then. search_m: the search's image-plane half-width (metres at
-    # the object's depth; its depth offsets scale with it); the search blocks the update (~0.3-1.5 s of wall time).
+    # after each (re)start, from the tracker's pose then; it restarts the element where its result costs 0.5 px less
+    # than both the runner-up and the tracker's pose (torchevtrack.recover.beats_start; no max_cost_px). search_m:
+    # the search's image-plane half-width (metres at the object's depth; its depth offsets scale with it); the search
+    # blocks the update (~0.3-1.5 s of wall time).
     # max_cost_px: a result is clear (restarts the element) at a chamfer cost of at most this many pixels (and a
     # runner-up 0.5 px worse): after a blackout the object's recent edges are smeared, and found poses cost 1.6-4 px.
     enabled: bool = False

@@ -83,8 +83,6 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
     cfg, predictions = config_from_args(args), _predictions(args.pred)
-    if args.recover:
-        cfg = cfg.replace(loss={"enabled": True}, recover={"enabled": True})
     with executor_from_args(args) as executor:
         res = run_benchmark(args.benchdir, args.out, methods=args.methods, only=args.only, duration_s=args.duration,
                             config=cfg, batch=not args.no_batch, overlays=not args.no_overlays,

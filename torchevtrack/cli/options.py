@@ -18,8 +18,12 @@ def add_config_options(p: argparse.ArgumentParser, default: str = "the built-in 
 
 
 def config_from_args(args: argparse.Namespace) -> TrackerConfig:
-    """The :class:`TrackerConfig` of ``--config`` (or the defaults) with the ``--set`` changes applied."""
+    """The :class:`TrackerConfig` of ``--config`` (or the defaults), with the loss detector and recovery on for a
+    command's ``--recover``, then the ``--set`` changes applied (so ``--set recover.KEY=...`` may refine
+    ``--recover``)."""
     cfg = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
+    if getattr(args, "recover", False):
+        cfg = cfg.replace(loss={"enabled": True}, recover={"enabled": True})
     return cfg.override(args.set) if args.set else cfg
 
 

@@ -152,8 +152,6 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"{d} has no gt_poses.txt: give the initial pose with --init")
     cfg = config_from_args(args)
     cfg = cfg.replace(**ABLATIONS[args.ablation])
-    if args.recover:
-        cfg = cfg.replace(loss={"enabled": True}, recover={"enabled": True})
     t_end = t0 + round(args.duration * 1e6) if args.duration else events.t_end
     n_events = len(events.slice_time(t0, t_end + 1))
     if n_events == 0:
