@@ -75,8 +75,8 @@ def beats_start(found: Relocalisation, margin_px: float) -> bool:
     tracker's own pose: by ``margin_px`` of the chamfer cost each. No cap on the cost itself, unlike a lost element's
     ``clear``: right after a start the recent events are few and smeared, the true pose itself costs 4-4.5 px on the
     standard ``potted_regular`` (a lost element has no pose of its own to compare with)."""
-    return bool(found.runner_up[0] - found.cost[0] >= margin_px) and bool(found.centre_cost[0] - found.cost[0]
-                                                                          >= margin_px)
+    cost = float(found.cost[0])
+    return float(found.runner_up[0]) - cost >= margin_px and float(found.centre_cost[0]) - cost >= margin_px
 
 
 def search_levels(search_m: float) -> tuple[Level, ...]:

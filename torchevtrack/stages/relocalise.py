@@ -26,9 +26,9 @@ recent events and the rendered model's edges (:mod:`torchevtrack.chamfer`).
 4. **Clear winner.** The result is the refined seed of lowest full-resolution cost; ``runner_up`` is the lowest
    cost of the other refined seeds that ended distinct from it (farther than ``distinct_m`` / ``distinct_deg``;
    ``inf`` if none did). The result is ``clear`` when its cost is at most ``max_cost_px`` and the runner-up costs
-   at least ``min_margin_px`` more. A caller restarts tracking only at a clear result. The result also carries the
-   cost of the search's centre (``centre_cost``) for a caller with a pose of its own to compare with (the start
-   search, :func:`~torchevtrack.recover.beats_start`).
+   at least ``min_margin_px`` more: a lost element restarts only at a clear result. The result also carries the cost
+   of the search's centre (``centre_cost``) for a caller with a pose of its own to compare with (the start search,
+   :func:`~torchevtrack.recover.beats_start`).
 
 Costs are in full-resolution pixels (lower is better). Batch elements are searched one after the other. The
 renderer may hold a decimated mesh (:func:`~torchevtrack.mesh.load_mesh` ``decimate``): the renders dominate the
