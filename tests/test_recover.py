@@ -189,7 +189,8 @@ def test_a_start_search_restarts_where_it_beats_the_trackers_pose(seq, monkeypat
     t0 = int(seq.gt_t_us[0])
     tracker = EventPoseTracker(CAM, seq.mesh, RECOVER.replace(recover={"start_search": True}))
     start = perturb_pose(seq.gt_poses[0], 0.02, math.radians(10.0), torch.Generator().manual_seed(5))
-    tracker.track(seq.events, start, t_start_us=t0, t_end_us=t0 + 40_000, progress=False)
+    end = t0 + RECOVER.recover.start_after_us + 10_000
+    tracker.track(seq.events, start, t_start_us=t0, t_end_us=end, progress=False)
     tracker.close()
     assert tracker.recover.searches == 1 and tracker.recover.restarts == restarts
 

@@ -207,7 +207,7 @@ class RecoverConfig:
     min_events: int = 500
     search_m: float = 0.10
     start_search: bool = False
-    start_after_us: int = 24_000
+    start_after_us: int = 48_000
     max_cost_px: float = 3.0
 
 

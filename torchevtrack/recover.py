@@ -123,7 +123,7 @@ class Recoverer(nn.Module):
     start_pending: torch.Tensor
 
     def __init__(self, relocalisers: Sequence[Relocaliser], owner: Sequence[int], *, retry_us: int = 20_000,
-                 min_events: int = 500, start_search: bool = False, start_after_us: int = 24_000) -> None:
+                 min_events: int = 500, start_search: bool = False, start_after_us: int = 48_000) -> None:
         super().__init__()
         if not relocalisers or not all(isinstance(r, Relocaliser) for r in relocalisers):
             raise TypeError("relocalisers must be a non-empty list of Relocaliser")
