@@ -78,3 +78,16 @@ def test_recovery_trials(sequence: Path) -> None:
     gap = _run(*args, "blackout", "--at", "0.02", "--gap-ms", "10", "--settle", "0.02", "--max-cm", "50",
                "--max-deg", "90")
     assert "before" in gap and "blackout: 1 of 1 within" in gap
+    # how far the object moved in the gap, against the ground truth read here
+    import torch
+
+    from torchevtrack.geometry import interpolate_poses
+    from torchevtrack.synth.sequence import Sequence
+
+    seq = Sequence.load(sequence)
+    t0 = int(seq.gt_t_us[0])
+    ends = interpolate_poses(seq.gt_t_us, seq.gt_poses, torch.tensor([t0 + 20_000, t0 + 30_000]))
+    moved = float((ends[1, :3] - ends[0, :3]).norm()) * 100.0
+    printed = float(gap.split(" moved ")[1].split()[0])
+    assert abs(printed - moved) <= 0.051 and 0.5 < moved <= 10.0  # (0.9 cm in these 10 ms)
+    assert "at most 10 cm in the gap (issue 25's trials): 1 of 1" in gap
