@@ -161,6 +161,37 @@ def test_linear_step_matches_filterpy():
     np.testing.assert_allclose(out.P[0].numpy(), ref.P, rtol=1e-7, atol=1e-12)
 
 
+
+def test_speed_proportional_noise_matches_filterpy():
+    """With ``r_rel > 0`` each vector's noise is ``sqrt(r_px^2 + (r_rel |F| dt)^2)`` px: filterpy's KF with that
+    diagonal R is the oracle (plain update, no re-weighting); a fast vector then counts less than a slow one."""
+    gen = torch.Generator().manual_seed(7)
+    G, dt, r_px, r_rel, rho = 25, 0.002, 0.2, 0.4, 0.75
+    uv, depth = _scene(gen, G)
+    flow = _flow(uv, depth, torch.randn(6, dtype=F64, generator=gen) * SCALE) + 40.0 * torch.randn(G, 2, dtype=F64, generator=gen)
+    x0 = torch.randn(6, dtype=F64, generator=gen) * SCALE
+    P0 = torch.eye(6, dtype=F64) * 0.5
+    Q = torch.diag(torch.tensor([0.1, 0.2, 0.3, 1.0, 2.0, 3.0], dtype=F64))
+    sigma2 = r_px**2 + (r_rel * flow.norm(dim=-1) * dt) ** 2  # (G,) px^2
+
+    ref = KalmanFilter(dim_x=6, dim_z=2 * G)
+    ref.x, ref.P = x0.numpy().copy(), P0.numpy().copy()
+    ref.F, ref.Q = np.eye(6) * rho, Q.numpy()
+    ref.H = (CAM.interaction_matrix(uv, depth) * dt).reshape(-1, 6).numpy()
+    ref.R = np.diag(sigma2.repeat_interleave(2).numpy())
+    ref.predict()
+    ref.update((flow * dt).reshape(-1).numpy())
+
+    x, P = kf_predict(x0[None], P0[None], rho, Q)
+    args = (uv[None], flow[None], depth[None], torch.ones(1, G, dtype=torch.bool), CAM, dt)
+    out = kf_update(x, P, *args, r_px=r_px, r_rel=r_rel, iters=0)
+    np.testing.assert_allclose(out.x[0].numpy(), ref.x, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(out.P[0].numpy(), ref.P, rtol=1e-7, atol=1e-12)
+    flat = kf_update(x, P, *args, r_px=r_px, iters=0)  # r_rel = 0: every vector at r_px, more information
+    assert float(torch.linalg.det(flat.P[0])) < float(torch.linalg.det(out.P[0]))
+    with pytest.raises(ValueError, match="r_rel"):
+        kf_update(x, P, *args, r_px=r_px, r_rel=-0.1)
+
 def test_bad_inputs():
     x, P = torch.zeros(1, 6, dtype=F64), torch.eye(6, dtype=F64)[None]
     uv, flow = torch.zeros(1, 4, 2), torch.zeros(1, 4, 2)

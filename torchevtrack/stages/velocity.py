@@ -8,16 +8,17 @@ filters run side by side; the state is float64.
   ``q_w`` rad/s standard deviations per update).
 * Measurement: flow vector ``F`` (px/s) at pixel ``uv`` with depth ``Z`` (m, rendered at the current pose).
   As in the paper (Eq. 5) it is expressed as a displacement over the update interval ``dT``:
-  ``z = F dT = H x + e`` with ``H = L(uv, Z) dT`` (px per update) and ``e ~ N(0, r_px^2 I2)``, so ``r_px``
-  is the flow noise in pixels of displacement per update (ROFT: 1 px).
-  At 500 Hz (``dT = 2 ms``) ``r_px = 1`` means a flow noise of 500 px/s; ROFT's 1 px at 30 Hz is about
-  30 px/s, i.e. ``r_px ~ 0.06`` at 500 Hz. Set ``r_px`` to the real flow noise times ``dT``.
-* Robust re-weighting (IRLS, ``iters`` rounds after a plain KF update): with ``r_i`` the norm (px) of the
-  vector's residual against the current posterior, ``m`` the median of ``r_i`` over the valid vectors
-  of that filter and the robust scale ``s = max(1.4826 m, r_px)``, each vector's information is scaled
-  by a Laplacian-kernel weight ``w_i = exp(-max(r_i - m, 0) / (k s))``, i.e. its covariance becomes
-  ``R / w_i``. Vectors fitting at least as well as the median keep ``w_i = 1``; gross outliers get
-  ``w_i ~ 0``; residuals within the nominal noise ``r_px`` are barely touched. (A Huber weight
+  ``z = F dT = H x + e`` with ``H = L(uv, Z) dT`` (px per update) and ``e ~ N(0, s_i^2 I2)``,
+  ``s_i = sqrt(r_px^2 + (r_rel |F| dT)^2)``: a floor ``r_px`` in pixels of displacement per update plus a
+  part proportional to the vector's own displacement (the triplet flow's error grows with the speed it
+  reads). At 500 Hz (``dT = 2 ms``) ``r_px = 1`` means a flow noise of 500 px/s; ROFT's 1 px at 30 Hz is
+  about 30 px/s, i.e. ``r_px ~ 0.06`` at 500 Hz.
+* Robust re-weighting (IRLS, ``iters`` rounds after a plain KF update): with ``r_i`` the norm of the
+  vector's residual against the current posterior in units of its ``s_i``, ``m`` the median of ``r_i``
+  over the valid vectors of that filter and the robust scale ``s = max(1.4826 m, 1)``, each vector's
+  information is scaled by a Laplacian-kernel weight ``w_i = exp(-max(r_i - m, 0) / (k s))``, i.e. its
+  covariance becomes ``s_i^2 I / w_i``. Vectors fitting at least as well as the median keep ``w_i = 1``;
+  gross outliers get ``w_i ~ 0``; residuals within the nominal noise are barely touched. (A Huber weight
   ``min(1, c / r_i)`` needs about 10 rounds to shed 30 % gross outliers; this kernel needs 3.)
 * The update is solved in information form, ``6 x 6`` per filter, whatever the number of vectors.
 
@@ -138,7 +139,7 @@ def shift_twist_kernel(twist, c, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, fy, cx, cy, r_px, iters, k,
+def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, fy, cx, cy, r_px, r_rel, iters, k,
                       min_vectors, normal, x_out, P_out, w_out, res_out, used_out):
     """:func:`kf_update`, one filter at a time (float64 throughout). Returns -1, or the index of a filter whose
     prior or posterior covariance is not positive definite."""
@@ -149,6 +150,7 @@ def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, 
     ok = np.empty(G, dtype=np.bool_)
     w = np.empty(G)
     res = np.empty(G)
+    sig = np.empty(G)  # each vector's noise standard deviation, px of displacement per update
     med_buf = np.empty(G)
     L = np.empty((6, 6))
     Y0 = np.empty((6, 6))
@@ -156,7 +158,6 @@ def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, 
     rhs = np.empty(6)
     step = np.empty(6)
     xp = np.empty(6)
-    info0 = 1.0 / (r_px * r_px)
     for b in range(B):
         n_ok = 0
         for i in range(G):
@@ -187,6 +188,8 @@ def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, 
             if not ok[i]:
                 continue
             f0, f1 = np.float64(flow[b, i, 0]), np.float64(flow[b, i, 1])
+            d = r_rel * np.sqrt(f0 * f0 + f1 * f1) * T
+            sig[M // rows] = np.sqrt(r_px * r_px + d * d)
             uu, vv = np.float64(uv[b, i, 0]) - cx, np.float64(uv[b, i, 1]) - cy
             iz = 1.0 / np.float64(depth[b, i])
             h0 = (fx * iz * T, 0.0, -uu * iz * T, -uu * vv / fy * T, (fx + uu * uu / fx) * T, -vv * fx / fy * T)
@@ -224,7 +227,7 @@ def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, 
                     med_buf[i] = res[i]
                 srt = np.sort(med_buf[:n_ok_rows])
                 med = srt[(n_ok_rows - 1) // 2] if n_ok_rows > 0 else 0.0
-                scale = k * max(_MAD * med, r_px)
+                scale = k * max(_MAD * med, 1.0)
                 for i in range(n_ok_rows):
                     w[i] = np.exp(-max(res[i] - med, 0.0) / scale)
             # Information form: A = Y0 + H^T W H, rhs = H^T W (z - H x0)
@@ -233,7 +236,7 @@ def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, 
                 for m in range(6):
                     A[j, m] = 0.0
             for r in range(M):
-                wi = w[r // rows] * info0
+                wi = w[r // rows] / (sig[r // rows] * sig[r // rows])
                 e = zs[r]
                 for j in range(6):
                     e -= Hs[r, j] * x[b, j]
@@ -259,7 +262,7 @@ def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, 
                     for j in range(6):
                         e -= Hs[r, j] * xp[j]
                     s += e * e
-                res[i] = np.sqrt(s)
+                res[i] = np.sqrt(s) / sig[i]  # in noise standard deviations
         cholesky_inverse(L, P_out[b])
         for j in range(6):
             x_out[b, j] = xp[j]
@@ -267,7 +270,7 @@ def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, 
         for i in range(G):
             if ok[i]:
                 w_out[b, i] = w[i_ok]
-                res_out[b, i] = res[i_ok]
+                res_out[b, i] = res[i_ok] * sig[i_ok]
                 i_ok += 1
             else:
                 w_out[b, i] = 0.0
@@ -297,6 +300,7 @@ def kf_update(
     camera: Camera,
     dt: torch.Tensor | float,
     r_px: float = 1.0,
+    r_rel: float = 0.0,
     iters: int = 3,
     k: float = 1.0,
     min_vectors: int = 3,
@@ -313,13 +317,16 @@ def kf_update(
         valid: ``(B, G)`` bool mask of real (non-padding) vectors.
         camera: intrinsics of the pixel coordinates.
         dt: update interval ``dT`` (s), a float or ``(B,)``; scales flow and Jacobian to px per update.
-        r_px: flow noise standard deviation, px of displacement per update (``R = r_px^2 I2``).
+        r_px: flow noise standard deviation, px of displacement per update (``R = r_px^2 I2`` with ``r_rel = 0``).
+        r_rel: the part of the noise proportional to the vector's displacement ``|F| dT``: vector ``i`` has
+            ``R_i = (r_px^2 + (r_rel |F_i| dT)^2) I2``.
         iters: robust re-weighting rounds after the plain update (0 = plain linear KF update).
-        k: width of the Laplacian weight in robust standard deviations ``max(1.4826 x median, r_px)``.
+        k: width of the Laplacian weight in robust standard deviations ``max(1.4826 x median, 1)`` of the
+            residuals in units of each vector's noise.
         min_vectors: filters with fewer valid vectors keep their prior.
         normal: the vectors are normal flows (the flow component along the edge normal, as the
             ``estimate="normal"`` flow stage gives): each vector then measures only ``n . (L x)`` with
-            ``n = F / |F|``, one scalar of noise ``r_px`` (the aperture problem leaves the tangential
+            ``n = F / |F|``, one scalar of noise ``s_i`` (the aperture problem leaves the tangential
             component unobserved, so it must not be read as zero).
         centre: ``(B, 3)`` object centre (m, camera frame). If given, the state is the twist about the
             centre, ``[c_dot, w]`` with ``c_dot = v + w x c`` the centre's velocity, and the Jacobian
@@ -350,8 +357,9 @@ def kf_update(
         )
     if valid.dtype != torch.bool:
         raise TypeError(f"valid must be a bool tensor, got {valid.dtype}")
-    if r_px <= 0 or iters < 0 or k <= 0:
-        raise ValueError(f"need r_px > 0, iters >= 0, k > 0; got r_px={r_px}, iters={iters}, k={k}")
+    if r_px <= 0 or r_rel < 0 or iters < 0 or k <= 0:
+        raise ValueError(f"need r_px > 0, r_rel >= 0, iters >= 0, k > 0; got r_px={r_px}, r_rel={r_rel}, "
+                         f"iters={iters}, k={k}")
     if isinstance(dt, torch.Tensor):
         dt = dt.to(torch.float64).expand(B)
         if not bool((dt > 0).all()):
@@ -368,7 +376,7 @@ def kf_update(
     bad = _kf_update_kernel(_f64(x), _f64(P), _f32_or_f64(uv), _f32_or_f64(flow), _f32_or_f64(depth),
                             valid.numpy(), dt_np, _NO_CENTRE if centre is None else _f64(centre), centre is not None,
                             float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), float(r_px),
-                            int(iters), float(k), int(min_vectors), bool(normal), x_out, P_out, w_out, res_out, used)
+                            float(r_rel), int(iters), float(k), int(min_vectors), bool(normal), x_out, P_out, w_out, res_out, used)
     if bad >= 0:
         raise torch.linalg.LinAlgError(f"kf_update: the covariance of filter {bad} is not positive-definite")
     out = VelocityUpdate(*(torch.from_numpy(a) for a in (x_out, P_out, w_out, res_out, used)))
@@ -455,6 +463,7 @@ class KFArrays(NamedTuple):
     cx: float
     cy: float
     r_px: float
+    r_rel: float
     iters: int
     k: float
     min_vectors: int
@@ -483,7 +492,7 @@ def velocity_step(f, field, depth, origin, max_speed, radius, dt, centre, feedba
     _sample_depth_kernel(depth, origin, field.uv, slow, radius, z)
     w, res, used = np.empty((B, G)), np.empty((B, G)), np.empty(B, dtype=np.bool_)
     bad = _kf_update_kernel(f.x, f.P, field.uv, flow, z, slow, dt, centre, True, f.fx, f.fy, f.cx, f.cy, f.r_px,
-                            f.iters, f.k, f.min_vectors, f.normal, f.x, f.P, w, res, used)  # in place: each read first
+                            f.r_rel, f.iters, f.k, f.min_vectors, f.normal, f.x, f.P, w, res, used)  # in place: each read first
     if bad >= 0:
         return bad
     twist_c = f.x.copy()
@@ -505,6 +514,7 @@ class VelocityKF(nn.Module):
             prior mean halves at every step (``rho = 0.75``: a quarter is lost), so these must be of the order
             of the velocities themselves for the filter to follow the flow rather than decay to zero.
         r_px: flow noise standard deviation, px of displacement per update.
+        r_rel: noise part proportional to each vector's displacement (see :func:`kf_update`).
         p0_v, p0_w: initial standard deviations (m/s, rad/s) after :meth:`reset`.
         min_vectors: filters with fewer valid vectors only predict.
         iters, k: robust re-weighting rounds and Laplacian width (see :func:`kf_update`).
@@ -519,6 +529,7 @@ class VelocityKF(nn.Module):
         q_v: float = VelocityConfig.q_v,
         q_w: float = VelocityConfig.q_w,
         r_px: float = VelocityConfig.r_px,
+        r_rel: float = VelocityConfig.r_rel,
         p0_v: float = 1.0,
         p0_w: float = 5.0,
         min_vectors: int = VelocityConfig.min_vectors,
@@ -534,10 +545,12 @@ class VelocityKF(nn.Module):
             raise ValueError(f"rho must be in [0, 1], got {rho}")
         if min(q_v, q_w, r_px, p0_v, p0_w) <= 0:
             raise ValueError("q_v, q_w, r_px, p0_v and p0_w must be positive standard deviations")
+        if not r_rel >= 0:
+            raise ValueError(f"r_rel must be >= 0, got {r_rel}")
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.camera = camera
-        self.rho, self.r_px, self.k = float(rho), float(r_px), float(k)
+        self.rho, self.r_px, self.r_rel, self.k = float(rho), float(r_px), float(r_rel), float(k)
         self.min_vectors, self.iters, self.normal = int(min_vectors), int(iters), bool(normal)
         f64 = torch.float64
         self.register_buffer("Q", torch.diag(torch.tensor([q_v**2] * 3 + [q_w**2] * 3, dtype=f64)))
@@ -550,7 +563,7 @@ class VelocityKF(nn.Module):
                     batch_size: int = 1) -> "VelocityKF":
         """The filter of the config section ``velocity`` for ``B`` streams; ``normal``: the flow gives normal flow
         (``flow.estimate == "normal"``)."""
-        return cls(camera, rho=cfg.rho, q_v=cfg.q_v, q_w=cfg.q_w, r_px=cfg.r_px, min_vectors=cfg.min_vectors,
+        return cls(camera, rho=cfg.rho, q_v=cfg.q_v, q_w=cfg.q_w, r_px=cfg.r_px, r_rel=cfg.r_rel, min_vectors=cfg.min_vectors,
                    normal=normal, batch_size=batch_size)
 
     @property
@@ -570,7 +583,7 @@ class VelocityKF(nn.Module):
         """The filters for compiled kernels (:func:`velocity_step`): numpy views of the buffers."""
         c = self.camera
         return KFArrays(self.x.numpy(), self.P.numpy(), self.rho, self.Q.numpy(), c.fx, c.fy, c.cx, c.cy, self.r_px,
-                        self.iters, self.k, self.min_vectors, self.normal)
+                        self.r_rel, self.iters, self.k, self.min_vectors, self.normal)
 
     def predict(self) -> torch.Tensor:
         """Apply the motion model in place; returns the predicted twist ``(B, 6)``."""
@@ -594,7 +607,7 @@ class VelocityKF(nn.Module):
         """Fuse padded flow vectors in place (see :func:`kf_update` for shapes, units and ``centre``)."""
         out = kf_update(
             self.x, self.P, uv, flow, depth, valid, self.camera, dt,
-            r_px=self.r_px, iters=self.iters, k=self.k, min_vectors=self.min_vectors, normal=self.normal,
+            r_px=self.r_px, r_rel=self.r_rel, iters=self.iters, k=self.k, min_vectors=self.min_vectors, normal=self.normal,
             centre=centre,
         )
         self.x.copy_(out.x)
