@@ -161,7 +161,6 @@ def test_linear_step_matches_filterpy():
     np.testing.assert_allclose(out.P[0].numpy(), ref.P, rtol=1e-7, atol=1e-12)
 
 
-
 def test_speed_proportional_noise_matches_filterpy():
     """With ``r_rel > 0`` each vector's noise is ``sqrt(r_px^2 + (r_rel |F| dt)^2)`` px: filterpy's KF with that
     diagonal R is the oracle (plain update, no re-weighting); a fast vector then counts less than a slow one."""
@@ -191,6 +190,7 @@ def test_speed_proportional_noise_matches_filterpy():
     assert float(torch.linalg.det(flat.P[0])) < float(torch.linalg.det(out.P[0]))
     with pytest.raises(ValueError, match="r_rel"):
         kf_update(x, P, *args, r_px=r_px, r_rel=-0.1)
+
 
 def test_bad_inputs():
     x, P = torch.zeros(1, 6, dtype=F64), torch.eye(6, dtype=F64)[None]

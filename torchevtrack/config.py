@@ -106,7 +106,7 @@ class VelocityConfig:
     q_v: float = 0.5  # process noise std of the centre velocity per update, m/s
     q_w: float = 3.0  # process noise std of w per update, rad/s
     r_px: float = 0.2  # measurement noise floor per flow vector, pixels of displacement per update
-    r_rel: float = 0.3  # plus this fraction of the vector's own displacement, in quadrature (docs/notebook.md, 2026-12-01)
+    r_rel: float = 0.3  # plus this fraction of its own displacement, in quadrature (docs/notebook.md, 2026-12-01)
     min_vectors: int = 3
     # Correction feedback (stages.velocity.CorrectionFeedback): a leaky integral of the template corrections'
     # rate, bounded by feedback_max_v (m/s) / feedback_max_w (rad/s), is added to the flow twist on the axes the

@@ -376,7 +376,8 @@ def kf_update(
     bad = _kf_update_kernel(_f64(x), _f64(P), _f32_or_f64(uv), _f32_or_f64(flow), _f32_or_f64(depth),
                             valid.numpy(), dt_np, _NO_CENTRE if centre is None else _f64(centre), centre is not None,
                             float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), float(r_px),
-                            float(r_rel), int(iters), float(k), int(min_vectors), bool(normal), x_out, P_out, w_out, res_out, used)
+                            float(r_rel), int(iters), float(k), int(min_vectors), bool(normal), x_out, P_out, w_out,
+                            res_out, used)
     if bad >= 0:
         raise torch.linalg.LinAlgError(f"kf_update: the covariance of filter {bad} is not positive-definite")
     out = VelocityUpdate(*(torch.from_numpy(a) for a in (x_out, P_out, w_out, res_out, used)))
@@ -492,7 +493,8 @@ def velocity_step(f, field, depth, origin, max_speed, radius, dt, centre, feedba
     _sample_depth_kernel(depth, origin, field.uv, slow, radius, z)
     w, res, used = np.empty((B, G)), np.empty((B, G)), np.empty(B, dtype=np.bool_)
     bad = _kf_update_kernel(f.x, f.P, field.uv, flow, z, slow, dt, centre, True, f.fx, f.fy, f.cx, f.cy, f.r_px,
-                            f.r_rel, f.iters, f.k, f.min_vectors, f.normal, f.x, f.P, w, res, used)  # in place: each read first
+                            f.r_rel, f.iters, f.k, f.min_vectors, f.normal, f.x, f.P, w, res,
+                            used)  # in place: each read first
     if bad >= 0:
         return bad
     twist_c = f.x.copy()
@@ -563,8 +565,8 @@ class VelocityKF(nn.Module):
                     batch_size: int = 1) -> "VelocityKF":
         """The filter of the config section ``velocity`` for ``B`` streams; ``normal``: the flow gives normal flow
         (``flow.estimate == "normal"``)."""
-        return cls(camera, rho=cfg.rho, q_v=cfg.q_v, q_w=cfg.q_w, r_px=cfg.r_px, r_rel=cfg.r_rel, min_vectors=cfg.min_vectors,
-                   normal=normal, batch_size=batch_size)
+        return cls(camera, rho=cfg.rho, q_v=cfg.q_v, q_w=cfg.q_w, r_px=cfg.r_px, r_rel=cfg.r_rel,
+                   min_vectors=cfg.min_vectors, normal=normal, batch_size=batch_size)
 
     @property
     def batch_size(self) -> int:
@@ -607,8 +609,8 @@ class VelocityKF(nn.Module):
         """Fuse padded flow vectors in place (see :func:`kf_update` for shapes, units and ``centre``)."""
         out = kf_update(
             self.x, self.P, uv, flow, depth, valid, self.camera, dt,
-            r_px=self.r_px, r_rel=self.r_rel, iters=self.iters, k=self.k, min_vectors=self.min_vectors, normal=self.normal,
-            centre=centre,
+            r_px=self.r_px, r_rel=self.r_rel, iters=self.iters, k=self.k, min_vectors=self.min_vectors,
+            normal=self.normal, centre=centre,
         )
         self.x.copy_(out.x)
         self.P.copy_(out.P)
