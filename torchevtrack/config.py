@@ -128,7 +128,7 @@ class TemplateConfig:
     rule: str = "newton"  # "newton" (all axes, sub-step), "argmax" (the paper) or "group" (EDOPT)
     iterations: int = 5  # correction rounds per update while the score improves (1 = the paper)
     warmup_events: int = 2000  # events an element must have seen since reset before its pose is corrected
-    interior: float = 1.0  # weight of the object's coverage added to the edge template, with its area term (0: edges)
+    interior: float = 0.7  # weight of the object's coverage added to the edge template, with its area term (0: edges)
 
 
 @dataclass
