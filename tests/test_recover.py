@@ -1,5 +1,6 @@
-"""Recovery (torchevtrack.recover): a lost element holds its last good pose and flag, is searched for only while
-events come, and restarts where the search is clear; ``track --recover`` writes the lost flags beside the poses.
+"""Recovery (torchevtrack.recover): a lost element keeps the tracker's own pose and its flag, is searched for only while
+events come, restarts where the search is clear and beats the tracker's pose, and is found again where the search
+confirms that pose; ``track --recover`` writes the lost flags beside the poses.
 
 The restart tests replace the wide search (:class:`~torchevtrack.stages.relocalise.Relocaliser`, tested on its own in
 tests/test_relocalise.py) by an oracle that returns the true pose, clear: they test what the recoverer does with a
@@ -42,11 +43,11 @@ def blackout(seq, start_us: int, end_us: int):
 
 @pytest.fixture
 def truth_search(seq, monkeypatch):
-    """The relocaliser replaced by an oracle: the true pose at the search time, clear and far below its centre's cost;
-    records ``(t_us, centre)``."""
+    """The relocaliser replaced by an oracle: the true pose at the search time, clear and far below the tracker's own
+    pose's cost; records ``(t_us, centre)``."""
     calls = []
 
-    def search(self, pose, last_us, t_now_us):
+    def search(self, pose, last_us, t_now_us, own=None):
         calls.append((int(t_now_us[0]), pose[0].clone()))
         found = interpolate_poses(seq.gt_t_us, seq.gt_poses, t_now_us)
         return Relocalisation(found, torch.zeros(1, dtype=torch.float64), torch.full((1,), math.inf),
@@ -86,16 +87,21 @@ def test_after_a_blackout_the_search_restarts_the_lost_element_on_the_object(seq
     # no search in the dark (no recent events), the first one soon after the events returned
     searched = [c[0] for c in truth_search]
     assert searched and min(searched) >= back and min(searched) <= back + 20_000
-    # lost in the dark: its output is then one pose, the last good one, held until the restart
-    tracker = EventPoseTracker(CAM, seq.mesh, RECOVER)
-    times, poses, lost = (v[0] for v in tracker.track(dark.events, seq.gt_poses[0], t_start_us=t0, t_end_us=back,
-                                                      progress=False, return_lost=True))
-    tracker.close()
+    # lost in the dark: its output is the tracker's own, as without recovery (no search, no restart before the
+    # events return), and the last good pose is kept aside
+    outputs = {}
+    for name, cfg in (("plain", TrackerConfig().replace(loss={"enabled": True})), ("recover", RECOVER)):
+        tracker = EventPoseTracker(CAM, seq.mesh, cfg)
+        outputs[name] = [v[0] for v in tracker.track(dark.events, seq.gt_poses[0], t_start_us=t0, t_end_us=back,
+                                                     progress=False, return_lost=True)]
+        good = None if tracker.recover is None else tracker.recover.good_pose[0].clone()
+        tracker.close()
+    times, poses, lost = outputs["recover"]
     assert lost[-1] and (lost & (times > t0 + GAP_US[0])).sum() > 50
-    held = poses[lost]
-    assert torch.equal(held, held[:1].expand_as(held))
+    assert torch.equal(poses, outputs["plain"][1]) and torch.equal(lost, outputs["plain"][2])
+    assert not torch.equal(poses[lost][0], poses[lost][-1])  # the tracker's pose moves on in the dark
     first_lost = int(lost.nonzero()[0, 0])
-    assert float((held[0, :3] - poses[first_lost - 1, :3]).norm()) < 0.01  # (the last good update came before)
+    assert float((good[:3] - poses[first_lost - 1, :3]).norm()) < 0.01  # (the last good update came before)
 
 
 def test_the_real_search_restarts_a_640x480_box_after_a_blackout_at_the_default_clear_cost():
@@ -174,16 +180,16 @@ def test_track_warns_and_flags_lost_after_a_wrong_init(seqdirs, tmp_path, capsys
     assert lost[-1] and lost.sum() > 5
 
 
-@pytest.mark.parametrize("cost, centre_cost, restarts", [(3.5, 9.0, 1), (1.0, 1.2, 0)])
-def test_a_start_search_restarts_where_it_beats_the_trackers_pose(seq, monkeypatch, cost, centre_cost, restarts):
+@pytest.mark.parametrize("cost, own_cost, restarts", [(3.5, 9.0, 1), (1.0, 1.2, 0)])
+def test_a_start_search_restarts_where_it_beats_the_trackers_pose(seq, monkeypatch, cost, own_cost, restarts):
     """A start search restarts where the result beats the tracker's own pose by the margin, whatever its cost (3.5 px
     is above the lost element's clear-winner cost); a result that costs about as much as the tracker's pose, clear or
     not, leaves the element where it is."""
-    def search(self, pose, last_us, t_now_us):
+    def search(self, pose, last_us, t_now_us, own=None):
         found = interpolate_poses(seq.gt_t_us, seq.gt_poses, t_now_us)
         f64 = dict(dtype=torch.float64)
         return Relocalisation(found, torch.full((1,), cost, **f64), torch.full((1,), math.inf, **f64),
-                              torch.tensor([cost <= 3.0]), torch.full((1,), centre_cost, **f64))
+                              torch.tensor([cost <= 3.0]), torch.full((1,), own_cost, **f64))
 
     monkeypatch.setattr(Relocaliser, "forward", search)
     t0 = int(seq.gt_t_us[0])
@@ -206,3 +212,36 @@ def test_recover_on_the_command_line_may_be_refined_by_set():
     assert cfg.loss.enabled and cfg.recover.enabled and cfg.recover.start_search
     with pytest.raises(ValueError, match="needs recover.enabled"):
         config_from_args(argparse.Namespace(config=None, set=["recover.start_search=true"], recover=False))
+
+
+@pytest.mark.parametrize("cost, own_cost, lost_after, restarts", [(0.9, 1.0, False, 0), (3.8, 4.0, True, 0),
+                                                                   (1.0, 3.0, False, 1)])
+def test_a_search_confirms_restarts_or_keeps_looking_against_the_trackers_own_pose(seq, monkeypatch, cost, own_cost,
+                                                                                    lost_after, restarts):
+    """A false alarm (every update low: more flow vectors asked for than there are blocks) searched once: a result no better than
+    the tracker's own pose, which costs at most ``max_cost_px``, confirms the pose (found again, no restart, the
+    output unchanged); a pose above the cost keeps the element lost (the next search is a second away); a clear result
+    that beats it restarts there."""
+    def search(self, pose, last_us, t_now_us, own=None):
+        f64 = dict(dtype=torch.float64)
+        return Relocalisation(interpolate_poses(seq.gt_t_us, seq.gt_poses, t_now_us), torch.full((1,), cost, **f64),
+                              torch.full((1,), math.inf, **f64), torch.tensor([cost <= 3.0]),
+                              torch.full((1,), own_cost, **f64))
+
+    monkeypatch.setattr(Relocaliser, "forward", search)
+    t0 = int(seq.gt_t_us[0])
+    alarm = {"loss": {"enabled": True, "min_flow_vectors": 1000}}
+    runs = {}
+    for name, cfg in (("plain", TrackerConfig().replace(**alarm)),
+                      ("recover", TrackerConfig().replace(**alarm, recover={"enabled": True, "retry_us": 10 ** 6}))):
+        tracker = EventPoseTracker(CAM, seq.mesh, cfg)
+        runs[name] = [v[0] for v in tracker.track(seq.events, seq.gt_poses[0], t_start_us=t0, t_end_us=t0 + 100_000,
+                                                  progress=False, return_lost=True)]
+        tracker.close()
+    assert runs["plain"][2][-1]  # the detector holds the element lost from about 50 ms to the end
+    assert bool(runs["recover"][2][-1]) == lost_after
+    if restarts:  # restarted, the detector starts over and declares the element lost again 50 ms later
+        assert tracker.recover.restarts == tracker.recover.searches >= 1
+    else:
+        assert tracker.recover.searches == 1 and tracker.recover.restarts == 0
+        assert torch.equal(runs["recover"][1], runs["plain"][1])

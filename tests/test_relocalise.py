@@ -61,7 +61,7 @@ def test_finds_pose_far_off(box, step):
     te, re = errors(out.pose)
     assert te < 0.01 and re < 5, (te, re)
     assert bool(out.clear[0]) and float(out.cost[0]) < float(out.runner_up[0])
-    assert float(out.centre_cost[0]) > float(out.cost[0]) + 1.0  # the far-off centre costs pixels more
+    assert float(out.own_cost[0]) > float(out.cost[0]) + 1.0  # the far-off centre costs pixels more
 
 
 def test_not_clear_without_the_object(box):
@@ -163,5 +163,5 @@ def test_a_search_from_the_truth_does_not_beat_its_centre(box):
     renderer, radius = box
     reloc = Relocaliser(renderer, radius)
     out = reloc(TRUTH, edge_surface(renderer), torch.tensor([1000]))
-    assert abs(float(out.centre_cost[0]) - float(out.cost[0])) < reloc.min_margin_px
+    assert abs(float(out.own_cost[0]) - float(out.cost[0])) < reloc.min_margin_px
     assert not beats_start(out, reloc.min_margin_px)

@@ -193,10 +193,11 @@ class DenoiseConfig:
 
 @dataclass
 class RecoverConfig:
-    # Re-localisation (torchevtrack.recover.Recoverer; needs loss.enabled). An element the loss detector declares
-    # lost reports its last good pose while a wide search (torchevtrack.stages.relocalise.Relocaliser), centred on
-    # that pose moved on by its last good twist, runs every retry_us of event time while min_events pixels fired
-    # within the last retry_us; the element restarts at a clear result. start_search: one such search start_after_us
+    # Re-localisation (torchevtrack.recover.Recoverer; needs loss.enabled). While an element the loss detector
+    # declares lost keeps tracking (its output flagged lost), a wide search (torchevtrack.stages.relocalise.Relocaliser),
+    # centred on its last good pose moved on by its last good twist, runs every retry_us of event time while
+    # min_events pixels fired within the last retry_us; the element restarts at a clear result that beats its own
+    # pose, or is found again where the search confirms that pose. start_search: one such search start_after_us
     # after each (re)start, from the tracker's pose then; it restarts the element where its result costs 0.5 px less
     # than both the runner-up and the tracker's pose (torchevtrack.recover.beats_start; no max_cost_px). search_m:
     # the search's image-plane half-width (metres at the object's depth; its depth offsets scale with it); the search

@@ -9,15 +9,17 @@ masked :meth:`~torchevtrack.tracker.EventPoseTracker.reset`. Per batch element:
 * **Last good state.** After every confident update (the detector's ``low_run`` is 0) of an element that is not
   lost, its pose is the *good pose* and its time the *good time*; its *good twist* is the constant twist between two
   good poses at least ``TWIST_SPAN_US`` apart (:func:`~torchevtrack.stages.propagate.twist_between`).
-* **Lost.** When the detector declares the element lost, it stays lost here until a search restarts it (or a
-  :meth:`~torchevtrack.tracker.EventPoseTracker.reset`): the detector's own "found again" is not trusted, as a
-  tracker locked onto the wrong pose scores well against its own reference. Meanwhile the element reports its good
-  pose (not the tracker's drifting one) and, every ``retry_us`` of event time while at least ``min_events`` pixels of
-  its time surface fired within the last ``retry_us`` (the search needs the object's recent edges: none in a
-  blackout), the :class:`~torchevtrack.stages.relocalise.Relocaliser` searches around the good pose moved on by the
-  good twist over the time since, at most ``MAX_EXTRAPOLATION_US`` (:func:`~torchevtrack.stages.propagate.propagate`),
-  against the tracker's time surface. A ``clear`` result restarts the element there (twist zero) and it reports that
-  pose from this update on.
+* **Lost.** When the detector declares the element lost (``newly_lost``), it stays lost here until a search restarts
+  it or confirms its pose (or a :meth:`~torchevtrack.tracker.EventPoseTracker.reset`): the detector's own "found
+  again" is not trusted, as a tracker locked onto the wrong pose scores well against its own reference. The tracker
+  keeps tracking meanwhile and its output stays its own pose, flagged lost (a false alarm then costs nothing; the
+  good pose stays in :attr:`good_pose`). Every ``retry_us`` of event time while at least ``min_events`` pixels of its
+  time surface fired within the last ``retry_us`` (the search needs the object's recent edges: none in a blackout),
+  the :class:`~torchevtrack.stages.relocalise.Relocaliser` searches around the good pose moved on by the good twist
+  over the time since, at most ``MAX_EXTRAPOLATION_US`` (:func:`~torchevtrack.stages.propagate.propagate`), against
+  the tracker's time surface, and costs the tracker's own pose too. A ``clear`` result that beats that pose
+  (:func:`beats`) restarts the element there (twist zero); where the search finds nothing better than a pose of the
+  tracker's that costs at most the clear-winner cost (:func:`confirms`), the element is found again as it is.
 * **Start search** (``start_search``): ``start_after_us`` after each (re)start, once the time surface holds that
   much of the object's motion, one search around the tracker's pose then; a result that beats both its runner-up and
   the tracker's pose (:func:`beats_start`) restarts the element there, with the twist the UKF measured meanwhile
@@ -62,7 +64,7 @@ from torchevtrack.stages.relocalise import LEVELS, Level, Relocalisation, Reloca
 if TYPE_CHECKING:  # the tracker imports this module
     from torchevtrack.tracker import EventPoseTracker
 
-__all__ = ["Recoverer", "beats_start", "search_levels", "MAX_EXTRAPOLATION_US", "TWIST_SPAN_US"]
+__all__ = ["Recoverer", "beats", "beats_start", "confirms", "search_levels", "MAX_EXTRAPOLATION_US", "TWIST_SPAN_US"]
 
 TWIST_SPAN_US = 20_000  # the good twist is measured over at least this span (one update's pose difference is noise)
 # the good pose is moved on by the good twist for at most this long: beyond, a constant twist is a guess that grows
@@ -70,13 +72,23 @@ TWIST_SPAN_US = 20_000  # the good twist is measured over at least this span (on
 MAX_EXTRAPOLATION_US = 100_000
 
 
+def beats(found: Relocalisation, margin_px: float) -> bool:
+    """Whether a search's result (one element) costs at least ``margin_px`` less than the tracker's own pose."""
+    return float(found.own_cost[0]) - float(found.cost[0]) >= margin_px
+
+
 def beats_start(found: Relocalisation, margin_px: float) -> bool:
-    """Whether a start search's result (one element) clearly beats both the runner-up and the search's centre, the
-    tracker's own pose: by ``margin_px`` of the chamfer cost each. No cap on the cost itself, unlike a lost element's
-    ``clear``: right after a start the recent events are few and smeared, the true pose itself costs 4-4.5 px on the
-    standard ``potted_regular`` (a lost element has no pose of its own to compare with)."""
-    cost = float(found.cost[0])
-    return float(found.runner_up[0]) - cost >= margin_px and float(found.centre_cost[0]) - cost >= margin_px
+    """Whether a start search's result (one element) clearly beats both the runner-up and the tracker's own pose: by
+    ``margin_px`` of the chamfer cost each. No cap on the cost itself, unlike a lost element's ``clear``: right after
+    a start the recent events are few and smeared, the true pose itself costs 4-4.5 px on the standard
+    ``potted_regular``."""
+    return float(found.runner_up[0]) - float(found.cost[0]) >= margin_px and beats(found, margin_px)
+
+
+def confirms(found: Relocalisation, max_cost_px: float, margin_px: float) -> bool:
+    """Whether a lost element's search confirms the tracker's own pose: it costs at most ``max_cost_px`` and the
+    search found nothing ``margin_px`` better."""
+    return float(found.own_cost[0]) <= max_cost_px and not beats(found, margin_px)
 
 
 def search_levels(search_m: float) -> tuple[Level, ...]:
@@ -99,8 +111,7 @@ class Recoverer(nn.Module):
         start_after_us: that delay (us of event time).
 
     Buffers (all with a leading ``B``):
-        pose: ``(B, 7)`` float64 the reported pose: the tracker's, or the good pose while lost.
-        lost: ``(B,)`` bool, lost and not yet restarted by a search.
+        lost: ``(B,)`` bool, lost and not yet restarted or confirmed by a search.
         good_pose, good_us: ``(B, 7)`` float64 and ``(B,)`` int64, the last good pose and its time.
         twist: ``(B, 6)`` float64 ``[v, w]`` good twist (zero until measured).
         anchor_pose, anchor_us: the good pose the next twist is measured from.
@@ -111,7 +122,6 @@ class Recoverer(nn.Module):
     ``forward(tracker, t_us)`` runs after each update of ``tracker`` with the update's ``(B,)`` int64 times.
     """
 
-    pose: torch.Tensor
     lost: torch.Tensor
     good_pose: torch.Tensor
     good_us: torch.Tensor
@@ -140,7 +150,7 @@ class Recoverer(nn.Module):
         B = len(self.owner)
         f64, i64 = torch.float64, torch.int64
         unit = torch.tensor([0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0], dtype=f64).expand(B, 7)
-        for name in ("pose", "good_pose", "anchor_pose"):
+        for name in ("good_pose", "anchor_pose"):
             self.register_buffer(name, unit.clone())
         self.register_buffer("twist", torch.zeros(B, 6, dtype=f64))
         for name in ("good_us", "anchor_us", "next_search_us"):
@@ -167,7 +177,7 @@ class Recoverer(nn.Module):
         (other rows ignored): not lost, the good pose ``pose``, no twist, the start search (if on) to come."""
         m = batch_mask(mask, len(self.owner))
         pose = torch.as_tensor(pose, dtype=torch.float64)
-        for name in ("pose", "good_pose", "anchor_pose"):
+        for name in ("good_pose", "anchor_pose"):
             getattr(self, name)[m] = pose[m]
         self.twist[m] = 0.0
         self.lost[m] = False
@@ -184,7 +194,7 @@ class Recoverer(nn.Module):
         B = len(self.owner)
         t = np.broadcast_to(np.asarray(t_us, dtype=np.int64), (B,)).copy()
         pose = tracker.pose.numpy()
-        det_lost, low_run = tracker.loss.lost.numpy(), tracker.loss.low_run.numpy()
+        declared, low_run = tracker.loss_update.newly_lost.numpy(), tracker.loss.low_run.numpy()
         lost, good_pose, good_us = self.lost.numpy(), self.good_pose.numpy(), self.good_us.numpy()
         anchor_pose, anchor_us, started = self.anchor_pose.numpy(), self.anchor_us.numpy(), self.started_us.numpy()
         next_search, pending = self.next_search_us.numpy(), self.start_pending.numpy()
@@ -192,7 +202,7 @@ class Recoverer(nn.Module):
         if first.any():
             for a in (started, good_us, anchor_us):
                 a[first] = t[first] - tracker.period_us
-        newly = det_lost & ~lost
+        newly = declared & ~lost
         lost |= newly
         next_search[newly] = t[newly]
         good = ~lost & (low_run == 0)
@@ -210,7 +220,6 @@ class Recoverer(nn.Module):
         if due.any() or starting.any():
             pending &= ~starting
             self._search(tracker, t, due, starting)
-        self.pose.numpy()[:] = np.where(lost[:, None], good_pose, tracker.pose.numpy())
 
     @torch.inference_mode()
     def _search(self, tracker: "EventPoseTracker", t: np.ndarray, due: np.ndarray, starting: np.ndarray) -> None:
@@ -238,12 +247,15 @@ class Recoverer(nn.Module):
             if not float(centre[0, 2]) > 1.5 * reloc.radius:  # extrapolated to (or behind) the camera
                 centre = self.good_pose[i:i + 1]
             start = time.perf_counter()
-            out = reloc(centre, surface[i:i + 1].clone(), torch.from_numpy(t[i:i + 1]))
+            out = reloc(centre, surface[i:i + 1].clone(), torch.from_numpy(t[i:i + 1]), pose[i:i + 1])
             self.search_s += time.perf_counter() - start
             self.searches += 1
-            if bool(out.clear[0]) if due[i] else beats_start(out, reloc.min_margin_px):
+            if bool(out.clear[0]) and beats(out, reloc.min_margin_px) if due[i] \
+                    else beats_start(out, reloc.min_margin_px):
                 restart[i] = True
                 found[i] = out.pose[0]
+            elif due[i] and confirms(out, reloc.max_cost_px, reloc.min_margin_px):
+                self.lost[i] = False  # the tracker's own pose is as good as anything the search found
         if bool(restart.any()):
             tracker.reset(found, twist, mask=restart)  # resets this module's rows too (reset)
             self.start_pending[restart] = False  # a restart found by a search needs no start search

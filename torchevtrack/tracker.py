@@ -36,9 +36,9 @@ sequences and runs, in the paper's order:
 7. optionally (``config.loss.enabled``) a :class:`~torchevtrack.loss.LossDetector` judges the update's
    :class:`Quality` and declares elements lost; an ``on_lost`` callback may give them new poses, and
    those elements (only) restart there;
-8. optionally (``config.recover.enabled``) the :class:`~torchevtrack.recover.Recoverer` holds a lost element's output
-   at its last good pose and restarts it where a wide search (:class:`~torchevtrack.stages.relocalise.Relocaliser`)
-   finds the object clearly.
+8. optionally (``config.recover.enabled``) the :class:`~torchevtrack.recover.Recoverer` searches for a lost
+   element (:class:`~torchevtrack.stages.relocalise.Relocaliser`) and restarts it where the search finds the object
+   clearly and better than the tracker's own pose, or clears its flag where the search confirms that pose.
 
 The render of step 4 also provides the depth for step 2 of the next update, so an update costs one
 render. Ablations of the paper are configuration switches (:data:`torchevtrack.config.ABLATIONS`).
@@ -161,8 +161,8 @@ class EventPoseTracker(nn.Module):
             (:meth:`reset` with a mask) before the update returns, so its output holds those poses.
 
     Buffers:
-        pose: ``(B, 7)`` float64 current output pose (with ``config.recover``, the output is ``recover.pose``: the
-            same, but a lost element's last good pose while it is lost).
+        pose: ``(B, 7)`` float64 current output pose (also while :attr:`lost`: the tracker's own estimate; with
+            ``config.recover``, ``recover.good_pose`` holds each element's last good pose).
         prev_pose: ``(B, 7)`` float64 output pose of the previous update.
         depth: ``(B, h, w)`` float32 depth of the last render window; ``origin``: ``(B, 2)`` its top-left pixel.
 
@@ -439,7 +439,7 @@ class EventPoseTracker(nn.Module):
                 if self._run.observing is not None:  # the update failed after it gave the intake thread its part
                     self._run.observing.wait()
                     self._run.observing = None
-        return torch.from_numpy((self.pose if self.recover is None else self.recover.pose).numpy().copy())
+        return torch.from_numpy(self.pose.numpy().copy())
 
     def drop_ahead(self) -> None:
         """Forget a window given as ``next_window`` to :meth:`forward` whose update will not come: a caller that feeds
@@ -585,7 +585,7 @@ class EventPoseTracker(nn.Module):
     def lost(self) -> torch.Tensor | None:
         """``(B,)`` bool: the loss detector held the element lost after the last update (before any
         re-initialisation in that update); with ``config.recover``, the :class:`~torchevtrack.recover.Recoverer`'s
-        flags (lost until a search restarts the element; meanwhile its output is its last good pose); ``None`` without
+        flags (lost until a search restarts the element or confirms its pose); ``None`` without
         a detector or before the first update."""
         if self.loss_update is None:
             return None

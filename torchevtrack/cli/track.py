@@ -184,9 +184,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"{lost_path(args.out)}: lost in {int(flags.sum())} of {n} updates{searched}")
         if flags.any():
             first = int(times[0][flags.nonzero()[0, 0]])
-            held = ": the pose file holds its last good pose then" if r is not None else ""
             print(f"torchevtrack track: warning: the object was lost in {int(flags.sum())} of {n} updates (first at "
-                  f"t = {first / 1e6:.3f} s; {'still lost at the end' if flags[-1] else 'found again'}){held}",
+                  f"t = {first / 1e6:.3f} s; {'still lost at the end' if flags[-1] else 'found again'})",
                   file=sys.stderr)
     if args.rerun is not None:
         print(f"rerun recording: {args.rerun} (open with: rerun {args.rerun})")

@@ -4,7 +4,7 @@
 :func:`lost_path` ``(OUT)`` (``poses.txt`` -> ``poses.lost.txt``): one line per pose of ``OUT``, in the same order and
 with the same time, ``t lost`` (``t`` in seconds as in the TUM file, ``lost`` 1 when the tracker held the object lost
 after that update, else 0); ``#`` starts a comment. The TUM file stays a plain TUM file. While an element is lost its
-pose line holds its last good pose (:mod:`torchevtrack.recover`).
+pose line holds the tracker's own estimate (:mod:`torchevtrack.recover`).
 
 Example:
     >>> import tempfile, torch

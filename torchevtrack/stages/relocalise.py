@@ -26,9 +26,9 @@ recent events and the rendered model's edges (:mod:`torchevtrack.chamfer`).
 4. **Clear winner.** The result is the refined seed of lowest full-resolution cost; ``runner_up`` is the lowest
    cost of the other refined seeds that ended distinct from it (farther than ``distinct_m`` / ``distinct_deg``;
    ``inf`` if none did). The result is ``clear`` when its cost is at most ``max_cost_px`` and the runner-up costs
-   at least ``min_margin_px`` more: a lost element restarts only at a clear result. The result also carries the cost
-   of the search's centre (``centre_cost``) for a caller with a pose of its own to compare with (the start search,
-   :func:`~torchevtrack.recover.beats_start`).
+   at least ``min_margin_px`` more. The result also carries the same cost of the caller's own pose (``own_cost``;
+   by default the search's centre), for a caller with a pose of its own to compare with (the tracker's:
+   :func:`~torchevtrack.recover.beats`).
 
 Costs are in full-resolution pixels (lower is better). Batch elements are searched one after the other. The
 renderer may hold a decimated mesh (:func:`~torchevtrack.mesh.load_mesh` ``decimate``): the renders dominate the
@@ -89,14 +89,14 @@ class Relocalisation(NamedTuple):
         cost: ``(B,)`` float64 its chamfer cost (full-resolution pixels, at the last level's scale).
         runner_up: ``(B,)`` float64 cost of the best first-level candidate distinct from ``pose``.
         clear: ``(B,)`` bool, ``cost <= max_cost_px`` and ``runner_up - cost >= min_margin_px``.
-        centre_cost: ``(B,)`` float64 the same cost of the search's centre pose (where a caller's tracker is).
+        own_cost: ``(B,)`` float64 the same cost of the caller's own pose (``own`` of :meth:`Relocaliser.forward`).
     """
 
     pose: torch.Tensor
     cost: torch.Tensor
     runner_up: torch.Tensor
     clear: torch.Tensor
-    centre_cost: torch.Tensor
+    own_cost: torch.Tensor
 
 
 class _Region(NamedTuple):
@@ -144,9 +144,9 @@ class Relocaliser(nn.Module):
             (else such a twin, of the same cost, keeps every result from being clear). Colours that break the
             symmetry are ignored: a result may then be turned about the axis.
 
-    ``forward(pose (B, 7), last_us (B, H, W) or (B, C, H, W) int64, t_now_us (B,) int64) -> Relocalisation``:
-    ``last_us`` is a time surface (newest event per pixel and channel, microseconds), ``pose`` the centre of the
-    search (object in the camera frame).
+    ``forward(pose (B, 7), last_us (B, H, W) or (B, C, H, W) int64, t_now_us (B,) int64, own (B, 7) = pose) ->
+    Relocalisation``: ``last_us`` is a time surface (newest event per pixel and channel, microseconds), ``pose`` the
+    centre of the search (object in the camera frame), ``own`` the caller's own pose, whose cost the result carries.
 
     Example:
         >>> import torch
@@ -280,7 +280,8 @@ class Relocaliser(nn.Module):
             rot = rot - (rot @ n)[:, None] * n
         return (d[:, :3].norm(dim=1) > self.distinct_m) | (rot.norm(dim=1) > self.distinct_rad)
 
-    def _one(self, pose: torch.Tensor, last_us: torch.Tensor, t_now: int) -> tuple[torch.Tensor, float, float, float]:
+    def _one(self, pose: torch.Tensor, own: torch.Tensor, last_us: torch.Tensor,
+             t_now: int) -> tuple[torch.Tensor, float, float, float]:
         centre = pose.double()
         events = self._events(centre, last_us, t_now)
         first = self.levels[0]
@@ -313,7 +314,7 @@ class Relocaliser(nn.Module):
                 if c < cost:
                     cost, best = c, p
         others = [c for c, p in finals[1:] if bool(self._distinct(best, p)[0])]
-        return best[0], cost, min(others, default=math.inf), self._cost_full(centre, obs)
+        return best[0], cost, min(others, default=math.inf), self._cost_full(own.double(), obs)
 
     # -- full resolution: cost and Gauss-Newton polish -------------------------------------------------------------
     def _edges_full(self, pose: torch.Tensor):
@@ -395,20 +396,23 @@ class Relocaliser(nn.Module):
                 lam *= 10
         return cost, pose
 
-    def forward(self, pose: torch.Tensor, last_us: torch.Tensor, t_now_us: torch.Tensor) -> Relocalisation:
+    def forward(self, pose: torch.Tensor, last_us: torch.Tensor, t_now_us: torch.Tensor,
+                own: torch.Tensor | None = None) -> Relocalisation:
         B = pose.shape[0] if pose.ndim == 2 else -1
         t_now_us = torch.as_tensor(t_now_us)
-        if pose.shape != (B, 7) or last_us.ndim not in (3, 4) or last_us.shape[0] != B or t_now_us.shape != (B,) \
-                or last_us.dtype != torch.int64:
-            raise ValueError(f"expected pose (B, 7), last_us (B, H, W) or (B, C, H, W) int64, t_now_us (B,), got "
-                             f"{tuple(pose.shape)}, {tuple(last_us.shape)} {last_us.dtype}, {tuple(t_now_us.shape)}")
+        own = pose if own is None else own
+        if pose.shape != (B, 7) or own.shape != (B, 7) or last_us.ndim not in (3, 4) or last_us.shape[0] != B \
+                or t_now_us.shape != (B,) or last_us.dtype != torch.int64:
+            raise ValueError(f"expected pose and own (B, 7), last_us (B, H, W) or (B, C, H, W) int64, t_now_us (B,), "
+                             f"got {tuple(pose.shape)}, {tuple(own.shape)}, {tuple(last_us.shape)} {last_us.dtype}, "
+                             f"{tuple(t_now_us.shape)}")
         if tuple(last_us.shape[-2:]) != (self.camera.height, self.camera.width):
             raise ValueError(f"last_us must be {self.camera.height}x{self.camera.width} (the renderer's camera), got "
                              f"{tuple(last_us.shape[-2:])}")
-        out = [self._one(pose[k:k + 1], last_us[k], int(t_now_us[k])) for k in range(B)]
+        out = [self._one(pose[k:k + 1], own[k:k + 1], last_us[k], int(t_now_us[k])) for k in range(B)]
         best = torch.stack([o[0] for o in out])
         cost = torch.tensor([o[1] for o in out], dtype=torch.float64)
         runner = torch.tensor([o[2] for o in out], dtype=torch.float64)
         clear = (cost <= self.max_cost_px) & (runner - cost >= self.min_margin_px)
-        centre = torch.tensor([o[3] for o in out], dtype=torch.float64)
-        return Relocalisation(best, cost, runner, clear, centre)
+        own_cost = torch.tensor([o[3] for o in out], dtype=torch.float64)
+        return Relocalisation(best, cost, runner, clear, own_cost)
