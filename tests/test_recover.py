@@ -245,3 +245,25 @@ def test_a_search_confirms_restarts_or_keeps_looking_against_the_trackers_own_po
     else:
         assert tracker.recover.searches == 1 and tracker.recover.restarts == 0
         assert torch.equal(runs["recover"][1], runs["plain"][1])
+
+
+def test_searches_that_find_nothing_come_ever_further_apart(seq, monkeypatch):
+    """A lost element whose searches find nothing (not clear, its own pose above the clear-winner cost) is searched
+    at the declaration, then ``retry_us`` later, then at doubling intervals."""
+    calls = []
+
+    def search(self, pose, last_us, t_now_us, own=None):
+        calls.append(int(t_now_us[0]))
+        f64 = dict(dtype=torch.float64)
+        return Relocalisation(pose.clone(), torch.full((1,), 5.0, **f64), torch.full((1,), 5.1, **f64),
+                              torch.tensor([False]), torch.full((1,), 5.2, **f64))
+
+    monkeypatch.setattr(Relocaliser, "forward", search)
+    t0 = int(seq.gt_t_us[0])
+    cfg = TrackerConfig().replace(loss={"enabled": True, "min_flow_vectors": 1000}, recover={"enabled": True})
+    tracker = EventPoseTracker(CAM, seq.mesh, cfg)
+    tracker.track(seq.events, seq.gt_poses[0], t_start_us=t0, t_end_us=t0 + 400_000, progress=False)
+    tracker.close()
+    gaps = [b - a for a, b in zip(calls, calls[1:])]
+    assert len(calls) == 5 and tracker.recover.restarts == 0 and bool(tracker.lost[0])
+    assert gaps == [20_000, 40_000, 80_000, 160_000], gaps

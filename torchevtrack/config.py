@@ -195,8 +195,9 @@ class DenoiseConfig:
 class RecoverConfig:
     # Re-localisation (torchevtrack.recover.Recoverer; needs loss.enabled). While an element the loss detector
     # declares lost keeps tracking (its output flagged lost), a wide search (torchevtrack.stages.relocalise.Relocaliser),
-    # centred on its last good pose moved on by its last good twist, runs every retry_us of event time while
-    # min_events pixels fired within the last retry_us; the element restarts at a clear result that beats its own
+    # centred on its last good pose moved on by its last good twist, runs at the declaration, retry_us of event time
+    # later, then at doubling intervals (up to torchevtrack.recover.MAX_RETRY_US), once min_events pixels fired within
+    # the last retry_us; the element restarts at a clear result that beats its own
     # pose, or is found again where the search confirms that pose. start_search: one such search start_after_us
     # after each (re)start, from the tracker's pose then; it restarts the element where its result costs 0.5 px less
     # than both the runner-up and the tracker's pose (torchevtrack.recover.beats_start; no max_cost_px). search_m:

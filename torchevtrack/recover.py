@@ -13,8 +13,9 @@ masked :meth:`~torchevtrack.tracker.EventPoseTracker.reset`. Per batch element:
   it or confirms its pose (or a :meth:`~torchevtrack.tracker.EventPoseTracker.reset`): the detector's own "found
   again" is not trusted, as a tracker locked onto the wrong pose scores well against its own reference. The tracker
   keeps tracking meanwhile and its output stays its own pose, flagged lost (a false alarm then costs nothing; the
-  good pose stays in :attr:`good_pose`). Every ``retry_us`` of event time while at least ``min_events`` pixels of its
-  time surface fired within the last ``retry_us`` (the search needs the object's recent edges: none in a blackout),
+  good pose stays in :attr:`good_pose`). At the declaration, ``retry_us`` of event time later, then at intervals
+  doubling up to ``MAX_RETRY_US``, each time once at least ``min_events`` pixels of its time surface fired within the
+  last ``retry_us`` (the search needs the object's recent edges: none in a blackout),
   the :class:`~torchevtrack.stages.relocalise.Relocaliser` searches around the good pose moved on by the good twist
   over the time since, at most ``MAX_EXTRAPOLATION_US`` (:func:`~torchevtrack.stages.propagate.propagate`), against
   the tracker's time surface, and costs the tracker's own pose too. A ``clear`` result that beats that pose
@@ -64,12 +65,17 @@ from torchevtrack.stages.relocalise import LEVELS, Level, Relocalisation, Reloca
 if TYPE_CHECKING:  # the tracker imports this module
     from torchevtrack.tracker import EventPoseTracker
 
-__all__ = ["Recoverer", "beats", "beats_start", "confirms", "search_levels", "MAX_EXTRAPOLATION_US", "TWIST_SPAN_US"]
+__all__ = ["Recoverer", "beats", "beats_start", "confirms", "search_levels", "MAX_EXTRAPOLATION_US", "MAX_RETRY_US",
+           "TWIST_SPAN_US"]
 
 TWIST_SPAN_US = 20_000  # the good twist is measured over at least this span (one update's pose difference is noise)
 # the good pose is moved on by the good twist for at most this long: beyond, a constant twist is a guess that grows
 # worse than none (blackouts of 200 ms on synthetic sequences: search centres up to 40 cm off without this cap)
 MAX_EXTRAPOLATION_US = 100_000
+# a lost element's searches that find nothing come ever further apart (retry_us, 2 retry_us, ...) up to this: a search
+# blocks the update for 0.3-1.5 s of wall time, and on the wide dev split's davis346 sequences 77 of 77 searches found
+# nothing (docs/notebook.md, 2026-12-02); 31 of them, 13.5 s, on one sequence of 1 s
+MAX_RETRY_US = 320_000
 
 
 def beats(found: Relocalisation, margin_px: float) -> bool:
@@ -116,6 +122,7 @@ class Recoverer(nn.Module):
         twist: ``(B, 6)`` float64 ``[v, w]`` good twist (zero until measured).
         anchor_pose, anchor_us: the good pose the next twist is measured from.
         next_search_us: ``(B,)`` int64 the earliest time of a lost element's next search.
+        retry_in_us: ``(B,)`` int64 the wait after its next search if that one finds nothing (doubles each time).
         started_us: ``(B,)`` int64 start of the first update's window since the last (re)start (-1: none yet).
         start_pending: ``(B,)`` bool, the start search is still to come.
 
@@ -129,6 +136,7 @@ class Recoverer(nn.Module):
     anchor_pose: torch.Tensor
     anchor_us: torch.Tensor
     next_search_us: torch.Tensor
+    retry_in_us: torch.Tensor
     started_us: torch.Tensor
     start_pending: torch.Tensor
 
@@ -153,7 +161,7 @@ class Recoverer(nn.Module):
         for name in ("good_pose", "anchor_pose"):
             self.register_buffer(name, unit.clone())
         self.register_buffer("twist", torch.zeros(B, 6, dtype=f64))
-        for name in ("good_us", "anchor_us", "next_search_us"):
+        for name in ("good_us", "anchor_us", "next_search_us", "retry_in_us"):
             self.register_buffer(name, torch.zeros(B, dtype=i64))
         self.register_buffer("started_us", torch.full((B,), -1, dtype=i64))
         self.register_buffer("lost", torch.zeros(B, dtype=torch.bool))
@@ -205,6 +213,7 @@ class Recoverer(nn.Module):
         newly = declared & ~lost
         lost |= newly
         next_search[newly] = t[newly]
+        self.retry_in_us[torch.from_numpy(newly)] = self.retry_us
         good = ~lost & (low_run == 0)
         good_pose[good] = pose[good]
         good_us[good] = t[good]
@@ -240,7 +249,8 @@ class Recoverer(nn.Module):
                     continue
                 dt = min(float(t[i] - self.good_us[i]), MAX_EXTRAPOLATION_US) * 1e-6
                 centre = propagate(self.good_pose[i:i + 1], self.twist[i:i + 1], dt)
-                self.next_search_us[i] = int(t[i]) + self.retry_us
+                self.next_search_us[i] = int(t[i]) + int(self.retry_in_us[i])
+                self.retry_in_us[i] = min(2 * int(self.retry_in_us[i]), MAX_RETRY_US)
             else:
                 centre = pose[i:i + 1]
             reloc = self.relocalisers[self.owner[i]]
