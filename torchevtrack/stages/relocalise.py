@@ -116,11 +116,23 @@ class _Region(NamedTuple):
 
 class _FullRes(NamedTuple):
     """The observation at full resolution: event image ``(H, W)`` bool, its capped distance map ``(H, W)``
-    float32, and the event pixels ``(K, 2)`` (u, v) of the first level's region."""
+    float32 and that map's central differences along u and v ``(H, W)`` float64 (zero on the border), and the event
+    pixels ``(K, 2)`` (u, v) of the first level's region."""
 
     image: np.ndarray
     distance: np.ndarray
+    grad_u: np.ndarray
+    grad_v: np.ndarray
     events: np.ndarray
+
+    @classmethod
+    def of(cls, image: np.ndarray, cap_px: float, events: np.ndarray) -> "_FullRes":
+        distance = distance_map(image, cap_px)
+        D = distance.astype(np.float64)
+        gu, gv = np.zeros_like(D), np.zeros_like(D)
+        gu[:, 1:-1] = 0.5 * (D[:, 2:] - D[:, :-2])
+        gv[1:-1] = 0.5 * (D[2:] - D[:-2])
+        return cls(image, distance, gu, gv, events)
 
 
 class Relocaliser(nn.Module):
@@ -294,7 +306,7 @@ class Relocaliser(nn.Module):
                 seeds.append(poses[j:j + 1])
         frame = np.zeros((self.camera.height, self.camera.width), bool)
         frame[events[:, 1], events[:, 0]] = True
-        obs = _FullRes(frame, distance_map(frame, self.cap_px), events)
+        obs = _FullRes.of(frame, self.cap_px, events)
         finals = []
         for seed in seeds:  # the first `beam` seeds, then more while none has reached a low cost
             if len(finals) >= self.beam and min(c for c, _ in finals) <= self.max_cost_px:
@@ -331,7 +343,10 @@ class Relocaliser(nn.Module):
 
     def _cost_full(self, pose: torch.Tensor, obs: "_FullRes") -> float:
         """Two-sided chamfer cost at full resolution; the events: those of the first level's region."""
-        got = self._edges_full(pose)
+        return self._cost_of(self._edges_full(pose), obs)
+
+    def _cost_of(self, got, obs: "_FullRes") -> float:
+        """:meth:`_cost_full` of a pose whose :meth:`_edges_full` are ``got``."""
         if got is None or len(obs.events) == 0:
             return self.cap_px
         uv, _, (u0, v0, w, h) = got
@@ -352,24 +367,21 @@ class Relocaliser(nn.Module):
     def _polish(self, pose: torch.Tensor, obs: "_FullRes") -> tuple[float, torch.Tensor]:
         """Damped Gauss-Newton on the model edges' distances to the events (full resolution, a fresh render per
         step, a step kept only if the two-sided cost falls; at most ``polish_steps``, fewer once converged or after
-        three rejected steps in a row): ``(cost, pose)``."""
-        cost = self._cost_full(pose, obs)
-        D = obs.distance.astype(np.float64)
-        H, W = D.shape
-        gu = np.zeros_like(D)
-        gv = np.zeros_like(D)
-        gu[:, 1:-1] = 0.5 * (D[:, 2:] - D[:, :-2])
-        gv[1:-1] = 0.5 * (D[2:] - D[:-2])
+        three rejected steps in a row): ``(cost, pose)``. Each step renders once: the edges of the pose it starts from
+        are those its cost was taken with."""
+        got = self._edges_full(pose)
+        cost = self._cost_of(got, obs)
+        gu, gv = obs.grad_u, obs.grad_v
+        H, W = obs.distance.shape
         cam = self.camera
         lam = 1e-3
         for _ in range(self.polish_steps):
-            got = self._edges_full(pose)
             if got is None:
                 break
             uv, z, _ = got
             ok = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
             uv, z = uv[ok], z[ok]
-            r = D[uv[:, 1], uv[:, 0]]
+            r = obs.distance[uv[:, 1], uv[:, 0]].astype(np.float64)
             inl = r < 0.5 * self.cap_px  # edges far from every event do not pull
             if inl.sum() < 12:
                 break
@@ -385,9 +397,10 @@ class Relocaliser(nn.Module):
             A += lam * np.diag(np.diag(A)) + 1e-9 * np.eye(6)
             step = -np.linalg.solve(A, J.T @ r)
             trial = apply_steps(pose, torch.from_numpy(step)[None, None])[0]
-            c = self._cost_full(trial, obs)
+            got_trial = self._edges_full(trial)
+            c = self._cost_of(got_trial, obs)
             if c < cost:
-                pose, cost, lam = trial, c, max(lam / 3, 1e-4)
+                pose, cost, got, lam = trial, c, got_trial, max(lam / 3, 1e-4)
                 if np.abs(step).max() < 1e-4:  # converged: 0.1 mm and 0.006 deg
                     break
             elif lam > 1.0:  # three rejected steps in a row
