@@ -39,8 +39,8 @@ Status (measured, ``tools/bench_relocalise.py``; sugar box fast with and without
 bottle fast, 2-s sequences x 3 times x 4 random starts): within 1 cm / 5 deg from 5 cm / 20 deg starts in 42 of 48,
 from 2 cm / 10 deg starts in 44 of 48. Every miss is the sugar box, 0.5-1.1 cm / 8-12 deg off, and ``clear``: there
 the cost of the miss is within 0.2 px of the truth's; gross misses (3.5 cm / 16 deg, seen before the restarts) end
-above ``max_cost_px``. A call costs about 1-1.5 s at 640x480 with a 16k-face mesh (renders, FFTs and distance
-transforms about equally); a mesh decimated to 2000 faces halves that but found 29 of 47 from 2 cm / 10 deg
+above ``max_cost_px``. A call costs about 1.0-1.5 s at 640x480 with a 16k-face mesh (renders a third, FFTs and
+distance transforms a fifth each); a mesh decimated to 2000 faces halves that but found 29 of 47 from 2 cm / 10 deg
 (before the restarts; the full mesh then found 41 of 48).
 """
 
