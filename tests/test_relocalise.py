@@ -62,6 +62,9 @@ def test_finds_pose_far_off(box, step):
     assert te < 0.01 and re < 5, (te, re)
     assert bool(out.clear[0]) and float(out.cost[0]) < float(out.runner_up[0])
     assert float(out.own_cost[0]) > float(out.cost[0]) + 1.0  # the far-off centre costs pixels more
+    if step[2] == 0.04:  # the caller's own pose, given apart from the centre: the true one costs about the result
+        own = reloc(start, edge_surface(renderer), torch.tensor([1000]), own=TRUTH)
+        assert torch.equal(own.pose, out.pose) and abs(float(own.own_cost[0]) - float(out.cost[0])) < 0.5
 
 
 def test_not_clear_without_the_object(box):
