@@ -218,10 +218,10 @@ def test_recover_on_the_command_line_may_be_refined_by_set():
                                                                    (1.0, 3.0, False, 1)])
 def test_a_search_confirms_restarts_or_keeps_looking_against_the_trackers_own_pose(seq, monkeypatch, cost, own_cost,
                                                                                     lost_after, restarts):
-    """A false alarm (every update low: more flow vectors asked for than there are blocks) searched once: a result no better than
-    the tracker's own pose, which costs at most ``max_cost_px``, confirms the pose (found again, no restart, the
-    output unchanged); a pose above the cost keeps the element lost (the next search is a second away); a clear result
-    that beats it restarts there."""
+    """A false alarm (every update low: more flow vectors asked for than there are blocks) searched once: a result no
+    better than the tracker's own pose, which costs at most ``max_cost_px``, confirms the pose (found again, no
+    restart, the output unchanged); a pose above the cost keeps the element lost (the next search is a second away);
+    a clear result that beats it restarts there."""
     def search(self, pose, last_us, t_now_us, own=None):
         f64 = dict(dtype=torch.float64)
         return Relocalisation(interpolate_poses(seq.gt_t_us, seq.gt_poses, t_now_us), torch.full((1,), cost, **f64),

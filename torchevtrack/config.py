@@ -194,15 +194,15 @@ class DenoiseConfig:
 @dataclass
 class RecoverConfig:
     # Re-localisation (torchevtrack.recover.Recoverer; needs loss.enabled). While an element the loss detector
-    # declares lost keeps tracking (its output flagged lost), a wide search (torchevtrack.stages.relocalise.Relocaliser),
-    # centred on its last good pose moved on by its last good twist, runs at the declaration, retry_us of event time
-    # later, then at doubling intervals (up to torchevtrack.recover.MAX_RETRY_US), once min_events pixels fired within
-    # the last retry_us; the element restarts at a clear result that beats its own
-    # pose, or is found again where the search confirms that pose. start_search: one such search start_after_us
-    # after each (re)start, from the tracker's pose then; it restarts the element where its result costs 0.5 px less
-    # than both the runner-up and the tracker's pose (torchevtrack.recover.beats_start; no max_cost_px). search_m:
-    # the search's image-plane half-width (metres at the object's depth; its depth offsets scale with it); the search
-    # blocks the update (~0.3-1.5 s of wall time).
+    # declares lost keeps tracking (its output flagged lost), a wide search
+    # (torchevtrack.stages.relocalise.Relocaliser), centred on its last good pose moved on by its last good twist,
+    # runs at the declaration, retry_us of event time later, then at doubling intervals (up to
+    # torchevtrack.recover.MAX_RETRY_US), once min_events pixels fired within the last retry_us; the element restarts
+    # at a clear result that beats its own pose, or is found again where the search confirms that pose.
+    # start_search: one such search start_after_us after each (re)start, from the tracker's pose then; it restarts
+    # the element where its result costs 0.5 px less than both the runner-up and the tracker's pose
+    # (torchevtrack.recover.beats_start; no max_cost_px). search_m: the search's image-plane half-width (metres at
+    # the object's depth; its depth offsets scale with it); the search blocks the update (~0.3-1.5 s of wall time).
     # max_cost_px: a result is clear (restarts the element) at a chamfer cost of at most this many pixels (and a
     # runner-up 0.5 px worse): after a blackout the object's recent edges are smeared, and found poses cost 1.6-4 px.
     enabled: bool = False

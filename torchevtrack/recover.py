@@ -260,8 +260,9 @@ class Recoverer(nn.Module):
             out = reloc(centre, surface[i:i + 1].clone(), torch.from_numpy(t[i:i + 1]), pose[i:i + 1])
             self.search_s += time.perf_counter() - start
             self.searches += 1
-            if bool(out.clear[0]) and beats(out, reloc.min_margin_px) if due[i] \
-                    else beats_start(out, reloc.min_margin_px):
+            wins = (bool(out.clear[0]) and beats(out, reloc.min_margin_px)) if due[i] \
+                else beats_start(out, reloc.min_margin_px)
+            if wins:
                 restart[i] = True
                 found[i] = out.pose[0]
             elif due[i] and confirms(out, reloc.max_cost_px, reloc.min_margin_px):
