@@ -206,6 +206,7 @@ class Recoverer(nn.Module):
         lost, good_pose, good_us = self.lost.numpy(), self.good_pose.numpy(), self.good_us.numpy()
         anchor_pose, anchor_us, started = self.anchor_pose.numpy(), self.anchor_us.numpy(), self.started_us.numpy()
         next_search, pending = self.next_search_us.numpy(), self.start_pending.numpy()
+        retry_in = self.retry_in_us.numpy()
         first = started < 0  # the first update since a (re)start: its window began a period ago
         if first.any():
             for a in (started, good_us, anchor_us):
@@ -213,7 +214,7 @@ class Recoverer(nn.Module):
         newly = declared & ~lost
         lost |= newly
         next_search[newly] = t[newly]
-        self.retry_in_us[torch.from_numpy(newly)] = self.retry_us
+        retry_in[newly] = self.retry_us
         good = ~lost & (low_run == 0)
         good_pose[good] = pose[good]
         good_us[good] = t[good]
