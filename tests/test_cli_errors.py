@@ -167,3 +167,9 @@ def test_eval_in_another_time_base_fails_and_the_flags_fix_it(tmp_path, capsys):
     out = json.loads(capsys.readouterr().out)
     assert code == 0 and out["n_poses"] == 151 and out["n_dropped"] == 0
     assert out["rmse_t_cm"] < 1e-6  # the same poses, up to the digits of the files
+
+
+def test_warmup_with_no_workers_is_a_one_line_error(capsys):
+    code, err = _run(capsys, "warmup", "--jobs", "0")
+    assert code == 2
+    _one_line_error(err, "--jobs must be >= 1, got 0")

@@ -1,7 +1,8 @@
-"""The kernels' cache: a cold cache is detected (from an empty NUMBA_CACHE_DIR), announced once in one line, and
-warm after a first run; `warmup` leaves no module of the tracker cold; a kernel called from Python and from
-compiled steps compiles once."""
+"""The kernels' cache: a cold cache is detected (from an empty NUMBA_CACHE_DIR), announced once in one line and
+compiled by worker processes from the shipped manifest, which lists what a tracking run calls; `warmup` leaves no
+module of the tracker cold; a kernel called from Python and from compiled steps compiles once."""
 
+import json
 import os
 import subprocess
 import sys
@@ -17,23 +18,73 @@ def _run_cold(script: str, cache_dir: Path) -> subprocess.CompletedProcess:
                           check=True)
 
 
-def test_a_cold_cache_is_announced_once_and_warm_after_first_use(tmp_path):
+def test_a_cold_cache_is_announced_once_and_compiled_by_workers_before_first_use(tmp_path):
     script = (
-        "import sys\n"
-        "import torchevtrack.events\n"
-        "from torchevtrack.kernels import announce_compile, uncached_kernels\n"
-        "print(sorted(uncached_kernels()))\n"
-        "announce_compile(); announce_compile()\n"
-        "torchevtrack.events.EventStream.from_arrays([1], [2], [3], [1], width=4, height=4)\n"
-        "print(sorted(uncached_kernels()))\n"
+        "import torch\n"
+        "from torchevtrack.kernels import compile_cold, manifest, uncached_kernels\n"
+        "from torchevtrack.stages import propagate\n"
+        "cold = uncached_kernels()\n"
+        "print(len(cold), sorted(e['name'] for e in manifest() if e['name'] in cold))\n"
+        "print(compile_cold(jobs=2), compile_cold(jobs=2))\n"
+        "print(uncached_kernels())\n"
+        "propagate.propagate(torch.tensor([[0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0]]), torch.ones(1, 6), 0.002)\n"
+        "stats = propagate.propagate_kernel.stats\n"
+        "print(sum(stats.cache_hits.values()), sum(stats.cache_misses.values()))\n"
     )
     r = _run_cold(script, tmp_path)
-    before, after = r.stdout.splitlines()
-    assert before == "['torchevtrack.events._first_outside', 'torchevtrack.events.first_invalid']"
-    assert after == "[]"
+    cold, compiled, after, hits_misses = r.stdout.splitlines()
+    assert cold == ("14 ['torchevtrack.geometry.nb_normalise_quaternions', "
+                    "'torchevtrack.stages.propagate._invalid_kernel', 'torchevtrack.stages.propagate.propagate_kernel']")
+    assert compiled == "3 0"  # the manifest's entry points of the cold modules, by two workers; once per process
+    assert after == "['torchevtrack.stages.canvas_taps']"  # the package's helper, called from modules not loaded
+    assert hits_misses == "1 0"  # this process loaded the workers' code instead of compiling
     notice = r.stderr.strip().splitlines()
-    assert len(notice) == 1 and notice[0].startswith("torchevtrack: compiling 2 numba kernels on first use")
+    assert len(notice) == 1, notice
+    assert notice[0].startswith("torchevtrack: compiling 14 numba kernels on first use in 2 processes")
     assert "torchevtrack warmup" in notice[0]
+
+
+def test_a_worker_that_fails_an_entry_goes_on_with_the_next(tmp_path):
+    script = (
+        "from torchevtrack.kernels import _compile_in_workers, manifest\n"
+        "small = [i for i, e in enumerate(manifest()) if e['name'].endswith('nb_normalise_quaternions')]\n"
+        "print(_compile_in_workers([len(manifest()), *small], 1))\n"  # an index past the manifest, then a kernel
+    )
+    assert _run_cold(script, tmp_path).stdout.split() == ["1"]
+
+
+def test_signature_encoding_round_trips_named_tuples_and_read_only_arrays():
+    import numba
+    import numpy as np
+
+    from torchevtrack.kernels import decode_signature, encode_signature
+    from torchevtrack.stages.flow import FlowField
+
+    ro = np.zeros(3)
+    ro.setflags(write=False)
+    field = FlowField(np.zeros((1, 2, 2), np.float32), np.zeros((1, 2, 2), np.float32), np.zeros((1, 2), np.bool_),
+                      np.zeros((1, 2), np.int64))
+    sig = tuple(numba.typeof(v) for v in (ro, np.float32(1), np.int64(2), np.bool_(True), None, field))
+    assert decode_signature(encode_signature(sig)) == sig
+
+
+def test_the_manifest_names_exactly_the_kernels_a_warm_tracking_run_calls_from_python(tmp_path):
+    # With a warm cache, a kernel called from compiled code is never typed again: the dispatchers' signatures after
+    # warmup are those called from Python, which the manifest must list (else tools/kernel_manifest.py is due).
+    script = (
+        "import json\n"
+        "from torchevtrack.kernels import _kernels, encode_signature, manifest, warmup\n"
+        "warmup(progress=False)\n"
+        "seen = sorted([f'{k.py_func.__module__}.{k.py_func.__qualname__}', encode_signature(s)]\n"
+        "              for k in _kernels() for s in k.signatures)\n"
+        "listed = sorted([e['name'], e['signature']] for e in manifest())\n"
+        "print(json.dumps([seen, listed]))\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=900,
+                         check=True)
+    seen, listed = json.loads(out.stdout.splitlines()[-1])
+    assert seen == listed, "torchevtrack/kernels.json is out of date: run python tools/kernel_manifest.py"
 
 
 def test_warmup_leaves_no_tracker_module_cold(capsys):

@@ -30,10 +30,11 @@ def wheel(tmp_path_factory) -> zipfile.ZipFile:
     return zipfile.ZipFile(path)
 
 
-def test_wheel_ships_config_type_marker_and_licence(wheel):
+def test_wheel_ships_config_type_marker_kernel_manifest_and_licence(wheel):
     names = set(wheel.namelist())
     assert "torchevtrack/configs/default.yaml" in names
     assert "torchevtrack/py.typed" in names
+    assert "torchevtrack/kernels.json" in names  # the parallel cold compile's manifest
     assert any(n.endswith(".dist-info/licenses/LICENSE") for n in names)
 
 

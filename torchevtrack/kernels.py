@@ -1,9 +1,15 @@
-"""The numba kernels' on-disk cache: whether it is warm, a one-line notice when the first run will compile,
-and :func:`warmup`, which compiles the tracker's kernels ahead (``torchevtrack warmup``).
+"""The numba kernels' on-disk cache: whether it is warm, compiling it in parallel worker processes when it is cold
+(:func:`compile_cold`, on a tracker's first construction), and :func:`warmup`, which compiles the tracker's kernels
+ahead (``torchevtrack warmup``).
 
 Numba compiles a kernel on its first call in a process and caches the machine code in ``__pycache__``
 next to the module (or in ``NUMBA_CACHE_DIR``); later processes load it in milliseconds. A fresh
-install therefore spends its first tracking run compiling (about :data:`SECONDS_PER_KERNEL` seconds per kernel).
+install therefore compiles before its first pose: about 150 s of one core for the kernels a tracking run calls.
+Compilation holds one core, so :func:`compile_cold` spreads the kernels over worker processes, one a core, each
+compiling kernels named in the shipped manifest ``kernels.json`` (each kernel called from Python, the argument
+types a tracking run calls it with, and its measured compile time) into the shared cache, largest first; the
+tracking process then loads them. A kernel the manifest misses (or that a worker failed on) still compiles on its
+first call, as before: the manifest only saves time. ``python tools/kernel_manifest.py`` writes it anew.
 
 Each distinct argument type signature compiles a kernel again. Numba types a constant passed by a compiled caller
 as a literal (``Literal[int](0)``, not ``int64``), so such call sites pass typed values (``np.int64(0)``,
@@ -17,13 +23,23 @@ Example:
 
 from __future__ import annotations
 
+import contextlib
+import json
+import math
+import os
+import selectors
+import subprocess
 import sys
 import threading
+from importlib import import_module
+from pathlib import Path
 
-__all__ = ["SECONDS_PER_KERNEL", "announce_compile", "uncached_kernels", "warmup"]
+__all__ = ["compile_cold", "decode_signature", "encode_signature", "manifest", "uncached_kernels", "warmup"]
 
-SECONDS_PER_KERNEL = 1.6  # a first `track` from an empty cache compiles 90 kernels in 140 s (idle 2-core VM, README)
-_announced = False
+MANIFEST = Path(__file__).with_name("kernels.json")
+SECONDS_PER_KERNEL = 1.6  # a kernel's compile time on average (150 s for the ~90 of a tracking run, idle 2-core VM)
+_lock = threading.Lock()
+_tried = False  # compile_cold ran in this process: it announces and compiles at most once
 
 
 def _kernels() -> list:
@@ -61,30 +77,179 @@ def uncached_kernels() -> list[str]:
                   if not any(_is_cached(k) for k in ks) for k in ks)
 
 
-def announce_compile() -> None:
-    """Print one line on stderr, once per process, if kernels of the loaded modules have no cached code."""
-    global _announced
-    if _announced:
-        return
-    missing = uncached_kernels()
-    if missing:
-        _announced = True
-        wait = max(5, round(SECONDS_PER_KERNEL * len(missing) / 5) * 5)
-        print(f"torchevtrack: compiling {len(missing)} numba kernels on first use (about {wait} s on a free core, "
-              "once: cached afterwards; `torchevtrack warmup` does it ahead)", file=sys.stderr, flush=True)
+# -- the manifest: which kernels a tracking run calls from Python, with which argument types ------------------
+def encode_signature(sig) -> list:
+    """A numba argument-type tuple as JSON-ready values: ``["array", dtype, ndim, layout, readonly]`` for an array,
+    the type's name for a scalar or ``none``, ``["tuple", "module:Class", [fields...]]`` for a named tuple.
 
+    Raises:
+        ValueError: a type of another kind (the manifest's reader would not rebuild it).
 
-def warmup(progress: bool = True) -> int:
-    """Compile and cache the tracker's kernels by tracking a short built-in sequence (the box turning in front
-    of a 160x120 camera, events at its silhouette's changes, optional stages on); returns the number of kernels
-    compiled.
-
-    A tqdm bar counts the kernels as their cache files appear.
+    Example:
+        >>> from numba import types
+        >>> encode_signature((types.Array(types.float64, 2, "C", readonly=True), types.int64, types.none))
+        [['array', 'float64', 2, 'C', True], 'int64', 'none']
     """
-    global _announced
+    from numba.core import types
+
+    def one(t):
+        if isinstance(t, types.Array) and t.aligned:
+            return ["array", str(t.dtype), t.ndim, t.layout, not t.mutable]
+        if isinstance(t, types.BaseNamedTuple):
+            return ["tuple", f"{t.instance_class.__module__}:{t.instance_class.__qualname__}", [one(f) for f in t]]
+        if isinstance(t, (types.Number, types.Boolean, types.NoneType)):
+            return str(t)
+        raise ValueError(f"kernel manifest: cannot encode argument type {t!r}")
+
+    return [one(t) for t in sig]
+
+
+def decode_signature(values: list) -> tuple:
+    """The numba argument-type tuple of :func:`encode_signature`'s ``values`` (its inverse).
+
+    Example:
+        >>> sig = decode_signature([["array", "float32", 3, "C", False], "bool", "float64"])
+        >>> encode_signature(sig)
+        [['array', 'float32', 3, 'C', False], 'bool', 'float64']
+    """
+    from numba.core import types
+
+    def one(v):
+        if isinstance(v, str):
+            return types.boolean if v == "bool" else getattr(types, v)
+        if v[0] == "array":
+            return types.Array(one(v[1]), v[2], v[3], readonly=v[4])
+        module, cls = v[1].split(":")
+        return types.BaseTuple.from_types([one(f) for f in v[2]], getattr(import_module(module), cls))
+
+    return tuple(one(v) for v in values)
+
+
+def manifest() -> list[dict]:
+    """The shipped manifest: ``[{"name": "module.function", "signature": [...], "seconds": s}, ...]``, largest
+    compile time first (``seconds``: one core of the machine that wrote it, callees included); empty while
+    ``tools/kernel_manifest.py`` writes it (the kernels then compile on first call)."""
+    return json.loads(MANIFEST.read_text())["kernels"] if MANIFEST.exists() else []
+
+
+# -- compiling in worker processes --------------------------------------------------------------------------------
+def _compile_entry(entry: dict) -> None:
+    """Compile (or load from the cache) one manifest entry in this process."""
+    module, name = entry["name"].rsplit(".", 1)
+    getattr(import_module(module), name).compile(decode_signature(entry["signature"]))
+
+
+def _worker() -> None:
+    """A compile worker (``python -m torchevtrack.kernels``): reads manifest indices from stdin, one a line,
+    compiles each and answers ``compiled INDEX`` (or ``failed INDEX``) on stdout."""
+    entries = manifest()
+    for line in sys.stdin:
+        i = int(line)
+        try:
+            _compile_entry(entries[i])
+            print("compiled", i, flush=True)
+        except Exception:  # the tracking process compiles it on first call, and reports the error there
+            print("failed", i, flush=True)
+
+
+def _cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def _compile_in_workers(entries: list[int], jobs: int, on_done=None) -> int:
+    """Compile manifest ``entries`` (indices, largest first) in ``jobs`` worker processes, each taking the next
+    entry when it is free; calls ``on_done()`` after each. Returns how many compiled. Workers that cannot start
+    or fail leave their kernels to their first call; an interrupt stops them at once."""
+    pending = list(entries)
+    workers = []
+    done = 0
+    sel = selectors.DefaultSelector()
+    try:
+        for _ in range(min(jobs, len(pending))):
+            w = subprocess.Popen([sys.executable, "-m", "torchevtrack.kernels"], stdin=subprocess.PIPE,
+                                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, bufsize=1)
+            workers.append(w)
+            w.stdin.write(f"{pending.pop(0)}\n")
+            sel.register(w.stdout, selectors.EVENT_READ, w)
+        while sel.get_map():
+            for key, _ in sel.select():
+                w, line = key.data, key.fileobj.readline()
+                answer = line.split()[:1]
+                if not line:  # the worker ended: what it held is left to the first call
+                    sel.unregister(key.fileobj)
+                elif answer in (["compiled"], ["failed"]):  # (other output of the worker's imports: not an answer)
+                    done += answer == ["compiled"]
+                    if on_done is not None:
+                        on_done()
+                    if pending:
+                        w.stdin.write(f"{pending.pop(0)}\n")
+                    else:
+                        sel.unregister(key.fileobj)
+    except OSError:  # a worker could not start or its pipe broke: the rest compiles on first call
+        pass
+    except BaseException:
+        for w in workers:
+            w.kill()
+        raise
+    finally:
+        for w in workers:
+            with contextlib.suppress(OSError):
+                w.stdin.close()
+            w.wait()
+        sel.close()
+    return done
+
+
+def compile_cold(progress: bool = False, jobs: int | None = None) -> int:
+    """If the loaded modules have uncached kernels: say so on stderr in one line and compile the manifest's kernels
+    of those modules in ``jobs`` worker processes (default: one per available core, but no more than the total
+    compile time over the largest kernel's, which bounds the wall time; with one, nothing is compiled ahead and the
+    kernels compile on first call). Returns how many compiled. Acts once per process (later calls return 0; what
+    is still cold compiles on first call); thread-safe.
+
+    The tracker calls it when it is built, so a fresh install's first run waits about the manifest's compile time
+    divided by the cores, not the sum.
+    """
+    return _compile_cold(progress, jobs, announce=True)
+
+
+def _compile_cold(progress: bool, jobs: int | None, announce: bool) -> int:
+    global _tried
+    with _lock:
+        if _tried:
+            return 0
+        _tried = True
+        missing = set(uncached_kernels())
+        if not missing:
+            return 0
+        listed = manifest()
+        entries = [i for i, e in enumerate(listed) if e["name"] in missing]
+        seconds = [listed[i]["seconds"] for i in entries] or [SECONDS_PER_KERNEL * len(missing)]
+        if jobs is None:
+            jobs = min(_cores(), math.ceil(sum(seconds) / max(max(seconds), 1e-3)))
+        jobs = min(jobs, len(entries))
+        if announce:
+            wait = max(sum(seconds) / max(jobs, 1), max(seconds))
+            how = f"in {jobs} processes " if jobs > 1 else ""
+            print(f"torchevtrack: compiling {len(missing)} numba kernels on first use {how}(about "
+                  f"{max(5, round(wait / 5) * 5)} s, once: cached afterwards; `torchevtrack warmup` does it ahead)",
+                  file=sys.stderr, flush=True)
+        if jobs < 2:
+            return 0
+        from tqdm import tqdm
+
+        with tqdm(total=len(entries), unit="kernel", desc="compiling", disable=not progress or None) as bar:
+            return _compile_in_workers(entries, jobs, on_done=lambda: bar.update(1))
+
+
+def warmup(progress: bool = True, jobs: int | None = None) -> int:
+    """Compile and cache the tracker's kernels: the manifest's in ``jobs`` worker processes (:func:`compile_cold`;
+    default one per available core, a tqdm bar counting them), then by tracking a short built-in sequence (the box
+    turning in front of a 160x120 camera, events at its silhouette's changes, optional stages on), which loads them
+    and compiles whatever the manifest misses. Returns the number of kernels that were uncached.
+    """
     import numpy as np
     import torch
-    from tqdm import tqdm
 
     from torchevtrack.camera import Camera
     from torchevtrack.config import TrackerConfig
@@ -93,35 +258,17 @@ def warmup(progress: bool = True) -> int:
     from torchevtrack.raster import RasterRenderer
     from torchevtrack.tracker import EventPoseTracker
 
-    _announced = True  # this function reports its own progress
+    missing = set(uncached_kernels())
+    _compile_cold(progress, jobs, announce=False)  # its bar says it; the tracker's own call below finds it done
     camera = Camera(160, 120, 150.0, 150.0, 80.0, 60.0)
     mesh = load_mesh("box")
-    missing = set(uncached_kernels())
-    bar = tqdm(total=len(missing), unit="kernel", desc="compiling", disable=not progress or None)
-    done = threading.Event()
-
-    def follow():
-        while not done.wait(0.5):
-            bar.update(len(missing - set(uncached_kernels())) - bar.n)
-
-    watcher = threading.Thread(target=follow, daemon=True)
-    watcher.start()
-    try:
-        events, pose0 = _warmup_events(camera, mesh, RasterRenderer, EventStream, np, torch)
-        # the optional denoise stage on too: its module loads with the tracker, and a cold one would be announced
-        tracker = EventPoseTracker(camera, mesh, TrackerConfig().replace(denoise={"enabled": True}))
-        tracker.track(events, pose0, progress=False)
-        tracker.close()
-        _compile_relocaliser(np)
-        missing |= set(uncached_kernels())  # the modules the tracker loaded
-    finally:
-        done.set()
-        watcher.join()
-    compiled = len(missing - set(uncached_kernels()))
-    bar.total = len(missing)
-    bar.update(compiled - bar.n)
-    bar.close()
-    return compiled
+    events, pose0 = _warmup_events(camera, mesh, RasterRenderer, EventStream, np, torch)
+    # the optional denoise stage on too: its module loads with the tracker, and a cold one would be announced
+    tracker = EventPoseTracker(camera, mesh, TrackerConfig().replace(denoise={"enabled": True}))
+    tracker.track(events, pose0, progress=False)
+    tracker.close()
+    _compile_relocaliser(np)
+    return len(missing - set(uncached_kernels()))
 
 
 def _compile_relocaliser(np) -> None:
@@ -156,3 +303,7 @@ def _warmup_events(camera, mesh, renderer_cls, stream_cls, np, torch):
     events = stream_cls.from_arrays(np.concatenate(xs), np.concatenate(ys), np.concatenate(ts), np.concatenate(ps),
                                     width=camera.width, height=camera.height)
     return events, poses[0]
+
+
+if __name__ == "__main__":
+    _worker()

@@ -73,7 +73,7 @@ from torchevtrack.config import TrackerConfig
 from torchevtrack.events import EventStream, check_window, first_invalid, pack_streams
 from torchevtrack.geometry import check_pose, quat_rotate
 from torchevtrack.loss import LossDetector, LossUpdate, OnLost
-from torchevtrack.kernels import announce_compile
+from torchevtrack.kernels import compile_cold
 from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.recover import Recoverer
@@ -298,7 +298,7 @@ class EventPoseTracker(nn.Module):
         # render.ahead: where the next update renders (the last prediction moved on by its twist), when valid
         self.register_buffer("_render_next", torch.zeros(B, 7, dtype=f64))
         self.register_buffer("_render_next_ok", torch.zeros(B, dtype=torch.bool))
-        announce_compile()  # one line on stderr if the first update will compile the kernels
+        compile_cold(progress=True)  # a cold cache: one line on stderr, the kernels compiled in worker processes
 
     def _set_depth(self, depth: torch.Tensor) -> None:
         """Replace the depth buffer (the registered name, without nn.Module's checks: ``depth`` is a tensor)."""
