@@ -35,13 +35,44 @@ def test_a_cold_cache_is_announced_once_and_compiled_by_workers_before_first_use
     cold, compiled, after, hits_misses = r.stdout.splitlines()
     assert cold == ("14 ['torchevtrack.geometry.nb_normalise_quaternions', "
                     "'torchevtrack.stages.propagate._invalid_kernel', 'torchevtrack.stages.propagate.propagate_kernel']")
-    assert compiled == "3 0"  # the manifest's entry points of the cold modules, by two workers; once per process
+    # the manifest's entry points of the cold modules, by two workers (also the events module's, whose cache directory
+    # holds the lock that keeps processes starting cold at once from compiling twice); once per process
+    assert compiled == "4 0"
     assert after == "['torchevtrack.stages.canvas_taps']"  # the package's helper, called from modules not loaded
     assert hits_misses == "1 0"  # this process loaded the workers' code instead of compiling
     notice = r.stderr.strip().splitlines()
     assert len(notice) == 1, notice
-    assert notice[0].startswith("torchevtrack: compiling 14 numba kernels on first use in 2 processes")
+    assert notice[0].startswith("torchevtrack: compiling 16 numba kernels on first use in 2 processes")
     assert "torchevtrack warmup" in notice[0]
+
+
+def test_a_process_starting_cold_waits_for_the_one_compiling(tmp_path):
+    import fcntl
+    import time
+
+    script = (
+        "from torchevtrack.kernels import compile_cold\n"
+        "from torchevtrack.stages import propagate\n"
+        "print(compile_cold(jobs=2))\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_CACHE_DIR": str(tmp_path)}
+    probe = subprocess.run([sys.executable, "-c", "from torchevtrack.events import first_invalid; "
+                            "print(first_invalid.stats.cache_path)"], capture_output=True, text=True, env=env,
+                           check=True)
+    lock_dir = Path(probe.stdout.strip())
+    lock_dir.mkdir(parents=True, exist_ok=True)
+    with open(lock_dir / "torchevtrack-compile.lock", "a") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)  # another process compiling
+        child = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                 text=True, env=env)
+        first = child.stderr.readline()
+        time.sleep(1.0)
+        assert child.poll() is None  # still waiting
+        fcntl.flock(held, fcntl.LOCK_UN)
+    out, rest = child.communicate(timeout=600)
+    assert first.startswith("torchevtrack: another process is compiling the numba kernels; waiting")
+    assert rest.startswith("torchevtrack: compiling 16 numba kernels")  # the lock was free, the cache still cold
+    assert out.split() == ["4"]
 
 
 def test_a_worker_that_fails_an_entry_goes_on_with_the_next(tmp_path):

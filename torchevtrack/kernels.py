@@ -205,12 +205,40 @@ def compile_cold(progress: bool = False, jobs: int | None = None) -> int:
     of those modules in ``jobs`` worker processes (default: one per available core, but no more than the total
     compile time over the largest kernel's, which bounds the wall time; with one, nothing is compiled ahead and the
     kernels compile on first call). Returns how many compiled. Acts once per process (later calls return 0; what
-    is still cold compiles on first call); thread-safe.
+    is still cold compiles on first call); thread-safe; processes starting cold at once take turns on a lock file
+    in the cache directory, so the kernels compile once.
 
     The tracker calls it when it is built, so a fresh install's first run waits about the manifest's compile time
     divided by the cores, not the sum.
     """
     return _compile_cold(progress, jobs, announce=True)
+
+
+@contextlib.contextmanager
+def _cache_lock():
+    """Hold an exclusive lock on a file in the kernels' cache directory (POSIX ``flock``; elsewhere, or where the
+    file cannot be opened, no lock), so that processes starting cold at once (Ray workers) compile once: the first
+    compiles, the others wait, then find the cache warm. Says so on stderr when it has to wait."""
+    from torchevtrack.events import first_invalid
+
+    try:
+        import fcntl
+
+        f = open(Path(first_invalid.stats.cache_path) / "torchevtrack-compile.lock", "a")
+    except (ImportError, OSError):
+        yield
+        return
+    with f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            print("torchevtrack: another process is compiling the numba kernels; waiting for it", file=sys.stderr,
+                  flush=True)
+            fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 def _compile_cold(progress: bool, jobs: int | None, announce: bool) -> int:
@@ -219,27 +247,34 @@ def _compile_cold(progress: bool, jobs: int | None, announce: bool) -> int:
         if _tried:
             return 0
         _tried = True
-        missing = set(uncached_kernels())
-        if not missing:
+        if not uncached_kernels():
             return 0
-        listed = manifest()
-        entries = [i for i, e in enumerate(listed) if e["name"] in missing]
-        seconds = [listed[i]["seconds"] for i in entries] or [SECONDS_PER_KERNEL * len(missing)]
-        if jobs is None:
-            jobs = min(_cores(), math.ceil(sum(seconds) / max(max(seconds), 1e-3)))
-        jobs = min(jobs, len(entries))
-        if announce:
-            wait = max(sum(seconds) / max(jobs, 1), max(seconds))
-            how = f"in {jobs} processes " if jobs > 1 else ""
-            print(f"torchevtrack: compiling {len(missing)} numba kernels on first use {how}(about "
-                  f"{max(5, round(wait / 5) * 5)} s, once: cached afterwards; `torchevtrack warmup` does it ahead)",
-                  file=sys.stderr, flush=True)
-        if jobs < 2:
-            return 0
-        from tqdm import tqdm
+        with _cache_lock():
+            return _compile_missing(progress, jobs, announce)
 
-        with tqdm(total=len(entries), unit="kernel", desc="compiling", disable=not progress or None) as bar:
-            return _compile_in_workers(entries, jobs, on_done=lambda: bar.update(1))
+
+def _compile_missing(progress: bool, jobs: int | None, announce: bool) -> int:
+    missing = set(uncached_kernels())  # again: a process that held the lock may have compiled them
+    if not missing:
+        return 0
+    listed = manifest()
+    entries = [i for i, e in enumerate(listed) if e["name"] in missing]
+    seconds = [listed[i]["seconds"] for i in entries] or [SECONDS_PER_KERNEL * len(missing)]
+    if jobs is None:
+        jobs = min(_cores(), math.ceil(sum(seconds) / max(max(seconds), 1e-3)))
+    jobs = min(jobs, len(entries))
+    if announce:
+        wait = max(sum(seconds) / max(jobs, 1), max(seconds))
+        how = f"in {jobs} processes " if jobs > 1 else ""
+        print(f"torchevtrack: compiling {len(missing)} numba kernels on first use {how}(about "
+              f"{max(5, round(wait / 5) * 5)} s, once: cached afterwards; `torchevtrack warmup` does it ahead)",
+              file=sys.stderr, flush=True)
+    if jobs < 2:
+        return 0
+    from tqdm import tqdm
+
+    with tqdm(total=len(entries), unit="kernel", desc="compiling", disable=not progress or None) as bar:
+        return _compile_in_workers(entries, jobs, on_done=lambda: bar.update(1))
 
 
 def warmup(progress: bool = True, jobs: int | None = None) -> int:
