@@ -53,13 +53,11 @@ def compile_times() -> dict:
 
 
 def called_from_python() -> list:
-    """In this process (whose cache is warm): warm up and list each kernel's signatures. Code loaded from the cache
-    types no callee, so these are the signatures called from Python: ``[(name, signature), ...]``."""
-    from torchevtrack.kernels import _kernels, encode_signature, warmup
+    """In this process (whose cache is warm): warm up and list the signatures called from Python."""
+    from torchevtrack.kernels import loaded_signatures, warmup
 
     warmup(progress=False, jobs=1)
-    return [(f"{k.py_func.__module__}.{k.py_func.__qualname__}", encode_signature(s))
-            for k in _kernels() for s in k.signatures]
+    return loaded_signatures()
 
 
 def main() -> int:

@@ -34,7 +34,8 @@ import threading
 from importlib import import_module
 from pathlib import Path
 
-__all__ = ["compile_cold", "decode_signature", "encode_signature", "manifest", "uncached_kernels", "warmup"]
+__all__ = ["compile_cold", "decode_signature", "encode_signature", "loaded_signatures", "manifest", "uncached_kernels",
+           "warmup"]
 
 MANIFEST = Path(__file__).with_name("kernels.json")
 SECONDS_PER_KERNEL = 1.6  # a kernel's compile time on average (150 s for the ~90 of a tracking run, idle 2-core VM)
@@ -123,6 +124,14 @@ def decode_signature(values: list) -> tuple:
         return types.BaseTuple.from_types([one(f) for f in v[2]], getattr(import_module(module), cls))
 
     return tuple(one(v) for v in values)
+
+
+def loaded_signatures() -> list[tuple[str, list]]:
+    """``(module.function, encoded signature)`` of every signature this process compiled or loaded from the cache,
+    for the kernels of the loaded modules. After a run from a warm cache these are the calls from Python (code
+    loaded from the cache types no callee): what the manifest lists."""
+    return sorted(((f"{k.py_func.__module__}.{k.py_func.__qualname__}", encode_signature(s))
+                   for k in _kernels() for s in k.signatures), key=json.dumps)
 
 
 def manifest() -> list[dict]:
