@@ -162,6 +162,10 @@ def _worker() -> None:
 
 
 def _cores() -> int:
+    """The cores worker processes may use: those available to this process, or none where ``sys.executable`` is no
+    Python interpreter (a frozen application, or one that embeds Python) to start them with."""
+    if getattr(sys, "frozen", False) or not Path(sys.executable or "").name.lower().startswith("python"):
+        return 1
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
