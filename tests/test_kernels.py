@@ -60,7 +60,6 @@ def test_a_process_starting_cold_waits_for_the_one_compiling(tmp_path):
                             "print(first_invalid.stats.cache_path)"], capture_output=True, text=True, env=env,
                            check=True)
     lock_dir = Path(probe.stdout.strip())
-    lock_dir.mkdir(parents=True, exist_ok=True)
     with open(lock_dir / "torchevtrack-compile.lock", "a") as held:
         fcntl.flock(held, fcntl.LOCK_EX)  # another process compiling
         child = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
