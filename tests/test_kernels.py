@@ -34,7 +34,8 @@ def test_a_cold_cache_is_announced_once_and_compiled_by_workers_before_first_use
     r = _run_cold(script, tmp_path)
     cold, compiled, after, hits_misses = r.stdout.splitlines()
     assert cold == ("14 ['torchevtrack.geometry.nb_normalise_quaternions', "
-                    "'torchevtrack.stages.propagate._invalid_kernel', 'torchevtrack.stages.propagate.propagate_kernel']")
+                    "'torchevtrack.stages.propagate._invalid_kernel', "
+                    "'torchevtrack.stages.propagate.propagate_kernel']")
     # the manifest's entry points of the cold modules, by two workers (also the events module's, whose cache directory
     # holds the lock that keeps processes starting cold at once from compiling twice); once per process
     assert compiled == "4 0"
@@ -56,9 +57,7 @@ def test_a_process_starting_cold_waits_for_the_one_compiling(tmp_path):
         "print(compile_cold(jobs=2))\n"
     )
     env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_CACHE_DIR": str(tmp_path)}
-    probe = subprocess.run([sys.executable, "-c", "from torchevtrack.events import first_invalid; "
-                            "print(first_invalid.stats.cache_path)"], capture_output=True, text=True, env=env,
-                           check=True)
+    probe = _run_cold("from torchevtrack.events import first_invalid; print(first_invalid.stats.cache_path)", tmp_path)
     lock_dir = Path(probe.stdout.strip())
     with open(lock_dir / "torchevtrack-compile.lock", "a") as held:
         fcntl.flock(held, fcntl.LOCK_EX)  # another process compiling

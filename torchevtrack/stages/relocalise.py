@@ -326,7 +326,7 @@ class Relocaliser(nn.Module):
                 if c < cost:
                     cost, best = c, p
         others = [c for c, p in finals[1:] if bool(self._distinct(best, p)[0])]
-        return best[0], cost, min(others, default=math.inf), self._cost_full(own.double(), obs)
+        return best[0], cost, min(others, default=math.inf), self._cost_of(self._edges_full(own.double()), obs)
 
     # -- full resolution: cost and Gauss-Newton polish -------------------------------------------------------------
     def _edges_full(self, pose: torch.Tensor):
@@ -341,12 +341,9 @@ class Relocaliser(nn.Module):
             return None
         return np.stack((u + u0, v + v0), 1), depth[0][v, u].astype(np.float64), (u0, v0, w, h)
 
-    def _cost_full(self, pose: torch.Tensor, obs: "_FullRes") -> float:
-        """Two-sided chamfer cost at full resolution; the events: those of the first level's region."""
-        return self._cost_of(self._edges_full(pose), obs)
-
     def _cost_of(self, got, obs: "_FullRes") -> float:
-        """:meth:`_cost_full` of a pose whose :meth:`_edges_full` are ``got``."""
+        """Two-sided chamfer cost at full resolution of a pose whose :meth:`_edges_full` are ``got``; the events:
+        those of the first level's region."""
         if got is None or len(obs.events) == 0:
             return self.cap_px
         uv, _, (u0, v0, w, h) = got
