@@ -537,10 +537,10 @@ def test_the_tracker_renders_what_the_renderer_renders(seq):
 
 
 # -- a fast turn with sensor noise: what the defaults hold that the earlier ones lost -------------------------
-# The defaults before the interior template, the image-speed recency window, the slower velocity decay and the 1 deg
+# The defaults before the interior template, the image-speed recency window, the slower velocity decays and the 1 deg
 # rotation step (TrackerConfig as it was when the wide suite showed every turn lost).
 EARLIER = TrackerConfig().replace(template={"interior": 0.0, "dtheta_deg": 0.5},
-                                  velocity={"rho": 0.5, "r_px": 1.0, "r_rel": 0.0},
+                                  velocity={"rho": 0.5, "rho_turn": 0.5, "r_px": 1.0, "r_rel": 0.0},
                                   eros={"recency_px": 0.0, "recency_max_us": 10000.0})
 
 

@@ -9,7 +9,8 @@ from filterpy.kalman import KalmanFilter
 from torchevtrack import geometry as g
 from torchevtrack.camera import Camera
 from torchevtrack.stages import velocity as vel_mod
-from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, kf_predict, kf_update
+from torchevtrack.stages.velocity import (CorrectionFeedback, VelocityKF, kf_predict, kf_update, turn_decay,
+                                         turn_persistence, turn_update)
 
 CAM = Camera.default()
 F64 = torch.float64
@@ -190,6 +191,90 @@ def test_speed_proportional_noise_matches_filterpy():
     assert float(torch.linalg.det(flat.P[0])) < float(torch.linalg.det(out.P[0]))
     with pytest.raises(ValueError, match="r_rel"):
         kf_update(x, P, *args, r_px=r_px, r_rel=-0.1)
+
+
+def _turn_twists(steps: int, gen: torch.Generator) -> torch.Tensor:
+    """Flow twists of a steady turn (element 0: 4 rad/s about a fixed tilted axis) and of a rotation that reverses
+    every update (element 1), both with a drifting translation."""
+    axis = torch.tensor([0.6, -0.7, 0.4], dtype=F64)
+    axis /= axis.norm()
+    tw = torch.zeros(steps, 2, 6, dtype=F64)
+    tw[:, :, :3] = 0.05 * torch.randn(steps, 2, 3, dtype=F64, generator=gen)
+    tw[:, 0, 3:] = 4.0 * axis
+    tw[:, 1, 3:] = 4.0 * axis * torch.tensor([(-1.0) ** k for k in range(steps)], dtype=F64)[:, None]
+    return tw
+
+
+def test_turn_decay_matches_filterpy_with_its_own_running_means():
+    """Oracle: filterpy's KF per element, its transition ``F = diag(d)`` rebuilt every step from running means of
+    its own posterior rotation rate (numpy, the definition of turn_update / turn_persistence / turn_decay)."""
+    gen = torch.Generator().manual_seed(11)
+    G, dt, steps, rho, rho_turn, ema = 30, 0.002, 12, 0.75, 0.9, 0.2
+    kf = VelocityKF(CAM, rho=rho, rho_turn=rho_turn, turn_ema=ema, r_px=0.3, r_rel=0.0, iters=0, batch_size=2)
+    twists = _turn_twists(steps, gen)
+    refs, means = [], np.zeros((2, 4))
+    for b in range(2):
+        ref = KalmanFilter(dim_x=6, dim_z=2 * G)
+        ref.x, ref.P, ref.Q = np.zeros(6), kf.P0.numpy().copy(), kf.Q.numpy().copy()
+        ref.R = np.eye(2 * G) * 0.3**2
+        refs.append(ref)
+    for k in range(steps):
+        uv, depth = _scene(gen, G, B=2)
+        flow = _flow(uv, depth, twists[k]) + 20.0 * torch.randn(2, G, 2, dtype=F64, generator=gen)
+        kf.predict()
+        kf.update(uv, flow, depth, torch.ones(2, G, dtype=torch.bool), dt)
+        for b, ref in enumerate(refs):
+            m, s = means[b, :3], means[b, 3]
+            p = min(np.linalg.norm(m) / s, 1.0) if s > 0 else 0.0
+            d = np.full(6, rho)
+            d[3:5] = rho + (rho_turn - rho) * p * p
+            ref.F = np.diag(d)
+            ref.H = (CAM.interaction_matrix(uv[b], depth[b]) * dt).reshape(-1, 6).numpy()
+            ref.predict()
+            ref.update((flow[b] * dt).reshape(-1).numpy())
+            w = ref.x[3:]
+            means[b, :3] += ema * (w - means[b, :3])
+            means[b, 3] += ema * (np.linalg.norm(w) - means[b, 3])
+    for b, ref in enumerate(refs):
+        np.testing.assert_allclose(kf.x[b].numpy(), ref.x, rtol=1e-8, atol=1e-9)
+        np.testing.assert_allclose(kf.P[b].numpy(), ref.P, rtol=1e-7, atol=1e-12)
+    np.testing.assert_allclose(kf.turn.numpy(), means, rtol=1e-9, atol=1e-12)
+    p = turn_persistence(kf.turn)
+    assert p[0] > 0.9 and p[1] < 0.5  # the steady turn, the reversing rotation
+    d = turn_decay(kf.turn, rho, rho_turn)
+    assert d[0, 3] > 0.87 and d[1, 3] < 0.8
+    assert torch.all(d[:, [0, 1, 2, 5]] == rho) and torch.all(d[:, 3] == d[:, 4])
+
+
+def test_turn_running_means_and_reset():
+    """A rate about a fixed axis gives persistence 1 and the pitch and yaw decay rho_turn; a rate that flips
+    every update gives nearly 0; no rotation at all gives 0; reset clears the selected elements only."""
+    turn = torch.zeros(3, 4, dtype=F64)
+    x = torch.zeros(3, 6, dtype=F64)
+    for k in range(200):
+        x[0, 3:] = torch.tensor([1.0, 2.0, -0.5], dtype=F64) * (1 + 0.2 * math.sin(k))  # steady axis, varying rate
+        x[1, 3:] = torch.tensor([0.0, 3.0, 0.0], dtype=F64) * (-1) ** k
+        x[2, :3] = 0.3  # translation only
+        turn = turn_update(turn, x, 0.05)
+    p = turn_persistence(turn)
+    assert abs(float(p[0]) - 1.0) < 1e-9 and float(p[1]) < 0.06 and float(p[2]) == 0.0
+    d = turn_decay(turn, 0.75, 0.9)
+    torch.testing.assert_close(d[0], torch.tensor([0.75, 0.75, 0.75, 0.9, 0.9, 0.75], dtype=F64))
+    torch.testing.assert_close(d[2], torch.full((6,), 0.75, dtype=F64))
+    one = turn_decay(turn, 0.75, 0.75)  # rho_turn = rho: the single decay of the paper's model
+    assert torch.all(one == 0.75)
+
+    kf = VelocityKF(CAM, batch_size=3)
+    kf.turn.copy_(turn)
+    kf.reset(mask=torch.tensor([True, False, False]))
+    assert torch.all(kf.turn[0] == 0) and torch.equal(kf.turn[1:], turn[1:])
+    assert "turn" in kf.state_dict()
+    with pytest.raises(ValueError, match="rho_turn"):
+        VelocityKF(CAM, rho_turn=1.5)
+    with pytest.raises(ValueError, match="turn_ema"):
+        VelocityKF(CAM, turn_ema=0.0)
+    with pytest.raises(ValueError, match="decay"):
+        kf_predict(torch.zeros(2, 6, dtype=F64), torch.eye(6, dtype=F64).expand(2, 6, 6), torch.ones(3, 6), kf.Q)
 
 
 def test_bad_inputs():

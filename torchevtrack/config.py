@@ -103,6 +103,10 @@ class FlowConfig:
 class VelocityConfig:
     source: str = "flow"  # "flow" (the paper), "poses" (EDOPT_Vel: from consecutive poses) or "none"
     rho: float = 0.75  # velocity decay per update (paper: 0.5; 0.75 holds more dev runs: docs/notebook.md, 2026-11-28)
+    # pitch and yaw rates' decay in a steady turn, reached as the rotation keeps its direction over the running means
+    # of the rate (turn_ema per update); rho_turn = rho: one decay (stages.velocity.turn_decay; notebook 2026-12-02)
+    rho_turn: float = 0.9
+    turn_ema: float = 0.04
     q_v: float = 0.5  # process noise std of the centre velocity per update, m/s
     q_w: float = 3.0  # process noise std of w per update, rad/s
     r_px: float = 0.2  # measurement noise floor per flow vector, pixels of displacement per update

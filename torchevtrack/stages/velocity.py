@@ -4,8 +4,11 @@ State ``x = [v, w]`` (m/s, rad/s): the object twist in the camera frame, every o
 ``dP/dt = v + w x P`` (the model of :func:`torchevtrack.camera.interaction_matrix`). ``B`` independent
 filters run side by side; the state is float64.
 
-* Motion model: ``x+ = rho x + n``, ``n ~ N(0, Q)``, ``Q = diag(q_v^2 I3, q_w^2 I3)`` (``q_v`` m/s and
-  ``q_w`` rad/s standard deviations per update).
+* Motion model: ``x+ = D x + n``, ``n ~ N(0, Q)``, ``Q = diag(q_v^2 I3, q_w^2 I3)`` (``q_v`` m/s and
+  ``q_w`` rad/s standard deviations per update), ``D = diag(rho)`` but for the pitch and yaw rates, whose decay
+  rises toward ``rho_turn`` as the rotation rate keeps its direction (:func:`turn_decay`): a hand-held turn is
+  sustained, and the flow of a small object reads its pitch and yaw at a fraction of the rate, so a prior that
+  loses a quarter per update never reaches it; a motion that keeps reversing decays at ``rho``.
 * Measurement: flow vector ``F`` (px/s) at pixel ``uv`` with depth ``Z`` (m, rendered at the current pose).
   As in the paper (Eq. 5) it is expressed as a displacement over the update interval ``dT``:
   ``z = F dT = H x + e`` with ``H = L(uv, Z) dT`` (px per update) and ``e ~ N(0, s_i^2 I2)``,
@@ -99,15 +102,59 @@ class VelocityUpdate(NamedTuple):
 
 
 def kf_predict(
-    x: torch.Tensor, P: torch.Tensor, rho: float, Q: torch.Tensor
+    x: torch.Tensor, P: torch.Tensor, rho: float | torch.Tensor, Q: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Prediction ``x+ = rho x``, ``P+ = rho^2 P + Q``.
+    """Prediction ``x+ = D x``, ``P+ = D P D + Q`` with ``D = diag(rho)``: one decay for every axis (a float) or
+    one per element and axis (``(B, 6)``, :func:`turn_decay`).
 
-    Shape: ``(B, 6), (B, 6, 6), float, (6, 6) or (B, 6, 6) -> (B, 6), (B, 6, 6)``.
+    Shape: ``(B, 6), (B, 6, 6), float or (B, 6), (6, 6) or (B, 6, 6) -> (B, 6), (B, 6, 6)``.
     """
     if x.shape[-1:] != (6,) or P.shape != x.shape + (6,):
         raise ValueError(f"expected x (B, 6) and P (B, 6, 6), got {tuple(x.shape)} and {tuple(P.shape)}")
+    if isinstance(rho, torch.Tensor):
+        if rho.shape != x.shape:
+            raise ValueError(f"expected a decay rho of shape {tuple(x.shape)}, got {tuple(rho.shape)}")
+        d = rho.to(x)
+        return d * x, d[:, :, None] * P * d[:, None, :] + Q.to(P)
     return rho * x, rho * rho * P + Q.to(P)
+
+
+def turn_persistence(turn: torch.Tensor) -> torch.Tensor:
+    """How steadily each filter's rotation rate keeps its direction: ``|m| / s`` in ``[0, 1]`` from the running
+    means ``turn = [m, s]`` of :func:`turn_update` (``m`` the mean rate vector, ``s`` the mean of its norm; 0 before
+    any rotation). 1 for a turn about a fixed axis, near 0 for a rate that keeps reversing.
+
+    Shape: ``(B, 4) -> (B,)`` float64.
+    """
+    out = np.empty(turn.shape[0])
+    for b in range(turn.shape[0]):
+        out[b] = _persistence(_f64(turn), b)
+    return torch.from_numpy(out)
+
+
+def turn_update(turn: torch.Tensor, x: torch.Tensor, ema: float) -> torch.Tensor:
+    """The running means of :func:`turn_persistence` after a posterior twist ``x`` ``[v, w]``: ``m <- (1 - ema) m
+    + ema w``, ``s <- (1 - ema) s + ema |w|`` (``ema`` per update; 0.04 at 500 Hz averages over ~50 ms).
+
+    Shape: ``(B, 4), (B, 6), float -> (B, 4)`` float64 (rad/s).
+    """
+    out = _f64(turn).copy()
+    _turn_kernel(out, _f64(x), float(ema))
+    return torch.from_numpy(out)
+
+
+def turn_decay(turn: torch.Tensor, rho: float, rho_turn: float) -> torch.Tensor:
+    """The motion model's decay per axis: ``rho`` on ``v`` and the roll rate ``wz``; on the pitch and yaw rates
+    (``wx, wy``, which the flow of a small object reads at a fraction of a turn) ``rho + (rho_turn - rho) p^2``
+    with ``p`` the :func:`turn_persistence` of ``turn``: a steady turn keeps its rate from update to update, a
+    motion that keeps reversing decays as before.
+
+    Shape: ``(B, 4), float, float -> (B, 6)`` float64.
+    """
+    p = turn_persistence(turn)
+    d = torch.full((turn.shape[0], 6), float(rho), dtype=torch.float64)
+    d[:, 3:5] = (rho + (rho_turn - rho) * p * p)[:, None]
+    return d
 
 
 def shift_twist(twist: torch.Tensor, point: torch.Tensor) -> torch.Tensor:
@@ -439,25 +486,54 @@ def _sample_depth_kernel(depth, origin, uv, valid, r, out):
                 out[b, g] = s / n
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _persistence(turn, b):
+    """:func:`turn_persistence` of element ``b``."""
+    s = turn[b, 3]
+    if not s > 0.0:
+        return 0.0
+    m = np.sqrt(turn[b, 0] ** 2 + turn[b, 1] ** 2 + turn[b, 2] ** 2)
+    return min(m / s, 1.0)
+
+
 @numba.njit(cache=True, nogil=True)
-def _kf_predict_kernel(x, P, rho, Q):
-    """:func:`kf_predict` in place: ``x = rho x``, ``P = rho^2 P + Q`` (``Q`` ``(6, 6)``)."""
-    r2 = rho * rho
+def _kf_predict_kernel(x, P, rho, rho_turn, turn, Q):
+    """:func:`kf_predict` with :func:`turn_decay`'s decays, in place (``Q`` ``(6, 6)``)."""
+    d = np.empty(6)
     for b in range(x.shape[0]):
+        p = _persistence(turn, b)
         for i in range(6):
-            x[b, i] = rho * x[b, i]
+            d[i] = rho
+        d[3] = d[4] = rho + (rho_turn - rho) * p * p
+        for i in range(6):
+            x[b, i] = d[i] * x[b, i]
             for j in range(6):
-                P[b, i, j] = r2 * P[b, i, j] + Q[i, j]
+                P[b, i, j] = d[i] * P[b, i, j] * d[j] + Q[i, j]
+
+
+@numba.njit(cache=True, nogil=True)
+def _turn_kernel(turn, x, ema):
+    """:func:`turn_update` in place on ``turn``."""
+    for b in range(x.shape[0]):
+        w0, w1, w2 = x[b, 3], x[b, 4], x[b, 5]
+        turn[b, 0] += ema * (w0 - turn[b, 0])
+        turn[b, 1] += ema * (w1 - turn[b, 1])
+        turn[b, 2] += ema * (w2 - turn[b, 2])
+        turn[b, 3] += ema * (np.sqrt(w0 * w0 + w1 * w1 + w2 * w2) - turn[b, 3])
 
 
 class KFArrays(NamedTuple):
     """A :class:`VelocityKF` as compiled kernels take it (:meth:`VelocityKF.arrays`): its state ``x`` ``(B, 6)`` and
-    ``P`` ``(B, 6, 6)`` (views of its buffers, written in place), motion model ``rho`` and ``Q`` ``(6, 6)``, the camera
-    ``fx, fy, cx, cy`` (px) and the update's options (:func:`kf_update`)."""
+    ``P`` ``(B, 6, 6)`` (views of its buffers, written in place), motion model ``rho``, ``rho_turn``, the running
+    means ``turn`` ``(B, 4)`` (:func:`turn_decay`; a view, written in place), ``turn_ema`` and ``Q`` ``(6, 6)``, the
+    camera ``fx, fy, cx, cy`` (px) and the update's options (:func:`kf_update`)."""
 
     x: np.ndarray
     P: np.ndarray
     rho: float
+    rho_turn: float
+    turn: np.ndarray
+    turn_ema: float
     Q: np.ndarray
     fx: float
     fy: float
@@ -482,7 +558,7 @@ def velocity_step(f, field, depth, origin, max_speed, radius, dt, centre, feedba
     ``(B,)``. Returns -1, or the index of a filter whose covariance is not positive definite."""
     valid, flow = field.valid, field.flow
     B, G = valid.shape
-    _kf_predict_kernel(f.x, f.P, f.rho, f.Q)
+    _kf_predict_kernel(f.x, f.P, f.rho, f.rho_turn, f.turn, f.Q)
     limit = np.float32(max_speed)
     slow = np.empty((B, G), dtype=np.bool_)
     for b in range(B):
@@ -497,6 +573,7 @@ def velocity_step(f, field, depth, origin, max_speed, radius, dt, centre, feedba
                             used)  # in place: each read first
     if bad >= 0:
         return bad
+    _turn_kernel(f.turn, f.x, f.turn_ema)
     twist_c = f.x.copy()
     if feedback is not None:
         twist_c += feedback
@@ -512,6 +589,9 @@ class VelocityKF(nn.Module):
     Args:
         camera: intrinsics of the flow pixel coordinates.
         rho: velocity decay of the motion model per update (paper: 0.5; default 0.75).
+        rho_turn: the pitch and yaw rates' decay in a steady turn (:func:`turn_decay`; ``rho_turn = rho``: one
+            decay for all axes, the paper's model).
+        turn_ema: weight of each update in the running means of the rotation rate (:func:`turn_update`).
         q_v, q_w: process noise standard deviations per update (m/s, rad/s). With ``rho = 0.5`` the
             prior mean halves at every step (``rho = 0.75``: a quarter is lost), so these must be of the order
             of the velocities themselves for the filter to follow the flow rather than decay to zero.
@@ -528,6 +608,8 @@ class VelocityKF(nn.Module):
         self,
         camera: Camera,
         rho: float = VelocityConfig.rho,
+        rho_turn: float = VelocityConfig.rho_turn,
+        turn_ema: float = VelocityConfig.turn_ema,
         q_v: float = VelocityConfig.q_v,
         q_w: float = VelocityConfig.q_w,
         r_px: float = VelocityConfig.r_px,
@@ -545,6 +627,10 @@ class VelocityKF(nn.Module):
             raise TypeError(f"camera must be a Camera, got {type(camera).__name__}")
         if not 0.0 <= rho <= 1.0:
             raise ValueError(f"rho must be in [0, 1], got {rho}")
+        if not 0.0 <= rho_turn <= 1.0:
+            raise ValueError(f"rho_turn must be in [0, 1], got {rho_turn}")
+        if not 0.0 < turn_ema <= 1.0:
+            raise ValueError(f"turn_ema must be in (0, 1], got {turn_ema}")
         if min(q_v, q_w, r_px, p0_v, p0_w) <= 0:
             raise ValueError("q_v, q_w, r_px, p0_v and p0_w must be positive standard deviations")
         if not r_rel >= 0:
@@ -553,19 +639,21 @@ class VelocityKF(nn.Module):
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.camera = camera
         self.rho, self.r_px, self.r_rel, self.k = float(rho), float(r_px), float(r_rel), float(k)
+        self.rho_turn, self.turn_ema = float(rho_turn), float(turn_ema)
         self.min_vectors, self.iters, self.normal = int(min_vectors), int(iters), bool(normal)
         f64 = torch.float64
         self.register_buffer("Q", torch.diag(torch.tensor([q_v**2] * 3 + [q_w**2] * 3, dtype=f64)))
         self.register_buffer("P0", torch.diag(torch.tensor([p0_v**2] * 3 + [p0_w**2] * 3, dtype=f64)))
         self.register_buffer("x", torch.zeros(batch_size, 6, dtype=f64))
         self.register_buffer("P", self.P0.expand(batch_size, 6, 6).clone())
+        self.register_buffer("turn", torch.zeros(batch_size, 4, dtype=f64))  # turn_update's running means
 
     @classmethod
     def from_config(cls, camera: Camera, cfg: VelocityConfig, normal: bool = True,
                     batch_size: int = 1) -> "VelocityKF":
         """The filter of the config section ``velocity`` for ``B`` streams; ``normal``: the flow gives normal flow
         (``flow.estimate == "normal"``)."""
-        return cls(camera, rho=cfg.rho, q_v=cfg.q_v, q_w=cfg.q_w, r_px=cfg.r_px, r_rel=cfg.r_rel,
+        return cls(camera, rho=cfg.rho, rho_turn=cfg.rho_turn, turn_ema=cfg.turn_ema, q_v=cfg.q_v, q_w=cfg.q_w, r_px=cfg.r_px, r_rel=cfg.r_rel,
                    min_vectors=cfg.min_vectors, normal=normal, batch_size=batch_size)
 
     @property
@@ -580,21 +668,25 @@ class VelocityKF(nn.Module):
         m = batch_mask(mask, self.batch_size)
         self.x.copy_(torch.where(m[:, None], 0.0 if twist is None else twist.to(self.x), self.x))
         self.P.copy_(torch.where(m[:, None, None], self.P0, self.P))
+        self.turn.masked_fill_(m[:, None], 0.0)
 
     def arrays(self) -> KFArrays:
         """The filters for compiled kernels (:func:`velocity_step`): numpy views of the buffers."""
         c = self.camera
-        return KFArrays(self.x.numpy(), self.P.numpy(), self.rho, self.Q.numpy(), c.fx, c.fy, c.cx, c.cy, self.r_px,
+        return KFArrays(self.x.numpy(), self.P.numpy(), self.rho, self.rho_turn, self.turn.numpy(), self.turn_ema,
+                        self.Q.numpy(), c.fx, c.fy, c.cx, c.cy, self.r_px,
                         self.r_rel, self.iters, self.k, self.min_vectors, self.normal)
 
     def predict(self) -> torch.Tensor:
-        """Apply the motion model in place; returns the predicted twist ``(B, 6)``."""
-        x, P, Q = self.x, self.P, self.Q
-        if Q.shape == (6, 6) and x.dtype == P.dtype == Q.dtype == torch.float64:  # kf_predict, in place
-            _kf_predict_kernel(x.numpy(), P.numpy(), self.rho, Q.numpy())
+        """Apply the motion model (:func:`kf_predict` with :func:`turn_decay`'s decays) in place; returns the
+        predicted twist ``(B, 6)``."""
+        x, P, Q, turn = self.x, self.P, self.Q, self.turn
+        if Q.shape == (6, 6) and x.dtype == P.dtype == Q.dtype == turn.dtype == torch.float64:
+            _kf_predict_kernel(x.numpy(), P.numpy(), self.rho, self.rho_turn, turn.numpy(), Q.numpy())
         else:
-            x.mul_(self.rho)
-            P.mul_(self.rho * self.rho).add_(Q)
+            x_new, P_new = kf_predict(x, P, turn_decay(turn, self.rho, self.rho_turn), Q)
+            x.copy_(x_new)
+            P.copy_(P_new)
         return x
 
     def update(
@@ -614,6 +706,7 @@ class VelocityKF(nn.Module):
         )
         self.x.copy_(out.x)
         self.P.copy_(out.P)
+        self.turn.copy_(turn_update(self.turn, self.x, self.turn_ema))
         return out
 
 
