@@ -227,7 +227,7 @@ def test_turn_decay_matches_filterpy_with_its_own_running_means():
             m, s = means[b, :3], means[b, 3]
             p = min(np.linalg.norm(m) / s, 1.0) if s > 0 else 0.0
             d = np.full(6, rho)
-            d[3:5] = rho + (rho_turn - rho) * p * p
+            d[3:5] = rho + (rho_turn - rho) * p
             ref.F = np.diag(d)
             ref.H = (CAM.interaction_matrix(uv[b], depth[b]) * dt).reshape(-1, 6).numpy()
             ref.predict()

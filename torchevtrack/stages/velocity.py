@@ -126,10 +126,9 @@ def turn_persistence(turn: torch.Tensor) -> torch.Tensor:
 
     Shape: ``(B, 4) -> (B,)`` float64.
     """
-    out = np.empty(turn.shape[0])
-    for b in range(turn.shape[0]):
-        out[b] = _persistence(_f64(turn), b)
-    return torch.from_numpy(out)
+    turn = turn.to(torch.float64)
+    m, s = turn[:, :3].norm(dim=1), turn[:, 3]
+    return torch.where(s > 0, (m / s.clamp(min=1e-300)).clamp(max=1.0), 0.0)
 
 
 def turn_update(turn: torch.Tensor, x: torch.Tensor, ema: float) -> torch.Tensor:
@@ -145,7 +144,7 @@ def turn_update(turn: torch.Tensor, x: torch.Tensor, ema: float) -> torch.Tensor
 
 def turn_decay(turn: torch.Tensor, rho: float, rho_turn: float) -> torch.Tensor:
     """The motion model's decay per axis: ``rho`` on ``v`` and the roll rate ``wz``; on the pitch and yaw rates
-    (``wx, wy``, which the flow of a small object reads at a fraction of a turn) ``rho + (rho_turn - rho) p^2``
+    (``wx, wy``, which the flow of a small object reads at a fraction of a turn) ``rho + (rho_turn - rho) p``
     with ``p`` the :func:`turn_persistence` of ``turn``: a steady turn keeps its rate from update to update, a
     motion that keeps reversing decays as before.
 
@@ -153,7 +152,7 @@ def turn_decay(turn: torch.Tensor, rho: float, rho_turn: float) -> torch.Tensor:
     """
     p = turn_persistence(turn)
     d = torch.full((turn.shape[0], 6), float(rho), dtype=torch.float64)
-    d[:, 3:5] = (rho + (rho_turn - rho) * p * p)[:, None]
+    d[:, 3:5] = (rho + (rho_turn - rho) * p)[:, None]
     return d
 
 
@@ -488,7 +487,7 @@ def _sample_depth_kernel(depth, origin, uv, valid, r, out):
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _persistence(turn, b):
-    """:func:`turn_persistence` of element ``b``."""
+    """:func:`turn_persistence` of element ``b`` (the compiled kernels' copy)."""
     s = turn[b, 3]
     if not s > 0.0:
         return 0.0
@@ -504,7 +503,7 @@ def _kf_predict_kernel(x, P, rho, rho_turn, turn, Q):
         p = _persistence(turn, b)
         for i in range(6):
             d[i] = rho
-        d[3] = d[4] = rho + (rho_turn - rho) * p * p
+        d[3] = d[4] = rho + (rho_turn - rho) * p
         for i in range(6):
             x[b, i] = d[i] * x[b, i]
             for j in range(6):
