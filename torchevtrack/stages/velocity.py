@@ -652,8 +652,8 @@ class VelocityKF(nn.Module):
                     batch_size: int = 1) -> "VelocityKF":
         """The filter of the config section ``velocity`` for ``B`` streams; ``normal``: the flow gives normal flow
         (``flow.estimate == "normal"``)."""
-        return cls(camera, rho=cfg.rho, rho_turn=cfg.rho_turn, turn_ema=cfg.turn_ema, q_v=cfg.q_v, q_w=cfg.q_w, r_px=cfg.r_px, r_rel=cfg.r_rel,
-                   min_vectors=cfg.min_vectors, normal=normal, batch_size=batch_size)
+        return cls(camera, rho=cfg.rho, rho_turn=cfg.rho_turn, turn_ema=cfg.turn_ema, q_v=cfg.q_v, q_w=cfg.q_w,
+                   r_px=cfg.r_px, r_rel=cfg.r_rel, min_vectors=cfg.min_vectors, normal=normal, batch_size=batch_size)
 
     @property
     def batch_size(self) -> int:
@@ -673,8 +673,8 @@ class VelocityKF(nn.Module):
         """The filters for compiled kernels (:func:`velocity_step`): numpy views of the buffers."""
         c = self.camera
         return KFArrays(self.x.numpy(), self.P.numpy(), self.rho, self.rho_turn, self.turn.numpy(), self.turn_ema,
-                        self.Q.numpy(), c.fx, c.fy, c.cx, c.cy, self.r_px,
-                        self.r_rel, self.iters, self.k, self.min_vectors, self.normal)
+                        self.Q.numpy(), c.fx, c.fy, c.cx, c.cy, self.r_px, self.r_rel, self.iters, self.k,
+                        self.min_vectors, self.normal)
 
     def predict(self) -> torch.Tensor:
         """Apply the motion model (:func:`kf_predict` with :func:`turn_decay`'s decays) in place; returns the
