@@ -67,14 +67,19 @@ def test_diagnose_loss_oracle(sequence: Path) -> None:
 
 
 def test_recovery_trials(sequence: Path) -> None:
-    """A start at the truth is counted within the bounds one update later, a start 5 cm off is not (20 ms cannot
-    close that); a blackout trial reports the error before the gap and is judged after it (loose bounds: this tiny
-    160x120 sequence drifts ~4 cm in 60 ms)."""
+    """A start at the truth is counted within the bounds one update later (and reached them at that first update,
+    as the reference run from the truth did), a start 5 cm off is not and never reached them (20 ms cannot close
+    that; the run from the truth is within 3 cm); a blackout trial reports the error before the gap and is
+    judged after it (loose bounds: this tiny 160x120 sequence drifts ~4 cm in 60 ms)."""
     args = ("tools/recovery_trials.py", str(sequence.parent), "--mode")
     near = _run(*args, "start", "--draws", "2", "--offset-mm", "0", "--offset-deg", "0", "--settle", "0.002")
-    assert "start: 2 of 2 within" in near and near.count(" ok") == 2
-    far = _run(*args, "start", "--draws", "1", "--offset-mm", "50", "--offset-deg", "0", "--settle", "0.02")
-    assert "start: 0 of 1 within" in far and "MISS" in far
+    assert "start: 2 of 2 within" in near and near.count(" ok") == 3
+    assert near.count("reached     2 ms") == 2 and "2 of 2 reached them by then" in near
+    assert "started at the truth: 1 of 1 sequences within them" in near
+    far = _run(*args, "start", "--draws", "1", "--offset-mm", "50", "--offset-deg", "0", "--settle", "0.02",
+               "--max-cm", "3", "--max-deg", "10")  # the run from the truth drifts 2 cm by then
+    assert "start: 0 of 1 within" in far and "MISS" in far and "reached never" in far
+    assert "0 of 1 reached them by then" in far and "started at the truth: 1 of 1" in far
     gap = _run(*args, "blackout", "--at", "0.02", "--gap-ms", "10", "--settle", "0.02", "--max-cm", "50",
                "--max-deg", "90")
     assert "before" in gap and "blackout: 1 of 1 within" in gap
