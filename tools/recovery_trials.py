@@ -15,9 +15,9 @@ the rotation about a hidden symmetry axis of an untextured symmetric object left
 
 Every trial also prints when its error first came within the bounds after the start (or after the gap), if it did
 by the judged instant (``reached ... ms``): "reach within 0.2 s" read as a first arrival, where the judged instant
-asks that it still be there. Each sequence's draws run as one batch; the loss detector runs (passively unless ``recover.enabled``) and each
-trial's count of updates flagged lost is printed. ``--set`` changes the tracker config as ``track --set`` does, e.g.
-``--set recover.enabled=true --set loss.enabled=true --set recover.start_search=true``.
+asks that it still be there. Each sequence's draws run as one batch; the loss detector runs (passively unless
+``recover.enabled``) and each trial's count of updates flagged lost is printed. ``--set`` changes the tracker config
+as ``track --set`` does, e.g. ``--set recover.enabled=true --set loss.enabled=true --set recover.start_search=true``.
 
     python tools/recovery_trials.py DIR --mode start [--draws 5] [--only A,B] [--set KEY=VALUE ...]
     python tools/recovery_trials.py DIR --mode blackout [--at 0.3] [--gap-ms 200] [--settle 0.1]
@@ -68,8 +68,9 @@ def first_within(seq: Sequence, axis, t_us: torch.Tensor, poses: torch.Tensor, t
     return None if not bool(ok.any()) else int(e["t_us"][int(ok.nonzero()[0, 0])]) - t_from
 
 
-def trial_batch(path, mode: str, args, cfg: TrackerConfig) -> list[dict]:
-    """Track one sequence's draws as a batch; one record per draw."""
+def trial_batch(path, mode: str, args, cfg: TrackerConfig) -> tuple[list[dict], tuple[float, float] | None]:
+    """Track one sequence's draws as a batch: one record per draw, and in start mode the error at the judged instant
+    of the reference element started at the truth (``None`` in blackout mode)."""
     seq = Sequence.load(path)
     t0 = int(seq.gt_t_us[0])
     events = seq.events
@@ -108,9 +109,8 @@ def trial_batch(path, mode: str, args, cfg: TrackerConfig) -> list[dict]:
         rec["reached_us"] = first_within(seq, axis, times[b], poses[b], t_from, t_judge, args.max_cm, args.max_deg)
         rec["lost_flags"] = int(lost[b].sum())
         out.append(rec)
-    if B > draws:
-        out[0]["truth_after"] = error_at(seq, axis, times[draws], poses[draws], t_judge)
-    return out
+    truth = error_at(seq, axis, times[draws], poses[draws], t_judge) if B > draws else None
+    return out, truth
 
 
 def within(e: tuple[float, float], args) -> bool:
@@ -142,18 +142,19 @@ def main(argv=None) -> None:
     paths = find_sequences(args.benchdir, None if args.only is None else args.only.split(","))
     records, truth_ok = [], []
     for path in paths:
-        for r in trial_batch(path, args.mode, args, cfg):
+        trials, truth = trial_batch(path, args.mode, args, cfg)
+        for r in trials:
             records.append(r)
             before = "" if "before" not in r else f"  moved {r['moved_cm']:5.1f} cm  before {r['before'][0]:6.2f} cm " \
                 f"{r['before'][1]:6.2f} deg"
             reached = "never" if r["reached_us"] is None else f"{r['reached_us'] / 1e3:5.0f} ms"
+            verdict = "ok" if within(r["after"], args) else "MISS"
             print(f"{r['sequence']:34s} {r['draw']:2d}{before}  after {r['after'][0]:6.2f} cm {r['after'][1]:6.2f} deg"
-                  f"  reached {reached}  lost flags {r['lost_flags']:4d}  {'ok' if within(r['after'], args) else 'MISS'}",
-                  flush=True)
-            if "truth_after" in r:
-                truth_ok.append(within(r["truth_after"], args))
-                print(f"{r['sequence']:34s} from the truth  after {r['truth_after'][0]:6.2f} cm "
-                      f"{r['truth_after'][1]:6.2f} deg  {'ok' if truth_ok[-1] else 'MISS'}", flush=True)
+                  f"  reached {reached}  lost flags {r['lost_flags']:4d}  {verdict}", flush=True)
+        if truth is not None:
+            truth_ok.append(within(truth, args))
+            print(f"{path.name:34s} from the truth  after {truth[0]:6.2f} cm {truth[1]:6.2f} deg  "
+                  f"{'ok' if truth_ok[-1] else 'MISS'}", flush=True)
     counted = [r for r in records if "before" not in r or within(r["before"], args)]
     ok = sum(within(r["after"], args) for r in counted)
     print(f"{args.mode}: {ok} of {len(counted)} within {args.max_cm} cm / {args.max_deg} deg "
