@@ -42,30 +42,34 @@ from torchevtrack.tracker import EventPoseTracker
 MAX_MOVED_CM = 10.0  # issue 25's blackouts: the object moves 4-10 cm in the gap; farther is reported apart
 
 
+def errors(seq: Sequence, axis, t_us: torch.Tensor, poses: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """The evaluated times (us), translation (cm) and rotation (deg, about ``axis`` left out: the sequence's hidden
+    symmetry axis or ``None``) errors of ``poses`` at ``t_us`` against the sequence's truth."""
+    e = per_pose_errors(t_us, poses, seq.gt_t_us, seq.gt_poses,
+                        symmetry_axis=None if axis is None else torch.as_tensor(axis))
+    rot = e["re_sym"] if "re_sym" in e else e["re"]
+    return e["t_us"], e["te"] * 100.0, torch.rad2deg(rot)
+
+
 def error_at(seq: Sequence, axis, t_us: torch.Tensor, poses: torch.Tensor, t_query: int) -> tuple[float, float]:
-    """Translation (cm) and rotation (deg, about ``axis`` left out: the sequence's hidden symmetry axis or ``None``)
-    error of the last pose at or before ``t_query``."""
+    """The :func:`errors` (cm, deg) of the last pose at or before ``t_query``."""
     i = int(torch.searchsorted(t_us, torch.tensor(t_query), right=True)) - 1
     if i < 0:
         raise ValueError(f"no pose at or before {t_query} us")
-    e = per_pose_errors(t_us[i:i + 1], poses[i:i + 1], seq.gt_t_us, seq.gt_poses,
-                        symmetry_axis=None if axis is None else torch.as_tensor(axis))
-    rot = e["re_sym"] if "re_sym" in e else e["re"]
-    return float(e["te"][0]) * 100.0, math.degrees(float(rot[0]))
+    _, cm, deg = errors(seq, axis, t_us[i:i + 1], poses[i:i + 1])
+    return float(cm[0]), float(deg[0])
 
 
 def first_within(seq: Sequence, axis, t_us: torch.Tensor, poses: torch.Tensor, t_from: int, t_to: int,
                  max_cm: float, max_deg: float) -> int | None:
-    """Microseconds from ``t_from`` to the first pose in ``[t_from, t_to]`` within ``max_cm`` and ``max_deg`` of
-    the truth (rotation as :func:`error_at`), or ``None`` if none is."""
+    """Microseconds from ``t_from`` to the first pose in ``[t_from, t_to]`` whose :func:`errors` are within
+    ``max_cm`` and ``max_deg``, or ``None`` if none is."""
     sel = (t_us >= t_from) & (t_us <= t_to)
     if not bool(sel.any()):
         return None
-    e = per_pose_errors(t_us[sel], poses[sel], seq.gt_t_us, seq.gt_poses,
-                        symmetry_axis=None if axis is None else torch.as_tensor(axis))
-    rot = e["re_sym"] if "re_sym" in e else e["re"]
-    ok = (e["te"] * 100.0 <= max_cm) & (torch.rad2deg(rot) <= max_deg)
-    return None if not bool(ok.any()) else int(e["t_us"][int(ok.nonzero()[0, 0])]) - t_from
+    t, cm, deg = errors(seq, axis, t_us[sel], poses[sel])
+    ok = (cm <= max_cm) & (deg <= max_deg)
+    return None if not bool(ok.any()) else int(t[int(ok.nonzero()[0, 0])]) - t_from
 
 
 def trial_batch(path, mode: str, args, cfg: TrackerConfig) -> tuple[list[dict], tuple[float, float] | None]:
