@@ -8,6 +8,7 @@ from filterpy.kalman import KalmanFilter
 
 from torchevtrack import geometry as g
 from torchevtrack.camera import Camera
+from torchevtrack.config import VelocityConfig
 from torchevtrack.stages import velocity as vel_mod
 from torchevtrack.stages.velocity import (CorrectionFeedback, VelocityKF, kf_predict, kf_update, turn_decay,
                                          turn_persistence, turn_update)
@@ -275,6 +276,38 @@ def test_turn_running_means_and_reset():
         VelocityKF(CAM, turn_ema=0.0)
     with pytest.raises(ValueError, match="decay"):
         kf_predict(torch.zeros(2, 6, dtype=F64), torch.eye(6, dtype=F64).expand(2, 6, 6), torch.ones(3, 6), kf.Q)
+
+
+@pytest.mark.parametrize("k", [0.5, 2.0])
+def test_one_reweighting_round_is_weighted_least_squares_with_laplacian_weights(k):
+    """Huge P0, one round: weights ``exp(-max(r - m, 0) / (k max(1.4826 m, 1)))`` from the plain fit's
+    residuals ``r`` (units of ``r_px``; ``m`` their lower median), then the weighted least-squares twist."""
+    gen = torch.Generator().manual_seed(11)
+    G, dt, r_px = 60, 0.002, 0.05
+    uv, depth = _scene(gen, G)
+    twist = torch.randn(6, dtype=F64, generator=gen) * SCALE
+    flow = _flow(uv, depth, twist) + 40.0 * torch.randn(G, 2, dtype=F64, generator=gen)
+    flow[:10] += 800.0 * torch.randn(10, 2, dtype=F64, generator=gen)
+    A = (CAM.interaction_matrix(uv, depth) * dt).numpy()  # (G, 2, 6)
+    z = (flow * dt).numpy()
+    plain = np.linalg.lstsq(A.reshape(-1, 6), z.reshape(-1), rcond=None)[0]
+    r = np.linalg.norm(z - A @ plain, axis=-1) / r_px
+    m = np.sort(r)[(G - 1) // 2]
+    w = np.exp(-np.maximum(r - m, 0.0) / (k * max(1.4826 * m, 1.0)))
+    sw = np.repeat(np.sqrt(w), 2)
+    expected = np.linalg.lstsq(A.reshape(-1, 6) * sw[:, None], z.reshape(-1) * sw, rcond=None)[0]
+    out = kf_update(torch.zeros(1, 6, dtype=F64), torch.eye(6, dtype=F64)[None] * 1e10, uv[None], flow[None],
+                    depth[None], torch.ones(1, G, dtype=torch.bool), CAM, dt, r_px=r_px, iters=1, k=k)
+    np.testing.assert_allclose(out.weights[0].numpy(), w, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(out.x[0].numpy(), expected, rtol=1e-6, atol=1e-9)
+    assert np.median(w[:10]) < 0.1 < np.median(w[10:])
+
+
+def test_velocity_config_sets_the_robust_width():
+    cfg = VelocityConfig(robust_k=0.5)
+    assert VelocityKF.from_config(CAM, cfg).k == 0.5
+    with pytest.raises(ValueError, match="k must be positive"):
+        VelocityKF.from_config(CAM, VelocityConfig(robust_k=0.0))
 
 
 def test_bad_inputs():

@@ -112,6 +112,9 @@ class VelocityConfig:
     r_px: float = 0.2  # measurement noise floor per flow vector, pixels of displacement per update
     r_rel: float = 0.3  # plus this fraction of its own displacement, in quadrature (docs/notebook.md, 2026-12-01)
     min_vectors: int = 3
+    # width of the robust (Laplacian) weights of the flow vectors, in robust standard deviations of their residuals
+    # (stages.velocity.kf_update's k)
+    robust_k: float = 1.0
     # Correction feedback (stages.velocity.CorrectionFeedback): a leaky integral of the template corrections'
     # rate, bounded by feedback_max_v (m/s) / feedback_max_w (rad/s), is added to the flow twist on the axes the
     # flow hardly observes; gain 0 = off (the paper).

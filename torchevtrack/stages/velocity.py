@@ -617,7 +617,7 @@ class VelocityKF(nn.Module):
         p0_w: float = 5.0,
         min_vectors: int = VelocityConfig.min_vectors,
         iters: int = 3,
-        k: float = 1.0,
+        k: float = VelocityConfig.robust_k,
         normal: bool = False,
         batch_size: int = 1,
     ) -> None:
@@ -634,6 +634,8 @@ class VelocityKF(nn.Module):
             raise ValueError("q_v, q_w, r_px, p0_v and p0_w must be positive standard deviations")
         if not r_rel >= 0:
             raise ValueError(f"r_rel must be >= 0, got {r_rel}")
+        if not k > 0:
+            raise ValueError(f"k must be positive, got {k}")
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.camera = camera
@@ -653,7 +655,8 @@ class VelocityKF(nn.Module):
         """The filter of the config section ``velocity`` for ``B`` streams; ``normal``: the flow gives normal flow
         (``flow.estimate == "normal"``)."""
         return cls(camera, rho=cfg.rho, rho_turn=cfg.rho_turn, turn_ema=cfg.turn_ema, q_v=cfg.q_v, q_w=cfg.q_w,
-                   r_px=cfg.r_px, r_rel=cfg.r_rel, min_vectors=cfg.min_vectors, normal=normal, batch_size=batch_size)
+                   r_px=cfg.r_px, r_rel=cfg.r_rel, min_vectors=cfg.min_vectors, k=cfg.robust_k, normal=normal,
+                   batch_size=batch_size)
 
     @property
     def batch_size(self) -> int:
