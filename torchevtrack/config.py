@@ -114,7 +114,7 @@ class VelocityConfig:
     min_vectors: int = 3
     # width of the robust (Laplacian) weights of the flow vectors, in robust standard deviations of their residuals
     # (stages.velocity.kf_update's k)
-    robust_k: float = 1.0
+    robust_k: float = 0.5  # 1.0 before (docs/notebook.md, 2026-12-02 late)
     # Correction feedback (stages.velocity.CorrectionFeedback): a leaky integral of the template corrections'
     # rate, bounded by feedback_max_v (m/s) / feedback_max_w (rad/s), is added to the flow twist on the axes the
     # flow hardly observes; gain 0 = off (the paper).
