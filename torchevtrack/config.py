@@ -110,7 +110,8 @@ class VelocityConfig:
     q_v: float = 0.5  # process noise std of the centre velocity per update, m/s
     q_w: float = 3.0  # process noise std of w per update, rad/s
     r_px: float = 0.2  # measurement noise floor per flow vector, pixels of displacement per update
-    r_rel: float = 0.2  # plus this fraction of its own displacement, in quadrature (docs/notebook.md, 2026-12-01; 0.2 since 2026-12-02 late)
+    # plus this fraction of its own displacement, in quadrature (notebook 2026-12-01; 0.3 until 2026-12-02 late)
+    r_rel: float = 0.2
     min_vectors: int = 3
     # width of the robust (Laplacian) weights of the flow vectors, in robust standard deviations of their residuals
     # (stages.velocity.kf_update's k)
