@@ -1,6 +1,6 @@
 """Tracking-loss detection from the tracker's per-update :class:`~torchevtrack.tracker.Quality`.
 
-Per update and batch element (:func:`loss_step`):
+Per update and batch element (:func:`loss_kernel`, compiled):
 
 * score support ``c_score = clip(score / reference, 0, 1)``. The template score's scale depends on the
   object and the scene, so it is compared with a running ``reference``: an exponential moving average
@@ -38,8 +38,11 @@ Example:
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING, Callable, NamedTuple
 
+import numba
+import numpy as np
 import torch
 from torch import nn
 
@@ -49,28 +52,9 @@ from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, failure_inde
 if TYPE_CHECKING:  # the tracker may import this module: no import cycle at run time
     from torchevtrack.tracker import Quality
 
-__all__ = ["LossDetector", "LossState", "LossUpdate", "loss_step", "compare_with_ground_truth"]
+__all__ = ["LossDetector", "LossUpdate", "loss_kernel", "compare_with_ground_truth"]
 
 OnLost = Callable[[torch.Tensor, torch.Tensor], "torch.Tensor | None"]
-
-
-class LossState(NamedTuple):
-    """Detector state after one update, all ``(B,)``.
-
-    Attributes:
-        confidence: float64 in ``[0, 1]``.
-        low: bool, this update was low-confidence.
-        reference: float64 running reference score (NaN: none yet).
-        low_run, good_run: int64 lengths of the current runs of low / confident updates.
-        lost: bool.
-    """
-
-    confidence: torch.Tensor
-    low: torch.Tensor
-    reference: torch.Tensor
-    low_run: torch.Tensor
-    good_run: torch.Tensor
-    lost: torch.Tensor
 
 
 class LossUpdate(NamedTuple):
@@ -91,45 +75,58 @@ class LossUpdate(NamedTuple):
     reinit_pose: torch.Tensor
 
 
-def loss_step(
-    score: torch.Tensor,
-    flow_vectors: torch.Tensor,
-    rejected: torch.Tensor,
-    reference: torch.Tensor,
-    low_run: torch.Tensor,
-    good_run: torch.Tensor,
-    lost: torch.Tensor,
-    *,
-    score_threshold: float,
-    min_flow_vectors: int,
-    patience: int,
-    recovery: int,
-    ema: float,
-) -> LossState:
-    """One update of the loss rule (module docstring) for ``B`` elements; pure, returns the new state.
+def _array(x, dtype, B: int) -> np.ndarray:
+    """``x`` (a tensor or array of ``B`` values) as a contiguous numpy array of ``dtype``."""
+    return np.ascontiguousarray(np.asarray(x), dtype=dtype).reshape(B)
 
-    Shape: all inputs ``(B,)``: score (float, NaN allowed), flow_vectors (int), rejected (bool), reference
-    (float64, NaN = none yet), low_run / good_run (int64), lost (bool).
+
+@numba.njit(cache=True, nogil=True)
+def loss_kernel(score, flow_vectors, rejected, burst, t_us, reference, confidence, low_run, good_run, lost,
+                lost_at_us, newly, score_threshold, min_flow_vectors, patience, recovery, ema):
+    """One update of the loss rule (module docstring) for ``B`` elements, in place; releases the GIL.
+
+    Shape: all arrays ``(B,)``. Inputs: ``score`` float64 (NaN or inf: no score), ``flow_vectors`` int64,
+    ``rejected`` and ``burst`` bool, ``t_us`` int64. State, updated: ``reference``, ``confidence`` float64 (NaN
+    reference: none yet), ``low_run``, ``good_run``, ``lost_at_us`` int64 (-1: no loss yet), ``lost`` bool.
+    Output: ``newly`` bool, the elements that became lost. A ``burst`` element's state stays as it was.
     """
-    score = score.to(torch.float64)
-    has_score = torch.isfinite(score)
-    # No reference yet: the first positive score starts it (and is fully supported).
-    reference = torch.where(torch.isnan(reference) & has_score & (score > 0), score, reference)
-    ratio = (score / reference).clamp(0.0, 1.0)
-    c_score = torch.where(has_score, torch.where(torch.isnan(reference), score.new_zeros(()), ratio), 1.0)
-    if min_flow_vectors > 0:
-        c_flow = (flow_vectors.to(torch.float64) / min_flow_vectors).clamp(0.0, 1.0)
-        few_flow = flow_vectors < min_flow_vectors
-    else:
-        c_flow = torch.ones_like(score)
-        few_flow = torch.zeros_like(rejected)
-    confidence = torch.where(rejected, 0.0, torch.minimum(c_score, c_flow))
-    low = rejected | (c_score < score_threshold) | few_flow
-    reference = torch.where(~low & has_score, (1 - ema) * reference + ema * score, reference)
-    low_run = torch.where(low, low_run + 1, 0)
-    good_run = torch.where(low, 0, good_run + 1)
-    lost = (lost | (low_run >= patience)) & ~(good_run >= recovery)
-    return LossState(confidence, low, reference, low_run, good_run, lost)
+    for b in range(score.shape[0]):
+        newly[b] = False
+        if burst[b]:  # the burst guard dropped the window's events: no evidence either way
+            continue
+        s = score[b]
+        has_score = math.isfinite(s)
+        ref = reference[b]
+        if math.isnan(ref) and has_score and s > 0.0:  # the first positive score starts the reference
+            ref = s
+        if not has_score:
+            c_score = 1.0
+        elif math.isnan(ref):
+            c_score = 0.0
+        else:
+            c_score = min(max(s / ref, 0.0), 1.0)
+        if min_flow_vectors > 0:
+            c_flow = min(max(flow_vectors[b] / min_flow_vectors, 0.0), 1.0)
+            few_flow = flow_vectors[b] < min_flow_vectors
+        else:
+            c_flow, few_flow = 1.0, False
+        confidence[b] = 0.0 if rejected[b] else min(c_score, c_flow)
+        low = rejected[b] or c_score < score_threshold or few_flow
+        if not low and has_score:  # low scores never enter the reference
+            ref = (1.0 - ema) * ref + ema * s
+        reference[b] = ref
+        if low:
+            low_run[b] += 1
+            good_run[b] = 0
+        else:
+            low_run[b] = 0
+            good_run[b] += 1
+        now = (lost[b] or low_run[b] >= patience) and not good_run[b] >= recovery
+        if now and not lost[b]:
+            newly[b] = True
+            if lost_at_us[b] < 0:
+                lost_at_us[b] = t_us[b]
+        lost[b] = now
 
 
 class LossDetector(nn.Module):
@@ -214,33 +211,24 @@ class LossDetector(nn.Module):
         fields = (quality.score, quality.flow_vectors, quality.rejected)
         if any(torch.as_tensor(f).shape != (B,) for f in fields):
             raise ValueError(f"quality fields must have shape ({B},), got {[tuple(f.shape) for f in fields]}")
-        t = torch.as_tensor(t_us)
-        if t.is_floating_point() or t.dtype == torch.bool:
+        t = np.asarray(t_us)
+        if t.dtype.kind not in "iu":
             raise TypeError(f"t_us must be integer microseconds, got {t.dtype}")
-        t = t.to(torch.int64).expand(B)
-        before = self.lost.clone()
-        s = loss_step(quality.score, quality.flow_vectors, quality.rejected.bool(), self.reference, self.low_run,
-                      self.good_run, self.lost, score_threshold=self.score_threshold,
-                      min_flow_vectors=self.min_flow_vectors, patience=self.patience, recovery=self.recovery,
-                      ema=self.ema)
+        t = np.broadcast_to(t.astype(np.int64, copy=False), (B,)).copy()
         burst = getattr(quality, "burst", None)
-        if burst is not None and bool(torch.as_tensor(burst).any()):  # a burst window is neutral: no evidence
-            keep = torch.as_tensor(burst).bool()
-            s = s._replace(**{f: torch.where(keep, getattr(self, f), getattr(s, f))
-                              for f in ("confidence", "reference", "low_run", "good_run", "lost")},
-                           low=s.low & ~keep)
-        self.confidence.copy_(s.confidence)
-        self.reference.copy_(s.reference)
-        self.low_run.copy_(s.low_run)
-        self.good_run.copy_(s.good_run)
-        self.lost.copy_(s.lost)
-        newly = s.lost & ~before
-        self.lost_at_us.copy_(torch.where(newly & (self.lost_at_us < 0), t, self.lost_at_us))
+        burst = np.zeros(B, np.bool_) if burst is None else _array(burst, np.bool_, B)
+        newly = np.zeros(B, np.bool_)
+        loss_kernel(_array(quality.score, np.float64, B), _array(quality.flow_vectors, np.int64, B),
+                    _array(quality.rejected, np.bool_, B), burst, t, self.reference.numpy(),
+                    self.confidence.numpy(), self.low_run.numpy(), self.good_run.numpy(), self.lost.numpy(),
+                    self.lost_at_us.numpy(), newly, self.score_threshold, self.min_flow_vectors,
+                    self.patience, self.recovery, self.ema)
+        confidence, lost, newly = self.confidence.clone(), self.lost.clone(), torch.from_numpy(newly)
         index = torch.zeros(0, dtype=torch.int64)
         poses = torch.zeros(0, 7, dtype=torch.float64)
         if self.on_lost is not None and bool(newly.any()):
             idx = newly.nonzero()[:, 0]
-            out = self.on_lost(idx, t[idx])
+            out = self.on_lost(idx, torch.from_numpy(t)[idx])
             if out is not None:
                 out = torch.as_tensor(out, dtype=torch.float64)
                 if out.shape != (idx.numel(), 7):
@@ -250,7 +238,7 @@ class LossDetector(nn.Module):
                 lost_at = self.lost_at_us.clone()
                 self.reset(idx)
                 self.lost_at_us.copy_(lost_at)  # the first loss stays on record
-        return LossUpdate(s.confidence, s.lost, newly, index, poses)
+        return LossUpdate(confidence, lost, newly, index, poses)
 
     def extra_repr(self) -> str:
         return (f"batch_size={self.batch_size}, score_threshold={self.score_threshold}, "
