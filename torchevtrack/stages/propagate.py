@@ -126,7 +126,8 @@ def _rows(a: torch.Tensor, b: torch.Tensor, dt, na: int, nb: int):
         dt = np.full(lead[0], float(dt), dtype=np.float64)
     else:
         dt = torch.as_tensor(dt, dtype=torch.float64).detach()
-        lead = torch.broadcast_shapes(a.shape[:-1], b.shape[:-1], dt.shape)
+        # numpy's: torch.broadcast_shapes' first call in a process imports for ~0.5 s (a stall inside a run)
+        lead = np.broadcast_shapes(a.shape[:-1], b.shape[:-1], dt.shape)
         a, b = a.expand(*lead, na), b.expand(*lead, nb)
         dt = dt.expand(lead).reshape(-1).contiguous().numpy()
     dt = dt.view()
