@@ -20,6 +20,7 @@ from torchevtrack.geometry import interpolate_poses, perturb_pose
 from torchevtrack.io.lost import lost_path, read_lost
 from torchevtrack.io.poses import read_tum
 from torchevtrack.metrics import per_pose_errors
+from torchevtrack.recover import TWIST_SPAN_US
 from torchevtrack.stages.relocalise import Relocalisation, Relocaliser
 from torchevtrack.synth.generate import generate_sequence
 from torchevtrack.synth.sequence import Sequence
@@ -267,3 +268,70 @@ def test_searches_that_find_nothing_come_ever_further_apart(seq, monkeypatch):
     gaps = [b - a for a, b in zip(calls, calls[1:])]
     assert len(calls) == 5 and tracker.recover.restarts == 0 and bool(tracker.lost[0])
     assert gaps == [20_000, 40_000, 80_000, 160_000], gaps
+
+
+def reference_bookkeeping(t, period_us, pose, declared, low_run, state, retry_us, start_after_us):
+    """One update of the Recoverer's bookkeeping for one element, written from its module docstring; ``state`` a
+    dict of python values and pose lists, updated in place. Returns ``(due, starting)``."""
+    from torchevtrack.stages.propagate import twist_between
+
+    if state["started"] < 0:
+        state["started"] = state["good_us"] = state["anchor_us"] = t - period_us
+    if declared and not state["lost"]:
+        state["lost"], state["next_search"], state["retry_in"] = True, t, retry_us
+    if not state["lost"] and low_run == 0:
+        state["good_pose"], state["good_us"] = list(pose), t
+        if t - state["anchor_us"] >= TWIST_SPAN_US:
+            state["twist"] = twist_between(torch.tensor([state["anchor_pose"]], dtype=torch.float64),
+                                           torch.tensor([pose], dtype=torch.float64),
+                                           (t - state["anchor_us"]) * 1e-6)[0].tolist()
+            state["anchor_pose"], state["anchor_us"] = list(pose), t
+    due = state["lost"] and t >= state["next_search"]
+    starting = state["pending"] and not state["lost"] and t - state["started"] >= start_after_us
+    if starting:
+        state["pending"] = False
+    return due, starting
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_bookkeeping_kernel_matches_the_reference_per_element(seed):
+    import numpy as np
+
+    from torchevtrack.recover import bookkeeping_kernel
+
+    rng = np.random.default_rng(seed)
+    B, T, period, retry, start_after = 3, 120, 2000, 20_000, 48_000
+    unit = [0.0, 0.0, 0.6, 1.0, 0.0, 0.0, 0.0]
+    buf = dict(lost=np.zeros(B, bool), good_pose=np.tile(unit, (B, 1)), good_us=np.zeros(B, np.int64),
+               anchor_pose=np.tile(unit, (B, 1)), anchor_us=np.zeros(B, np.int64), twist=np.zeros((B, 6)),
+               started=np.full(B, -1, np.int64), next_search=np.zeros(B, np.int64), retry_in=np.zeros(B, np.int64),
+               pending=np.ones(B, bool))
+    refs = [dict(lost=False, good_pose=list(unit), good_us=0, anchor_pose=list(unit), anchor_us=0, twist=[0.0] * 6,
+                 started=-1, next_search=0, retry_in=0, pending=True) for _ in range(B)]
+    n = {"due": 0, "starting": 0, "twists": 0}
+    for i in range(T):
+        t = np.full(B, period * (i + 1), np.int64)
+        pose = np.tile(unit, (B, 1))
+        pose[:, :3] += rng.normal(0.0, 0.01, (B, 3)) + 0.001 * i
+        angle = 0.01 * i + rng.normal(0.0, 0.01, B)
+        pose[:, 3], pose[:, 5] = np.cos(angle / 2), np.sin(angle / 2)
+        declared = rng.random(B) < 0.03
+        low_run = np.where(rng.random(B) < 0.3, rng.integers(1, 5, B), 0).astype(np.int64)
+        due, starting = np.zeros(B, bool), np.zeros(B, bool)
+        bookkeeping_kernel(t, period, pose, declared, low_run, buf["lost"], buf["good_pose"], buf["good_us"],
+                           buf["anchor_pose"], buf["anchor_us"], buf["twist"], buf["started"], buf["next_search"],
+                           buf["retry_in"], buf["pending"], retry, start_after, due, starting)
+        for b in range(B):
+            before = refs[b]["twist"]
+            d, s = reference_bookkeeping(int(t[b]), period, pose[b].tolist(), bool(declared[b]), int(low_run[b]),
+                                         refs[b], retry, start_after)
+            n["twists"] += refs[b]["twist"] is not before
+            assert (bool(due[b]), bool(starting[b])) == (d, s), (i, b)
+            for key, value in refs[b].items():
+                assert np.allclose(buf[key][b], value, rtol=1e-12, atol=1e-12), (i, b, key)
+            n["due"] += d
+            n["starting"] += s
+        if rng.random() < 0.05:  # a search confirmed an element's pose: found again
+            k = int(rng.integers(B))
+            buf["lost"][k] = refs[k]["lost"] = False
+    assert n["due"] > 0 and n["starting"] > 0 and n["twists"] > 0  # every branch taken

@@ -49,6 +49,7 @@ from __future__ import annotations
 import time
 from typing import TYPE_CHECKING, Sequence
 
+import numba
 import numpy as np
 import torch
 import trimesh
@@ -59,7 +60,7 @@ from torchevtrack.config import RecoverConfig
 from torchevtrack.mesh import symmetry_axis
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.stages import batch_mask
-from torchevtrack.stages.propagate import propagate, twist_between
+from torchevtrack.stages.propagate import propagate, twist_between_kernel
 from torchevtrack.stages.relocalise import LEVELS, Level, Relocalisation, Relocaliser
 
 if TYPE_CHECKING:  # the tracker imports this module
@@ -103,6 +104,40 @@ def search_levels(search_m: float) -> tuple[Level, ...]:
     as they are)."""
     k = search_m / LEVELS[0].xy_m
     return tuple(Level(lv.rot_deg, tuple(dz * k for dz in lv.dz_m), lv.xy_m * k, lv.scale) for lv in LEVELS)
+
+
+@numba.njit(cache=True, nogil=True)
+def bookkeeping_kernel(t, period_us, pose, declared, low_run, lost, good_pose, good_us, anchor_pose, anchor_us, twist,
+                       started, next_search, retry_in, pending, retry_us, start_after_us, due, starting):
+    """One update's bookkeeping of :class:`Recoverer` (module docstring), in place, per element ``b`` of ``B``.
+
+    Inputs: ``t`` ``(B,)`` int64 the update's times (us), ``period_us`` the tracker's window (us), ``pose``
+    ``(B, 7)`` its output, the detector's ``declared`` (``newly_lost``) ``(B,)`` bool and ``low_run`` ``(B,)`` int64,
+    ``retry_us`` and ``start_after_us``. State, updated: the Recoverer's buffers of the same names (``started``,
+    ``next_search``, ``retry_in``, ``pending``: ``started_us``, ``next_search_us``, ``retry_in_us``,
+    ``start_pending``). Output: ``due`` (a lost element's search is due) and ``starting`` (its start search is due,
+    and no longer pending) ``(B,)`` bool.
+    """
+    dt = np.empty(1)
+    for b in range(t.shape[0]):
+        if started[b] < 0:  # the first update since a (re)start: its window began a period ago
+            started[b] = good_us[b] = anchor_us[b] = t[b] - period_us
+        if declared[b] and not lost[b]:
+            lost[b] = True
+            next_search[b] = t[b]
+            retry_in[b] = retry_us
+        if not lost[b] and low_run[b] == 0:  # a confident update: the good pose, and over a span the good twist
+            good_pose[b] = pose[b]
+            good_us[b] = t[b]
+            if t[b] - anchor_us[b] >= TWIST_SPAN_US:
+                dt[0] = (t[b] - anchor_us[b]) * 1e-6
+                twist_between_kernel(anchor_pose[b:b + 1], pose[b:b + 1], dt, twist[b:b + 1])
+                anchor_pose[b] = pose[b]
+                anchor_us[b] = t[b]
+        due[b] = lost[b] and t[b] >= next_search[b]
+        starting[b] = pending[b] and not lost[b] and t[b] - started[b] >= start_after_us
+        if starting[b]:
+            pending[b] = False
 
 
 class Recoverer(nn.Module):
@@ -198,37 +233,17 @@ class Recoverer(nn.Module):
             r.renderer.close()
 
     def forward(self, tracker: "EventPoseTracker", t_us: torch.Tensor | int) -> None:
-        # the bookkeeping of every update on numpy views of the buffers (a few microseconds); searches are rare
+        # the bookkeeping of every update in one compiled call on the buffers; searches are rare
         B = len(self.owner)
         t = np.broadcast_to(np.asarray(t_us, dtype=np.int64), (B,)).copy()
-        pose = tracker.pose.numpy()
-        declared, low_run = tracker.loss_update.newly_lost.numpy(), tracker.loss.low_run.numpy()
-        lost, good_pose, good_us = self.lost.numpy(), self.good_pose.numpy(), self.good_us.numpy()
-        anchor_pose, anchor_us, started = self.anchor_pose.numpy(), self.anchor_us.numpy(), self.started_us.numpy()
-        next_search, pending = self.next_search_us.numpy(), self.start_pending.numpy()
-        retry_in = self.retry_in_us.numpy()
-        first = started < 0  # the first update since a (re)start: its window began a period ago
-        if first.any():
-            for a in (started, good_us, anchor_us):
-                a[first] = t[first] - tracker.period_us
-        newly = declared & ~lost
-        lost |= newly
-        next_search[newly] = t[newly]
-        retry_in[newly] = self.retry_us
-        good = ~lost & (low_run == 0)
-        good_pose[good] = pose[good]
-        good_us[good] = t[good]
-        span = good & (t - anchor_us >= TWIST_SPAN_US)
-        if span.any():
-            dt = torch.from_numpy((t[span] - anchor_us[span]) * 1e-6)
-            self.twist.numpy()[span] = twist_between(torch.from_numpy(anchor_pose[span]),
-                                                     torch.from_numpy(pose[span]), dt).numpy()
-            anchor_pose[span] = pose[span]
-            anchor_us[span] = t[span]
-        due = lost & (t >= next_search)
-        starting = pending & ~lost & (t - started >= self.start_after_us)
+        due, starting = np.zeros(B, np.bool_), np.zeros(B, np.bool_)
+        bookkeeping_kernel(t, tracker.period_us, tracker.pose.numpy(), tracker.loss_update.newly_lost.numpy(),
+                           tracker.loss.low_run.numpy(), self.lost.numpy(), self.good_pose.numpy(),
+                           self.good_us.numpy(), self.anchor_pose.numpy(), self.anchor_us.numpy(),
+                           self.twist.numpy(), self.started_us.numpy(), self.next_search_us.numpy(),
+                           self.retry_in_us.numpy(), self.start_pending.numpy(), self.retry_us, self.start_after_us,
+                           due, starting)
         if due.any() or starting.any():
-            pending &= ~starting
             self._search(tracker, t, due, starting)
 
     @torch.inference_mode()
