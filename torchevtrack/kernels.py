@@ -311,9 +311,10 @@ def warmup(progress: bool = True, jobs: int | None = None) -> int:
     camera = Camera(160, 120, 150.0, 150.0, 80.0, 60.0)
     mesh = load_mesh("box")
     events, pose0 = _warmup_events(camera, mesh, RasterRenderer, EventStream, np, torch)
-    # the optional denoise stage and loss detector on too: their modules load with the tracker, and a cold kernel
-    # would be announced
-    tracker = EventPoseTracker(camera, mesh, TrackerConfig().replace(denoise={"enabled": True}, loss={"enabled": True}))
+    # the optional stages on too (denoise, loss detector, recovery): their modules load with the tracker, and a cold
+    # kernel would be announced
+    cfg = TrackerConfig().replace(denoise={"enabled": True}, loss={"enabled": True}, recover={"enabled": True})
+    tracker = EventPoseTracker(camera, mesh, cfg)
     tracker.track(events, pose0, progress=False)
     tracker.close()
     _compile_relocaliser(np)
