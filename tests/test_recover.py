@@ -10,6 +10,7 @@ search's result (when it searches, the masked restart, the reported pose and fla
 import dataclasses
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -20,7 +21,8 @@ from torchevtrack.geometry import interpolate_poses, perturb_pose
 from torchevtrack.io.lost import lost_path, read_lost
 from torchevtrack.io.poses import read_tum
 from torchevtrack.metrics import per_pose_errors
-from torchevtrack.recover import TWIST_SPAN_US
+from torchevtrack.recover import TWIST_SPAN_US, bookkeeping_kernel
+from torchevtrack.stages.propagate import twist_between
 from torchevtrack.stages.relocalise import Relocalisation, Relocaliser
 from torchevtrack.synth.generate import generate_sequence
 from torchevtrack.synth.sequence import Sequence
@@ -273,8 +275,6 @@ def test_searches_that_find_nothing_come_ever_further_apart(seq, monkeypatch):
 def reference_bookkeeping(t, period_us, pose, declared, low_run, state, retry_us, start_after_us):
     """One update of the Recoverer's bookkeeping for one element, written from its module docstring; ``state`` a
     dict of python values and pose lists, updated in place. Returns ``(due, starting)``."""
-    from torchevtrack.stages.propagate import twist_between
-
     if state["started"] < 0:
         state["started"] = state["good_us"] = state["anchor_us"] = t - period_us
     if declared and not state["lost"]:
@@ -295,10 +295,6 @@ def reference_bookkeeping(t, period_us, pose, declared, low_run, state, retry_us
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_the_bookkeeping_kernel_matches_the_reference_per_element(seed):
-    import numpy as np
-
-    from torchevtrack.recover import bookkeeping_kernel
-
     rng = np.random.default_rng(seed)
     B, T, period, retry, start_after = 3, 120, 2000, 20_000, 48_000
     unit = [0.0, 0.0, 0.6, 1.0, 0.0, 0.0, 0.0]
