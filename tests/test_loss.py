@@ -76,6 +76,18 @@ def test_good_then_degraded_is_lost_after_exactly_patience_low_updates():
     assert int(det.lost_at_us[0]) == 2000 * (20 + P["patience"])  # the first loss stays on record
 
 
+def test_the_detector_follows_its_buffers_when_they_move_to_new_storage():
+    """The detector keeps numpy views of its buffers; a conversion that gives them new storage (``share_memory``
+    here) must not leave it updating the old one."""
+    det = LossDetector(1, **P)
+    det(quality([3.0], [6]), 0)  # the views are made
+    det.share_memory()
+    for k in range(1, P["patience"] + 1):
+        out = det(quality([0.1], [6]), 2000 * k)
+    assert bool(out.lost[0]) and bool(det.lost[0]) and int(det.low_run[0]) == P["patience"]
+    assert int(det.lost_at_us[0]) == 2000 * P["patience"]
+
+
 def test_missing_flow_alone_leads_to_loss():
     det = LossDetector(1, **P)
     for i in range(10):

@@ -331,3 +331,17 @@ def test_the_bookkeeping_kernel_matches_the_reference_per_element(seed):
             k = int(rng.integers(B))
             buf["lost"][k] = refs[k]["lost"] = False
     assert n["due"] > 0 and n["starting"] > 0 and n["twists"] > 0  # every branch taken
+
+
+def test_the_recoverer_follows_its_buffers_when_they_move_to_new_storage(seq):
+    """The recoverer keeps numpy views of its buffers; a conversion that gives them new storage (``share_memory``
+    here) must not leave it keeping the good pose in the old one."""
+    tracker = EventPoseTracker(CAM, seq.mesh, RECOVER)
+    t0 = int(seq.gt_t_us[0])
+    tracker.track(seq.events, seq.gt_poses[0], t_start_us=t0, t_end_us=t0 + 20_000, progress=False)
+    tracker.recover.share_memory()
+    tracker.track(seq.events, seq.gt_poses[0], t_start_us=t0, t_end_us=t0 + 40_000, progress=False)
+    tracker.close()
+    assert not bool(tracker.lost[0]) and int(tracker.loss.low_run[0]) == 0
+    assert int(tracker.recover.good_us[0]) == t0 + 40_000  # the last window's end
+    assert torch.equal(tracker.recover.good_pose[0], tracker.pose[0])

@@ -146,7 +146,8 @@ class LossDetector(nn.Module):
         reference, confidence: float64; low_run, good_run: int64; lost: bool;
         lost_at_us: int64 time of the first loss declared since the last reset (-1: none).
 
-    ``forward(quality, t_us) -> LossUpdate`` with ``t_us`` an int or ``(B,)`` int64 update time (us).
+    ``forward(quality, t_us) -> LossUpdate`` with ``t_us`` an int or ``(B,)`` int64 update time (us); the quality's
+    fields may be tensors or numpy arrays (the tracker gives its numpy ones).
     """
 
     reference: torch.Tensor
@@ -177,6 +178,7 @@ class LossDetector(nn.Module):
         self.patience, self.recovery, self.ema = patience, recovery, float(ema)
         self.initial_reference = initial_reference
         self.on_lost = on_lost
+        self._views: tuple[np.ndarray, ...] | None = None
         B = batch_size
         self.register_buffer("reference", torch.zeros(B, dtype=torch.float64))
         self.register_buffer("confidence", torch.ones(B, dtype=torch.float64))
@@ -206,28 +208,38 @@ class LossDetector(nn.Module):
         self.lost[mask] = False
         self.lost_at_us[mask] = -1
 
+    def _apply(self, fn, recurse=True):
+        self._views = None  # the buffers may be new tensors: view them again
+        return super()._apply(fn, recurse)
+
+    def _state(self) -> tuple[np.ndarray, ...]:
+        """Numpy views of the buffers in :func:`loss_kernel`'s order (made once: a view costs ~2 us per update)."""
+        if self._views is None:
+            self._views = (self.reference.numpy(), self.confidence.numpy(), self.low_run.numpy(),
+                           self.good_run.numpy(), self.lost.numpy(), self.lost_at_us.numpy())
+        return self._views
+
     def forward(self, quality: Quality, t_us: int | torch.Tensor) -> LossUpdate:
         B = self.batch_size
         fields = (quality.score, quality.flow_vectors, quality.rejected)
-        if any(torch.as_tensor(f).shape != (B,) for f in fields):
-            raise ValueError(f"quality fields must have shape ({B},), got {[tuple(f.shape) for f in fields]}")
+        if any(np.shape(f) != (B,) for f in fields):
+            raise ValueError(f"quality fields must have shape ({B},), got {[tuple(np.shape(f)) for f in fields]}")
         t = np.asarray(t_us)
         if t.dtype.kind not in "iu":
             raise TypeError(f"t_us must be integer microseconds, got {t.dtype}")
-        t = np.broadcast_to(t.astype(np.int64, copy=False), (B,)).copy()
+        t = np.full(B, t, np.int64) if t.ndim == 0 else _array(t, np.int64, B)
         burst = getattr(quality, "burst", None)
         burst = np.zeros(B, np.bool_) if burst is None else _array(burst, np.bool_, B)
         newly = np.zeros(B, np.bool_)
+        state = self._state()
         loss_kernel(_array(quality.score, np.float64, B), _array(quality.flow_vectors, np.int64, B),
-                    _array(quality.rejected, np.bool_, B), burst, t, self.reference.numpy(),
-                    self.confidence.numpy(), self.low_run.numpy(), self.good_run.numpy(), self.lost.numpy(),
-                    self.lost_at_us.numpy(), newly, self.score_threshold, self.min_flow_vectors,
-                    self.patience, self.recovery, self.ema)
-        confidence, lost, newly = self.confidence.clone(), self.lost.clone(), torch.from_numpy(newly)
-        index = torch.zeros(0, dtype=torch.int64)
-        poses = torch.zeros(0, 7, dtype=torch.float64)
-        if self.on_lost is not None and bool(newly.any()):
-            idx = newly.nonzero()[:, 0]
+                    _array(quality.rejected, np.bool_, B), burst, t, *state, newly, self.score_threshold,
+                    self.min_flow_vectors, self.patience, self.recovery, self.ema)
+        confidence, lost = torch.from_numpy(state[1].copy()), torch.from_numpy(state[4].copy())
+        index = torch.empty(0, dtype=torch.int64)
+        poses = torch.empty(0, 7, dtype=torch.float64)
+        if self.on_lost is not None and newly.any():
+            idx = torch.from_numpy(np.flatnonzero(newly))
             out = self.on_lost(idx, torch.from_numpy(t)[idx])
             if out is not None:
                 out = torch.as_tensor(out, dtype=torch.float64)
@@ -238,7 +250,7 @@ class LossDetector(nn.Module):
                 lost_at = self.lost_at_us.clone()
                 self.reset(idx)
                 self.lost_at_us.copy_(lost_at)  # the first loss stays on record
-        return LossUpdate(confidence, lost, newly, index, poses)
+        return LossUpdate(confidence, lost, torch.from_numpy(newly), index, poses)
 
     def extra_repr(self) -> str:
         return (f"batch_size={self.batch_size}, score_threshold={self.score_threshold}, "

@@ -190,6 +190,7 @@ class Recoverer(nn.Module):
         self.retry_us, self.min_events = int(retry_us), int(min_events)
         self.start_search, self.start_after_us = bool(start_search), int(start_after_us)
         self.searches, self.search_s, self.restarts = 0, 0.0, 0
+        self._views: tuple[np.ndarray, ...] | None = None
         B = len(self.owner)
         f64, i64 = torch.float64, torch.int64
         unit = torch.tensor([0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0], dtype=f64).expand(B, 7)
@@ -232,16 +233,27 @@ class Recoverer(nn.Module):
         for r in self.relocalisers:
             r.renderer.close()
 
+    def _apply(self, fn, recurse=True):
+        self._views = None  # the buffers may be new tensors: view them again
+        return super()._apply(fn, recurse)
+
+    def _state(self) -> tuple[np.ndarray, ...]:
+        """Numpy views of the buffers in :func:`bookkeeping_kernel`'s order (made once: a view costs ~2 us per
+        update)."""
+        if self._views is None:
+            self._views = tuple(getattr(self, name).numpy() for name in (
+                "lost", "good_pose", "good_us", "anchor_pose", "anchor_us", "twist", "started_us", "next_search_us",
+                "retry_in_us", "start_pending"))
+        return self._views
+
     def forward(self, tracker: "EventPoseTracker", t_us: torch.Tensor | int) -> None:
         # the bookkeeping of every update in one compiled call on the buffers; searches are rare
         B = len(self.owner)
-        t = np.broadcast_to(np.asarray(t_us, dtype=np.int64), (B,)).copy()
+        t = np.asarray(t_us)
+        t = np.full(B, t, np.int64) if t.ndim == 0 else np.array(t, np.int64).reshape(B)  # a copy: a restart resets
         due, starting = np.zeros(B, np.bool_), np.zeros(B, np.bool_)
         bookkeeping_kernel(t, tracker.period_us, tracker.pose.numpy(), tracker.loss_update.newly_lost.numpy(),
-                           tracker.loss.low_run.numpy(), self.lost.numpy(), self.good_pose.numpy(),
-                           self.good_us.numpy(), self.anchor_pose.numpy(), self.anchor_us.numpy(),
-                           self.twist.numpy(), self.started_us.numpy(), self.next_search_us.numpy(),
-                           self.retry_in_us.numpy(), self.start_pending.numpy(), self.retry_us, self.start_after_us,
+                           tracker.loss.low_run.numpy(), *self._state(), self.retry_us, self.start_after_us,
                            due, starting)
         if due.any() or starting.any():
             self._search(tracker, t, due, starting)

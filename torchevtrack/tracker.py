@@ -554,8 +554,9 @@ class EventPoseTracker(nn.Module):
         run.prev_pose[:] = run.pose
         run.pose[:] = out
         self._run.quality = (score, n_vectors, n_events, bad | rejected) + (() if burst is None else (burst,))
-        if self.loss is not None:
-            upd = self.loss(self.quality, torch.from_numpy(run.t_last) if t_us is None else t_us)
+        t_now = run.t_last if t_us is None else t_us
+        if self.loss is not None:  # (given the quality's numpy fields: tensors of them cost more than its rule)
+            upd = self.loss(Quality(*self._run.quality), t_now)
             self.loss_update = upd
             if upd.reinit_index.numel():  # on_lost gave poses: those elements restart there (the detector did)
                 pose = self.pose.clone()
@@ -565,7 +566,7 @@ class EventPoseTracker(nn.Module):
                 self.loss.lost_at_us.copy_(lost_at)  # the first loss stays on record
             clock.lap("loss")
         if self.recover is not None:  # may restart elements (a masked reset)
-            self.recover(self, torch.from_numpy(run.t_last) if t_us is None else t_us)
+            self.recover(self, t_now)
             clock.lap("recover")
         self.stage_ms = clock.ms
 
