@@ -1,7 +1,9 @@
 """Tracking-loss detector: synthetic quality sequences against a sequential reference implementation,
 the re-initialisation hook, the ground-truth comparison, and an end-to-end run on a synthetic sequence."""
 
+import copy
 import math
+import pickle
 
 import numpy as np
 import pytest
@@ -76,16 +78,23 @@ def test_good_then_degraded_is_lost_after_exactly_patience_low_updates():
     assert int(det.lost_at_us[0]) == 2000 * (20 + P["patience"])  # the first loss stays on record
 
 
-def test_the_detector_follows_its_buffers_when_they_move_to_new_storage():
-    """The detector keeps numpy views of its buffers; a conversion that gives them new storage (``share_memory``
-    here) must not leave it updating the old one."""
+def test_the_detectors_views_follow_copies_pickles_and_new_buffers():
+    """The detector's kernel updates its buffers through numpy views (:class:`~torchevtrack.stages.BufferViews`): a
+    copy, a pickle, buffers moved to new storage or new buffer tensors must be the ones updated."""
     det = LossDetector(1, **P)
     det(quality([3.0], [6]), 0)  # the views are made
+    twin, thawed = copy.deepcopy(det), pickle.loads(pickle.dumps(det))
     det.share_memory()
-    for k in range(1, P["patience"] + 1):
-        out = det(quality([0.1], [6]), 2000 * k)
-    assert bool(out.lost[0]) and bool(det.lost[0]) and int(det.low_run[0]) == P["patience"]
-    assert int(det.lost_at_us[0]) == 2000 * P["patience"]
+    moved = LossDetector(1, **P)
+    moved(quality([3.0], [6]), 0)
+    moved.low_run = torch.zeros(1, dtype=torch.int64)  # a new buffer tensor
+    moved.lost = torch.zeros(1, dtype=torch.bool)
+    for d in (det, twin, thawed, moved):
+        for k in range(1, P["patience"] + 1):
+            out = d(quality([0.1], [6]), 2000 * k)
+        assert bool(out.lost[0]) and bool(d.lost[0]) and int(d.low_run[0]) == P["patience"]
+        assert int(d.lost_at_us[0]) == 2000 * P["patience"]
+    assert int(LossDetector(1, **P).low_run[0]) == 0
 
 
 def test_missing_flow_alone_leads_to_loss():

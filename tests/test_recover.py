@@ -7,6 +7,7 @@ tests/test_relocalise.py) by an oracle that returns the true pose, clear: they t
 search's result (when it searches, the masked restart, the reported pose and flag), not the search itself.
 """
 
+import copy
 import dataclasses
 import math
 
@@ -333,15 +334,17 @@ def test_the_bookkeeping_kernel_matches_the_reference_per_element(seed):
     assert n["due"] > 0 and n["starting"] > 0 and n["twists"] > 0  # every branch taken
 
 
-def test_the_recoverer_follows_its_buffers_when_they_move_to_new_storage(seq):
-    """The recoverer keeps numpy views of its buffers; a conversion that gives them new storage (``share_memory``
-    here) must not leave it keeping the good pose in the old one."""
-    tracker = EventPoseTracker(CAM, seq.mesh, RECOVER)
+def test_the_recoverers_views_follow_copies_and_new_storage(seq):
+    """The recoverer's bookkeeping kernel updates its buffers through numpy views: a deep copy of the tracker, or its
+    buffers moved to new storage (``share_memory``), must be the ones updated."""
     t0 = int(seq.gt_t_us[0])
+    tracker = EventPoseTracker(CAM, seq.mesh, RECOVER)
     tracker.track(seq.events, seq.gt_poses[0], t_start_us=t0, t_end_us=t0 + 20_000, progress=False)
+    twin = copy.deepcopy(tracker)
     tracker.recover.share_memory()
-    tracker.track(seq.events, seq.gt_poses[0], t_start_us=t0, t_end_us=t0 + 40_000, progress=False)
-    tracker.close()
-    assert not bool(tracker.lost[0]) and int(tracker.loss.low_run[0]) == 0
-    assert int(tracker.recover.good_us[0]) == t0 + 40_000  # the last window's end
-    assert torch.equal(tracker.recover.good_pose[0], tracker.pose[0])
+    for tr in (tracker, twin):
+        tr.track(seq.events, seq.gt_poses[0], t_start_us=t0, t_end_us=t0 + 40_000, progress=False)
+        tr.close()
+        assert not bool(tr.lost[0]) and int(tr.loss.low_run[0]) == 0
+        assert int(tr.recover.good_us[0]) == t0 + 40_000  # the last window's end
+        assert torch.equal(tr.recover.good_pose[0], tr.pose[0])

@@ -48,6 +48,7 @@ from torch import nn
 
 from torchevtrack.geometry import check_pose
 from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, failure_index, per_pose_errors
+from torchevtrack.stages import BufferViews
 
 if TYPE_CHECKING:  # the tracker may import this module: no import cycle at run time
     from torchevtrack.tracker import Quality
@@ -129,7 +130,7 @@ def loss_kernel(score, flow_vectors, rejected, burst, t_us, reference, confidenc
         lost[b] = now
 
 
-class LossDetector(nn.Module):
+class LossDetector(BufferViews, nn.Module):
     """Declare tracking loss per batch element from the tracker's per-update quality.
 
     Args:
@@ -178,7 +179,6 @@ class LossDetector(nn.Module):
         self.patience, self.recovery, self.ema = patience, recovery, float(ema)
         self.initial_reference = initial_reference
         self.on_lost = on_lost
-        self._views: tuple[np.ndarray, ...] | None = None
         B = batch_size
         self.register_buffer("reference", torch.zeros(B, dtype=torch.float64))
         self.register_buffer("confidence", torch.ones(B, dtype=torch.float64))
@@ -208,16 +208,9 @@ class LossDetector(nn.Module):
         self.lost[mask] = False
         self.lost_at_us[mask] = -1
 
-    def _apply(self, fn, recurse=True):
-        self._views = None  # the buffers may be new tensors: view them again
-        return super()._apply(fn, recurse)
-
     def _state(self) -> tuple[np.ndarray, ...]:
-        """Numpy views of the buffers in :func:`loss_kernel`'s order (made once: a view costs ~2 us per update)."""
-        if self._views is None:
-            self._views = (self.reference.numpy(), self.confidence.numpy(), self.low_run.numpy(),
-                           self.good_run.numpy(), self.lost.numpy(), self.lost_at_us.numpy())
-        return self._views
+        """Numpy views of the buffers in :func:`loss_kernel`'s order (:class:`~torchevtrack.stages.BufferViews`)."""
+        return self.buffer_views(("reference", "confidence", "low_run", "good_run", "lost", "lost_at_us"))
 
     def forward(self, quality: Quality, t_us: int | torch.Tensor) -> LossUpdate:
         B = self.batch_size

@@ -59,7 +59,7 @@ from torchevtrack.camera import Camera
 from torchevtrack.config import RecoverConfig
 from torchevtrack.mesh import symmetry_axis
 from torchevtrack.raster import RasterRenderer
-from torchevtrack.stages import batch_mask
+from torchevtrack.stages import BufferViews, batch_mask
 from torchevtrack.stages.propagate import propagate, twist_between_kernel
 from torchevtrack.stages.relocalise import LEVELS, Level, Relocalisation, Relocaliser
 
@@ -140,7 +140,7 @@ def bookkeeping_kernel(t, period_us, pose, declared, low_run, lost, good_pose, g
             pending[b] = False
 
 
-class Recoverer(nn.Module):
+class Recoverer(BufferViews, nn.Module):
     """Re-localise lost elements of an :class:`~torchevtrack.tracker.EventPoseTracker` (module docstring).
 
     Args:
@@ -190,7 +190,6 @@ class Recoverer(nn.Module):
         self.retry_us, self.min_events = int(retry_us), int(min_events)
         self.start_search, self.start_after_us = bool(start_search), int(start_after_us)
         self.searches, self.search_s, self.restarts = 0, 0.0, 0
-        self._views: tuple[np.ndarray, ...] | None = None
         B = len(self.owner)
         f64, i64 = torch.float64, torch.int64
         unit = torch.tensor([0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0], dtype=f64).expand(B, 7)
@@ -233,18 +232,11 @@ class Recoverer(nn.Module):
         for r in self.relocalisers:
             r.renderer.close()
 
-    def _apply(self, fn, recurse=True):
-        self._views = None  # the buffers may be new tensors: view them again
-        return super()._apply(fn, recurse)
-
     def _state(self) -> tuple[np.ndarray, ...]:
-        """Numpy views of the buffers in :func:`bookkeeping_kernel`'s order (made once: a view costs ~2 us per
-        update)."""
-        if self._views is None:
-            self._views = tuple(getattr(self, name).numpy() for name in (
-                "lost", "good_pose", "good_us", "anchor_pose", "anchor_us", "twist", "started_us", "next_search_us",
-                "retry_in_us", "start_pending"))
-        return self._views
+        """Numpy views of the buffers in :func:`bookkeeping_kernel`'s order
+        (:class:`~torchevtrack.stages.BufferViews`)."""
+        return self.buffer_views(("lost", "good_pose", "good_us", "anchor_pose", "anchor_us", "twist", "started_us",
+                                  "next_search_us", "retry_in_us", "start_pending"))
 
     def forward(self, tracker: "EventPoseTracker", t_us: torch.Tensor | int) -> None:
         # the bookkeeping of every update in one compiled call on the buffers; searches are rare

@@ -1,16 +1,18 @@
-"""The pipeline stages (see the README's pipeline table) and what they share: batch-element selection and the
-bilinear taps of the template canvas (sampled by the template stage and by the EROS observation)."""
+"""The pipeline stages (see the README's pipeline table) and what they share: batch-element selection, the numpy
+views of a module's buffers its compiled kernels take, and the bilinear taps of the template canvas (sampled by the
+template stage and by the EROS observation)."""
 
 from __future__ import annotations
 
 import functools
 import math
+from typing import Callable
 
 import numba
 import numpy as np
 import torch
 
-__all__ = ["NEVER", "batch_mask"]
+__all__ = ["NEVER", "BufferViews", "batch_mask"]
 
 NEVER = -(2 ** 62)
 """Time of a pixel that never fired, in the time surfaces (int64 microseconds): the flow's SAE and the
@@ -41,6 +43,34 @@ def batch_mask(mask: torch.Tensor | None, batch_size: int) -> torch.Tensor:
     if mask.numel() and (int(mask.min()) < 0 or int(mask.max()) >= batch_size):
         raise ValueError(f"mask indices must be in [0, {batch_size}), got {mask.tolist()}")
     return torch.zeros(batch_size, dtype=torch.bool).index_fill_(0, mask.long(), True)
+
+
+class BufferViews:
+    """Mixin for an ``nn.Module`` whose compiled kernels update its buffers in place through numpy views.
+
+    :meth:`buffer_views` makes the views once and again whenever a buffer's storage changes (a new tensor assigned,
+    ``.to``, ``.float``, ``share_memory``; ``load_state_dict`` copies in place and keeps them): making a view costs
+    about 2 us, more than some of these kernels' work per update. A copy or a pickle leaves the views out (a copy's
+    would not share its buffers) and makes its own.
+    """
+
+    _views: tuple | None = None
+
+    def buffer_views(self, names: tuple[str, ...],
+                     check: Callable[..., None] | None = None) -> tuple[np.ndarray, ...]:
+        """Numpy views of the buffers ``names``, in that order; ``check(*tensors)`` runs whenever they are made."""
+        tensors = tuple(self._buffers[n] for n in names)
+        key = tuple(t.data_ptr() for t in tensors)
+        if self._views is None or self._views[0] != key:
+            if check is not None:
+                check(*tensors)
+            self._views = key, tuple(t.numpy() for t in tensors)
+        return self._views[1]
+
+    def __getstate__(self) -> dict:
+        state = super().__getstate__()
+        state["_views"] = None
+        return state
 
 
 @functools.lru_cache(maxsize=64)

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from torchevtrack.stages import batch_mask
+from torchevtrack.stages import BufferViews, batch_mask
 
 __all__ = ["BurstGuard", "burst_update_", "keep_events"]
 
@@ -126,7 +126,7 @@ def keep_events(b: torch.Tensor | None, n: int, burst: torch.Tensor) -> slice | 
     return ~burst[b.long()]
 
 
-class BurstGuard(nn.Module):
+class BurstGuard(BufferViews, nn.Module):
     """Streaming burst detector for ``B`` event streams (module docstring).
 
     Args:
@@ -162,7 +162,6 @@ class BurstGuard(nn.Module):
         self.register_buffer("rate", torch.full((batch_size,), float("nan"), dtype=torch.float64))
         self.register_buffer("run", torch.zeros(batch_size, dtype=torch.int64))
         self.register_buffer("burst", torch.zeros(batch_size, dtype=torch.bool))
-        self._views: tuple | None = None  # (:meth:`_arrays`)
 
     def forward(self, n_events: torch.Tensor, dt_us: int) -> torch.Tensor:
         rate, run, burst = self._arrays()
@@ -170,21 +169,9 @@ class BurstGuard(nn.Module):
         return torch.from_numpy(burst.copy())
 
     def _arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """numpy views of the buffers ``rate, run, burst``, made again when a buffer is replaced (assignment, ``.to``,
-        ``load_state_dict`` keeps them): converting the tensors at each window costs more than judging it."""
-        bufs = self._buffers
-        state = bufs["rate"], bufs["run"], bufs["burst"]
-        key = tuple(t.data_ptr() for t in state)
-        if self._views is None or self._views[0] != key:
-            _check_state(*state)
-            self._views = key, tuple(t.numpy() for t in state)
-        return self._views[1]
-
-    def __getstate__(self) -> dict:
-        """The attributes for a copy or pickle, without the numpy views (a copy's would not share its buffers)."""
-        state = super().__getstate__()
-        state["_views"] = None
-        return state
+        """numpy views of the buffers ``rate, run, burst`` (:class:`~torchevtrack.stages.BufferViews`): converting the
+        tensors at each window costs more than judging it."""
+        return self.buffer_views(("rate", "run", "burst"), _check_state)
 
     def reset(self, mask: torch.Tensor | None = None) -> None:
         """Forget the rate of every element, or of those selected by ``mask`` (``(B,)`` bool or ``(K,)`` indices)."""
