@@ -10,7 +10,7 @@ import torch
 from torchevtrack.camera import Camera
 from torchevtrack.mesh import load_mesh
 from torchevtrack.raster import RasterRenderer
-from torchevtrack.stages.template import render_window, template_model
+from torchevtrack.stages.template import camera_array, render_box, render_window, template_model
 from torchevtrack.update import RenderModelBinding
 
 CAM = Camera(160, 120, 150.0, 150.0, 79.5, 59.5)
@@ -107,3 +107,38 @@ def test_a_textured_mesh_renders_its_texture_into_the_template():
         r.close()
     assert gradient[1] > 1.5 * gradient[0]  # the print's edges in the render
     assert energy[1] > 1.1 * energy[0]  # and in the template built from it
+
+
+@pytest.mark.parametrize("canvas", [12, 16])
+def test_a_window_of_several_canvases_is_rendered_at_its_scale(renderer, canvas):
+    """A window at least twice the canvas is rendered ``s = min(w, h) // (2 canvas)`` times smaller. The oracle: the
+    renderer's render of the frame of a camera ``s`` times smaller that sees that window, and ``template_model`` of
+    it; the depth handed out repeats each of its pixels over ``s x s`` frame pixels, and the box and gain are given
+    in frame pixels."""
+    pose = _pose(0.01, -0.01, 0.4, 0.6)
+    radius = _radius(renderer)
+    got = render_model(renderer, pose, radius, margin_px=10, canvas=canvas)
+    u0, v0, w, h = got.window[0].tolist()
+    s = min(w, h) // (2 * canvas)
+    assert s >= 2, (w, h)
+    fx, fy, cx, cy = CAM.fx / s, CAM.fy / s, (CAM.cx + 0.5) / s - 0.5, (CAM.cy + 0.5) / s - 0.5
+    small = RasterRenderer(load_mesh("can"), Camera(-(-w // s), -(-h // s), fx, fy, cx - u0 / s, cy - v0 / s),
+                           background=0.25)
+    want = small.render(pose)
+    small.close()
+    repeated = want.depth[0].repeat_interleave(s, 0).repeat_interleave(s, 1)[:h, :w]
+    assert torch.equal(got.depth[0], repeated) and float(repeated.max()) > 0
+    assert got.gray is None  # only the model reads the grey image
+    options = dict(canvas=canvas, edge_clip=OPTIONS["edge_clip"], silhouette=OPTIONS["silhouette"],
+                   interior=OPTIONS["interior"])
+    origin = torch.tensor([[u0 / s, v0 / s]], dtype=torch.float64)
+    frame = Camera(CAM.width // s, CAM.height // s, fx, fy, cx, cy)
+    model = template_model(pose.float().double(), want.depth, want.gray, origin, frame,
+                           margin_px=OPTIONS["box_margin_px"] / s, **options)
+    for name in ("K", "render_template", "coef", "depth", "points", "valid", "interior", "pose", "render_pose"):
+        a, c = getattr(got.model, name), getattr(model, name)
+        assert a.dtype == c.dtype and torch.equal(a, c), name
+    box, gain = render_box(want.depth.numpy(), origin.numpy(), camera_array(frame), OPTIONS["box_margin_px"] / s)
+    frame_box = torch.tensor([(box[0, 0] + 0.5) * s - 0.5, (box[0, 1] + 0.5) * s - 0.5, box[0, 2] * s])
+    assert torch.equal(got.model.box[0], frame_box.float())
+    assert torch.equal(got.model.gain, torch.from_numpy(gain) * s)

@@ -1,6 +1,7 @@
 """End-to-end tracker tests on a small synthetic sequence (320x240 box, regular motion)."""
 
 import math
+import threading
 
 import pytest
 import torch
@@ -425,12 +426,12 @@ def test_pipeline_options_and_a_window_that_was_not_taken_in(seq, monkeypatch):
 
 # -- render.ahead: the template rendered where the previous update predicted --------------------------
 def _recording(monkeypatch):
-    """Record each update's prediction and twist (the motion kernel's outputs) and the pose its template was
-    rendered at (the template model's, made in the correction)."""
+    """Record each update's prediction and twist (the motion kernel's outputs) and the pose each element's template
+    was rendered at (the compiled rasteriser's binding makes the model with the render, one element per call)."""
     import torchevtrack.update as update_module
 
     rec = {"motion": [], "render_pose": []}
-    motion, model = update_module._motion_kernel, update_module.model_in_box
+    motion, render_model = update_module._motion_kernel, update_module.RenderModelBinding.__call__
 
     def motion_recorded(*args):
         out = motion(*args)
@@ -438,12 +439,13 @@ def _recording(monkeypatch):
         rec["motion"].append((torch.from_numpy(predicted.copy()), torch.from_numpy(twist.copy())))
         return out
 
-    def model_recorded(pose, *args):
-        rec["render_pose"].append(torch.from_numpy(pose).float())  # float64 of the float32 render pose
-        return model(pose, *args)
+    def render_model_recorded(self, pose, shaded, model):
+        if model:
+            rec["render_pose"].append(torch.from_numpy(pose.copy()).float())
+        return render_model(self, pose, shaded, model)
 
     monkeypatch.setattr(update_module, "_motion_kernel", motion_recorded)
-    monkeypatch.setattr(update_module, "model_in_box", model_recorded)
+    monkeypatch.setattr(update_module.RenderModelBinding, "__call__", render_model_recorded)
     return rec
 
 
@@ -455,7 +457,9 @@ def test_render_ahead_renders_where_the_last_update_predicted(seq, batch, monkey
     t0 = int(seq.gt_t_us[0])
     tracker.track([seq.events] * batch, seq.gt_poses[0], t_start_us=t0, t_end_us=t0 + 20_000, progress=False)
     tracker.close()
-    (first, _), renders = rec["motion"][0], rec["render_pose"]
+    calls = rec["render_pose"]
+    renders = [torch.cat(calls[i:i + batch]) for i in range(0, len(calls), batch)]  # per update
+    first = rec["motion"][0][0]
     assert len(renders) == 10 and torch.equal(renders[0], first.float())  # nothing predicted before the first
     for (pred, twist), render_pose in zip(rec["motion"], renders[1:]):
         assert torch.equal(render_pose, propagate(pred, twist, 0.002).float())
@@ -502,7 +506,8 @@ def test_a_failed_render_ahead_raises_in_the_update_that_needs_it_once(seq):
     at = make.py_func.__code__.co_varnames.index("model")
 
     def failing_once(*args):  # the compiled call
-        if args[at] and not failing_once.failed:  # a render with its model: the one made on the thread
+        on_thread = threading.current_thread() is not threading.main_thread()
+        if args[at] and on_thread and not failing_once.failed:  # a render with its model made on the thread
             failing_once.failed = True
             raise MemoryError("no memory for the render")
         return make(*args)

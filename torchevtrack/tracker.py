@@ -521,8 +521,8 @@ class EventPoseTracker(nn.Module):
         render = None  # None: the correction uses self._run.models (the last render's, or one made with this render)
         if not (cfg.template.enabled and self._reusable(pose32)):
             render = self._render(render_pose, shaded=cfg.template.enabled)
-            if render.model is not None:
-                self._run.models, render = [render.model], None
+            if render.models is not None:
+                self._run.models, render = render.models, None
             if self._schedule.pipelined and cfg.render.ahead and run.render_next_ok.all():
                 # the template model too, unless the thread will take the next window in (it would then wait)
                 self._render_soon(run.render_next.copy(), cfg.template.enabled,
@@ -668,68 +668,71 @@ class EventPoseTracker(nn.Module):
         return window_of(t, self.camera, radius, self.config.render.margin_px, clip=True)
 
     def _render_into(self, i: int, pose: np.ndarray, win: np.ndarray, origin: np.ndarray, depth: np.ndarray,
-                     gray: np.ndarray | None) -> None:
+                     gray: np.ndarray | None, model: bool = False) -> TemplateModel | None:
         """Render element ``i`` at the valid ``pose`` ``(1, 7)`` float64 in its own window ``win`` and write it into
         row ``i`` of the common-size buffers whose top-left pixel is ``origin`` ``(2,)`` (the own window lies inside).
         The compiled rasteriser goes through its unchecked binding (the workers render in parallel only inside its
-        kernel: checks and tensor glue would hold the GIL), which finds the same window."""
+        kernel: checks and tensor glue would hold the GIL), which finds the same window; with ``model`` (it needs the
+        binding) it also makes the template model, returned, and writes no grey image."""
         u, v, w, h = win.tolist()
         du, dv = u - int(origin[0]), v - int(origin[1])
         bound = self._render_bindings[self._renderer_of[i]]
         if bound is not None:
-            out = bound(pose, gray is not None, False)
+            out = bound(pose, model or gray is not None, model)
         else:
             out = self._renderers[self._renderer_of[i]].render(torch.from_numpy(pose), roi=(u, v, w, h),
                                                                shaded=gray is not None)
-        d, g = out.depth.numpy(), None if gray is None else out.gray.numpy()
-        depth[i, dv:dv + h, du:du + w] = d[0]
+        depth[i, dv:dv + h, du:du + w] = out.depth.numpy()[0]
         if gray is not None:
-            gray[i, dv:dv + h, du:du + w] = g[0]
+            gray[i, dv:dv + h, du:du + w] = out.gray.numpy()[0]
+        return out.model if model else None
 
     def _render(self, poses: np.ndarray, shaded: bool):
         """Render each element in its own window around its pose (``poses`` ``(B, 7)`` float64), placed in buffers of
         one common size (the largest window; outside its own window an element's buffers hold background, as its window
         contains its object). A render's pixels depend slightly on its window, so own windows keep the
-        elements from changing each other's renders. Keeps the depth and the windows' common ``origin``."""
+        elements from changing each other's renders. Keeps the depth and the windows' common ``origin``. With the
+        compiled rasteriser a shaded render comes with each element's template model (made with its own render,
+        :class:`~torchevtrack.update.RenderModelBinding`), one model per share of the batch."""
         B = self.batch_size
         H, W = self.camera.height, self.camera.width
-        if B == 1:  # the own window is the common one: the render is the buffer
+        if B == 1 and self._render_one is not None:  # the own window is the common one: the render is the buffer
             if self._run.rendering is not None:  # made ahead, at these poses, with its template model (render.ahead)
                 rendering, self._run.rendering = self._run.rendering, None  # taken, even if it failed
                 made = self._render_one.finish(rendering.result())
-                self._set_depth(made.depth)
-                self.origin.numpy()[:] = made.window[:, :2]
-                return _Render(made.depth, made.gray, made.model)
-            if self._render_one is not None:
-                depth, gray, win, _ = self._render_one(poses, shaded, False)
-            else:
-                win = self._windows(poses)
-                out = self._renderers[0].render(torch.from_numpy(poses), roi=tuple(win[0].tolist()), shaded=shaded)
-                depth, gray = out.depth, out.gray
-            self._set_depth(depth)
+            else:  # with its template model when shaded
+                made = self._render_one(poses, shaded, shaded)
+            self._set_depth(made.depth)
+            self.origin.numpy()[:] = made.window[:, :2]
+            return _Render(made.depth, made.gray, None if made.model is None else [made.model])
+        if B == 1:
+            win = self._windows(poses)
+            out = self._renderers[0].render(torch.from_numpy(poses), roi=tuple(win[0].tolist()), shaded=shaded)
+            self._set_depth(out.depth)
             self.origin.numpy()[:] = win[:, :2]
-            return _Render(depth, gray)
+            return _Render(out.depth, out.gray)
         win = self._windows(poses)
         w, h = int(win[:, 2].max()), int(win[:, 3].max())
         origin = np.stack((np.minimum(win[:, 0], W - w), np.minimum(win[:, 1], H - h)), -1)
         depth = torch.zeros(B, h, w)
-        gray = torch.empty(B, h, w) if shaded else None
+        # the compiled rasteriser's binding makes each element's template model with its render (its own render)
+        modelled = shaded and all(b is not None for b in self._render_bindings)
+        gray = torch.empty(B, h, w) if shaded and not modelled else None
 
         depth_np, gray_np = depth.numpy(), None if gray is None else gray.numpy()
 
-        def share(rows: slice) -> None:
+        def share(rows: slice) -> TemplateModel | None:
+            models = []
             for i in range(B)[rows]:
-                if shaded:
+                if gray_np is not None:
                     gray_np[i] = self._renderers[self._renderer_of[i]].background
-                self._render_into(i, poses[i:i + 1], win[i], origin[i], depth_np, gray_np)
+                models.append(self._render_into(i, poses[i:i + 1], win[i], origin[i], depth_np, gray_np, modelled))
+            return _cat(models) if modelled else None
 
-        if self._threaded_render:
-            self._schedule.map(share)
-        else:
-            share(slice(None))
+        models = self._schedule.map(share) if self._threaded_render else [share(slice(None))]
         self._set_depth(depth)
         self.origin.copy_(torch.from_numpy(origin))
-        return _Render(depth, gray)
+        return _Render(depth, gray, models if modelled else None)
 
     def _bind(self) -> "_Bound":
         """Bind each stage's compiled step to the buffers it reads and writes (numpy views: no checks or conversions
@@ -1039,7 +1042,7 @@ class _Bound(NamedTuple):
 class _Render:
     depth: torch.Tensor
     gray: torch.Tensor | None
-    model: TemplateModel | None = None  # its template model, when made with it (render.ahead with the pipeline)
+    models: list[TemplateModel] | None = None  # its template models, one per share, when made with it
 
 
 _T = TypeVar("_T")

@@ -55,7 +55,7 @@ from torchevtrack.stages.flow import (FlowField, TripletFlow, event_arrays, even
 from torchevtrack.stages.propagate import propagate_kernel, propagate_step, twist_between_kernel, valid_pose
 from torchevtrack.stages.template import (Correction, TemplateModel, box_kernel, camera_array, correct_canvas,
                                           model_filters, model_in_box, model_kernel, newton_arrays, render_box,
-                                          window_kernel)
+                                          render_scale, window_kernel)
 from torchevtrack.stages.ukf import UKFArrays, ukf_step
 from torchevtrack.stages.velocity import FeedbackArrays, KFArrays, feedback_step, shift_twist_kernel, velocity_step
 
@@ -223,7 +223,8 @@ class Rendered(NamedTuple):
     """A render of one pose in its window and, if asked for, its template model (:class:`RenderModelBinding`).
 
     Attributes:
-        depth: ``(1, h, w)`` float32 metres (0 off the object); gray: ``(1, h, w)`` float32 or ``None``.
+        depth: ``(1, h, w)`` float32 metres (0 off the object); gray: ``(1, h, w)`` float32 or ``None`` (unshaded, or
+            a model made from a render at a scale: :class:`RenderModelBinding`).
         window: ``(1, 4)`` int64 ``(u0, v0, w, h)`` of the frame.
         model: the :class:`~torchevtrack.stages.template.TemplateModel` of the render, or ``None``.
     """
@@ -242,7 +243,12 @@ def _render_model_kernel(pose, radius, cam, W, H, margin, vertices, faces, plane
     normalised copy (the renderers' rule), its float32 rounding ``pose32`` (the model's pose), and with ``model`` the
     template model's arrays at ``pose32`` (``box, K, gain, render_template, depth, coef, points, valid,
     interior``), its box also into ``observed_box`` as float64. ``texture``: the mesh's
-    :class:`~torchevtrack.raster.RasterTexture` as a tuple, or ``None`` (untextured)."""
+    :class:`~torchevtrack.raster.RasterTexture` as a tuple, or ``None`` (untextured).
+
+    With ``model`` the window is rendered at :func:`~torchevtrack.stages.template.render_scale` ``s`` (the model is
+    that of the frame of a camera ``s`` times smaller, its box and gain given in frame pixels) and the depth handed
+    out is that render's, each pixel repeated over its ``s x s`` frame pixels; the grey image is then not handed
+    out (empty)."""
     unit = pose.copy()
     nb_normalise_quaternions(unit, np.empty(1))
     pose32 = pose.astype(np.float32).astype(np.float64)
@@ -250,10 +256,20 @@ def _render_model_kernel(pose, radius, cam, W, H, margin, vertices, faces, plane
     win = np.empty((1, 4), dtype=np.int64)
     window_kernel(np.ascontiguousarray(pose[:, :3]), radius, fx, fy, cx, cy, margin, W, H, True, win)
     u0, v0, w, h = win[0, 0], win[0, 1], win[0, 2], win[0, 3]
+    s = render_scale(w, h, N) if model else 1
     depth = np.empty((1, h, w), dtype=np.float32)
-    gray = np.empty((1, h, w) if shaded else (1, 0, 0), dtype=np.float32)
-    render_kernel(vertices, faces, planes, albedo, normals, unit, fx, fy, cx - u0, cy - v0, znear, zfar, light,
-                  ambient, background, depth, gray, texture)
+    origin = win[:, :2].astype(np.float64)
+    if s == 1:
+        rendered, sub, sub_origin = depth, cam, origin
+    else:  # the frame of a camera s times smaller
+        rendered = np.empty((1, -(-h // s), -(-w // s)), dtype=np.float32)
+        sub = np.array([fx / s, fy / s, (cx + 0.5) / s - 0.5, (cy + 0.5) / s - 0.5])
+        sub_origin = origin / s
+    gray = np.empty(rendered.shape if shaded else (1, 0, 0), dtype=np.float32)
+    render_kernel(vertices, faces, planes, albedo, normals, unit, sub[0], sub[1], sub[2] - sub_origin[0, 0],
+                  sub[3] - sub_origin[0, 1], znear, zfar, light, ambient, background, rendered, gray, texture)
+    if s > 1:
+        _repeat_pixels(rendered[0], s, depth[0])
     box = np.empty((1, 3))
     gain = np.empty(1, dtype=np.float32)
     box32, K = np.empty((1, 3), dtype=np.float32), np.empty((1, 4), dtype=np.float32)
@@ -262,13 +278,32 @@ def _render_model_kernel(pose, radius, cam, W, H, margin, vertices, faces, plane
     coef = np.zeros((1, n + 6, n + 6) if model else (1, 0, 0), dtype=np.float32)
     points, valid = np.empty((1, m, 3), dtype=np.float32), np.empty((1, m), dtype=np.bool_)
     if model:
-        origin = win[:, :2].astype(np.float64)
-        box_kernel(depth, origin, cam, box_margin, box, gain)
-        model_kernel(depth, gray, origin, box, cam, np.ascontiguousarray(pose32[:, 2]), np.bool_(True), silhouette,
-                     edge_scale, interior, g1, g2, pre, step, step, box32, K, T, coef, Z, points, valid)
+        box_kernel(rendered, sub_origin, sub, box_margin / s, box, gain)
+        model_kernel(rendered, gray, sub_origin, box, sub, np.ascontiguousarray(pose32[:, 2]), np.bool_(True),
+                     silhouette, edge_scale, interior, g1, g2, pre, step, step, box32, K, T, coef, Z, points, valid)
+        if s > 1:  # the box and the gain in frame pixels (K is the same in either)
+            box32[0, 0] = (box[0, 0] + 0.5) * s - 0.5
+            box32[0, 1] = (box[0, 1] + 0.5) * s - 0.5
+            box32[0, 2] = box[0, 2] * s
+            gain[0] *= s
+            gray = np.empty((1, 0, 0), dtype=np.float32)
         for k in range(3):
             observed_box[0, k] = box32[0, k]
     return win, depth, gray, pose32, (box32, K, gain, T, Z, coef, points, valid, np.full(1, interior))
+
+
+@numba.njit(cache=True, nogil=True)
+def _repeat_pixels(small, s, out):
+    """``out[v, u] = small[v // s, u // s]`` for every pixel of ``out`` ``(h, w)`` (``small`` ``(ceil(h / s),
+    ceil(w / s))``): one row widened, then copied to its ``s`` rows."""
+    h, w = out.shape
+    wide = np.empty(small.shape[1] * s, dtype=small.dtype)
+    for i in range(small.shape[0]):
+        row = small[i]
+        for j in range(small.shape[1]):
+            wide[j * s:(j + 1) * s] = row[j]
+        for v in range(i * s, min((i + 1) * s, h)):
+            out[v] = wide[:w]
 
 
 class RenderModelBinding:
@@ -280,7 +315,9 @@ class RenderModelBinding:
     with ``margin_px``, clipped to the frame), the grey image too with ``shaded``, and with ``model`` (needs
     ``shaded``) the template model (:func:`~torchevtrack.stages.template.template_model` with ``canvas``,
     ``box_margin_px`` as its ``margin_px``, ``edge_clip``, ``silhouette`` and ``interior``) at the pose's float32
-    rounding. A caller that runs the compiled call on another thread without the GIL in between calls it in three
+    rounding. A window of at least twice the canvas is then rendered
+    :func:`~torchevtrack.stages.template.render_scale` times smaller: its model is that render's, its depth the
+    render's pixels repeated, and no grey image is handed out. A caller that runs the compiled call on another thread without the GIL in between calls it in three
     parts: ``args = binding.start(pose, shaded, model)`` (the Python part before it), ``raw = binding.kernel(*args)``
     (the compiled call) and ``binding.finish(raw)``.
 

@@ -126,6 +126,7 @@ __all__ = [
     "window_extent",
     "window_of",
     "window_kernel",
+    "render_scale",
     "canvas_intrinsics",
     "to_canvas",
     "odd_size",
@@ -235,6 +236,20 @@ def window_kernel(t, radius, fx, fy, cx, cy, margin, W, H, clip, out):
         if clip:
             out[b, 2], out[b, 3] = min(out[b, 2], W), min(out[b, 3], H)
             out[b, 0], out[b, 1] = min(max(out[b, 0], 0), W - out[b, 2]), min(max(out[b, 1], 0), H - out[b, 3])
+
+
+@numba.njit(cache=True, nogil=True)
+def render_scale(w, h, canvas):
+    """The subsampling ``s`` (an int >= 1) of the render a template model of ``canvas`` pixels is made from, for a
+    render window of ``w x h`` frame pixels: ``max(1, min(w, h) // (2 canvas))``, so that a render pixel stays at most
+    half a canvas pixel of a window-sized box (a window holds the object's bounding sphere and a margin; the box, its
+    outline and a margin). The window is then rendered at ``ceil(h / s) x ceil(w / s)`` pixels, render pixel ``(i,
+    j)`` centred on frame pixel ``(u0 + s j + (s - 1) / 2, v0 + s i + (s - 1) / 2)``.
+
+    >>> render_scale(283, 283, 128), render_scale(514, 514, 128), render_scale(1280, 720, 128)
+    (1, 2, 2)
+    """
+    return max(1, min(w, h) // (2 * canvas))
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
