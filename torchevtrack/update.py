@@ -317,9 +317,9 @@ class RenderModelBinding:
     ``box_margin_px`` as its ``margin_px``, ``edge_clip``, ``silhouette`` and ``interior``) at the pose's float32
     rounding. A window of at least twice the canvas is then rendered
     :func:`~torchevtrack.stages.template.render_scale` times smaller: its model is that render's, its depth the
-    render's pixels repeated, and no grey image is handed out. A caller that runs the compiled call on another thread without the GIL in between calls it in three
-    parts: ``args = binding.start(pose, shaded, model)`` (the Python part before it), ``raw = binding.kernel(*args)``
-    (the compiled call) and ``binding.finish(raw)``.
+    render's pixels repeated, and no grey image is handed out. A caller that runs the compiled call on another
+    thread without the GIL in between calls it in three parts: ``args = binding.start(pose, shaded, model)`` (the
+    Python part before it), ``raw = binding.kernel(*args)`` (the compiled call) and ``binding.finish(raw)``.
 
     Args:
         renderer: the object's :class:`~torchevtrack.raster.RasterRenderer` (its camera is the frame's).
