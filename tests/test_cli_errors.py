@@ -2,6 +2,7 @@
 run that never moves exits 3 with a warning; `eval` with another time base."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -113,7 +114,17 @@ def test_a_start_pose_filling_the_image_warns(tmp_path, capsys):
 
     close = torch.tensor([0.0, 0.0, 0.13, 1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
     assert "fills the whole image" in check_start_pose(CAM, "box", close)
-    assert check_start_pose(CAM, "box", torch.tensor([0.0, 0.0, 0.6, 1.0, 0.0, 0.0, 0.0])) is None
+    assert check_start_pose(CAM, "box", torch.tensor([0.0, 0.0, 0.3, 1.0, 0.0, 0.0, 0.0])) is None  # 123 px wide
+
+
+def test_a_small_object_warns_with_its_span():
+    from torchevtrack.cli.track import SMALL_PX, check_start_pose
+
+    # the built-in box (0.16 x 0.06 x 0.21 m) face on, its centre at 0.6 m: the near face (0.105 m closer) spans
+    # 0.16 m x 150 px / 0.495 m = 48.5 px
+    warning = check_start_pose(CAM, "box", torch.tensor([0.0, 0.0, 0.6, 1.0, 0.0, 0.0, 0.0], dtype=torch.float64))
+    span = int(re.search(r"spans (\d+) px", warning).group(1))
+    assert abs(span - 0.16 * 150.0 / 0.495) <= 1.0 and f"below {SMALL_PX} px" in warning
 
 
 def test_no_events_in_the_tracked_span(tmp_path, capsys):

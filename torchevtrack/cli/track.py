@@ -83,9 +83,16 @@ def parse_init(text: str) -> torch.Tensor:
     return torch.tensor(v[:3] + [v[6]] + v[3:6], dtype=torch.float64)
 
 
+SMALL_PX = 64
+"""An object whose image spans fewer pixels at the start pose gets a warning: a box of ~45 px gives the flow 3-7 vectors
+per update for the six unknowns of its motion, and fast turns out of the image plane are often lost (docs/method.md,
+Known limits)."""
+
+
 def check_start_pose(camera: Camera, mesh, pose: torch.Tensor) -> str | None:
-    """A warning if the object at ``pose`` (``(7,)``, ``[t, qw, qx, qy, qz]``) shows no edge to track: it fills
-    the whole image; ``None`` if it is fine. Raises ``ValueError`` if no pixel of it is in view."""
+    """A warning if the object at ``pose`` (``(7,)``, ``[t, qw, qx, qy, qz]``) shows no edge to track (it fills
+    the whole image or covers a handful of pixels) or is small (its image spans fewer than :data:`SMALL_PX` pixels);
+    ``None`` if it is fine. Raises ``ValueError`` if no pixel of it is in view."""
     from torchevtrack.mesh import load_mesh
     from torchevtrack.raster import RasterRenderer
 
@@ -100,6 +107,11 @@ def check_start_pose(camera: Camera, mesh, pose: torch.Tensor) -> str | None:
         return "the object fills the whole image at the start pose: it has no edge to track (too close?)"
     if seen < 20:
         return f"the object covers only {seen} pixels at the start pose: too few edges to track"
+    rows, cols = inside.any(1).nonzero(), inside.any(0).nonzero()
+    span = max(int(rows[-1] - rows[0]), int(cols[-1] - cols[0])) + 1
+    if span < SMALL_PX:
+        return (f"the object spans {span} px at the start pose: below {SMALL_PX} px its flow gives few vectors and fast "
+                "turns out of the image plane are often lost (a closer object or a finer sensor helps)")
     return None
 
 
