@@ -37,6 +37,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from torchevtrack.config import RECENCY_STEP_US, ErosConfig, recency_windows
+from torchevtrack.prefetch import AHEAD, prefetch
 from torchevtrack.stages import NEVER, batch_mask, canvas_taps
 
 __all__ = ["EROS", "Recency", "RecencyArrays", "TimeSurface", "bind_observe", "canvas_kernel",
@@ -138,11 +139,22 @@ def eros_kernel(surface, x, y, b, batched, r, lam):
     """:func:`eros_update_` on numpy arrays, unchecked, for compiled callers: the events ``x, y`` ``(N,)`` of the
     elements ``b`` ``(N,)`` (read only when ``batched``; else all in element 0) into ``surface`` ``(B, H, W)``, in
     order, with the window radius ``r = kernel_size // 2`` and the factor ``lam`` (:attr:`EROS.lam`, of the surface's
-    dtype). Returns False, the surface untouched, if an event lies outside it."""
+    dtype). Returns False, the surface untouched, if an event lies outside it.
+
+    The window of event ``i + AHEAD`` is prefetched while event ``i`` is written (:mod:`torchevtrack.prefetch`): a
+    noise event's window lies out of every cache."""
     B, H, W = surface.shape
     if not events_inside(x, y, b, batched, B, H, W):
         return False
-    for i in range(x.shape[0]):
+    flat = surface.reshape(B * H * W)
+    n = x.shape[0]
+    for i in range(n):
+        j = i + AHEAD
+        if j < n:
+            corner = ((b[j] if batched else 0) * H + y[j] - r) * W + x[j] - r
+            for dy in range(2 * r + 1):
+                prefetch(flat, corner + dy * W)
+                prefetch(flat, corner + dy * W + 2 * r)
         u, v, k = x[i], y[i], b[i] if batched else 0
         u0, u1 = max(u - r, 0), min(u + r + 1, W)
         for yy in range(max(v - r, 0), min(v + r + 1, H)):
@@ -536,7 +548,12 @@ def time_kernel(last, x, y, t, b, batched):
     B, H, W = last.shape
     if not events_inside(x, y, b, batched, B, H, W):
         return False
-    for i in range(x.shape[0]):
+    flat = last.reshape(B * H * W)
+    n = x.shape[0]
+    for i in range(n):
+        j = i + AHEAD
+        if j < n:
+            prefetch(flat, ((b[j] if batched else 0) * H + y[j]) * W + x[j])
         k = b[i] if batched else 0
         last[k, y[i], x[i]] = max(last[k, y[i], x[i]], t[i])
     return True

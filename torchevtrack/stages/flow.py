@@ -60,6 +60,7 @@ from numba.cpython.unsafe.numbers import trailing_zeros
 from torch import nn
 
 from torchevtrack.config import FlowConfig
+from torchevtrack.prefetch import AHEAD, prefetch
 from torchevtrack.stages import NEVER, batch_mask
 from torchevtrack.stages.eros import check_fields, check_times, prepare_events
 
@@ -267,6 +268,9 @@ def _match_packet(sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, chu
 _WORD = 63
 """Directions per bit mask of :func:`_triplet_kernel` (bits 0..62 of an int64)."""
 
+_LINE = 8
+"""SAE entries (int64) per 64-byte cache line."""
+
 
 @numba.njit(cache=True, nogil=True)
 def _triplet_kernel(sae, x, y, t, p, b, C, batched, start, stop, dirs, pad, dt_max_us, tol, event, flow):
@@ -277,7 +281,11 @@ def _triplet_kernel(sae, x, y, t, p, b, C, batched, start, stop, dirs, pad, dt_m
     The tests of an event's ``K`` directions run as one vector loop into a bit mask (:func:`_pass_mask`), then
     the samples of the set bits are written in direction order (:func:`_emit`). With ``K <= 63`` (one mask) an
     event's samples are written one event later, so that the branches over them do not hold up the next
-    event's lookups."""
+    event's lookups.
+
+    The lookups of event ``i + AHEAD`` (its ``(4 D + 1)^2`` neighbourhood, ``D = pad / 2``) are prefetched while event
+    ``i`` is matched: a noise event's neighbourhood lies out of every cache, and without the hint each event waits
+    for its own reads (3-6x the time of an event on an edge; the samples are the same)."""
     n_planes, Hp, Wp = sae.shape
     flat = sae.reshape(n_planes * Hp * Wp)
     K = dirs.shape[0]
@@ -290,6 +298,15 @@ def _triplet_kernel(sae, x, y, t, p, b, C, batched, start, stop, dirs, pad, dt_m
     s = 0
     at_prev = t_prev = m_prev = 0
     for i in range(start, stop):
+        j = i + AHEAD
+        if j < stop:
+            cj = (b[j] if batched else 0) * C + (p[j] if C == 2 else 0)
+            corner = (cj * Hp + y[j]) * Wp + x[j]  # the padded neighbourhood's top-left: pad rows and columns back
+            for r in range(2 * pad + 1):
+                row = corner + r * Wp
+                for col in range(0, 2 * pad + 1, _LINE):
+                    prefetch(flat, row + col)
+                prefetch(flat, row + 2 * pad)
         c = (b[i] if batched else 0) * C + (p[i] if C == 2 else 0)
         at = (c * Hp + y[i] + pad) * Wp + x[i] + pad
         if lag:
