@@ -22,7 +22,10 @@ filters run side by side; the state is float64.
   information is scaled by a Laplacian-kernel weight ``w_i = exp(-max(r_i - m, 0) / (k s))``, i.e. its
   covariance becomes ``s_i^2 I / w_i``. Vectors fitting at least as well as the median keep ``w_i = 1``;
   gross outliers get ``w_i ~ 0``; residuals within the nominal noise are barely touched. (A Huber weight
-  ``min(1, c / r_i)`` needs about 10 rounds to shed 30 % gross outliers; this kernel needs 3.)
+  ``min(1, c / r_i)`` needs about 10 rounds to shed 30 % gross outliers; this kernel needs 3.) The first round
+  weighs against the prior ``x`` instead when the prior's median residual is the lower one: a few vectors of
+  near-zero flow in a wrong direction (a corner in a block) have the smallest ``s_i`` and can drag the plain update
+  so far that the median vector no longer fits it, and the re-weighting would then keep the dragged twist.
 * The update is solved in information form, ``6 x 6`` per filter, whatever the number of vectors.
 
 :class:`CorrectionFeedback` (optional, used by the tracker with ``velocity.feedback_gain > 0``) adds a
@@ -196,6 +199,7 @@ def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, 
     ok = np.empty(G, dtype=np.bool_)
     w = np.empty(G)
     res = np.empty(G)
+    res_prior = np.empty(G)
     sig = np.empty(G)  # each vector's noise standard deviation, px of displacement per update
     med_buf = np.empty(G)
     L = np.empty((6, 6))
@@ -267,12 +271,30 @@ def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, 
         n_ok_rows = M // rows
         for i in range(n_ok_rows):
             w[i] = 1.0
+        med_prior = 0.0
+        if iters > 0:  # residuals at the prior, kept in sig units in res_prior
+            for i in range(n_ok_rows):
+                s = 0.0
+                for q in range(rows):
+                    r = i * rows + q
+                    e = zs[r]
+                    for j in range(6):
+                        e -= Hs[r, j] * x[b, j]
+                    s += e * e
+                res_prior[i] = np.sqrt(s) / sig[i]
+                med_buf[i] = res_prior[i]
+            srt = np.sort(med_buf[:n_ok_rows])
+            med_prior = srt[(n_ok_rows - 1) // 2] if n_ok_rows > 0 else 0.0
         for it in range(iters + 1):
-            if it > 0:  # Laplacian re-weighting against the previous posterior
+            if it > 0:  # Laplacian re-weighting against the previous posterior (or the prior, if it fits better)
                 for i in range(n_ok_rows):
                     med_buf[i] = res[i]
                 srt = np.sort(med_buf[:n_ok_rows])
                 med = srt[(n_ok_rows - 1) // 2] if n_ok_rows > 0 else 0.0
+                if it == 1 and med_prior < med:
+                    med = med_prior
+                    for i in range(n_ok_rows):
+                        res[i] = res_prior[i]
                 scale = k * max(_MAD * med, 1.0)
                 for i in range(n_ok_rows):
                     w[i] = np.exp(-max(res[i] - med, 0.0) / scale)
