@@ -187,6 +187,30 @@ def shift_twist_kernel(twist, c, out):
         out[b, 3], out[b, 4], out[b, 5] = w0, w1, w2
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _residuals(Hs, zs, x, sig, rows, n, out):
+    """Into ``out[:n]``: the norm of each of ``n`` vectors' residual ``z - H x`` (``rows`` rows each of ``Hs``,
+    ``zs``) in units of its noise standard deviation ``sig``."""
+    for i in range(n):
+        s = 0.0
+        for q in range(rows):
+            r = i * rows + q
+            e = zs[r]
+            for j in range(6):
+                e -= Hs[r, j] * x[j]
+            s += e * e
+        out[i] = np.sqrt(s) / sig[i]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _lower_median(values, n, buf):
+    """The lower median of ``values[:n]`` (0 for ``n = 0``), sorted in ``buf``."""
+    if n == 0:
+        return 0.0
+    buf[:n] = values[:n]
+    return np.sort(buf[:n])[(n - 1) // 2]
+
+
 @numba.njit(cache=True, nogil=True)
 def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, fy, cx, cy, r_px, r_rel, iters, k,
                       min_vectors, normal, x_out, P_out, w_out, res_out, used_out):
@@ -272,29 +296,15 @@ def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, 
         for i in range(n_ok_rows):
             w[i] = 1.0
         med_prior = 0.0
-        if iters > 0:  # residuals at the prior, kept in sig units in res_prior
-            for i in range(n_ok_rows):
-                s = 0.0
-                for q in range(rows):
-                    r = i * rows + q
-                    e = zs[r]
-                    for j in range(6):
-                        e -= Hs[r, j] * x[b, j]
-                    s += e * e
-                res_prior[i] = np.sqrt(s) / sig[i]
-                med_buf[i] = res_prior[i]
-            srt = np.sort(med_buf[:n_ok_rows])
-            med_prior = srt[(n_ok_rows - 1) // 2] if n_ok_rows > 0 else 0.0
+        if iters > 0:  # the prior's residuals, the first round's reference when they fit the median vector better
+            _residuals(Hs, zs, x[b], sig, rows, n_ok_rows, res_prior)
+            med_prior = _lower_median(res_prior, n_ok_rows, med_buf)
         for it in range(iters + 1):
-            if it > 0:  # Laplacian re-weighting against the previous posterior (or the prior, if it fits better)
-                for i in range(n_ok_rows):
-                    med_buf[i] = res[i]
-                srt = np.sort(med_buf[:n_ok_rows])
-                med = srt[(n_ok_rows - 1) // 2] if n_ok_rows > 0 else 0.0
+            if it > 0:  # Laplacian re-weighting against the previous posterior (or the prior)
+                med = _lower_median(res, n_ok_rows, med_buf)
                 if it == 1 and med_prior < med:
                     med = med_prior
-                    for i in range(n_ok_rows):
-                        res[i] = res_prior[i]
+                    res[:n_ok_rows] = res_prior[:n_ok_rows]
                 scale = k * max(_MAD * med, 1.0)
                 for i in range(n_ok_rows):
                     w[i] = np.exp(-max(res[i] - med, 0.0) / scale)
@@ -322,15 +332,7 @@ def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, 
             cholesky_solve(L, rhs, step)
             for j in range(6):
                 xp[j] = x[b, j] + step[j]
-            for i in range(n_ok_rows):
-                s = 0.0
-                for q in range(rows):
-                    r = i * rows + q
-                    e = zs[r]
-                    for j in range(6):
-                        e -= Hs[r, j] * xp[j]
-                    s += e * e
-                res[i] = np.sqrt(s) / sig[i]  # in noise standard deviations
+            _residuals(Hs, zs, xp, sig, rows, n_ok_rows, res)
         cholesky_inverse(L, P_out[b])
         for j in range(6):
             x_out[b, j] = xp[j]
