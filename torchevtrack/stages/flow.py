@@ -304,7 +304,7 @@ def _triplet_kernel(sae, x, y, t, p, b, C, batched, start, stop, dirs, pad, dt_m
             corner = (cj * Hp + y[j]) * Wp + x[j]  # the padded neighbourhood's top-left: pad rows and columns back
             for r in range(2 * pad + 1):
                 row = corner + r * Wp
-                for col in range(0, 2 * pad + 1, _LINE):
+                for col in range(0, 2 * pad, _LINE):  # then the row's last entry, below
                     prefetch(flat, row + col)
                 prefetch(flat, row + 2 * pad)
         c = (b[i] if batched else 0) * C + (p[i] if C == 2 else 0)
