@@ -189,8 +189,9 @@ def test_canvas_observation_is_the_recent_observation_of_the_tap_window_in_the_c
     last = torch.where(torch.rand(B, channels, H, W, generator=gen) > 0.3,
                        torch.randint(0, 10000, (B, channels, H, W), generator=gen), NEVER)
     t_now = torch.tensor([10000, 9000, 9500])
-    # inside the frame at 1.7 frame px per canvas px; over the top-left corner; wholly outside the frame
-    box = torch.tensor([[40.3, 31.2, 40.8], [3.0, 4.5, 30.0], [-50.0, 20.0, 20.0]], dtype=torch.float64)
+    # inside the frame at 2.3 frame px per canvas px (the taps skip rows and columns, whose medians the kernel
+    # leaves out); over the top-left corner; wholly outside the frame
+    box = torch.tensor([[40.3, 31.2, 56.0], [3.0, 4.5, 30.0], [-50.0, 20.0, 20.0]], dtype=torch.float64)
     out = canvas_observation(surface, last, box, N, t_now, max_age_us, recency_us)
     assert out.shape == (B, N, N) and out.dtype == torch.float32
     assert (out[2] == 0).all() and (out[0] > 0).any()

@@ -346,9 +346,11 @@ def _decay(age, inv_tau):
 @numba.njit(cache=True, nogil=True)
 def _recent_kernel(surface, last, origin, t_now, max_age, taus, decay, level, out):
     """:func:`recent_observation` into ``out`` ``(B, h, w)``."""
+    every_row, every_col = np.ones(out.shape[1], dtype=np.bool_), np.ones(out.shape[2], dtype=np.bool_)
     for b in range(out.shape[0]):
         k = level[b]
-        _recent_window(surface[b], last[b], origin[b, 0], origin[b, 1], t_now[b], max_age, taus[k], decay[k], out[b])
+        _recent_window(surface[b], last[b], origin[b, 0], origin[b, 1], t_now[b], max_age, taus[k], decay[k], out[b],
+                       every_row, every_col)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -370,21 +372,24 @@ def canvas_kernel(surface, last, box, t_now, max_age, taus, decay, level, out):
         if u1 <= u0 or v1 <= v0:
             continue
         win = np.empty((v1 - v0, u1 - u0), dtype=np.float32)
+        x0, x1, wu0, wu1 = canvas_taps(box[b, 0] - u0, step, N, u1 - u0)
+        y0, y1, wv0, wv1 = canvas_taps(box[b, 1] - v0, step, N, v1 - v0)
+        rows, cols = np.zeros(v1 - v0, dtype=np.bool_), np.zeros(u1 - u0, dtype=np.bool_)
+        for i in range(N):
+            rows[y0[i]] = rows[y1[i]] = True
+            cols[x0[i]] = cols[x1[i]] = True
         k = level[b]
-        _recent_window(surface[b], last[b], u0, v0, t_now[b], max_age, taus[k], decay[k], win)
-        _bilinear(win, box[b, 0] - u0, box[b, 1] - v0, step, out[b])
+        _recent_window(surface[b], last[b], u0, v0, t_now[b], max_age, taus[k], decay[k], win, rows, cols)
+        _bilinear(win, x0, x1, wu0, wu1, y0, y1, wv0, wv1, out[b])
 
 
 @numba.njit(cache=True, nogil=True)
-def _bilinear(img, cu, cv, step, out):
-    """``out[i, j]`` = ``img`` at ``(cu + (j + 0.5 - N / 2) step, cv + (i + 0.5 - N / 2) step)``, bilinear, zero
-    outside ``img``. The taps of every column and row are found once (:func:`~torchevtrack.stages.canvas_taps`); a
-    tap outside ``img`` reads a pixel inside with weight 0 (``img >= 0``, so it adds ``+0.0``: the sum is that of
-    the inside taps alone)."""
-    h, w = img.shape
+def _bilinear(img, x0, x1, wu0, wu1, y0, y1, wv0, wv1, out):
+    """``out[i, j]`` = ``img`` at the canvas pixel of the taps ``y0, y1, wv0, wv1`` (row ``i``) and ``x0, x1, wu0,
+    wu1`` (column ``j``) of :func:`~torchevtrack.stages.canvas_taps`, bilinear, zero outside ``img``. A tap outside
+    ``img`` reads a pixel inside with weight 0 (``img >= 0``, so it adds ``+0.0``: the sum is that of the inside taps
+    alone); only the tapped pixels of ``img`` are read."""
     N = out.shape[0]
-    x0, x1, wu0, wu1 = canvas_taps(cu, step, N, w)
-    y0, y1, wv0, wv1 = canvas_taps(cv, step, N, h)
     for i in range(N):
         ya, yb, wa, wb = y0[i], y1[i], wv0[i], wv1[i]
         for j in range(N):
@@ -398,28 +403,38 @@ def _bilinear(img, cu, cv, step, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def _recent_window(surface, last, u0, v0, t_now, max_age, tau, decay, out):
+def _recent_window(surface, last, u0, v0, t_now, max_age, tau, decay, out, rows, cols):
     """The age-weighted, 3x3-median observation of one element's window at ``(u0, v0)`` into ``out`` ``(h, w)``
-    (:func:`recent_observation`); ``surface`` ``(H, W)``, ``last`` ``(C, H, W)``, ``tau`` the recency window (us),
-    ``decay`` the weights of its first ages (a row of :func:`decay_tables`)."""
+    (:func:`recent_observation`) at the pixels of the rows ``rows`` ``(h,)`` and columns ``cols`` ``(w,)`` marked
+    True (the rest of ``out`` is left as it was: a canvas reads one pixel in four of a window twice its size);
+    ``surface`` ``(H, W)``, ``last`` ``(C, H, W)``, ``tau`` the recency window (us), ``decay`` the weights of its first
+    ages (a row of :func:`decay_tables`)."""
     h, w = out.shape
     C = last.shape[0]
     buf = np.empty((h + 2, w + 2), dtype=np.float32)  # the weighted window, mirror-padded by one pixel
-    lo = np.empty((h, w + 2), dtype=np.float32)  # per column: min, median, max of rows y - 1 .. y + 1
-    mid = np.empty((h, w + 2), dtype=np.float32)
-    hi = np.empty((h, w + 2), dtype=np.float32)
+    lo = np.empty(w + 2, dtype=np.float32)  # per column of one row: min, median, max of rows y - 1 .. y + 1
+    mid = np.empty(w + 2, dtype=np.float32)
+    hi = np.empty(w + 2, dtype=np.float32)
+    weighted = np.zeros(h, dtype=np.bool_)  # the rows a marked row's median reads
+    for y in range(h):
+        if rows[y]:
+            weighted[max(y - 1, 0):min(y + 2, h)] = True
     inv_tau = np.float32(1.0 / tau) if tau > 0 else np.float32(0.0)
     if C == 1 and max_age > 0 and tau > 0 and len(decay) >= max_age:
         # one channel and every age below max_age in the table (the tracker's defaults): the same weights without
         # branches, a loop the compiler vectorises (a zero EROS value stays zero whatever its weight)
         top, zero = max_age - 1, np.float32(0.0)
         for y in range(h):
+            if not weighted[y]:
+                continue
             srow, lrow, brow = surface[v0 + y, u0:u0 + w], last[0, v0 + y, u0:u0 + w], buf[y + 1, 1:w + 1]
             for x in range(w):
                 age = t_now - lrow[x]
                 brow[x] = srow[x] * decay[min(max(age, 0), top)] if age < max_age else zero
     else:
         for y in range(h):
+            if not weighted[y]:
+                continue
             for x in range(w):
                 s = surface[v0 + y, u0 + x]
                 if s != 0 and (max_age > 0 or tau > 0):
@@ -440,16 +455,19 @@ def _recent_window(surface, last, u0, v0, t_now, max_age, tau, decay, out):
     for x in range(w + 2):
         buf[0, x], buf[h + 1, x] = buf[1 + m, x], buf[h - m, x]
     for y in range(h):
+        if not rows[y]:
+            continue
         for x in range(w + 2):
             a, c, d = buf[y, x], buf[y + 1, x], buf[y + 2, x]
             p, q = min(a, c), max(a, c)
             p, d = min(p, d), max(p, d)
-            lo[y, x], mid[y, x], hi[y, x] = p, min(q, d), max(q, d)
-    for y in range(h):
+            lo[x], mid[x], hi[x] = p, min(q, d), max(q, d)
         for x in range(w):
-            L = max(max(lo[y, x], lo[y, x + 1]), lo[y, x + 2])
-            Hh = min(min(hi[y, x], hi[y, x + 1]), hi[y, x + 2])
-            m0, m1, m2 = mid[y, x], mid[y, x + 1], mid[y, x + 2]
+            if not cols[x]:
+                continue
+            L = max(max(lo[x], lo[x + 1]), lo[x + 2])
+            Hh = min(min(hi[x], hi[x + 1]), hi[x + 2])
+            m0, m1, m2 = mid[x], mid[x + 1], mid[x + 2]
             M = max(min(m0, m1), min(max(m0, m1), m2))
             out[y, x] = max(min(L, M), min(max(L, M), Hh))
 
