@@ -346,11 +346,11 @@ def _decay(age, inv_tau):
 @numba.njit(cache=True, nogil=True)
 def _recent_kernel(surface, last, origin, t_now, max_age, taus, decay, level, out):
     """:func:`recent_observation` into ``out`` ``(B, h, w)``."""
-    every_row, every_col = np.ones(out.shape[1], dtype=np.bool_), np.ones(out.shape[2], dtype=np.bool_)
+    every_row = np.ones(out.shape[1], dtype=np.bool_)
     for b in range(out.shape[0]):
         k = level[b]
         _recent_window(surface[b], last[b], origin[b, 0], origin[b, 1], t_now[b], max_age, taus[k], decay[k], out[b],
-                       every_row, every_col)
+                       every_row)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -374,12 +374,11 @@ def canvas_kernel(surface, last, box, t_now, max_age, taus, decay, level, out):
         win = np.empty((v1 - v0, u1 - u0), dtype=np.float32)
         x0, x1, wu0, wu1 = canvas_taps(box[b, 0] - u0, step, N, u1 - u0)
         y0, y1, wv0, wv1 = canvas_taps(box[b, 1] - v0, step, N, v1 - v0)
-        rows, cols = np.zeros(v1 - v0, dtype=np.bool_), np.zeros(u1 - u0, dtype=np.bool_)
+        rows = np.zeros(v1 - v0, dtype=np.bool_)
         for i in range(N):
             rows[y0[i]] = rows[y1[i]] = True
-            cols[x0[i]] = cols[x1[i]] = True
         k = level[b]
-        _recent_window(surface[b], last[b], u0, v0, t_now[b], max_age, taus[k], decay[k], win, rows, cols)
+        _recent_window(surface[b], last[b], u0, v0, t_now[b], max_age, taus[k], decay[k], win, rows)
         _bilinear(win, x0, x1, wu0, wu1, y0, y1, wv0, wv1, out[b])
 
 
@@ -403,10 +402,10 @@ def _bilinear(img, x0, x1, wu0, wu1, y0, y1, wv0, wv1, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def _recent_window(surface, last, u0, v0, t_now, max_age, tau, decay, out, rows, cols):
+def _recent_window(surface, last, u0, v0, t_now, max_age, tau, decay, out, rows):
     """The age-weighted, 3x3-median observation of one element's window at ``(u0, v0)`` into ``out`` ``(h, w)``
-    (:func:`recent_observation`) at the pixels of the rows ``rows`` ``(h,)`` and columns ``cols`` ``(w,)`` marked
-    True (the rest of ``out`` is left as it was: a canvas reads one pixel in four of a window twice its size);
+    (:func:`recent_observation`) in the rows marked True in ``rows`` ``(h,)`` (the other rows of ``out`` are left
+    as they were: a canvas reads about half the rows of a window twice its size);
     ``surface`` ``(H, W)``, ``last`` ``(C, H, W)``, ``tau`` the recency window (us), ``decay`` the weights of its first
     ages (a row of :func:`decay_tables`)."""
     h, w = out.shape
@@ -463,8 +462,6 @@ def _recent_window(surface, last, u0, v0, t_now, max_age, tau, decay, out, rows,
             p, d = min(p, d), max(p, d)
             lo[x], mid[x], hi[x] = p, min(q, d), max(q, d)
         for x in range(w):
-            if not cols[x]:
-                continue
             L = max(max(lo[x], lo[x + 1]), lo[x + 2])
             Hh = min(min(hi[x], hi[x + 1]), hi[x + 2])
             m0, m1, m2 = mid[x], mid[x + 1], mid[x + 2]
