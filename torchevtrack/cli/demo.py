@@ -28,7 +28,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--motion", choices=("regular", "fast"), default="regular")
     p.add_argument("--duration", type=float, default=1.0, help="seconds")
     p.add_argument("--seed", type=int, default=5,
-                   help="simulation seed (default 5: the median of seeds 1-10 at the defaults, 0.8 cm; seed 7 drifts 5 cm in depth)")
+                   help="simulation seed (default 5: the median of seeds 1-10 at the defaults, 0.8 cm; "
+                   "seed 7 drifts 5 cm in depth)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run)
 
