@@ -2,6 +2,7 @@
 run that never moves exits 3 with a warning; `eval` with another time base."""
 
 import json
+import math
 import re
 
 import numpy as np
@@ -107,6 +108,17 @@ def test_bad_start_pose(tmp_path, capsys, init, text):
     code, err = _run(capsys, "track", str(d), "--out", str(tmp_path / "p.txt"), "--mesh", "box", "--init", init)
     assert code == 2
     _one_line_error(err, text)
+
+
+def test_a_rounded_start_quaternion_is_renormalised():
+    from torchevtrack.cli.track import parse_init
+
+    # two typed decimals of a 30 deg turn about z: norm 0.9997; and 1.02, too far to be rounding
+    pose = parse_init("0.1 0 0.6 0 0 0.26 0.966")
+    n = math.hypot(0.26, 0.966)
+    assert torch.allclose(pose, torch.tensor([0.1, 0, 0.6, 0.966 / n, 0, 0, 0.26 / n], dtype=torch.float64))
+    with pytest.raises(ValueError, match="has norm 1.02, not 1"):
+        parse_init("0 0 0.6 0 0 0 1.02")
 
 
 def test_a_start_pose_filling_the_image_warns(tmp_path, capsys):
