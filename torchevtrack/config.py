@@ -33,6 +33,7 @@ __all__ = [
     "BurstConfig",
     "DenoiseConfig",
     "RecoverConfig",
+    "HypothesesConfig",
     "TrackerConfig",
     "ABLATIONS",
     "DEFAULT_YAML",
@@ -223,6 +224,18 @@ class RecoverConfig:
 
 
 @dataclass
+class HypothesesConfig:
+    # Two hypotheses per object (torchevtrack.hypotheses): the tracker keeps a twin of itself with the UKF off, fed
+    # the same events; every period_us of event time the two poses' chamfer costs against the same recent events are
+    # compared, and after patience checks in a row in which one costs less than the other divided by ratio, it is the
+    # output and the other takes its motion state. About 2.5x the work of one tracker (docs/benchmarks.md).
+    enabled: bool = False
+    ratio: float = 1.25
+    patience: int = 2
+    period_us: int = 20_000
+
+
+@dataclass
 class TrackerConfig:
     rate_hz: float = 500.0
     eros: ErosConfig = field(default_factory=ErosConfig)
@@ -235,6 +248,7 @@ class TrackerConfig:
     burst: BurstConfig = field(default_factory=BurstConfig)
     denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
     recover: RecoverConfig = field(default_factory=RecoverConfig)
+    hypotheses: HypothesesConfig = field(default_factory=HypothesesConfig)
 
     def __post_init__(self) -> None:
         self.rate_hz = float(self.rate_hz)
@@ -271,6 +285,13 @@ class TrackerConfig:
             raise ValueError(f"recover.retry_us and start_after_us must be positive, min_events >= 0, search_m and "
                              f"max_cost_px > 0, got {r.retry_us!r}, {r.start_after_us!r}, {r.min_events!r}, "
                              f"{r.search_m!r}, {r.max_cost_px!r}")
+        h = self.hypotheses
+        if h.enabled and not (self.ukf.enabled and self.template.enabled):
+            raise ValueError("hypotheses.enabled needs ukf.enabled and template.enabled: its twin is the tracker "
+                             "without the UKF, judged by the rendered model")
+        if not h.ratio > 1 or h.patience < 1 or h.period_us <= 0:
+            raise ValueError(f"hypotheses.ratio must be > 1, patience >= 1 and period_us > 0, got {h.ratio!r}, "
+                             f"{h.patience!r}, {h.period_us!r}")
         if self.render.ahead and self.render.reuse_px > 0:
             raise ValueError("render.reuse_px > 0 needs render.ahead: false (each chooses where to render)")
 
@@ -402,11 +423,13 @@ def _build(cls, d: dict, where: str):
     return cls(**kwargs)
 
 
-# The paper's ablations as config changes (Table I rows).
+# The paper's ablations as config changes (Table I rows), and the full method with its twin without the UKF
+# (torchevtrack.hypotheses).
 ABLATIONS: dict[str, dict] = {
     "full": {},
     "no_ukf": {"ukf": {"enabled": False}},
     "velocity_only": {"template": {"enabled": False}},
     "correction_only": {"velocity": {"source": "none"}},
     "edopt_vel": {"velocity": {"source": "poses"}},
+    "hypotheses": {"hypotheses": {"enabled": True}},
 }

@@ -255,7 +255,7 @@ class Recoverer(BufferViews, nn.Module):
         """Search for the ``due`` lost elements that have recent event pixels and the ``starting`` ones (``(B,)``
         bool); restart those whose search is clear (a start search: :func:`beats_start`)."""
         B = len(self.owner)
-        surface = tracker.time_surface.last_us if tracker.time_surface is not None else tracker.flow.sae
+        surface = tracker.last_event_us
         pose = tracker.pose.clone()
         restart = torch.zeros(B, dtype=torch.bool)
         found = pose.clone()

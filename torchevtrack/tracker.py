@@ -72,6 +72,7 @@ from torchevtrack.camera import Camera
 from torchevtrack.config import TrackerConfig
 from torchevtrack.events import EventStream, check_window, first_invalid, pack_streams
 from torchevtrack.geometry import check_pose, quat_rotate
+from torchevtrack.hypotheses import Hypotheses
 from torchevtrack.loss import LossDetector, LossUpdate, OnLost
 from torchevtrack.kernels import compile_cold
 from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
@@ -162,7 +163,9 @@ class EventPoseTracker(nn.Module):
 
     Buffers:
         pose: ``(B, 7)`` float64 current output pose (also while :attr:`lost`: the tracker's own estimate; with
-            ``config.recover``, ``recover.good_pose`` holds each element's last good pose).
+            ``config.recover``, ``recover.good_pose`` holds each element's last good pose). With
+            ``config.hypotheses``, this tracker's own hypothesis: the output (:meth:`forward`'s, :meth:`track`'s) is
+            the chosen one's, ``hypotheses.output(tracker, tracker.twin)`` (:mod:`torchevtrack.hypotheses`).
         prev_pose: ``(B, 7)`` float64 output pose of the previous update.
         depth: ``(B, h, w)`` float32 depth of the last render window; ``origin``: ``(B, 2)`` its top-left pixel.
 
@@ -277,6 +280,16 @@ class EventPoseTracker(nn.Module):
         self.loss_update: LossUpdate | None = None
         self.recover = Recoverer.from_config(cfg.recover, camera, distinct, self._renderer_of, self._radius) \
             if cfg.recover.enabled else None
+        if cfg.hypotheses.enabled:  # the twin: this tracker without the UKF (and without loss, recovery or a twin)
+            off = {"enabled": False}
+            self.twin = EventPoseTracker(camera, [distinct[i] for i in self._renderer_of],
+                                         cfg.replace(ukf=off, loss=off, recover=off, hypotheses=off,
+                                                     render={"decimate": None}),
+                                         workers=workers, pipeline=pipeline)
+            self.hypotheses = Hypotheses.from_config(cfg.hypotheses, camera, distinct, self._renderer_of,
+                                                     self._radius)
+        else:
+            self.twin, self.hypotheses = None, None
 
         f64 = torch.float64
         self.register_buffer("pose", torch.zeros(B, 7, dtype=f64))
@@ -370,6 +383,9 @@ class EventPoseTracker(nn.Module):
             self.loss.reset(m)
         if self.recover is not None:
             self.recover.reset(pose, m)
+        if self.twin is not None:
+            self.twin.reset(pose, twist, m)
+            self.hypotheses.reset(m)
         if mask is None:
             self.loss_update = None
             self._render(pose.numpy(), shaded=False)
@@ -383,6 +399,9 @@ class EventPoseTracker(nn.Module):
             r.close()
         if self.recover is not None:
             self.recover.close()
+        if self.twin is not None:
+            self.twin.close()
+            self.hypotheses.close()
         self._schedule.close()
 
     # -- one update --------------------------------------------------------------------------
@@ -439,7 +458,11 @@ class EventPoseTracker(nn.Module):
                 if self._run.observing is not None:  # the update failed after it gave the intake thread its part
                     self._run.observing.wait()
                     self._run.observing = None
-        return torch.from_numpy(self.pose.numpy().copy())
+        if self.twin is None:
+            return torch.from_numpy(self.pose.numpy().copy())
+        self.twin(x, y, t, p, b, t_us, next_window=next_window, check=False)
+        self.hypotheses(self, self.twin, self.t_last if t_us is None else t_us)
+        return self.hypotheses.output(self, self.twin)
 
     def drop_ahead(self) -> None:
         """Forget a window given as ``next_window`` to :meth:`forward` whose update will not come: a caller that feeds
@@ -449,6 +472,8 @@ class EventPoseTracker(nn.Module):
         if self._run.ahead is not None:
             self._run.ahead.flow.wait()  # not .result(): in a finally, its error would hide the one that stopped the loop
             self._run.ahead = None
+        if self.twin is not None:
+            self.twin.drop_ahead()
 
     def _check(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor, b: torch.Tensor | None,
                last: np.ndarray) -> tuple[torch.Tensor, ...]:
@@ -591,6 +616,53 @@ class EventPoseTracker(nn.Module):
         if self.loss_update is None:
             return None
         return self.loss_update.lost if self.recover is None else self.recover.lost.clone()
+
+    @property
+    def last_event_us(self) -> torch.Tensor:
+        """The newest event time per pixel, int64 microseconds: ``(B, H, W)`` (the ``time_surface`` stage, where the
+        tracker keeps one) or ``(B, C, H, W)`` per polarity channel (the flow's SAE); :data:`~torchevtrack.stages.NEVER`
+        where none fired. The tracker's own buffer: clone it to keep it."""
+        return self.time_surface.last_us if self.time_surface is not None else self.flow.sae
+
+    @torch.inference_mode()
+    def adopt(self, other: "EventPoseTracker", mask: torch.Tensor | None = None) -> None:
+        """Take the motion state of the elements of ``mask`` (default all; ``(B,)`` bool or ``(K,)`` indices) from
+        ``other``, a tracker of the same camera and meshes fed the same events (:mod:`torchevtrack.hypotheses`):
+        their pose and previous pose, velocity filter, correction feedback, depth and where the next update renders;
+        their UKF (if on) restarts at that pose with the velocity filter's twist. A tracker without a UKF then
+        continues exactly as ``other`` does. The event stages (EROS, time surface, flow) depend on the events only and
+        stay; so do the loss detector and the re-localiser. Call it between updates; a window taken in ahead keeps
+        going (it reads the events only).
+        """
+        B = self.batch_size
+        if not isinstance(other, EventPoseTracker) or other.batch_size != B or other.camera != self.camera:
+            raise ValueError("adopt needs a tracker of the same camera and batch size")
+        m = batch_mask(mask, B)
+        if not bool(m.any()):
+            return
+        self._drop_render()
+        self.velocity.take(other.velocity, m)
+        if self.feedback is not None and other.feedback is not None:
+            self.feedback.take(other.feedback, m)
+        pose = torch.where(m[:, None], other.pose, self.pose)
+        self.pose.copy_(pose)
+        self.prev_pose[m] = other.prev_pose[m]
+        self.ukf.reset(pose, shift_twist(self.velocity.x, -pose[:, :3]), m)  # the filter's twist is about the centre
+        self._render_next[m] = other._render_next[m]  # where the next update renders (render.ahead)
+        self._render_next_ok[m] = other._render_next_ok[m]
+        H, W = self.camera.height, self.camera.width
+        ho, wo = other.depth.shape[-2:]
+        depth, origin = self._grown_depth(ho, wo)  # the other's depth rows, each placed where its window lies
+        h, w = depth.shape[-2:]
+        for i in m.nonzero()[:, 0].tolist():
+            u0, v0 = other.origin[i].tolist()
+            u1, v1 = min(u0, W - w), min(v0, H - h)
+            depth[i] = 0.0
+            depth[i, v0 - v1:v0 - v1 + ho, u0 - u1:u0 - u1 + wo] = other.depth[i]
+            origin[i] = torch.tensor([u1, v1])
+        self._set_depth(depth)
+        self.origin.copy_(origin)
+        self._run.models = None  # the template of the last render (see render.reuse_px)
 
     # -- offline tracking --------------------------------------------------------------------
     def track(
@@ -849,22 +921,31 @@ class EventPoseTracker(nn.Module):
             return
         H, W = self.camera.height, self.camera.width
         win = self._windows(poses.numpy(), index)
-        h0, w0 = self.depth.shape[-2:]
-        w, h = max(w0, int(win[:, 2].max())), max(h0, int(win[:, 3].max()))
-        origin = self.origin.clone()
-        depth = self.depth
-        if (h, w) != (h0, w0):
-            origin[:, 0].clamp_(max=W - w)
-            origin[:, 1].clamp_(max=H - h)
-            depth = self.depth.new_zeros(self.batch_size, h, w)
-            for i, ((u0, v0), (u1, v1)) in enumerate(zip(self.origin.tolist(), origin.tolist())):
-                depth[i, v0 - v1:v0 - v1 + h0, u0 - u1:u0 - u1 + w0] = self.depth[i]
+        depth, origin = self._grown_depth(int(win[:, 3].max()), int(win[:, 2].max()))
+        h, w = depth.shape[-2:]
         for i, wi in zip(index, win):
             origin[i] = torch.tensor([min(wi[0], W - w), min(wi[1], H - h)])
             depth[i] = 0.0
             self._render_into(i, poses.numpy()[i:i + 1], wi, origin[i].numpy(), depth.numpy(), None)
         self._set_depth(depth)
         self.origin.copy_(origin)
+
+    def _grown_depth(self, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The depth buffer and origins grown to hold a window of at least ``h`` x ``w`` pixels (the buffer itself if it
+        does): each element's rows zero-padded into the larger common size, its origin moved to keep them in the
+        frame."""
+        H, W = self.camera.height, self.camera.width
+        h0, w0 = self.depth.shape[-2:]
+        h, w = max(h, h0), max(w, w0)
+        origin = self.origin.clone()
+        if (h, w) == (h0, w0):
+            return self.depth, origin
+        origin[:, 0].clamp_(max=W - w)
+        origin[:, 1].clamp_(max=H - h)
+        depth = self.depth.new_zeros(self.batch_size, h, w)
+        for i, ((u0, v0), (u1, v1)) in enumerate(zip(self.origin.tolist(), origin.tolist())):
+            depth[i, v0 - v1:v0 - v1 + h0, u0 - u1:u0 - u1 + w0] = self.depth[i]
+        return depth, origin
 
     @property
     def _model(self) -> TemplateModel | None:

@@ -304,9 +304,7 @@ class Relocaliser(nn.Module):
                 break
             if all(bool(self._distinct(seed, poses[j:j + 1])[0]) for seed in seeds):
                 seeds.append(poses[j:j + 1])
-        frame = np.zeros((self.camera.height, self.camera.width), bool)
-        frame[events[:, 1], events[:, 0]] = True
-        obs = _FullRes.of(frame, self.cap_px, events)
+        obs = self._full_res(events)
         finals = []
         for seed in seeds:  # the first `beam` seeds, then more while none has reached a low cost
             if len(finals) >= self.beam and min(c for c, _ in finals) <= self.max_cost_px:
@@ -329,6 +327,11 @@ class Relocaliser(nn.Module):
         return best[0], cost, min(others, default=math.inf), self._cost_of(self._edges_full(own.double()), obs)
 
     # -- full resolution: cost and Gauss-Newton polish -------------------------------------------------------------
+    def _full_res(self, events: np.ndarray) -> "_FullRes":
+        frame = np.zeros((self.camera.height, self.camera.width), bool)
+        frame[events[:, 1], events[:, 0]] = True
+        return _FullRes.of(frame, self.cap_px, events)
+
     def _edges_full(self, pose: torch.Tensor):
         """Edge pixels ``(M, 2)`` (frame u, v), their depths ``(M,)`` and the render window, or ``None``."""
         if not float(pose[0, 2]) > 1.5 * self.radius:
@@ -405,6 +408,37 @@ class Relocaliser(nn.Module):
             else:
                 lam *= 10
         return cost, pose
+
+    def costs(self, poses: torch.Tensor, last_us: torch.Tensor, t_now_us: int) -> torch.Tensor:
+        """The two-sided chamfer cost of each of ``poses`` against one observation of the recent events, for comparing
+        poses of one object at one instant (a cost's level varies far more between scenes than between a right and
+        a wrong pose of one scene: :mod:`torchevtrack.hypotheses`).
+
+        The observation is the search's (module docstring, 1.), centred on the poses' mean position with the first
+        pose's rotation: the pixels of the time surface ``last_us`` ``(H, W)`` or ``(C, H, W)`` int64 (microseconds)
+        that fired within the adaptive window before ``t_now_us`` and have a recent neighbour.
+
+        Shape: ``(K, 7) -> (K,)`` float64 full-resolution pixels (lower is better; ``cap_px`` for a pose too close to
+        the camera or with no edge in view).
+
+        Example:
+            >>> import torch
+            >>> from torchevtrack.camera import Camera
+            >>> from torchevtrack.mesh import load_mesh
+            >>> reloc = Relocaliser(RasterRenderer(load_mesh("box"), Camera(160, 120, 150.0, 150.0, 80.0, 60.0)), 0.1)
+            >>> last = torch.full((120, 160), -(2 ** 62))  # no events: every pose costs the cap
+            >>> reloc.costs(torch.tensor([[0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0]] * 2), last, 1000).tolist()
+            [20.0, 20.0]
+        """
+        poses = torch.as_tensor(poses, dtype=torch.float64)
+        if poses.ndim != 2 or poses.shape[1] != 7 or not len(poses) or last_us.ndim not in (2, 3) \
+                or last_us.dtype != torch.int64:
+            raise ValueError(f"expected poses (K, 7), K >= 1, and last_us (H, W) or (C, H, W) int64, got "
+                             f"{tuple(poses.shape)}, {tuple(last_us.shape)} {last_us.dtype}")
+        centre = poses[:1].clone()
+        centre[0, :3] = poses[:, :3].mean(0)
+        obs = self._full_res(self._events(centre, last_us, int(t_now_us)))
+        return torch.tensor([self._cost_of(self._edges_full(p[None]), obs) for p in poses], dtype=torch.float64)
 
     def forward(self, pose: torch.Tensor, last_us: torch.Tensor, t_now_us: torch.Tensor,
                 own: torch.Tensor | None = None) -> Relocalisation:

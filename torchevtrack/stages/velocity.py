@@ -696,6 +696,15 @@ class VelocityKF(nn.Module):
         self.P.copy_(torch.where(m[:, None, None], self.P0, self.P))
         self.turn.masked_fill_(m[:, None], 0.0)
 
+    def take(self, other: "VelocityKF", mask: torch.Tensor | None = None) -> None:
+        """Take the state (``x``, ``P``, the turn's running means) of the elements of ``mask`` (default all) from
+        ``other``, a filter of the same batch size (:meth:`~torchevtrack.tracker.EventPoseTracker.adopt`)."""
+        if other.batch_size != self.batch_size:
+            raise ValueError(f"other has batch size {other.batch_size}, not {self.batch_size}")
+        m = batch_mask(mask, self.batch_size)
+        for name in ("x", "P", "turn"):
+            getattr(self, name)[m] = getattr(other, name)[m]
+
     def arrays(self) -> KFArrays:
         """The filters for compiled kernels (:func:`velocity_step`): numpy views of the buffers."""
         c = self.camera
@@ -879,6 +888,13 @@ class CorrectionFeedback(nn.Module):
     def reset(self, mask: torch.Tensor | None = None) -> None:
         """Zero the feedback of every element, or of those selected by ``mask`` (``(B,)`` bool or ``(K,)`` indices)."""
         self.b.masked_fill_(batch_mask(mask, self.b.shape[0])[:, None], 0.0)
+
+    def take(self, other: "CorrectionFeedback", mask: torch.Tensor | None = None) -> None:
+        """Take the feedback of the elements of ``mask`` (default all) from ``other`` (the same batch size)."""
+        if other.b.shape != self.b.shape:
+            raise ValueError(f"other has batch size {other.b.shape[0]}, not {self.b.shape[0]}")
+        m = batch_mask(mask, self.b.shape[0])
+        self.b[m] = other.b[m]
 
     def extra_repr(self) -> str:
         return f"gain={self.gain}, leak={self.leak}, axes={self.axes}, max_v={float(self.limit[0])}, " \
