@@ -122,6 +122,19 @@ def test_recent_events_window_and_support():
     assert recent_events(last, 1000, 500, min_support=0).sum() == 3
 
 
+@pytest.mark.parametrize("min_support", [0, 1, 3])
+def test_recent_events_match_a_3x3_count_of_recent_pixels(min_support):
+    g = torch.Generator().manual_seed(min_support)
+    last = torch.randint(0, 3000, (2, 37, 53), generator=g, dtype=torch.int64)  # (C, H, W), many pixels recent
+    last[torch.rand(last.shape, generator=g) < 0.3] = NEVER
+    newest = last.amax(0).numpy()
+    recent = (2000 - newest >= 0) & (2000 - newest <= 700)
+    count = ndimage.convolve(recent.astype(np.uint8), np.ones((3, 3), np.uint8), mode="constant")  # counts itself
+    want = recent & (count > min_support) if min_support else recent
+    got = recent_events(last, 2000, 700, min_support=min_support)
+    assert np.array_equal(got, want) and 0 < got.sum() < got.size
+
+
 def test_chamfer_prefers_the_aligned_edges():
     events = np.zeros((30, 30), bool)
     events[5:25, 10] = True

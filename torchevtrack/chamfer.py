@@ -34,7 +34,6 @@ import math
 import numba
 import numpy as np
 import torch
-from scipy import ndimage
 
 __all__ = ["chamfer", "distance_map", "model_edges", "recent_events"]
 
@@ -55,12 +54,34 @@ def recent_events(last_us: torch.Tensor, t_now_us: int, window_us: int, min_supp
         last = last.amax(0)
     if last.ndim != 2:
         raise ValueError(f"last_us must be (H, W) or (C, H, W), got {tuple(last_us.shape)}")
-    age = int(t_now_us) - last.numpy()
-    mask = (age >= 0) & (age <= window_us)
-    if min_support > 0:
-        n = ndimage.convolve(mask.astype(np.uint8), np.ones((3, 3), np.uint8), mode="constant")
-        mask &= n > min_support  # n counts the pixel itself
+    mask = np.empty(last.shape, np.bool_)
+    _recent_kernel(np.ascontiguousarray(last.numpy()), np.int64(t_now_us), np.int64(window_us), int(min_support), mask)
     return mask
+
+
+@numba.njit(cache=True, nogil=True)
+def _recent_kernel(last, t_now, window, min_support, out):
+    """:func:`recent_events` into ``out`` ``(H, W)`` bool: two passes, the recent pixels, then their support (the
+    8 neighbours inside the image)."""
+    H, W = last.shape
+    for i in range(H):
+        for j in range(W):
+            age = t_now - last[i, j]
+            out[i, j] = 0 <= age <= window
+    if min_support <= 0:
+        return
+    keep = np.zeros((H, W), np.bool_)
+    for i in range(H):
+        for j in range(W):
+            if not out[i, j]:
+                continue
+            n = 0
+            for ii in range(max(i - 1, 0), min(i + 2, H)):
+                for jj in range(max(j - 1, 0), min(j + 2, W)):
+                    if out[ii, jj] and (ii != i or jj != j):
+                        n += 1
+            keep[i, j] = n >= min_support
+    out[:] = keep
 
 
 def model_edges(depth: np.ndarray, gray: np.ndarray | None = None, gray_step: float = 0.05,

@@ -322,13 +322,16 @@ def warmup(progress: bool = True, jobs: int | None = None) -> int:
 
 
 def _compile_relocaliser(np) -> None:
-    """Compile the re-localiser's edge and distance kernels (``--recover``), which a run that never loses the
-    object does not call, on a tiny image."""
-    from torchevtrack.chamfer import distance_map, model_edges
+    """Compile the re-localiser's event, edge and distance kernels (``--recover``, ``hypotheses``), which a run
+    that never loses the object does not call, on a tiny image."""
+    import torch
+
+    from torchevtrack.chamfer import distance_map, model_edges, recent_events
 
     depth = np.zeros((1, 8, 8), np.float32)
     depth[0, 2:6, 2:6] = 1.0
     distance_map(model_edges(depth, depth), 4.0)
+    recent_events(torch.zeros(8, 8, dtype=torch.int64), 1, 1, min_support=1)
 
 
 def _warmup_events(camera, mesh, renderer_cls, stream_cls, np, torch):

@@ -116,18 +116,21 @@ class _Region(NamedTuple):
 
 class _FullRes(NamedTuple):
     """The observation at full resolution: event image ``(H, W)`` bool, its capped distance map ``(H, W)``
-    float32 and that map's central differences along u and v ``(H, W)`` float64 (zero on the border), and the event
-    pixels ``(K, 2)`` (u, v) of the first level's region."""
+    float32 and that map's central differences along u and v ``(H, W)`` float64 (zero on the border; ``None`` without
+    ``gradients``: a cost needs none, the polish does), and the event pixels ``(K, 2)`` (u, v) of the first level's
+    region."""
 
     image: np.ndarray
     distance: np.ndarray
-    grad_u: np.ndarray
-    grad_v: np.ndarray
+    grad_u: np.ndarray | None
+    grad_v: np.ndarray | None
     events: np.ndarray
 
     @classmethod
-    def of(cls, image: np.ndarray, cap_px: float, events: np.ndarray) -> "_FullRes":
+    def of(cls, image: np.ndarray, cap_px: float, events: np.ndarray, gradients: bool = True) -> "_FullRes":
         distance = distance_map(image, cap_px)
+        if not gradients:
+            return cls(image, distance, None, None, events)
         D = distance.astype(np.float64)
         gu, gv = np.zeros_like(D), np.zeros_like(D)
         gu[:, 1:-1] = 0.5 * (D[:, 2:] - D[:, :-2])
@@ -206,14 +209,14 @@ class Relocaliser(nn.Module):
         u0, v0, side = self._square(pose, level)
         last = last_us.amax(0) if last_us.ndim == 3 else last_us
         H, W = last.shape
-        crop = last[max(0, v0):min(H, v0 + side), max(0, u0):min(W, u0 + side)]
-        age = t_now - crop
-        ages = np.sort(age[(age >= 0) & (age <= self.max_window_us)].numpy())
+        age = t_now - last.numpy()[max(0, v0):min(H, v0 + side), max(0, u0):min(W, u0 + side)]
+        ages = age[(age >= 0) & (age <= self.max_window_us)]
         depth, _ = self.renderer.render_unit(pose.numpy(), Camera(*self._low_camera(u0, v0, side, level.scale)),
                                              shaded=False)
         edges = int(model_edges(depth[0]).sum() / level.scale)
         k = min(len(ages), max(1, round(self.events_per_edge * edges)))
-        window = int(np.clip(ages[k - 1] if k > 0 else self.max_window_us, self.min_window_us, self.max_window_us))
+        kth = np.partition(ages, k - 1)[k - 1] if k > 0 else self.max_window_us  # the k-th most recent pixel's age
+        window = int(np.clip(kth, self.min_window_us, self.max_window_us))
         mask = recent_events(last, t_now, window, min_support=1)
         v, u = np.nonzero(mask)
         return np.stack((u, v), 1)
@@ -327,10 +330,10 @@ class Relocaliser(nn.Module):
         return best[0], cost, min(others, default=math.inf), self._cost_of(self._edges_full(own.double()), obs)
 
     # -- full resolution: cost and Gauss-Newton polish -------------------------------------------------------------
-    def _full_res(self, events: np.ndarray) -> "_FullRes":
+    def _full_res(self, events: np.ndarray, gradients: bool = True) -> "_FullRes":
         frame = np.zeros((self.camera.height, self.camera.width), bool)
         frame[events[:, 1], events[:, 0]] = True
-        return _FullRes.of(frame, self.cap_px, events)
+        return _FullRes.of(frame, self.cap_px, events, gradients)
 
     def _edges_full(self, pose: torch.Tensor):
         """Edge pixels ``(M, 2)`` (frame u, v), their depths ``(M,)`` and the render window, or ``None``."""
@@ -437,7 +440,7 @@ class Relocaliser(nn.Module):
                              f"{tuple(poses.shape)}, {tuple(last_us.shape)} {last_us.dtype}")
         centre = poses[:1].clone()
         centre[0, :3] = poses[:, :3].mean(0)
-        obs = self._full_res(self._events(centre, last_us, int(t_now_us)))
+        obs = self._full_res(self._events(centre, last_us, int(t_now_us)), gradients=False)
         return torch.tensor([self._cost_of(self._edges_full(p[None]), obs) for p in poses], dtype=torch.float64)
 
     def forward(self, pose: torch.Tensor, last_us: torch.Tensor, t_now_us: torch.Tensor,
