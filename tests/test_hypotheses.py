@@ -12,6 +12,7 @@ from torchevtrack.config import TrackerConfig
 from torchevtrack.geometry import interpolate_poses, perturb_pose
 from torchevtrack.hypotheses import arbitrate
 from torchevtrack.metrics import pose_errors
+from torchevtrack.stages import NEVER
 from torchevtrack.synth.generate import generate_sequence
 from torchevtrack.tracker import EventPoseTracker
 
@@ -47,6 +48,22 @@ def test_arbitrate_matches_a_per_element_reference(ratio, patience):
     for b in range(B):
         assert got[b].tolist() == reference_arbitrate(costs[:, b].tolist(), ratio, patience)
     assert (got[:4] == 0).sum(1).tolist() == [T // patience] * 4 and (got[4:] == 1).any() and (got == -1).any()
+
+
+def test_costs_rank_the_truth_before_poses_off_it(seq):
+    from torchevtrack.raster import RasterRenderer
+    from torchevtrack.stages.relocalise import Relocaliser
+
+    reloc = Relocaliser(RasterRenderer(seq.mesh, CAM), float(torch.as_tensor(seq.mesh.vertices).norm(dim=1).max()))
+    t = int(seq.gt_t_us[0]) + 200_000
+    ev = seq.events.slice_time(t - 30_000, t + 1)
+    last = torch.full((CAM.height, CAM.width), NEVER, dtype=torch.int64)
+    last[ev.y.long(), ev.x.long()] = ev.t  # the newest event per pixel (time order: the last write wins)
+    truth = interpolate_poses(seq.gt_t_us, seq.gt_poses, torch.tensor([t]))[0]
+    g = torch.Generator().manual_seed(4)
+    off = torch.stack([perturb_pose(truth, 0.03, math.radians(15), g) for _ in range(4)])
+    costs = reloc.costs(torch.cat((truth[None], off)), last, t)
+    assert costs.shape == (5,) and bool((costs[1:] > 1.25 * costs[0]).all()), costs.tolist()
 
 
 def feed(trackers, seq, t0: int, n: int, start: int = 0) -> list[list[torch.Tensor]]:
