@@ -115,6 +115,21 @@ def test_a_hypothesis_knocked_off_the_object_is_replaced_by_its_twin(seq):
     assert float(torch.rad2deg(e["re"]).min()) > 10.0  # without the twin the tracker stays off
 
 
+def test_a_batch_gives_the_same_poses_with_and_without_the_pipeline(seq):
+    # with one worker the pipeline's thread takes the next window in ahead, except at updates that check: the check
+    # reads the time surface of the events up to its own update
+    cfg = TrackerConfig().replace(hypotheses={"enabled": True})
+    g = torch.Generator().manual_seed(5)
+    starts = torch.stack([seq.gt_poses[0], perturb_pose(seq.gt_poses[0], 0.02, math.radians(20), g)])
+    runs = []
+    for pipeline in (False, True):
+        tracker = EventPoseTracker(CAM, ["box", "box"], cfg, workers=1, pipeline=pipeline)
+        runs.append((tracker.track([seq.events] * 2, starts, progress=False)[1], tracker.hypotheses.costs.clone()))
+        assert tracker.pipelined == pipeline and tracker.hypotheses.checks >= 2 * 15
+        tracker.close()
+    assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])  # the last checks' costs too
+
+
 def test_hypotheses_need_the_ukf_and_the_template():
     with pytest.raises(ValueError, match="hypotheses.enabled needs ukf.enabled"):
         TrackerConfig().replace(hypotheses={"enabled": True}, ukf={"enabled": False})

@@ -85,6 +85,7 @@ class Hypotheses(nn.Module):
         chosen: ``(B,)`` int64, the output hypothesis: 0 the tracker, 1 its twin.
         run: ``(B, 2)`` int64, :func:`arbitrate`'s counts.
         next_us: ``(B,)`` int64, the event time of the next check (-1: one period after the next update).
+        costs: ``(B, 2)`` float64, each element's last check's costs (pixels; NaN before its first check).
 
     ``forward(tracker, twin, t_us)`` after both updated (``t_us`` ``(B,)`` int64 or an int: the update's time)
     compares the elements that are due and lets each loser :meth:`~torchevtrack.tracker.EventPoseTracker.adopt` its
@@ -103,6 +104,7 @@ class Hypotheses(nn.Module):
         self.register_buffer("chosen", torch.zeros(B, dtype=torch.int64))
         self.register_buffer("run", torch.zeros(B, 2, dtype=torch.int64))
         self.register_buffer("next_us", torch.full((B,), -1, dtype=torch.int64))
+        self.register_buffer("costs", torch.full((B, 2), float("nan"), dtype=torch.float64))
         self.checks = self.switches = 0
 
     @classmethod
@@ -120,6 +122,13 @@ class Hypotheses(nn.Module):
         self.chosen[m] = 0
         self.run[m] = 0
         self.next_us[m] = -1
+        self.costs[m] = float("nan")
+
+    def due(self, t_us: torch.Tensor | int) -> bool:
+        """Whether an update at ``t_us`` (``(B,)`` int64 or an int) checks any element (the tracker then takes no
+        window in ahead: the check reads the time surface of the events up to ``t_us``)."""
+        t = torch.as_tensor(t_us, dtype=torch.int64).expand(len(self.owner))
+        return bool(((self.next_us >= 0) & (t >= self.next_us)).any())
 
     @torch.inference_mode()
     def forward(self, tracker: "EventPoseTracker", twin: "EventPoseTracker", t_us: torch.Tensor | int) -> None:
@@ -134,6 +143,7 @@ class Hypotheses(nn.Module):
         for i in due:
             poses = torch.stack((tracker.pose[i], twin.pose[i]))
             costs[i] = self.scorers[self.owner[i]].costs(poses, surface[i], int(t[i]))
+            self.costs[i] = costs[i]
             self.next_us[i] = int(t[i]) + self.period_us
         self.checks += len(due)
         run = self.run.clone()

@@ -451,9 +451,12 @@ class EventPoseTracker(nn.Module):
                     next_window = None  # other dtypes: checked and cast when its own update comes
             except ValueError:
                 next_window = None  # its own update raises
+        ahead = next_window if self._take_in_ahead else None
+        if ahead is not None and self.hypotheses is not None and (t_us is None or self.hypotheses.due(t_us)):
+            ahead = None  # the check reads this window's time surface: the next window must not be going into it
         with torch.inference_mode():
             try:
-                self._update(x, y, t, p, b, t_us, next_window if self._take_in_ahead else None)
+                self._update(x, y, t, p, b, t_us, ahead)
             finally:
                 if self._run.observing is not None:  # the update failed after it gave the intake thread its part
                     self._run.observing.wait()
