@@ -15,8 +15,8 @@ times its own). After ``patience`` of them the winner is the element's output (:
 the loser takes the winner's motion state (:meth:`~torchevtrack.tracker.EventPoseTracker.adopt`): both go on from
 the better pose. The tracker's output is then the chosen hypothesis's pose (:meth:`Hypotheses.output`).
 
-The twin doubles an update's work and each check renders both poses at full resolution: a run takes about 2.5x the
-time of one tracker (docs/benchmarks.md).
+The twin doubles an update's work and each check renders both poses at full resolution: a run takes about 3x the
+time of one tracker, a check's update 5-10 ms more (docs/benchmarks.md).
 
 Example:
     >>> import torch
