@@ -138,19 +138,16 @@ class Hypotheses(nn.Module):
         if not due:
             return
         surface = tracker.last_event_us
-        costs = torch.zeros(B, 2, dtype=torch.float64)  # rows not due: no hypothesis clearly better
-        for i in due:
-            poses = torch.stack((tracker.pose[i], twin.pose[i]))
-            costs[i] = self.scorers[self.owner[i]].costs(poses, surface[i], int(t[i]))
-            self.costs[i] = costs[i]
-            self.next_us[i] = int(t[i]) + self.period_us
+        costs = torch.stack([self.scorers[self.owner[i]].costs(torch.stack((tracker.pose[i], twin.pose[i])),
+                                                                 surface[i], int(t[i])) for i in due])  # (K, 2)
+        idx = torch.tensor(due)
+        self.costs[idx] = costs
+        self.next_us[idx] = t[idx] + self.period_us
         self.checks += len(due)
-        run = self.run.clone()
-        winner = arbitrate(costs, run, self.ratio, self.patience)
-        is_due = torch.zeros(B, dtype=torch.bool)
-        is_due[due] = True
-        self.run.copy_(torch.where(is_due[:, None], run, self.run))
-        winner = torch.where(is_due, winner, -1)
+        run = self.run[idx]
+        winner = torch.full((B,), -1, dtype=torch.int64)
+        winner[idx] = arbitrate(costs, run, self.ratio, self.patience)
+        self.run[idx] = run
         if bool((winner == 0).any()):
             twin.adopt(tracker, winner == 0)
         if bool((winner == 1).any()):
