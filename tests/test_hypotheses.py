@@ -66,6 +66,32 @@ def test_costs_rank_the_truth_before_poses_off_it(seq):
     assert costs.shape == (5,) and bool((costs[1:] > 1.25 * costs[0]).all()), costs.tolist()
 
 
+def test_costs_are_the_two_sided_chamfer_cost_over_the_whole_frame(seq):
+    # the oracle: the recent events and the pose's model edges as whole-frame images, chamfer() over them (costs
+    # reads the events' distances only near the pose's window)
+    from torchevtrack.chamfer import chamfer, distance_map, model_edges
+    from torchevtrack.raster import RasterRenderer
+    from torchevtrack.stages.relocalise import Relocaliser
+
+    renderer = RasterRenderer(seq.mesh, CAM)
+    reloc = Relocaliser(renderer, float(torch.as_tensor(seq.mesh.vertices).norm(dim=1).max()))
+    t = int(seq.gt_t_us[0]) + 200_000
+    ev = seq.events.slice_time(t - 30_000, t + 1)
+    last = torch.full((CAM.height, CAM.width), NEVER, dtype=torch.int64)
+    last[ev.y.long(), ev.x.long()] = ev.t
+    truth = interpolate_poses(seq.gt_t_us, seq.gt_poses, torch.tensor([t]))[0]
+    g = torch.Generator().manual_seed(5)
+    for pose in [truth] + [perturb_pose(truth, 0.02, math.radians(10), g) for _ in range(3)]:
+        cost = float(reloc.costs(pose[None], last, t)[0])
+        events = reloc._events(pose[None], last, t)  # costs' observation: recent pixels with a recent neighbour
+        image = torch.zeros(CAM.height, CAM.width, dtype=torch.bool).numpy()
+        image[events[:, 1], events[:, 0]] = True
+        depth, gray = renderer.render_unit(pose[None].numpy(), CAM, shaded=True)
+        edges = model_edges(depth, gray)[0]
+        assert image.sum() > 100 and edges.sum() > 100 and not (edges[:4].any() or edges[-4:].any())
+        assert cost == pytest.approx(chamfer(edges, image, distance_map(image, reloc.cap_px), reloc.cap_px), rel=1e-6)
+
+
 def feed(trackers, seq, t0: int, n: int, start: int = 0) -> list[list[torch.Tensor]]:
     """Updates ``start .. start + n - 1`` (2 ms windows from ``t0``) given to each tracker; their outputs."""
     ev = seq.events

@@ -257,7 +257,8 @@ class EventPoseTracker(nn.Module):
         # otherwise the observation reads the SAE's channel maximum, the same numbers, and no time surface is kept
         # (for a batch, ~20 MB less memory traffic per step).
         observes = self._schedule.pipelined and self._render_one is not None and cfg.render.ahead and t.enabled
-        self._take_in_ahead = self._schedule.pipelined and not observes
+        # (not with a twin: it reads these surfaces after this tracker's update, so the next window must wait)
+        self._take_in_ahead = self._schedule.pipelined and not observes and not cfg.hypotheses.enabled
         self.time_surface = TimeSurface(H, W, batch_size=B) if observes else None
         self.ukf = PoseUKF.from_config(cfg.ukf, batch_size=B)
         bc = cfg.burst
@@ -286,6 +287,7 @@ class EventPoseTracker(nn.Module):
                                          cfg.replace(ukf=off, loss=off, recover=off, hypotheses=off,
                                                      render={"decimate": None}),
                                          workers=workers, pipeline=pipeline)
+            self.twin._follow(self)
             self.hypotheses = Hypotheses.from_config(cfg.hypotheses, camera, distinct, self._renderer_of,
                                                      self._radius)
         else:
@@ -452,18 +454,16 @@ class EventPoseTracker(nn.Module):
             except ValueError:
                 next_window = None  # its own update raises
         ahead = next_window if self._take_in_ahead else None
-        if ahead is not None and self.hypotheses is not None and (t_us is None or self.hypotheses.due(t_us)):
-            ahead = None  # the check reads this window's time surface: the next window must not be going into it
         with torch.inference_mode():
             try:
-                self._update(x, y, t, p, b, t_us, ahead)
+                intake = self._update(x, y, t, p, b, t_us, ahead)
             finally:
                 if self._run.observing is not None:  # the update failed after it gave the intake thread its part
                     self._run.observing.wait()
                     self._run.observing = None
-        if self.twin is None:
-            return torch.from_numpy(self.pose.numpy().copy())
-        self.twin(x, y, t, p, b, t_us, next_window=next_window, check=False)
+            if self.twin is None:
+                return torch.from_numpy(self.pose.numpy().copy())
+            self.twin._update(*intake.window, t_us, None, intake)
         self.hypotheses(self, self.twin, self.t_last if t_us is None else t_us)
         return self.hypotheses.output(self, self.twin)
 
@@ -475,8 +475,6 @@ class EventPoseTracker(nn.Module):
         if self._run.ahead is not None:
             self._run.ahead.flow.wait()  # not .result(): in a finally, its error would hide the one that stopped the loop
             self._run.ahead = None
-        if self.twin is not None:
-            self.twin.drop_ahead()
 
     def _check(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor, b: torch.Tensor | None,
                last: np.ndarray) -> tuple[torch.Tensor, ...]:
@@ -506,14 +504,11 @@ class EventPoseTracker(nn.Module):
                                  f"{int(last[k])} us in an earlier window")
         return x, y, t, p, b
 
-    def _update(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor, b: torch.Tensor | None,
-                t_us: int | torch.Tensor | None, ahead: tuple | None) -> None:
-        """One update (:meth:`forward`): the new poses go to :attr:`pose`."""
-        cfg = self.config
-        B = self.batch_size
-        run = self._run.bound or self._bind()
-        clock = _StageClock()
-        (x, y, t, p, b), counts, seen, burst = self._guard((x, y, t, p, b))
+    def _intake(self, window: tuple, ahead: tuple | None, run: "_Bound", clock: "_StageClock") -> "_Intake":
+        """Step 1 of an update: the burst guard and the denoise filter on the packed ``window`` ``(x, y, t, p, b)``,
+        then its kept events into the EROS, the time surface and the flow (or their flow, taken in ahead); ``ahead``:
+        the next window, to take in once this update has read the surfaces (``launch``)."""
+        (x, y, t, p, b), counts, seen, burst = self._guard(window)
         if ahead is not None:  # judged now, in window order, so that only its kept events go in ahead
             ahead = self._guard_ahead(ahead)
         launch = None if ahead is None else lambda: self._launch(ahead)  # once this update has read the surfaces
@@ -536,6 +531,24 @@ class EventPoseTracker(nn.Module):
         if burst is not None and burst.any():  # no flow measurement from a burst: the velocity filter predicts
             flow.valid[burst] = False  # (the bound intake gives numpy arrays)
         clock.lap("flow")
+        return _Intake((x, y, t, p, b), flow, counts, seen, burst, launch)
+
+    def _update(self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, p: torch.Tensor, b: torch.Tensor | None,
+                t_us: int | torch.Tensor | None, ahead: tuple | None, intake: "_Intake | None" = None) -> "_Intake":
+        """One update (:meth:`forward`): the new poses go to :attr:`pose`. ``intake``: the window already taken into
+        this tracker's event stages by the tracker it follows (:meth:`_follow`), whose update returned it; returns
+        this window's :class:`_Intake`."""
+        cfg = self.config
+        B = self.batch_size
+        run = self._run.bound or self._bind()
+        clock = _StageClock()
+        if intake is None:
+            intake = self._intake((x, y, t, p, b), ahead, run, clock)
+        else:
+            clock.lap("eros")
+            clock.lap("flow")
+        (x, y, t, p, b), flow, counts, seen, burst, launch = intake
+        intake = intake._replace(launch=None)
 
         # A pose that is not finite or puts the object (nearly) behind the camera is not a pose: such a
         # prediction or output is replaced by the last pose (zero motion) rather than used or emitted.
@@ -597,6 +610,7 @@ class EventPoseTracker(nn.Module):
             self.recover(self, t_now)
             clock.lap("recover")
         self.stage_ms = clock.ms
+        return intake
 
     @property
     def quality(self) -> Quality:
@@ -626,6 +640,15 @@ class EventPoseTracker(nn.Module):
         tracker keeps one) or ``(B, C, H, W)`` per polarity channel (the flow's SAE); :data:`~torchevtrack.stages.NEVER`
         where none fired. The tracker's own buffer: clone it to keep it."""
         return self.time_surface.last_us if self.time_surface is not None else self.flow.sae
+
+    def _follow(self, owner: "EventPoseTracker") -> None:
+        """Share ``owner``'s event stages (burst guard, denoise filter, EROS, time surface, flow), which depend on the
+        events only: ``owner`` takes each window in, and this tracker's update reads them after ``owner``'s
+        (:meth:`forward` gives it the window's :class:`_Intake`). Its own recency windows follow the same flow."""
+        self.burst, self.denoise, self.eros = owner.burst, owner.denoise, owner.eros
+        self.time_surface, self.flow = owner.time_surface, owner.flow
+        self._take_in_ahead = False
+        self._run.bound = None
 
     @torch.inference_mode()
     def adopt(self, other: "EventPoseTracker", mask: torch.Tensor | None = None) -> None:
@@ -1094,6 +1117,18 @@ class _UpdateState:
     guarded: tuple | None = None
     models: "list[TemplateModel] | None" = None
     bound: "_Bound | None" = None
+
+
+class _Intake(NamedTuple):
+    """A window as the event stages took it (:meth:`EventPoseTracker._intake`): its kept events ``(x, y, t, p, b)``,
+    its flow field, each element's events in the window and kept ``(B,)`` int64, the burst flags ``(B,)`` bool (or
+    ``None``), and ``launch``: takes the next window in, once the update has read the surfaces (or ``None``)."""
+    window: tuple
+    flow: FlowField
+    counts: np.ndarray
+    seen: np.ndarray
+    burst: np.ndarray | None
+    launch: Callable[[], None] | None
 
 
 @dataclass

@@ -116,9 +116,8 @@ class _Region(NamedTuple):
 
 class _FullRes(NamedTuple):
     """The observation at full resolution: event image ``(H, W)`` bool, its capped distance map ``(H, W)``
-    float32 and that map's central differences along u and v ``(H, W)`` float64 (zero on the border; ``None`` without
-    ``gradients``: a cost needs none, the polish does), and the event pixels ``(K, 2)`` (u, v) of the first level's
-    region."""
+    float32 and that map's central differences along u and v ``(H, W)`` float64 (zero on the border; ``None`` for a
+    cost, which needs none: the polish does), and the event pixels ``(K, 2)`` (u, v) of the first level's region."""
 
     image: np.ndarray
     distance: np.ndarray
@@ -127,10 +126,8 @@ class _FullRes(NamedTuple):
     events: np.ndarray
 
     @classmethod
-    def of(cls, image: np.ndarray, cap_px: float, events: np.ndarray, gradients: bool = True) -> "_FullRes":
+    def of(cls, image: np.ndarray, cap_px: float, events: np.ndarray) -> "_FullRes":
         distance = distance_map(image, cap_px)
-        if not gradients:
-            return cls(image, distance, None, None, events)
         D = distance.astype(np.float64)
         gu, gv = np.zeros_like(D), np.zeros_like(D)
         gu[:, 1:-1] = 0.5 * (D[:, 2:] - D[:, :-2])
@@ -330,10 +327,19 @@ class Relocaliser(nn.Module):
         return best[0], cost, min(others, default=math.inf), self._cost_of(self._edges_full(own.double()), obs)
 
     # -- full resolution: cost and Gauss-Newton polish -------------------------------------------------------------
-    def _full_res(self, events: np.ndarray, gradients: bool = True) -> "_FullRes":
+    def _full_res(self, events: np.ndarray, box: tuple[int, int, int, int] | None = None) -> "_FullRes":
+        """The observation of the event pixels ``(K, 2)``; with ``box`` ``(u0, v0, u1, v1)`` (full-resolution pixels,
+        clipped to the frame), for costs only: its distances only there, ``cap_px`` elsewhere, and no gradients."""
         frame = np.zeros((self.camera.height, self.camera.width), bool)
         frame[events[:, 1], events[:, 0]] = True
-        return _FullRes.of(frame, self.cap_px, events, gradients)
+        if box is None:
+            return _FullRes.of(frame, self.cap_px, events)
+        H, W = frame.shape
+        u0, v0, u1, v1 = max(box[0], 0), max(box[1], 0), min(box[2], W), min(box[3], H)
+        distance = np.full((H, W), self.cap_px, np.float32)
+        if u1 > u0 and v1 > v0:
+            distance[v0:v1, u0:u1] = distance_map(frame[v0:v1, u0:u1], self.cap_px)
+        return _FullRes(frame, distance, None, None, events)
 
     def _edges_full(self, pose: torch.Tensor):
         """Edge pixels ``(M, 2)`` (frame u, v), their depths ``(M,)`` and the render window, or ``None``."""
@@ -440,8 +446,19 @@ class Relocaliser(nn.Module):
                              f"{tuple(poses.shape)}, {tuple(last_us.shape)} {last_us.dtype}")
         centre = poses[:1].clone()
         centre[0, :3] = poses[:, :3].mean(0)
-        obs = self._full_res(self._events(centre, last_us, int(t_now_us)), gradients=False)
-        return torch.tensor([self._cost_of(self._edges_full(p[None]), obs) for p in poses], dtype=torch.float64)
+        events = self._events(centre, last_us, int(t_now_us))
+        got = [self._edges_full(p[None]) for p in poses]
+        windows = [g[2] for g in got if g is not None]
+        if not windows:
+            return torch.full((len(poses),), self.cap_px, dtype=torch.float64)
+        # the distances are read at the poses' edge pixels only: within their windows, where the events that can
+        # be nearer than the cap lie within the windows grown by the cap (chamfer paths stay in that box: the same
+        # numbers as over the whole frame, in a fraction of the time)
+        c = math.ceil(self.cap_px)
+        u0, v0 = min(w[0] for w in windows) - c, min(w[1] for w in windows) - c
+        u1, v1 = max(w[0] + w[2] for w in windows) + c, max(w[1] + w[3] for w in windows) + c
+        obs = self._full_res(events, box=(u0, v0, u1, v1))
+        return torch.tensor([self._cost_of(g, obs) for g in got], dtype=torch.float64)
 
     def forward(self, pose: torch.Tensor, last_us: torch.Tensor, t_now_us: torch.Tensor,
                 own: torch.Tensor | None = None) -> Relocalisation:
