@@ -85,7 +85,7 @@ __all__ = [
 
 METHODS = ("full", "no_ukf", "velocity_only", "correction_only", "edopt_vel")
 """The default methods: the paper's ablations (:data:`torchevtrack.config.ABLATIONS` but ``hypotheses``, which takes
-about 3x the time of ``full``)."""
+about 2.3x the time of ``full``)."""
 
 METHOD_NAMES = {
     "correction_only": "EDOPT (correction only)",

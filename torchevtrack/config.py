@@ -228,7 +228,7 @@ class HypothesesConfig:
     # Two hypotheses per object (torchevtrack.hypotheses): the tracker keeps a twin of itself with the UKF off, fed
     # the same events; every period_us of event time the two poses' chamfer costs against the same recent events are
     # compared, and after patience checks in a row in which one costs less than the other divided by ratio, it is the
-    # output and the other takes its motion state. About 3x the time of one tracker (docs/benchmarks.md).
+    # output and the other takes its motion state. About 2.3x the time of one tracker (docs/benchmarks.md).
     enabled: bool = False
     ratio: float = 1.25
     patience: int = 2

@@ -7,7 +7,7 @@ they explain the same recent events, and that comparison does not need the absol
 between scenes far more than between a right and a wrong pose.
 
 With ``config.hypotheses.enabled`` an :class:`~torchevtrack.tracker.EventPoseTracker` keeps a twin of itself with
-the UKF off (``tracker.twin``), updated with the same windows. :class:`Hypotheses` runs after both updates; every
+the UKF off (``tracker.twin``), updated after it with the same windows. :class:`Hypotheses` runs after both updates; every
 ``period_us`` of event time per element it costs the two poses against the same recent events
 (:meth:`~torchevtrack.stages.relocalise.Relocaliser.costs`, the two-sided chamfer distance in pixels) and
 :func:`arbitrate` counts the checks in a row in which each was clearly better (its rival's cost above ``ratio``
@@ -15,8 +15,9 @@ times its own). After ``patience`` of them the winner is the element's output (:
 the loser takes the winner's motion state (:meth:`~torchevtrack.tracker.EventPoseTracker.adopt`): both go on from
 the better pose. The tracker's output is then the chosen hypothesis's pose (:meth:`Hypotheses.output`).
 
-The twin doubles an update's work and each check renders both poses at full resolution: a run takes about 3x the
-time of one tracker, a check's update 5-10 ms more (docs/benchmarks.md).
+The twin shares the tracker's event stages (EROS, time surface, flow: they depend on the events only) and doubles
+the rest of an update; each check renders both poses at full resolution. Streaming, a run takes about 2.3x the time
+of one tracker and a check's update about 5 ms more (docs/benchmarks.md).
 
 Example:
     >>> import torch

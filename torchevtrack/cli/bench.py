@@ -56,7 +56,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=float, help="track only the first SECONDS (default: the whole sequence)")
     p.add_argument("--ablation", choices=sorted(ABLATIONS), default="full",
                    help="the paper's ablations, or hypotheses: the full method and its twin without the UKF, the "
-                   "better of the two (about 3x the time)")
+                   "better of the two (about 2.3x the time)")
     add_config_options(p)
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     p.add_argument("--chunk-us", type=int, default=1000, help="events per streaming push, microseconds (default 1000)")

@@ -48,7 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_config_options(p, "configs/default.yaml values")
     p.add_argument("--ablation", choices=sorted(ABLATIONS), default="full",
                    help="the paper's ablations, or hypotheses: the full method and its twin without the UKF, the "
-                   "better of the two (about 3x the time)")
+                   "better of the two (about 2.3x the time)")
     p.add_argument("--init", help='initial pose "tx ty tz qx qy qz qw": metres, then a unit quaternion with qw '
                    "LAST (TUM order; the Python API's pose is [t, qw, qx, qy, qz]); default: first pose of gt_poses.txt")
     p.add_argument("--mesh", help="mesh file or object name (default: SEQDIR/mesh.ply)")
