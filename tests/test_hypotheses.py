@@ -135,6 +135,7 @@ def test_a_hypothesis_knocked_off_the_object_is_replaced_by_its_twin(seq):
         runs[name] = (tracker, torch.stack(before + feed((tracker,), seq, t0, n - knock_at, start=knock_at)[0]))
     tracker, poses = runs["twin"]
     assert tracker.hypotheses.switches == 1 and int(tracker.hypotheses.chosen[0]) == 1
+    assert tracker.twin.eros is tracker.eros and tracker.twin.flow is tracker.flow  # one intake for both
     # from the first check on (20 ms after the knock) the output is the twin's, which is the tracker without a UKF
     assert torch.equal(poses[knock_at + 10:], runs["no_ukf"][1][knock_at + 10:])
     e = pose_errors(runs["alone"][1][knock_at + 10:], truth[knock_at + 10:])
@@ -142,8 +143,8 @@ def test_a_hypothesis_knocked_off_the_object_is_replaced_by_its_twin(seq):
 
 
 def test_a_batch_gives_the_same_poses_with_and_without_the_pipeline(seq):
-    # with one worker the pipeline's thread takes the next window in ahead, except at updates that check: the check
-    # reads the time surface of the events up to its own update
+    # the twin reads the tracker's event stages after the tracker's update, and a check reads the time surface of the
+    # events up to its update: the pipeline's thread must take no window in ahead of them
     cfg = TrackerConfig().replace(hypotheses={"enabled": True})
     g = torch.Generator().manual_seed(5)
     starts = torch.stack([seq.gt_poses[0], perturb_pose(seq.gt_poses[0], 0.02, math.radians(20), g)])

@@ -124,12 +124,6 @@ class Hypotheses(nn.Module):
         self.next_us[m] = -1
         self.costs[m] = float("nan")
 
-    def due(self, t_us: torch.Tensor | int) -> bool:
-        """Whether an update at ``t_us`` (``(B,)`` int64 or an int) checks any element (the tracker then takes no
-        window in ahead: the check reads the time surface of the events up to ``t_us``)."""
-        t = torch.as_tensor(t_us, dtype=torch.int64).expand(len(self.owner))
-        return bool(((self.next_us >= 0) & (t >= self.next_us)).any())
-
     @torch.inference_mode()
     def forward(self, tracker: "EventPoseTracker", twin: "EventPoseTracker", t_us: torch.Tensor | int) -> None:
         B = len(self.owner)
