@@ -348,3 +348,20 @@ def test_the_recoverers_views_follow_copies_and_new_storage(seq):
         assert not bool(tr.lost[0]) and int(tr.loss.low_run[0]) == 0
         assert int(tr.recover.good_us[0]) == t0 + 40_000  # the last window's end
         assert torch.equal(tr.recover.good_pose[0], tr.pose[0])
+
+
+def test_a_batch_searches_the_same_events_with_and_without_the_pipeline(seq):
+    # the search reads the time surface of the events up to its update: with one worker the pipeline's thread must
+    # not be taking the next window in meanwhile (the real relocaliser: its result depends on every recent pixel)
+    cfg = RECOVER.replace(recover={"start_search": True, "start_after_us": 30_000})
+    g = torch.Generator().manual_seed(6)
+    starts = torch.stack([perturb_pose(seq.gt_poses[0], 0.02, math.radians(10.0), g) for _ in range(2)])
+    t0 = int(seq.gt_t_us[0])
+    runs = []
+    for pipeline in (False, True):
+        tracker = EventPoseTracker(CAM, [seq.mesh] * 2, cfg, workers=1, pipeline=pipeline)
+        poses = tracker.track([seq.events] * 2, starts, t_start_us=t0, t_end_us=t0 + 80_000, progress=False)[1]
+        assert tracker.pipelined == pipeline and tracker.recover.searches == 2
+        runs.append(poses)
+        tracker.close()
+    assert torch.equal(runs[0], runs[1])

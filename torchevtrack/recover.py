@@ -64,6 +64,7 @@ from torchevtrack.stages.propagate import propagate, twist_between_kernel
 from torchevtrack.stages.relocalise import LEVELS, Level, Relocalisation, Relocaliser
 
 if TYPE_CHECKING:  # the tracker imports this module
+    from torchevtrack.loss import LossDetector
     from torchevtrack.tracker import EventPoseTracker
 
 __all__ = ["Recoverer", "beats", "beats_start", "confirms", "search_levels", "MAX_EXTRAPOLATION_US", "MAX_RETRY_US",
@@ -226,6 +227,13 @@ class Recoverer(BufferViews, nn.Module):
         self.lost[m] = False
         self.started_us[m] = -1
         self.start_pending[m] = self.start_search
+
+    def may_search(self, loss: "LossDetector") -> bool:
+        """Whether the next update may search: an element is lost, ``loss`` (the tracker's detector) may declare one
+        lost in it (its low run one update short of the patience), or a start search is still to come. A search reads
+        the time surface of the events up to its update, so the tracker then takes no window in ahead."""
+        return bool(self.lost.numpy().any() or self.start_pending.numpy().any()
+                    or (loss.low_run.numpy() >= loss.patience - 1).any())
 
     def close(self) -> None:
         """Release the relocalisers' renderers."""

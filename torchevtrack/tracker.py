@@ -153,7 +153,8 @@ class EventPoseTracker(nn.Module):
             takes the next window's events into the EROS and the flow
             (:func:`~torchevtrack.update.bind_intake`) while an update searches, whenever that window is
             known: in :meth:`track`, and in :class:`~torchevtrack.online.OnlineTracker` when a push completes
-            several windows (and with ``render.ahead``, one sequence, also makes the next update's render). Default:
+            several windows (not with a twin, ``config.hypotheses``, nor in an update in which the re-localiser may
+            search, :meth:`~torchevtrack.recover.Recoverer.may_search`: both read the surfaces after the update) (and with ``render.ahead``, one sequence, also makes the next update's render). Default:
             on with one worker and two or more usable cores. Results do not depend on it; with it, the ``eros``,
             ``flow``, ``render`` and ``correction`` of ``stage_ms`` include the waits for that thread.
         on_lost: re-initialisation callback of the loss detector (needs ``config.loss.enabled``):
@@ -454,6 +455,8 @@ class EventPoseTracker(nn.Module):
             except ValueError:
                 next_window = None  # its own update raises
         ahead = next_window if self._take_in_ahead else None
+        if ahead is not None and self.recover is not None and self.recover.may_search(self.loss):
+            ahead = None  # a search reads the time surface of this window's events: the next must not be going in
         with torch.inference_mode():
             try:
                 intake = self._update(x, y, t, p, b, t_us, ahead)
