@@ -153,8 +153,9 @@ class EventPoseTracker(nn.Module):
             takes the next window's events into the EROS and the flow
             (:func:`~torchevtrack.update.bind_intake`) while an update searches, whenever that window is
             known: in :meth:`track`, and in :class:`~torchevtrack.online.OnlineTracker` when a push completes
-            several windows (not with a twin, ``config.hypotheses``, nor in an update in which the re-localiser may
-            search, :meth:`~torchevtrack.recover.Recoverer.may_search`: both read the surfaces after the update) (and with ``render.ahead``, one sequence, also makes the next update's render). Default:
+            several windows (and with ``render.ahead``, one sequence, also makes the next update's render); not with
+            a twin (``config.hypotheses``), nor in an update in which the re-localiser may search
+            (:meth:`~torchevtrack.recover.Recoverer.may_search`): both read the surfaces after the update. Default:
             on with one worker and two or more usable cores. Results do not depend on it; with it, the ``eros``,
             ``flow``, ``render`` and ``correction`` of ``stage_ms`` include the waits for that thread.
         on_lost: re-initialisation callback of the loss detector (needs ``config.loss.enabled``):
@@ -551,7 +552,6 @@ class EventPoseTracker(nn.Module):
             clock.lap("eros")
             clock.lap("flow")
         (x, y, t, p, b), flow, counts, seen, burst, launch = intake
-        intake = intake._replace(launch=None)
 
         # A pose that is not finite or puts the object (nearly) behind the camera is not a pose: such a
         # prediction or output is replaced by the last pose (zero motion) rather than used or emitted.
