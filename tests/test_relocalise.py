@@ -10,7 +10,7 @@ import torch
 from scipy import ndimage
 
 from torchevtrack.camera import Camera
-from torchevtrack.chamfer import chamfer, distance_map, model_edges, recent_events
+from torchevtrack.chamfer import chamfer, distance_map, model_edges, newest, recent_events
 from torchevtrack.geometry import quat_conj, quat_log, quat_mul
 from torchevtrack.mesh import load_mesh
 from torchevtrack.raster import RasterRenderer
@@ -133,6 +133,15 @@ def test_recent_events_match_a_3x3_count_of_recent_pixels(min_support):
     want = recent & (count > min_support) if min_support else recent
     got = recent_events(last, 2000, 700, min_support=min_support)
     assert np.array_equal(got, want) and 0 < got.sum() < got.size
+
+
+@pytest.mark.parametrize("shape", [(1, 9, 11), (2, 9, 11), (9, 11)])
+def test_newest_is_the_channels_maximum(shape):
+    last = torch.randint(-(2 ** 40), 2 ** 40, shape, generator=torch.Generator().manual_seed(len(shape)))
+    want = last.amax(0) if last.ndim == 3 else last
+    assert np.array_equal(newest(last), want.numpy()) and newest(last).shape == (9, 11)
+    with pytest.raises(ValueError, match="must be"):
+        newest(last[None, None])
 
 
 def test_chamfer_prefers_the_aligned_edges():

@@ -56,6 +56,7 @@ import trimesh
 from torch import nn
 
 from torchevtrack.camera import Camera
+from torchevtrack.chamfer import newest
 from torchevtrack.config import RecoverConfig
 from torchevtrack.mesh import symmetry_axis
 from torchevtrack.raster import RasterRenderer
@@ -272,7 +273,7 @@ class Recoverer(BufferViews, nn.Module):
         twist[~torch.from_numpy(starting)] = 0.0
         for i in np.flatnonzero(due | starting).tolist():
             if due[i]:
-                recent = (int(t[i]) - surface[i].reshape(-1, *surface.shape[-2:]).amax(0)) <= self.retry_us
+                recent = (int(t[i]) - newest(surface[i])) <= self.retry_us
                 if int(recent.sum()) < self.min_events:  # no edges to search in (e.g. no events): retry later
                     continue
                 dt = min(float(t[i] - self.good_us[i]), MAX_EXTRAPOLATION_US) * 1e-6

@@ -56,7 +56,7 @@ import torch
 from torch import nn
 
 from torchevtrack.camera import Camera, interaction_matrix
-from torchevtrack.chamfer import distance_map, model_edges, recent_events
+from torchevtrack.chamfer import distance_map, model_edges, newest, recent_events
 from torchevtrack.geometry import quat_rotate
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.stages.template import apply_steps, pose_delta, render_window
@@ -204,9 +204,9 @@ class Relocaliser(nn.Module):
         """Recent event pixels ``(K, 2)`` (u, v) in the first level's region, with the adaptive window."""
         level = self.levels[0]
         u0, v0, side = self._square(pose, level)
-        last = last_us.amax(0) if last_us.ndim == 3 else last_us
+        last = newest(last_us)
         H, W = last.shape
-        age = t_now - last.numpy()[max(0, v0):min(H, v0 + side), max(0, u0):min(W, u0 + side)]
+        age = t_now - last[max(0, v0):min(H, v0 + side), max(0, u0):min(W, u0 + side)]
         ages = age[(age >= 0) & (age <= self.max_window_us)]
         depth, _ = self.renderer.render_unit(pose.numpy(), Camera(*self._low_camera(u0, v0, side, level.scale)),
                                              shaded=False)
