@@ -465,9 +465,10 @@ class EventPoseTracker(nn.Module):
                 if self._run.observing is not None:  # the update failed after it gave the intake thread its part
                     self._run.observing.wait()
                     self._run.observing = None
-            if self.twin is None:
-                return torch.from_numpy(self.pose.numpy().copy())
-            self.twin._update(*intake.window, t_us, None, intake)
+            if self.twin is not None:
+                self.twin._update(*intake.window, t_us, None, intake)
+        if self.twin is None:  # (made outside inference mode: an ordinary tensor)
+            return torch.from_numpy(self.pose.numpy().copy())
         self.hypotheses(self, self.twin, self.t_last if t_us is None else t_us)
         return self.hypotheses.output(self, self.twin)
 
