@@ -39,8 +39,9 @@ __all__ = ["chamfer", "distance_map", "model_edges", "newest", "recent_events"]
 
 
 def newest(last_us: torch.Tensor) -> np.ndarray:
-    """The newest event time per pixel of a time surface ``(H, W)`` or ``(C, H, W)`` (its channels' maximum; numpy's:
-    torch's ``amax`` over a leading dimension of int64 takes ~10 ms for one 640x480 plane on one core).
+    """The newest event time per pixel of a time surface ``(H, W)`` or ``(C, H, W)`` (its channels' maximum, by numpy:
+    0.06 ms for one 640x480 int64 plane, where torch's ``amax`` over the leading dimension takes 0.2-0.7 ms with one
+    thread and 0.3-3.5 ms with two, in and out of inference mode).
 
     Shape: ``(H, W)`` or ``(C, H, W)`` int64 -> ``(H, W)`` int64 (a view of a single plane, else a new array).
     """
