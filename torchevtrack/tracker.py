@@ -284,9 +284,9 @@ class EventPoseTracker(nn.Module):
         self.recover = Recoverer.from_config(cfg.recover, camera, distinct, self._renderer_of, self._radius) \
             if cfg.recover.enabled else None
         if cfg.hypotheses.enabled:  # the twin: this tracker without the UKF (and without loss, recovery or a twin)
-            off = {"enabled": False}
+            off, no_recover = {"enabled": False}, {"enabled": False, "start_search": False}
             self.twin = EventPoseTracker(camera, [distinct[i] for i in self._renderer_of],
-                                         cfg.replace(ukf=off, loss=off, recover=off, hypotheses=off,
+                                         cfg.replace(ukf=off, loss=off, recover=no_recover, hypotheses=off,
                                                      render={"decimate": None}),
                                          workers=workers, pipeline=pipeline)
             self.twin._follow(self)
