@@ -40,6 +40,10 @@ def test_invalid_values_are_rejected():
         TrackerConfig.from_dict({"velocity": {"source": "magic"}})
     with pytest.raises(ValueError, match="rate_hz"):
         TrackerConfig(rate_hz=0)
+    for faces in (2, 1.5, True):  # a face count, checked before any mesh is loaded
+        with pytest.raises(ValueError, match="render.decimate must be an integer face count"):
+            TrackerConfig.from_dict({"render": {"decimate": faces}})
+    assert TrackerConfig.from_dict({"render": {"decimate": 500}}).render.decimate == 500
 
 
 def test_ablations_change_only_their_switches():
