@@ -2,6 +2,7 @@
 
 import math
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -172,3 +173,17 @@ def test_symmetry_axis_doctest_prints_no_negative_zero(monkeypatch):
     (test,) = [t for t in finder.find(mesh_module) if t.name.endswith(".symmetry_axis")]
     result = doctest.DocTestRunner().run(test, out=lambda s: None)
     assert result.failed == 0
+
+
+def test_a_mesh_in_millimetres_warns(tmp_path):
+    box = load_mesh("box")
+    path = tmp_path / "box_mm.ply"
+    box.copy().apply_scale(1000.0).export(path)
+    with pytest.warns(UserWarning, match="millimetres"):
+        mesh = load_mesh(path)
+    assert mesh.extents.max() > 100  # read as it is: the warning changes nothing
+    with pytest.warns(UserWarning, match="210 m across"):
+        load_mesh(box.copy().apply_scale(1000.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_mesh(box)  # in metres: no warning

@@ -21,6 +21,8 @@ import functools
 import math
 from pathlib import Path
 
+import warnings
+
 import numpy as np
 import trimesh
 
@@ -32,6 +34,8 @@ _MESH_SUFFIXES = {".obj", ".ply", ".stl", ".off", ".glb", ".gltf", ".dae"}
 # Half-width (m) of the thin strip of triangles that carries a colour change: vertex colours are
 # interpolated across one strip, so pattern edges are 1 mm wide whatever the coarse grid spacing.
 _EDGE = 5e-4
+# A mesh wider than this (m) is most likely in millimetres (BOP's models are): loading it warns.
+_LARGE_M = 5.0
 
 
 # -- public API --------------------------------------------------------------------------------
@@ -50,6 +54,9 @@ def load_mesh(source: str | Path | trimesh.Trimesh, *, decimate: int | None = No
         A fresh ``trimesh.Trimesh`` (a copy: callers may modify it). Loads are cached per
         ``(source, decimate)`` (files also by modification time).
 
+    Warns:
+        UserWarning: a mesh more than 5 m across (most likely in millimetres; once per file).
+
     Raises:
         FileNotFoundError: a path that does not exist.
         ValueError: unreadable file, empty or degenerate mesh, unknown name, bad ``decimate``.
@@ -61,6 +68,7 @@ def load_mesh(source: str | Path | trimesh.Trimesh, *, decimate: int | None = No
         decimate = int(decimate)
     if isinstance(source, trimesh.Trimesh):
         _validate(source, "mesh")
+        _warn_if_large(source, "mesh")
         return _decimate(source, decimate).copy() if decimate is not None else source.copy()
     if not isinstance(source, (str, Path)):
         raise TypeError(f"source must be a path or an object name (str), got {type(source).__name__}")
@@ -153,6 +161,7 @@ def _load_file_cached(path: str, mtime_ns: int, size: int, decimate: int | None)
     if not isinstance(mesh, trimesh.Trimesh):
         raise ValueError(f"{path}: file holds no triangle mesh (got {type(mesh).__name__})")
     _validate(mesh, path)
+    _warn_if_large(mesh, path)
     return _decimate(mesh, decimate) if decimate is not None else mesh
 
 
@@ -176,6 +185,14 @@ def _validate(mesh: trimesh.Trimesh, what: str) -> None:
         raise ValueError(f"{what}: mesh is degenerate (zero extent)")
     if not mesh.area > 0:
         raise ValueError(f"{what}: mesh is degenerate (all faces have zero area)")
+
+
+def _warn_if_large(mesh: trimesh.Trimesh, what: str) -> None:
+    """Warn (once per loaded file) when the mesh is wider than ``_LARGE_M``: meshes are read as metres."""
+    size = float(mesh.extents.max())
+    if size > _LARGE_M:
+        warnings.warn(f"{what}: the mesh is {size:.4g} m across; meshes are read in metres (a model in millimetres, "
+                      f"as BOP's are, needs mesh.apply_scale(0.001) first)", stacklevel=3)
 
 
 def _decimate(mesh: trimesh.Trimesh, faces: int) -> trimesh.Trimesh:
