@@ -34,6 +34,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Sequence
 
+import numpy as np
 import torch
 import trimesh
 from torch import nn
@@ -124,14 +125,21 @@ class Hypotheses(nn.Module):
         self.next_us[m] = -1
         self.costs[m] = float("nan")
 
-    @torch.inference_mode()
     def forward(self, tracker: "EventPoseTracker", twin: "EventPoseTracker", t_us: torch.Tensor | int) -> None:
+        # most updates check nothing: that test in numpy, on the buffer's view
+        t = np.asarray(t_us, dtype=np.int64)
+        next_us = self.next_us.numpy()
+        if next_us.min() < 0:  # the first update after a reset: the first check one period on
+            next_us[:] = np.where(next_us < 0, t + self.period_us, next_us)
+        due = t >= next_us
+        if due.any():
+            t = np.broadcast_to(t, due.shape)
+            self._check(tracker, twin, torch.from_numpy(t.copy()), np.flatnonzero(due).tolist())
+
+    @torch.inference_mode()
+    def _check(self, tracker: "EventPoseTracker", twin: "EventPoseTracker", t: torch.Tensor, due: list[int]) -> None:
+        """Cost both hypotheses of the ``due`` elements (``t`` ``(B,)`` int64 us) and arbitrate."""
         B = len(self.owner)
-        t = torch.as_tensor(t_us, dtype=torch.int64).expand(B)
-        self.next_us.copy_(torch.where(self.next_us < 0, t + self.period_us, self.next_us))
-        due = (t >= self.next_us).nonzero()[:, 0].tolist()
-        if not due:
-            return
         surface = tracker.last_event_us
         costs = torch.stack([self.scorers[self.owner[i]].costs(torch.stack((tracker.pose[i], twin.pose[i])),
                                                                  surface[i], int(t[i])) for i in due])  # (K, 2)
