@@ -230,7 +230,7 @@ class HypothesesConfig:
     # compared, and after patience checks in a row in which one costs less than the other divided by ratio, it is the
     # output and the other takes its motion state. About 2.3x the time of one tracker (docs/benchmarks.md).
     enabled: bool = False
-    ratio: float = 1.25
+    ratio: float = 1.5
     patience: int = 2
     period_us: int = 20_000
 

@@ -94,7 +94,7 @@ class Hypotheses(nn.Module):
     the comparisons and the adoptions.
     """
 
-    def __init__(self, scorers: Sequence[Relocaliser], owner: Sequence[int], *, ratio: float = 1.25,
+    def __init__(self, scorers: Sequence[Relocaliser], owner: Sequence[int], *, ratio: float = 1.5,
                  patience: int = 2, period_us: int = 20_000):
         super().__init__()
         if not ratio > 1 or int(patience) < 1 or int(period_us) <= 0:
