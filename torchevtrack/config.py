@@ -20,6 +20,7 @@ from pathlib import Path
 
 import yaml
 
+from torchevtrack.mesh import check_decimate
 from torchevtrack.render import BACKENDS
 
 __all__ = [
@@ -276,9 +277,7 @@ class TrackerConfig:
             raise ValueError(f"template.interior must be finite and >= 0, got {self.template.interior!r}")
         if self.render.backend not in BACKENDS:
             raise ValueError(f"render.backend must be one of {BACKENDS}, got {self.render.backend!r}")
-        d = self.render.decimate
-        if d is not None and (isinstance(d, bool) or not isinstance(d, int) or d < 4):
-            raise ValueError(f"render.decimate must be an integer face count >= 4 or null, got {d!r}")
+        check_decimate(self.render.decimate, "render.decimate")
         r = self.recover
         if r.enabled and not self.loss.enabled:
             raise ValueError("recover.enabled needs the loss detector: set loss.enabled")

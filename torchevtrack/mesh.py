@@ -19,14 +19,13 @@ from __future__ import annotations
 import difflib
 import functools
 import math
-from pathlib import Path
-
 import warnings
+from pathlib import Path
 
 import numpy as np
 import trimesh
 
-__all__ = ["BUILTIN_OBJECTS", "hidden_symmetry_axis", "load_mesh", "list_objects", "symmetry_axis"]
+__all__ = ["BUILTIN_OBJECTS", "check_decimate", "hidden_symmetry_axis", "load_mesh", "list_objects", "symmetry_axis"]
 
 BUILTIN_OBJECTS = ("box", "can", "bottle")
 _INSTALL_HINT = "pip install torchevtrack[ycb]"
@@ -62,10 +61,7 @@ def load_mesh(source: str | Path | trimesh.Trimesh, *, decimate: int | None = No
         ValueError: unreadable file, empty or degenerate mesh, unknown name, bad ``decimate``.
         ImportError: YCB name or decimation requested without the optional packages.
     """
-    if decimate is not None:
-        if isinstance(decimate, bool) or not isinstance(decimate, (int, np.integer)) or decimate < 4:
-            raise ValueError(f"decimate must be an integer face count >= 4 or None, got {decimate!r}")
-        decimate = int(decimate)
+    decimate = check_decimate(decimate)
     if isinstance(source, trimesh.Trimesh):
         _validate(source, "mesh")
         _warn_if_large(source, "mesh")
@@ -79,6 +75,20 @@ def load_mesh(source: str | Path | trimesh.Trimesh, *, decimate: int | None = No
         stat = path.stat()
         return _load_file_cached(str(path.resolve()), stat.st_mtime_ns, stat.st_size, decimate).copy()
     return _load_named_cached(str(source), decimate).copy()
+
+
+def check_decimate(decimate, name: str = "decimate") -> int | None:
+    """``decimate`` (a face count >= 4, or ``None``) as an ``int`` or ``None``; ``ValueError`` naming ``name`` otherwise.
+
+    Example:
+        >>> check_decimate(500), check_decimate(None)
+        (500, None)
+    """
+    if decimate is None:
+        return None
+    if isinstance(decimate, bool) or not isinstance(decimate, (int, np.integer)) or decimate < 4:
+        raise ValueError(f"{name} must be an integer face count >= 4 or None, got {decimate!r}")
+    return int(decimate)
 
 
 def symmetry_axis(mesh: trimesh.Trimesh, tol: float = 0.01, samples: int = 20_000) -> np.ndarray | None:
