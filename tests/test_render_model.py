@@ -111,15 +111,15 @@ def test_a_textured_mesh_renders_its_texture_into_the_template():
 
 @pytest.mark.parametrize("canvas", [12, 16])
 def test_a_window_of_several_canvases_is_rendered_at_its_scale(renderer, canvas):
-    """A window at least twice the canvas is rendered ``s = min(w, h) // (2 canvas)`` times smaller. The oracle: the
-    renderer's render of the frame of a camera ``s`` times smaller that sees that window, and ``template_model`` of
-    it; the depth handed out repeats each of its pixels over ``s x s`` frame pixels, and the box and gain are given
-    in frame pixels."""
+    """A window of 1.5 canvases or more is rendered ``s = (min(w, h) + canvas) // (2 canvas)`` times smaller. The
+    oracle: the renderer's render of the frame of a camera ``s`` times smaller that sees that window, and
+    ``template_model`` of it; the depth handed out repeats each of its pixels over ``s x s`` frame pixels, and the
+    box and gain are given in frame pixels."""
     pose = _pose(0.01, -0.01, 0.4, 0.6)
     radius = _radius(renderer)
     got = render_model(renderer, pose, radius, margin_px=10, canvas=canvas)
     u0, v0, w, h = got.window[0].tolist()
-    s = min(w, h) // (2 * canvas)
+    s = (min(w, h) + canvas) // (2 * canvas)
     assert s >= 2, (w, h)
     fx, fy, cx, cy = CAM.fx / s, CAM.fy / s, (CAM.cx + 0.5) / s - 0.5, (CAM.cy + 0.5) / s - 0.5
     small = RasterRenderer(load_mesh("can"), Camera(-(-w // s), -(-h // s), fx, fy, cx - u0 / s, cy - v0 / s),

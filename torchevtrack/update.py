@@ -295,15 +295,20 @@ def _render_model_kernel(pose, radius, cam, W, H, margin, vertices, faces, plane
 @numba.njit(cache=True, nogil=True)
 def _repeat_pixels(small, s, out):
     """``out[v, u] = small[v // s, u // s]`` for every pixel of ``out`` ``(h, w)`` (``small`` ``(ceil(h / s),
-    ceil(w / s))``): one row widened, then copied to its ``s`` rows."""
+    ceil(w / s))``): the first row of each ``s`` widened from its small row, the others copied from it (element
+    loops: twice the speed of slice assignments here)."""
     h, w = out.shape
-    wide = np.empty(small.shape[1] * s, dtype=small.dtype)
     for i in range(small.shape[0]):
-        row = small[i]
+        row, first = small[i], out[i * s]
+        u = 0
         for j in range(small.shape[1]):
-            wide[j * s:(j + 1) * s] = row[j]
-        for v in range(i * s, min((i + 1) * s, h)):
-            out[v] = wide[:w]
+            for _ in range(min(s, w - u)):
+                first[u] = row[j]
+                u += 1
+        for v in range(i * s + 1, min((i + 1) * s, h)):
+            dst = out[v]
+            for u in range(w):
+                dst[u] = first[u]
 
 
 class RenderModelBinding:

@@ -241,15 +241,17 @@ def window_kernel(t, radius, fx, fy, cx, cy, margin, W, H, clip, out):
 @numba.njit(cache=True, nogil=True)
 def render_scale(w, h, canvas):
     """The subsampling ``s`` (an int >= 1) of the render a template model of ``canvas`` pixels is made from, for a
-    render window of ``w x h`` frame pixels: ``max(1, min(w, h) // (2 canvas))``, so that a render pixel stays at most
-    half a canvas pixel of a window-sized box (a window holds the object's bounding sphere and a margin; the box, its
-    outline and a margin). The window is then rendered at ``ceil(h / s) x ceil(w / s)`` pixels, render pixel ``(i,
-    j)`` centred on frame pixel ``(u0 + s j + (s - 1) / 2, v0 + s i + (s - 1) / 2)``.
+    render window of ``w x h`` frame pixels: ``max(1, (min(w, h) + canvas) // (2 canvas))``, ``min(w, h) / (2
+    canvas)`` rounded, so that a render pixel stays at most two thirds of a canvas pixel of a window-sized box (a
+    window holds the object's bounding sphere and a margin; the box, its outline and a margin): windows of 384 px
+    and more render at half resolution or less for a 128 px canvas. The window is then rendered at ``ceil(h / s) x
+    ceil(w / s)`` pixels, render pixel ``(i, j)`` centred on frame pixel ``(u0 + s j + (s - 1) / 2, v0 + s i + (s -
+    1) / 2)``.
 
-    >>> render_scale(283, 283, 128), render_scale(514, 514, 128), render_scale(1280, 720, 128)
-    (1, 2, 2)
+    >>> [render_scale(w, h, 128) for w, h in ((283, 283), (400, 420), (514, 514), (1280, 720))]
+    [1, 2, 2, 3]
     """
-    return max(1, min(w, h) // (2 * canvas))
+    return max(1, (min(w, h) + canvas) // (2 * canvas))
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
