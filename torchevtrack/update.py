@@ -320,7 +320,7 @@ class RenderModelBinding:
     with ``margin_px``, clipped to the frame), the grey image too with ``shaded``, and with ``model`` (needs
     ``shaded``) the template model (:func:`~torchevtrack.stages.template.template_model` with ``canvas``,
     ``box_margin_px`` as its ``margin_px``, ``edge_clip``, ``silhouette`` and ``interior``) at the pose's float32
-    rounding. A window of at least twice the canvas is then rendered
+    rounding. A window of 1.5 canvases or more is then rendered
     :func:`~torchevtrack.stages.template.render_scale` times smaller: its model is that render's, its depth the
     render's pixels repeated, and no grey image is handed out. A caller that runs the compiled call on another
     thread without the GIL in between calls it in three parts: ``args = binding.start(pose, shaded, model)`` (the
