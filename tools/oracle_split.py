@@ -13,7 +13,8 @@ Three modes per sequence (``--modes``, default all three), one tracker at a time
 
 Prints, per sequence and mode, the translation RMSE (cm), the RMSE of its depth component and of its lateral
 component (camera frame, cm), the rotation RMSE (deg, symmetry axis left out) and whether the EDOPT rule failed
-the run; then per mode the runs held. ``--json`` writes the table.
+the run; then per mode the runs held. ``--json`` writes the table, with the mean signed depth error
+(``depth_mean_cm``, positive: too far).
 
     python tools/oracle_split.py data/wide_dev1 --duration 1.0 [--modes estimated,true-twist] [--set k=v ...]
 """
@@ -76,6 +77,7 @@ def errors(seq: Sequence, times: torch.Tensor, poses: torch.Tensor) -> dict:
     g = seq.gt_poses[torch.searchsorted(seq.gt_t_us, times).clamp(0, len(seq.gt_t_us) - 1)]
     d = (poses[:, :3] - g[:, :3]) * 100
     return {"rmse_t_cm": m["rmse_t_cm"], "depth_cm": float(d[:, 2].square().mean().sqrt()),
+            "depth_mean_cm": float(d[:, 2].mean()),
             "lateral_cm": float(d[:, :2].square().sum(1).mean().sqrt()),
             "rmse_r_deg": m.get("rmse_r_sym_deg", m["rmse_r_deg"]), "failed": bool(m.get("failed_sym", m["failed"]))}
 
