@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchevtrack.camera import Camera
-from torchevtrack.config import TrackerConfig
+from torchevtrack.config import ABLATIONS, TrackerConfig
 from torchevtrack.geometry import interpolate_poses, perturb_pose
 from torchevtrack.hypotheses import arbitrate
 from torchevtrack.metrics import pose_errors
@@ -123,7 +123,8 @@ def test_a_hypothesis_knocked_off_the_object_is_replaced_by_its_twin(seq):
     knock_at, n = 50, (int(seq.gt_t_us[-1]) - t0) // PERIOD_US  # knocked at 0.1 s
     truth = interpolate_poses(seq.gt_t_us, seq.gt_poses, t0 + PERIOD_US * torch.arange(1, n + 1))
     runs = {}
-    for name, cfg in (("alone", TrackerConfig()), ("twin", TrackerConfig().replace(hypotheses={"enabled": True})),
+    for name, cfg in (("alone", TrackerConfig().replace(**ABLATIONS["full"])),
+                      ("twin", TrackerConfig().replace(**ABLATIONS["hypotheses"])),
                       ("no_ukf", TrackerConfig().replace(ukf={"enabled": False}))):
         tracker = EventPoseTracker(CAM, "box", cfg, pipeline=False)
         tracker.reset(gt0)
@@ -145,7 +146,7 @@ def test_a_hypothesis_knocked_off_the_object_is_replaced_by_its_twin(seq):
 def test_a_batch_gives_the_same_poses_with_and_without_the_pipeline(seq):
     # the twin reads the tracker's event stages after the tracker's update, and a check reads the time surface of the
     # events up to its update: the pipeline's thread must take no window in ahead of them
-    cfg = TrackerConfig().replace(hypotheses={"enabled": True})
+    cfg = TrackerConfig().replace(**ABLATIONS["hypotheses"])
     g = torch.Generator().manual_seed(5)
     starts = torch.stack([seq.gt_poses[0], perturb_pose(seq.gt_poses[0], 0.02, math.radians(20), g)])
     runs = []

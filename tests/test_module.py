@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from torchevtrack.camera import Camera
-from torchevtrack.config import TrackerConfig
+from torchevtrack.config import ABLATIONS, TrackerConfig
 from torchevtrack.synth.generate import generate_sequence
 from torchevtrack.tracker import EventPoseTracker
 
@@ -56,8 +56,9 @@ def _into(fresh_of, used, windows):
     return restore
 
 
-@pytest.mark.parametrize("config", [TrackerConfig(), TrackerConfig().replace(hypotheses={"enabled": True})],
-                         ids=["defaults", "hypotheses"])  # the second holds a twin tracker and checks at 20 ms
+@pytest.mark.parametrize("config", [TrackerConfig(), TrackerConfig().replace(**ABLATIONS["full"]),
+                                    TrackerConfig().replace(**ABLATIONS["hypotheses"])],
+                         ids=["defaults", "ukf", "hypotheses"])  # the second holds a twin tracker and checks at 20 ms
 @pytest.mark.parametrize("how", ["deepcopy", "pickle", "torch.save", "state_dict into a fresh tracker",
                                  "state_dict into a used tracker"])
 def test_a_restored_tracker_continues_with_the_same_poses(seq, how, config):

@@ -17,7 +17,7 @@ import torch
 
 from torchevtrack.camera import Camera
 from torchevtrack.cli import main
-from torchevtrack.config import TrackerConfig
+from torchevtrack.config import ABLATIONS, TrackerConfig
 from torchevtrack.geometry import interpolate_poses, perturb_pose
 from torchevtrack.io.lost import lost_path, read_lost
 from torchevtrack.io.poses import read_tum
@@ -134,7 +134,7 @@ def test_a_start_search_moves_a_wrong_start_into_the_basin(seq, truth_search):
     end = t0 + 200_000
     cfg = RECOVER.replace(recover={"start_search": True})
     results = {}
-    for name, c in (("plain", RECOVER), ("start search", cfg), ("twin", cfg.replace(hypotheses={"enabled": True}))):
+    for name, c in (("plain", RECOVER), ("start search", cfg), ("twin", cfg.replace(**ABLATIONS["hypotheses"]))):
         tracker = EventPoseTracker(CAM, seq.mesh, c)
         times, poses = tracker.track(seq.events, start, t_start_us=t0, t_end_us=end, progress=False)
         times, poses = times[0], poses[0]

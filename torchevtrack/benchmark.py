@@ -91,7 +91,7 @@ METHOD_NAMES = {
     "correction_only": "EDOPT (correction only)",
     "edopt_vel": "EDOPT_Vel",
     "velocity_only": "Ours (only Vel)",
-    "no_ukf": "Ours (w/o ukf)",
+    "no_ukf": "Ours (w/o ukf; the default config)",
     "full": "Ours (ukf)",
     "hypotheses": "Ours (ukf, and w/o ukf: the better)",
 }

@@ -311,12 +311,14 @@ def warmup(progress: bool = True, jobs: int | None = None) -> int:
     camera = Camera(160, 120, 150.0, 150.0, 80.0, 60.0)
     mesh = load_mesh("box")
     events, pose0 = _warmup_events(camera, mesh, RasterRenderer, EventStream, np, torch)
-    # the optional stages on too (denoise, loss detector, recovery): their modules load with the tracker, and a cold
-    # kernel would be announced
-    cfg = TrackerConfig().replace(denoise={"enabled": True}, loss={"enabled": True}, recover={"enabled": True})
-    tracker = EventPoseTracker(camera, mesh, cfg)
-    tracker.track(events, pose0, progress=False)
-    tracker.close()
+    # the optional stages on too (denoise, loss detector, recovery, the UKF): their modules load with the tracker, and
+    # a cold kernel would be announced; then the defaults (the output step without the UKF)
+    optional = TrackerConfig().replace(denoise={"enabled": True}, loss={"enabled": True}, recover={"enabled": True},
+                                       ukf={"enabled": True})
+    for cfg in (optional, TrackerConfig()):
+        tracker = EventPoseTracker(camera, mesh, cfg)
+        tracker.track(events, pose0, progress=False)
+        tracker.close()
     _compile_relocaliser(np)
     return len(missing - set(uncached_kernels()))
 

@@ -25,8 +25,9 @@ sequences and runs, in the paper's order:
    window that with ``eros.recency_px`` follows the speed of the last update's flow,
    :class:`~torchevtrack.stages.eros.Recency`) and moves the pose to the best (the paper's argmax of 13, or a Newton
    step over all six axes: ``template.rule``); the correction's rate feeds the feedback of step 3, if on;
-6. :class:`~torchevtrack.stages.ukf.PoseUKF` smooths the corrected pose into the output (with the correction
-   feedback's update and the output checks, one compiled call: :func:`~torchevtrack.update.output`);
+6. with ``ukf.enabled`` (the paper's; off by default) :class:`~torchevtrack.stages.ukf.PoseUKF` smooths the
+   corrected pose into the output, else the corrected pose is the output (with the correction feedback's update and
+   the output checks, one compiled call: :func:`~torchevtrack.update.output`);
 0. before all of them, the :class:`~torchevtrack.stages.burst.BurstGuard` (``config.burst``, on by default) counts
    each element's events in the window; a burst's (a flash, a camera bump) are dropped before any stage sees them,
    so that update costs what an empty window does: the velocity filter predicts without a measurement, the template
