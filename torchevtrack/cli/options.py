@@ -14,7 +14,7 @@ def add_config_options(p: argparse.ArgumentParser, default: str = "the built-in 
     p.add_argument("--config", type=Path, help=f"tracker config YAML (default: {default})")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="set",
                    help="change one config setting, dotted key typed by the config schema, e.g. --set "
-                   "ukf.enabled=false --set eros.kernel_size=9 (repeatable; applied after --config)")
+                   "ukf.enabled=true --set eros.kernel_size=9 (repeatable; applied after --config)")
 
 
 def config_from_args(args: argparse.Namespace) -> TrackerConfig:
