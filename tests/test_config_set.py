@@ -11,20 +11,21 @@ from torchevtrack.synth.generate import generate_sequence
 
 def test_override_types_each_value_by_the_schema():
     cfg = TrackerConfig().override([
-        "rate_hz=250", "ukf.enabled=false", "eros.kernel_size=9", "eros.decay=0.25", "template.rule=argmax",
+        "rate_hz=250", "ukf.enabled=true", "eros.kernel_size=9", "eros.decay=0.25", "template.rule=argmax",
         "velocity.feedback_axes=[vz, wy]", "render.decimate=500", "flow.max_speed=4000",
     ])
     assert cfg.rate_hz == 250.0 and isinstance(cfg.rate_hz, float)
-    assert cfg.ukf.enabled is False and cfg.eros.kernel_size == 9 and cfg.eros.decay == 0.25
+    assert cfg.ukf.enabled is True and cfg.eros.kernel_size == 9 and cfg.eros.decay == 0.25
     assert cfg.template.rule == "argmax" and cfg.velocity.feedback_axes == ["vz", "wy"]
     assert cfg.render.decimate == 500 and cfg.flow.max_speed == 4000.0 and isinstance(cfg.flow.max_speed, float)
     assert cfg.override(["render.decimate=null"]).render.decimate is None
     assert cfg.override(["velocity.feedback_axes=wx,wz"]).velocity.feedback_axes == ["wx", "wz"]
     assert TrackerConfig().override(["ukf.p0=1e-2", "ukf.p0=2e-2"]).ukf.p0 == 0.02  # the last one wins
     # everything else keeps its value
-    untouched = TrackerConfig().override(["ukf.enabled=false"]).to_dict()
+    untouched = TrackerConfig().override(["ukf.enabled=true"]).to_dict()
     expected = TrackerConfig().to_dict()
-    expected["ukf"]["enabled"] = False
+    assert expected["ukf"]["enabled"] is False  # the default, so the override changes it
+    expected["ukf"]["enabled"] = True
     assert untouched == expected
 
 
