@@ -171,8 +171,8 @@ def suite_error_plot(curves: dict[str, tuple], path: str | Path, *, title: str |
 def write_suite_report(results: dict, bench_dir: str | Path, out_dir: str | Path,
                        method: str | None = None) -> tuple[Path, Path]:
     """Write ``out_dir/factors.md`` (:func:`factor_tables`) and ``out_dir/plots/suite_errors.png`` (every
-    sequence's error against time for ``method``, default ``"full"`` when run, else the first method), from a
-    finished run's ``results`` and its ``poses/`` files. Returns the two paths."""
+    sequence's error against time for ``method``, default ``"no_ukf"``, the default config, when run, else the first
+    method), from a finished run's ``results`` and its ``poses/`` files. Returns the two paths."""
     from torchevtrack.io.poses import read_tum
     from torchevtrack.metrics import per_pose_errors
 
@@ -182,7 +182,7 @@ def write_suite_report(results: dict, bench_dir: str | Path, out_dir: str | Path
     factors = sequence_factors(bench_dir, names)
     md = out / "factors.md"
     md.write_text(factor_tables(results, factors))
-    method = method or ("full" if "full" in per_method else next(iter(per_method)))
+    method = method or ("no_ukf" if "no_ukf" in per_method else next(iter(per_method)))
     curves = {}
     for name, r in per_method[method].items():
         t_us, poses = read_tum(out / r["pose_file"])
