@@ -50,7 +50,7 @@ def test_ablations_change_only_their_switches():
     base = TrackerConfig()
     assert base.replace(**ABLATIONS["no_ukf"]) == base  # the default config is the paper's method without its UKF
     assert base.replace(**ABLATIONS["full"]) == base.replace(ukf={"enabled": True})
-    assert base.replace(**ABLATIONS["velocity_only"]).ukf.enabled and base.replace(**ABLATIONS["hypotheses"]).ukf.enabled
+    assert all(base.replace(**ABLATIONS[m]).ukf.enabled for m in ("velocity_only", "correction_only", "hypotheses"))
     assert not base.replace(**ABLATIONS["velocity_only"]).template.enabled
     assert base.replace(**ABLATIONS["correction_only"]).velocity.source == "none"
     assert base.replace(**ABLATIONS["edopt_vel"]).velocity.source == "poses"
