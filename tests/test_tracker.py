@@ -581,8 +581,8 @@ def test_a_steady_turn_lost_with_one_decay_is_held_when_pitch_and_yaw_follow_it(
     """Seed 8 of :func:`_noisy_turn`: with one decay for every axis (``velocity.rho_turn = rho``, the model before)
     the run is lost by the EDOPT rule (4.6 cm / 40 deg RMSE); with the defaults (the UKF on, as measured), whose pitch
     and yaw rates keep their value while the rotation keeps its axis, it is held (1.7 cm / 13 deg). Over seeds 0-23 of
-    this setting: 2 runs lost -> 1, mean RMSE 2.68 cm / 7.1 deg -> 2.43 cm / 5.1 deg (docs/notebook.md, 2026-12-02 evening; this seed's
-    figures at ``velocity.robust_k`` 0.5 and ``velocity.r_rel`` 0.2, 2026-12-02 late)."""
+    this setting: 2 runs lost -> 1, mean RMSE 2.68 cm / 7.1 deg -> 2.43 cm / 5.1 deg (docs/notebook.md, 2026-12-02
+    evening; this seed's figures at ``velocity.robust_k`` 0.5 and ``velocity.r_rel`` 0.2, 2026-12-02 late)."""
     full = TrackerConfig().replace(**ABLATIONS["full"])  # with the UKF, as these figures were measured
     one_decay = full.replace(velocity={"rho_turn": full.velocity.rho})
     result = _noisy_turn(8, {"one decay": one_decay, "defaults": full})
