@@ -1,9 +1,12 @@
 """``--set key=value``: single config settings from the command line, typed by the config schema."""
 
+import argparse
+
 import pytest
 
 from torchevtrack.camera import Camera
 from torchevtrack.cli import main
+from torchevtrack.cli.options import add_ablation_option, add_config_options, config_from_args
 from torchevtrack.config import TrackerConfig
 from torchevtrack.io.poses import read_tum
 from torchevtrack.synth.generate import generate_sequence
@@ -80,3 +83,14 @@ def test_every_config_command_reports_a_bad_set_in_one_line(command, seqdir, tmp
     assert err == f"torchevtrack {command}: error: unknown config key 'ukf.q': ukf has enabled, p0, q_p, q_pdot, " \
                   "q_q, q_w, r_p, r_q"
     assert not (tmp_path / "o").exists()  # nothing was written
+
+
+def test_ablation_option_applies_after_the_config_and_only_when_given():
+    p = argparse.ArgumentParser()
+    add_config_options(p)
+    add_ablation_option(p)
+    assert config_from_args(p.parse_args([])) == TrackerConfig()  # no --ablation: the config as given
+    assert config_from_args(p.parse_args(["--set", "ukf.enabled=true"])).ukf.enabled
+    assert config_from_args(p.parse_args(["--ablation", "full"])) == TrackerConfig().replace(ukf={"enabled": True})
+    # the ablation's own switches win over --set
+    assert not config_from_args(p.parse_args(["--ablation", "no_ukf", "--set", "ukf.enabled=true"])).ukf.enabled

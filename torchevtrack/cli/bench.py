@@ -33,12 +33,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchevtrack.config import ABLATIONS, TrackerConfig
+from torchevtrack.config import TrackerConfig
 from torchevtrack.events import EventStream
 from torchevtrack.online import OnlineTracker
 from torchevtrack.synth.sequence import Sequence
 from torchevtrack.tracker import EventPoseTracker
-from torchevtrack.cli.options import add_config_options, config_from_args
+from torchevtrack.cli.options import add_ablation_option, add_config_options, config_from_args
 
 STAGES = ("eros", "flow", "velocity", "render", "correction", "ukf")
 
@@ -54,10 +54,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("seqdir", type=Path)
     p.add_argument("--batch", type=int, default=4, help="batch size B of the batched measurement (1: skip it)")
     p.add_argument("--duration", type=float, help="track only the first SECONDS (default: the whole sequence)")
-    p.add_argument("--ablation", choices=sorted(ABLATIONS),
-                   help="one of the paper's methods (full: with its UKF; no_ukf: without it, as the default config), "
-                   "or hypotheses: the full method and its twin without the UKF, the better of the two (about 2.3x the "
-                   "time); default: the config as given")
+    add_ablation_option(p)
     add_config_options(p)
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     p.add_argument("--chunk-us", type=int, default=1000, help="events per streaming push, microseconds (default 1000)")
@@ -79,8 +76,6 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     seq = Sequence.load(args.seqdir)
     cfg = config_from_args(args)
-    if args.ablation:
-        cfg = cfg.replace(**ABLATIONS[args.ablation])
     result = bench(seq, cfg, batch=args.batch, duration_s=args.duration, chunk_us=args.chunk_us,
                    warmup=args.warmup, repeat=args.repeat)
     result = {"sequence": str(args.seqdir), "ablation": args.ablation or "default", **result}

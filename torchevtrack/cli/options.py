@@ -1,12 +1,12 @@
-"""Command-line options shared by the commands that run the tracker: ``--config`` and ``--set``; ``--executor``
-and ``--address`` for those that run many independent tracking tasks."""
+"""Command-line options shared by the commands that run the tracker: ``--config`` and ``--set``, ``--ablation``;
+``--executor`` and ``--address`` for those that run many independent tracking tasks."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from torchevtrack.config import TrackerConfig
+from torchevtrack.config import ABLATIONS, TrackerConfig
 
 
 def add_config_options(p: argparse.ArgumentParser, default: str = "the built-in defaults") -> None:
@@ -17,14 +17,24 @@ def add_config_options(p: argparse.ArgumentParser, default: str = "the built-in 
                    "ukf.enabled=true --set eros.kernel_size=9 (repeatable; applied after --config)")
 
 
+def add_ablation_option(p: argparse.ArgumentParser) -> None:
+    """Add ``--ablation NAME`` (one of :data:`~torchevtrack.config.ABLATIONS`; none: the config as given)."""
+    p.add_argument("--ablation", choices=sorted(ABLATIONS),
+                   help="one of the paper's methods (full: with its UKF; no_ukf: without it, as the default config), "
+                   "or hypotheses: the full method and its twin without the UKF, the better of the two (about 2.3x the "
+                   "time); default: the config as given")
+
+
 def config_from_args(args: argparse.Namespace) -> TrackerConfig:
     """The :class:`TrackerConfig` of ``--config`` (or the defaults), with the loss detector and recovery on for a
     command's ``--recover``, then the ``--set`` changes applied (so ``--set recover.KEY=...`` may refine
-    ``--recover``)."""
+    ``--recover``), then a command's ``--ablation``, if given."""
     cfg = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
     if getattr(args, "recover", False):
         cfg = cfg.replace(loss={"enabled": True}, recover={"enabled": True})
-    return cfg.override(args.set) if args.set else cfg
+    cfg = cfg.override(args.set) if args.set else cfg
+    ablation = getattr(args, "ablation", None)
+    return cfg.replace(**ABLATIONS[ablation]) if ablation else cfg
 
 
 def add_executor_options(p: argparse.ArgumentParser, default: str = "serial") -> None:

@@ -26,14 +26,13 @@ from pathlib import Path
 import torch
 
 from torchevtrack.camera import Camera
-from torchevtrack.config import ABLATIONS
 from torchevtrack.distortion import Undistorter
 from torchevtrack.events import EventStream
 from torchevtrack.io.events_h5 import iter_events_h5, read_events_h5
 from torchevtrack.io.lost import lost_path, write_lost
 from torchevtrack.io.poses import read_tum, write_tum
 from torchevtrack.tracker import EventPoseTracker
-from torchevtrack.cli.options import add_config_options, config_from_args
+from torchevtrack.cli.options import add_ablation_option, add_config_options, config_from_args
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -46,10 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("seqdir", type=Path)
     p.add_argument("--out", type=Path, required=True, help="output TUM pose file")
     add_config_options(p, "configs/default.yaml values")
-    p.add_argument("--ablation", choices=sorted(ABLATIONS),
-                   help="one of the paper's methods (full: with its UKF; no_ukf: without it, as the default config), "
-                   "or hypotheses: the full method and its twin without the UKF, the better of the two (about 2.3x the "
-                   "time); default: the config as given")
+    add_ablation_option(p)
     p.add_argument("--init", help='initial pose "tx ty tz qx qy qz qw": metres, then a unit quaternion with qw '
                    "LAST (TUM order; the Python API's pose is [t, qw, qx, qy, qz]); default: first pose of gt_poses.txt")
     p.add_argument("--mesh", help="mesh file or object name (default: SEQDIR/mesh.ply)")
@@ -177,8 +173,6 @@ def run(args: argparse.Namespace) -> int:
     else:
         raise ValueError(f"{d} has no gt_poses.txt: give the initial pose with --init")
     cfg = config_from_args(args)
-    if args.ablation:
-        cfg = cfg.replace(**ABLATIONS[args.ablation])
     t_end = t0 + round(args.duration * 1e6) if args.duration else events.t_end
     n_events = len(events.slice_time(t0, t_end + 1))
     if n_events == 0:
