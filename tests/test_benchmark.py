@@ -333,10 +333,27 @@ def test_trials_start_from_perturbed_poses_and_report_their_spread(bench, tmp_pa
             assert trials[1]["adds_auc"] == pytest.approx(m["adds_auc"], abs=1e-9)
             assert trials[1]["failed"] == m["failed"]
     rows = _table(table_markdown(res), "## Start poses perturbed by 3 mm and 2 deg: 2 trials (seed 5)")
-    assert rows[0][-4:] == ["Mean e_p (cm)", "Mean e_r (deg)", "ADD-S AUC (%)", "failed runs"]
-    ours = next(r for r in rows if r[0] == METHOD_NAMES["velocity_only"])
-    per_trial = [np.mean([res["trials"]["velocity_only"][c][k]["rmse_t_cm"] for c in SEQS]) for k in range(2)]
-    assert ours[-4] == f"{np.mean(per_trial):.2f} ± {np.std(per_trial):.2f}"
+    head = rows[0].index("Mean e_p (cm)")
+    sym = any("failed_sym" in x for runs in res["trials"].values() for seq in runs.values() for x in seq)
+    assert rows[0][head:] == ["Mean e_p (cm)", "Median e_p (cm)", "Mean e_r (deg)", "ADD-S AUC (%)", "failed runs"] \
+        + (["Mean e_r, sym. (deg)", "failed runs, sym."] if sym else [])
+    ours = dict(zip(rows[0], next(r for r in rows if r[0] == METHOD_NAMES["velocity_only"])))
+    trials = res["trials"]["velocity_only"]
+    per_trial = [np.mean([trials[c][k]["rmse_t_cm"] for c in SEQS]) for k in range(2)]
+    assert ours["Mean e_p (cm)"] == f"{np.mean(per_trial):.2f} ± {np.std(per_trial):.2f}"
+    assert ours["Median e_p (cm)"] == f"{np.median([x['rmse_t_cm'] for c in SEQS for x in trials[c]]):.2f}"
+    assert ours["failed runs"] == f"{sum(x['failed'] for c in SEQS for x in trials[c])}/{2 * len(SEQS)}"
+    assert not sym and "failed runs, sym." not in rows[0]  # neither test object is symmetric untextured
+    # a symmetric object's run: the table adds its error and failures with the spin left out, the others' whole
+    sym_res = copy.deepcopy(res)
+    for k, x in enumerate(sym_res["trials"]["velocity_only"]["tomato_fast"]):
+        x.update(rmse_r_sym_deg=x["rmse_r_deg"] / (k + 2), failed_sym=not x["failed"])
+    sym_rows = _table(table_markdown(sym_res), "## Start poses perturbed by 3 mm and 2 deg: 2 trials (seed 5)")
+    ours = dict(zip(sym_rows[0], next(r for r in sym_rows if r[0] == METHOD_NAMES["velocity_only"])))
+    can, box = sym_res["trials"]["velocity_only"]["tomato_fast"], trials["cracker_regular"]
+    assert ours["failed runs, sym."] == f"{sum(not x['failed'] for x in can) + sum(x['failed'] for x in box)}/4"
+    r_sym = [np.mean([can[k]["rmse_r_deg"] / (k + 2), box[k]["rmse_r_deg"]]) for k in range(2)]
+    assert ours["Mean e_r, sym. (deg)"] == f"{np.mean(r_sym):.2f} ± {np.std(r_sym):.2f}"
 
 
 def test_trial_arguments_are_checked(bench, tmp_path, capsys):

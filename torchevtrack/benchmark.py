@@ -675,10 +675,14 @@ def _trials_table(results: dict, cols: list[str]) -> list[str]:
     the trials."""
     noise, per_method = results["init_noise"], results["trials"]
     K = noise["trials"]
+    sym = any("failed_sym" in x for runs in per_method.values() for seq in runs.values() for x in seq)
     lines = ["", f"## Start poses perturbed by {noise['translation_mm']:g} mm and {noise['rotation_deg']:g} deg: "
              f"{K} trials (seed {noise['seed']})", ""]
-    lines.append(_row(["Method"] + cols + ["Mean e_p (cm)", "Mean e_r (deg)", "ADD-S AUC (%)", "failed runs"]))
-    lines.append(_row(["---"] * (len(cols) + 5)))
+    summary = ["Mean e_p (cm)", "Median e_p (cm)", "Mean e_r (deg)", "ADD-S AUC (%)", "failed runs"]
+    if sym:
+        summary += ["Mean e_r, sym. (deg)", "failed runs, sym."]
+    lines.append(_row(["Method"] + cols + summary))
+    lines.append(_row(["---"] * (len(cols) + 1 + len(summary))))
     for m in _row_order(per_method):
         runs = per_method[m]
         cells = [METHOD_NAMES.get(m, m)]
@@ -691,12 +695,20 @@ def _trials_table(results: dict, cols: list[str]) -> list[str]:
         have = [runs[c] for c in cols if c in runs]
         means = {key: [np.mean([seq[k][key] for seq in have]) for k in range(K)]
                  for key in ("rmse_t_cm", "rmse_r_deg", "adds_auc")}
-        cells += [_spread(means["rmse_t_cm"]), _spread(means["rmse_r_deg"]), _spread(means["adds_auc"], 100.0),
-                  f"{sum(bool(x['failed']) for seq in have for x in seq)}/{K * len(have)}"]
+        n_runs = K * len(have)
+        cells += [_spread(means["rmse_t_cm"]), f"{np.median([x['rmse_t_cm'] for seq in have for x in seq]):.2f}",
+                  _spread(means["rmse_r_deg"]), _spread(means["adds_auc"], 100.0),
+                  f"{sum(bool(x['failed']) for seq in have for x in seq)}/{n_runs}"]
+        if sym:  # the symmetry axis left out where a sequence has one, the whole rotation error elsewhere
+            r_sym = [np.mean([seq[k].get("rmse_r_sym_deg", seq[k]["rmse_r_deg"]) for seq in have]) for k in range(K)]
+            failed_sym = sum(bool(x.get("failed_sym", x["failed"])) for seq in have for x in seq)
+            cells += [_spread(r_sym), f"{failed_sym}/{n_runs}"]
         lines.append(_row(cells))
     lines.append("")
     lines.append("Per sequence: e_p RMSE (cm), mean ± standard deviation over the trials, († failed trials, EDOPT "
-                 "rule). Means: over the sequences per trial, then mean ± standard deviation over the trials.")
+                 "rule). Means: over the sequences per trial, then mean ± standard deviation over the trials; median: "
+                 "over every run." + (" sym.: the rotation about the symmetry axis of a symmetric untextured object "
+                                      "left out (see above), for the error and the EDOPT rule." if sym else ""))
     return lines
 
 
