@@ -672,7 +672,8 @@ def table_markdown(results: dict) -> str:
 def _trials_table(results: dict, cols: list[str]) -> list[str]:
     """The spread over the trials of perturbed start poses: per sequence the mean and standard deviation (over the
     trials) of e_p and the failed trials; then the means over the sequences, as mean and standard deviation over
-    the trials."""
+    the trials, the median e_p over every run and the failed runs; where a run has ``failed_sym`` (a symmetry axis)
+    also the mean e_r and the failed runs with the rotation about that axis left out (other runs count whole)."""
     noise, per_method = results["init_noise"], results["trials"]
     K = noise["trials"]
     sym = any("failed_sym" in x for runs in per_method.values() for seq in runs.values() for x in seq)
