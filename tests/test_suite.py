@@ -245,6 +245,30 @@ def test_factor_tables_on_fake_results(tmp_path):
     assert hand[("none", "full")][-1] == "0/2"
 
 
+def test_factor_tables_count_every_draw_and_the_symmetry_rule():
+    def run(t, r, auc, failed, sym=None):
+        m = {"rmse_t_cm": t, "rmse_r_deg": r, "adds_auc": auc, "failed": failed}
+        if sym is not None:  # (e_r with the spin left out, failed by that rule)
+            m["rmse_r_sym_deg"], m["failed_sym"] = sym
+        return m
+
+    trials = {"can": [run(1.0, 50.0, 0.9, True, (3.0, False)), run(2.0, 60.0, 0.8, True, (4.0, True))],
+              "box": [run(0.5, 2.0, 0.95, False), run(9.0, 45.0, 0.2, True)]}
+    results = {"results": {"full": {s: {"metrics": r[0]} for s, r in trials.items()},
+                           "learned": {"box": {"metrics": run(3.0, 10.0, 0.5, False)}}},
+               "trials": {"full": trials}}
+    md = factor_tables(results, {"can": {"motion": "turn"}, "box": {"motion": "turn"}}, factors_order=("motion",))
+    assert "| value | method | runs |" in md and "failed, sym." in md
+    every = [x for rs in trials.values() for x in rs]  # all four draws, not the first of each sequence
+    t = [x["rmse_t_cm"] for x in every]
+    assert _cells(md, "Overall")[("all", "full")] == [
+        "4", f"{np.mean(t):.2f}", f"{np.median(t):.2f}", f"{np.mean([50, 60, 2, 45]):.2f}",
+        f"{100 * np.mean([0.9, 0.8, 0.95, 0.2]):.1f}", "3/4", f"{np.mean([3, 4, 2, 45]):.2f}", "2/4"]
+    # a method without trials (scored from pose files) counts its one run per sequence, whole rotation as sym.
+    assert _cells(md, "Motion group")[("turn", "learned")] == ["1", "3.00", "3.00", "10.00", "50.0", "0/1", "10.00",
+                                                                "0/1"]
+
+
 def test_sequence_factors_from_suite_json_and_meta(tmp_path):
     d = tmp_path / "bench"
     assert main(["synth-benchmark", "--suite", "wide", "--split", "dev", "--out", str(d), "--dry-run"]) == 0

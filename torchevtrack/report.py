@@ -4,9 +4,9 @@ and object size, and every sequence's error against time in one figure.
 :func:`sequence_factors` reads each sequence's factors from the suite's ``suite.json``
 (:func:`torchevtrack.synth.suite.write_suite_json`) or, without it, from the sequences' ``meta.json`` and
 ``camera.json``. :func:`factor_tables` groups the results of :func:`torchevtrack.benchmark.run_benchmark` by
-each factor: per value and method, the number of sequences, the mean translation and rotation RMSE, the mean
-ADD-S AUC and the failed sequences (EDOPT rule). :func:`write_suite_report` writes ``factors.md`` and
-``plots/suite_errors.png`` next to the benchmark's own report.
+each factor: per value and method, the number of runs (every start draw), the mean and median translation and the
+mean rotation RMSE, the mean ADD-S AUC and the failed runs (EDOPT rule, also with a symmetry axis left out).
+:func:`write_suite_report` writes ``factors.md`` and ``plots/suite_errors.png`` next to the benchmark's own report.
 
 Example:
     >>> res = {"results": {"full": {"a": {"metrics": {"rmse_t_cm": 1.0, "rmse_r_deg": 2.0, "adds_auc": 0.9,
@@ -87,19 +87,36 @@ def _row(cells) -> str:
     return "| " + " | ".join(str(c) for c in cells) + " |"
 
 
-def _summary(rows: list[dict]) -> list[str]:
+def _summary(rows: list[dict], sym: bool) -> list[str]:
     t = [r["rmse_t_cm"] for r in rows]
-    return [f"{np.mean(t):.2f}", f"{np.median(t):.2f}", f"{np.mean([r['rmse_r_deg'] for r in rows]):.2f}",
-            f"{100 * np.mean([r['adds_auc'] for r in rows]):.1f}", f"{sum(bool(r['failed']) for r in rows)}/{len(rows)}"]
+    cells = [f"{np.mean(t):.2f}", f"{np.median(t):.2f}", f"{np.mean([r['rmse_r_deg'] for r in rows]):.2f}",
+             f"{100 * np.mean([r['adds_auc'] for r in rows]):.1f}", f"{sum(bool(r['failed']) for r in rows)}/{len(rows)}"]
+    if sym:  # the symmetry axis left out where a run has one, the whole rotation elsewhere
+        cells += [f"{np.mean([r.get('rmse_r_sym_deg', r['rmse_r_deg']) for r in rows]):.2f}",
+                  f"{sum(bool(r.get('failed_sym', r['failed'])) for r in rows)}/{len(rows)}"]
+    return cells
+
+
+def _runs(results: dict) -> dict[str, dict[str, list[dict]]]:
+    """``{method: {sequence: [metrics of each run]}}``: a method's every start draw when it ran trials, else the one
+    run of each sequence (a method scored from another tracker's pose files has no trials)."""
+    trials = results.get("trials") or {}
+    return {m: {s: list(trials[m][s]) if s in trials.get(m, {}) else [r["metrics"]] for s, r in seqs.items()}
+            for m, seqs in results["results"].items()}
 
 
 def factor_tables(results: dict, factors: dict[str, dict], *, factors_order=tuple(FACTORS)) -> str:
-    """Markdown: an overall table, then one table per factor (rows: the factor's values, sorted; per method
-    the mean and median e_p RMSE (cm), mean e_r RMSE (deg), mean ADD-S AUC (%) and failed / sequences).
+    """Markdown: an overall table, then one table per factor (rows: the factor's values, sorted; per method the
+    runs (sequences x start draws), the mean and median e_p RMSE (cm), mean e_r RMSE (deg), mean ADD-S AUC (%) and
+    failed / runs; where a run has a symmetry axis also the mean e_r and failed runs with the rotation about that
+    axis left out, as the trials table of :func:`torchevtrack.benchmark.table_markdown` counts them).
+
+    Every start draw counts (``results["trials"]``) when the run had them, else each sequence's one run
+    (``results["results"][method][seq]["metrics"]``). Read from each run: ``rmse_t_cm``, ``rmse_r_deg``,
+    ``adds_auc``, ``failed`` and, where present, ``rmse_r_sym_deg`` and ``failed_sym``.
 
     Args:
-        results: the dict of :func:`torchevtrack.benchmark.run_benchmark` (only ``results[method][seq]
-            ["metrics"]`` is read: ``rmse_t_cm``, ``rmse_r_deg``, ``adds_auc``, ``failed``).
+        results: the dict of :func:`torchevtrack.benchmark.run_benchmark`.
         factors: ``{sequence: {factor: value}}`` (:func:`sequence_factors`); sequences without results are
             skipped.
         factors_order: the factors to tabulate, in order (keys of :data:`FACTORS` or any key of ``factors``).
@@ -107,31 +124,37 @@ def factor_tables(results: dict, factors: dict[str, dict], *, factors_order=tupl
     per_method = results.get("results") if isinstance(results, dict) else None
     if not isinstance(per_method, dict) or not per_method:
         raise ValueError("results must be the dict of run_benchmark (a non-empty 'results')")
-    methods = list(per_method)
+    runs = _runs(results)
+    methods = list(runs)
+    sym = any("failed_sym" in r for seqs in runs.values() for rs in seqs.values() for r in rs)
     head = ["mean e_p (cm)", "median e_p (cm)", "mean e_r (deg)", "ADD-S AUC (%)", "failed"]
+    if sym:
+        head += ["mean e_r, sym. (deg)", "failed, sym."]
     lines = ["# Results by factor", ""]
 
     def table(title: str, groups: dict[str, list[str]]) -> None:
         lines.extend([f"## {title}", ""])
-        lines.append(_row(["value", "method", "sequences"] + head))
+        lines.append(_row(["value", "method", "runs"] + head))
         lines.append(_row(["---"] * (3 + len(head))))
         for value in sorted(groups, key=str):
             for m in methods:
-                rows = [per_method[m][s]["metrics"] for s in groups[value] if s in per_method[m]]
+                rows = [r for s in groups[value] for r in runs[m].get(s, [])]
                 if rows:
-                    lines.append(_row([value, m, len(rows)] + _summary(rows)))
+                    lines.append(_row([value, m, len(rows)] + _summary(rows, sym)))
         lines.append("")
 
-    names = [s for s in factors if any(s in per_method[m] for m in methods)]
+    names = [s for s in factors if any(s in runs[m] for m in methods)]
     table("Overall", {"all": names})
     for f in factors_order:
         groups: dict[str, list[str]] = {}
         for s in names:
             groups.setdefault(str(factors[s].get(f, "?")), []).append(s)
         table(FACTORS.get(f, f).capitalize(), groups)
-    lines.append("e_p, e_r: RMSE of the translation (cm) and rotation (deg) error over a sequence's updates, averaged "
-                 "over the sequences of the row; failed: sequences failed by the EDOPT rule. Noise level: none 0, low "
-                 "<= 0.2, medium <= 1, high > 1 events per pixel per second.")
+    lines.append("runs: sequences x start draws; e_p, e_r: RMSE of the translation (cm) and rotation (deg) error over "
+                 "a run's updates, averaged over the runs of the row (median e_p: over them); failed: runs failed by "
+                 "the EDOPT rule" + ("; sym.: the rotation about the symmetry axis of a symmetric untextured object "
+                                     "left out, for the error and the rule (other runs count whole)" if sym else "")
+                 + ". Noise level: none 0, low <= 0.2, medium <= 1, high > 1 events per pixel per second.")
     return "\n".join(lines) + "\n"
 
 
