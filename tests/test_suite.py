@@ -269,6 +269,24 @@ def test_factor_tables_count_every_draw_and_the_symmetry_rule():
                                                                 "0/1"]
 
 
+def test_factor_tables_cross_motion_and_camera():
+    def run(failed, failed_sym=None):
+        m = {"rmse_t_cm": 1.0, "rmse_r_deg": 2.0, "adds_auc": 0.9, "failed": failed}
+        if failed_sym is not None:
+            m["failed_sym"] = failed_sym
+        return m
+
+    trials = {"a": [run(False), run(True)], "b": [run(True, False), run(True, True)], "c": [run(False), run(False)]}
+    factors = {"a": {"motion": "turn", "camera": "vga"}, "b": {"motion": "turn", "camera": "hd"},
+               "c": {"motion": "fast", "camera": "vga"}}
+    results = {"results": {"full": {s: {"metrics": r[0]} for s, r in trials.items()}}, "trials": {"full": trials}}
+    md = factor_tables(results, factors, factors_order=("motion", "camera"))
+    rows = _cells(md, "Held runs by motion group and camera")
+    # columns hd, vga, all; b's first draw is held by the symmetry rule though failed whole
+    assert rows[("turn", "full")] == ["1/2", "1/2", "2/4"] and rows[("fast", "full")] == ["–", "2/2", "2/2"]
+    assert "Held runs by" not in factor_tables(results, factors, factors_order=("motion",))
+
+
 def test_sequence_factors_from_suite_json_and_meta(tmp_path):
     d = tmp_path / "bench"
     assert main(["synth-benchmark", "--suite", "wide", "--split", "dev", "--out", str(d), "--dry-run"]) == 0

@@ -109,7 +109,9 @@ def factor_tables(results: dict, factors: dict[str, dict], *, factors_order=tupl
     """Markdown: an overall table, then one table per factor (rows: the factor's values, sorted; per method the
     runs (sequences x start draws), the mean and median e_p RMSE (cm), mean e_r RMSE (deg), mean ADD-S AUC (%) and
     failed / runs; where a run has a symmetry axis also the mean e_r and failed runs with the rotation about that
-    axis left out, as the trials table of :func:`torchevtrack.benchmark.table_markdown` counts them).
+    axis left out, as the trials table of :func:`torchevtrack.benchmark.table_markdown` counts them); then, when
+    ``factors_order`` holds both ``motion`` and ``camera``, the held runs (not failed; by the symmetry rule where a
+    run has one) per motion group and camera.
 
     Every start draw counts (``results["trials"]``) when the run had them, else each sequence's one run
     (``results["results"][method][seq]["metrics"]``). Read from each run: ``rmse_t_cm``, ``rmse_r_deg``,
@@ -150,6 +152,22 @@ def factor_tables(results: dict, factors: dict[str, dict], *, factors_order=tupl
         for s in names:
             groups.setdefault(str(factors[s].get(f, "?")), []).append(s)
         table(FACTORS.get(f, f).capitalize(), groups)
+    if "motion" in factors_order and "camera" in factors_order:  # where the losses sit: the two factors together
+        cams = sorted({str(factors[s].get("camera", "?")) for s in names})
+        lines.extend(["## Held runs by motion group and camera", ""])
+        lines.append(_row(["motion group", "method"] + cams + ["all"]))
+        lines.append(_row(["---"] * (3 + len(cams))))
+        for motion in sorted({str(factors[s].get("motion", "?")) for s in names}):
+            for m in methods:
+                cells = []
+                for cam in cams + [None]:
+                    rows = [r for s in names for r in runs[m].get(s, []) if str(factors[s].get("motion", "?")) == motion
+                            and (cam is None or str(factors[s].get("camera", "?")) == cam)]
+                    held = sum(not r.get("failed_sym", r["failed"]) for r in rows)
+                    cells.append(f"{held}/{len(rows)}" if rows else "–")
+                if any(c != "–" for c in cells):
+                    lines.append(_row([motion, m] + cells))
+        lines.append("")
     lines.append("runs: sequences x start draws; e_p, e_r: RMSE of the translation (cm) and rotation (deg) error over "
                  "a run's updates, averaged over the runs of the row (median e_p: over them); failed: runs failed by "
                  "the EDOPT rule" + ("; sym.: the rotation about the symmetry axis of a symmetric untextured object "
