@@ -87,13 +87,18 @@ def _row(cells) -> str:
     return "| " + " | ".join(str(c) for c in cells) + " |"
 
 
+def _failed(run: dict) -> bool:
+    """The EDOPT rule with the symmetry axis left out where the run has one (``failed_sym``), else whole."""
+    return bool(run.get("failed_sym", run["failed"]))
+
+
 def _summary(rows: list[dict], sym: bool) -> list[str]:
     t = [r["rmse_t_cm"] for r in rows]
     cells = [f"{np.mean(t):.2f}", f"{np.median(t):.2f}", f"{np.mean([r['rmse_r_deg'] for r in rows]):.2f}",
              f"{100 * np.mean([r['adds_auc'] for r in rows]):.1f}", f"{sum(bool(r['failed']) for r in rows)}/{len(rows)}"]
     if sym:  # the symmetry axis left out where a run has one, the whole rotation elsewhere
         cells += [f"{np.mean([r.get('rmse_r_sym_deg', r['rmse_r_deg']) for r in rows]):.2f}",
-                  f"{sum(bool(r.get('failed_sym', r['failed'])) for r in rows)}/{len(rows)}"]
+                  f"{sum(_failed(r) for r in rows)}/{len(rows)}"]
     return cells
 
 
@@ -103,6 +108,26 @@ def _runs(results: dict) -> dict[str, dict[str, list[dict]]]:
     trials = results.get("trials") or {}
     return {m: {s: list(trials[m][s]) if s in trials.get(m, {}) else [r["metrics"]] for s, r in seqs.items()}
             for m, seqs in results["results"].items()}
+
+
+def _held_by_motion_and_camera(runs: dict[str, dict[str, list[dict]]], factors: dict[str, dict]) -> list[str]:
+    """Markdown lines: held runs / runs per motion group (rows, per method) and camera (columns, then all)."""
+    def value(s: str, f: str) -> str:
+        return str(factors[s].get(f, "?"))
+
+    cams = sorted({value(s, "camera") for s in factors})
+    lines = ["## Held runs by motion group and camera", "", _row(["motion group", "method"] + cams + ["all"]),
+             _row(["---"] * (3 + len(cams)))]
+    for motion in sorted({value(s, "motion") for s in factors}):
+        for m, seqs in runs.items():
+            cells = []
+            for cam in cams + [None]:
+                rows = [r for s in factors if value(s, "motion") == motion and cam in (None, value(s, "camera"))
+                        for r in seqs.get(s, [])]
+                cells.append(f"{sum(not _failed(r) for r in rows)}/{len(rows)}" if rows else "–")
+            if any(c != "–" for c in cells):
+                lines.append(_row([motion, m] + cells))
+    return lines + [""]
 
 
 def factor_tables(results: dict, factors: dict[str, dict], *, factors_order=tuple(FACTORS)) -> str:
@@ -153,21 +178,7 @@ def factor_tables(results: dict, factors: dict[str, dict], *, factors_order=tupl
             groups.setdefault(str(factors[s].get(f, "?")), []).append(s)
         table(FACTORS.get(f, f).capitalize(), groups)
     if "motion" in factors_order and "camera" in factors_order:  # where the losses sit: the two factors together
-        cams = sorted({str(factors[s].get("camera", "?")) for s in names})
-        lines.extend(["## Held runs by motion group and camera", ""])
-        lines.append(_row(["motion group", "method"] + cams + ["all"]))
-        lines.append(_row(["---"] * (3 + len(cams))))
-        for motion in sorted({str(factors[s].get("motion", "?")) for s in names}):
-            for m in methods:
-                cells = []
-                for cam in cams + [None]:
-                    rows = [r for s in names for r in runs[m].get(s, []) if str(factors[s].get("motion", "?")) == motion
-                            and (cam is None or str(factors[s].get("camera", "?")) == cam)]
-                    held = sum(not r.get("failed_sym", r["failed"]) for r in rows)
-                    cells.append(f"{held}/{len(rows)}" if rows else "–")
-                if any(c != "–" for c in cells):
-                    lines.append(_row([motion, m] + cells))
-        lines.append("")
+        lines += _held_by_motion_and_camera(runs, {s: factors[s] for s in names})
     lines.append("runs: sequences x start draws; e_p, e_r: RMSE of the translation (cm) and rotation (deg) error over "
                  "a run's updates, averaged over the runs of the row (median e_p: over them); failed: runs failed by "
                  "the EDOPT rule" + ("; sym.: the rotation about the symmetry axis of a symmetric untextured object "
