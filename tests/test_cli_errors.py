@@ -192,6 +192,15 @@ def test_eval_in_another_time_base_fails_and_the_flags_fix_it(tmp_path, capsys):
     assert out["rmse_t_cm"] < 1e-6  # the same poses, up to the digits of the files
 
 
+def test_eval_names_a_missing_pose_file(tmp_path, capsys):
+    gt, pred = _gt_and_pred(tmp_path, 1.0, 0)
+    for argv, missing in ((["--gt", str(tmp_path / "no_gt"), "--pred", str(pred)], "no_gt"),
+                          (["--gt", str(gt), "--pred", str(tmp_path / "no_pred")], "no_pred")):
+        code, err = _run(capsys, "eval", *argv)
+        assert code == 2
+        _one_line_error(err, f"pose file not found: {tmp_path / missing}")
+
+
 def test_warmup_with_no_workers_is_a_one_line_error(capsys):
     code, err = _run(capsys, "warmup", "--jobs", "0")
     assert code == 2
