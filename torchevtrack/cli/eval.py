@@ -98,8 +98,6 @@ def run(args: argparse.Namespace) -> int:
     bop = {k: v for k, v in (("fps", args.fps), ("obj_id", args.obj_id)) if v is not None}
 
     def load(path: Path, fmt: str | None) -> tuple[torch.Tensor, torch.Tensor]:
-        if not path.exists():  # before the format, which is read off the name
-            raise FileNotFoundError(f"pose file not found: {path}")
         is_bop = (fmt or detect_format(path)) == "bop"
         return read_poses(path, format=fmt, **(bop if is_bop else {}))
 

@@ -307,15 +307,14 @@ def write_bop_scene_gt(path: str | Path, t_us: torch.Tensor, poses: torch.Tensor
 
 
 def detect_format(path: str | Path) -> str:
-    """Format of a pose file: by extension (``.txt``/``.tum`` TUM, ``.csv`` CSV, ``.json`` BOP), else
-    by content for an existing file (a JSON object -> BOP, commas or a ``t,`` header -> CSV, else TUM)."""
+    """Format of a pose file: by extension (``.txt``/``.tum`` TUM, ``.csv`` CSV, ``.json`` BOP), else by its
+    content (a JSON object -> BOP, commas or a ``t,`` header -> CSV, else TUM); ``FileNotFoundError`` when a file
+    without such an extension does not exist."""
     path = Path(path)
     fmt = _EXTENSIONS.get(path.suffix.lower())
     if fmt is not None:
         return fmt
-    if not path.is_file():
-        raise ValueError(f"cannot tell the pose format of {path} from its extension; pass format= one of {FORMATS}")
-    for line in path.read_text().splitlines():
+    for line in _existing(path).read_text().splitlines():
         line = line.split("#", 1)[0].strip()
         if not line:
             continue
