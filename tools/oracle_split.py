@@ -31,7 +31,7 @@ import torch
 from torchevtrack.benchmark import find_sequences
 from torchevtrack.config import TrackerConfig
 from torchevtrack.mesh import hidden_symmetry_axis
-from torchevtrack.metrics import evaluate, mesh_points
+from torchevtrack.metrics import evaluate, mesh_points, sym_failed, sym_rmse_r_deg
 from torchevtrack.stages.propagate import twist_between
 from torchevtrack.stages.velocity import shift_twist
 from torchevtrack.synth.sequence import Sequence
@@ -79,7 +79,7 @@ def errors(seq: Sequence, times: torch.Tensor, poses: torch.Tensor) -> dict:
     return {"rmse_t_cm": m["rmse_t_cm"], "depth_cm": float(d[:, 2].square().mean().sqrt()),
             "depth_mean_cm": float(d[:, 2].mean()),
             "lateral_cm": float(d[:, :2].square().sum(1).mean().sqrt()),
-            "rmse_r_deg": m.get("rmse_r_sym_deg", m["rmse_r_deg"]), "failed": bool(m.get("failed_sym", m["failed"]))}
+            "rmse_r_deg": sym_rmse_r_deg(m), "failed": sym_failed(m)}
 
 
 def main() -> None:

@@ -71,7 +71,8 @@ from torchevtrack.loss import compare_with_ground_truth
 
 LOSS_DELAY_US = 50_000  # a failure counts as flagged in time when declared at most this long after it began
 from torchevtrack.mesh import hidden_symmetry_axis
-from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, evaluate, mesh_points, per_pose_errors
+from torchevtrack.metrics import (FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, evaluate, mesh_points, per_pose_errors,
+                                  sym_failed, sym_rmse_r_deg)
 from torchevtrack.synth.sequence import SEQUENCE_FILES, Sequence
 from torchevtrack.tracker import EventPoseTracker
 
@@ -701,9 +702,8 @@ def _trials_table(results: dict, cols: list[str]) -> list[str]:
                   _spread(means["rmse_r_deg"]), _spread(means["adds_auc"], 100.0),
                   f"{sum(bool(x['failed']) for seq in have for x in seq)}/{n_runs}"]
         if sym:  # the symmetry axis left out where a sequence has one, the whole rotation error elsewhere
-            r_sym = [np.mean([seq[k].get("rmse_r_sym_deg", seq[k]["rmse_r_deg"]) for seq in have]) for k in range(K)]
-            failed_sym = sum(bool(x.get("failed_sym", x["failed"])) for seq in have for x in seq)
-            cells += [_spread(r_sym), f"{failed_sym}/{n_runs}"]
+            r_sym = [np.mean([sym_rmse_r_deg(seq[k]) for seq in have]) for k in range(K)]
+            cells += [_spread(r_sym), f"{sum(sym_failed(x) for seq in have for x in seq)}/{n_runs}"]
         lines.append(_row(cells))
     lines.append("")
     lines.append("Per sequence: e_p RMSE (cm), mean ± standard deviation over the trials, († failed trials, EDOPT "

@@ -70,6 +70,8 @@ __all__ = [
     "load_mesh_points",
     "per_pose_errors",
     "evaluate",
+    "sym_failed",
+    "sym_rmse_r_deg",
 ]
 
 AUC_MAX_M = 0.10
@@ -530,3 +532,20 @@ def _evaluate_batch(pred_t_us, pred_poses, gt_t_us, gt_poses, *, mesh_points, sy
     return [evaluate(pred_t_us[i], pred_poses[i], gt_t, gt, mesh_points=pts, symmetric=symmetric, symmetry_axis=axis,
                      pred_twists=pt, gt_twists=gtw)
             for i, (gt_t, gt, pts, axis, pt, gtw) in enumerate(args)]
+
+
+def sym_failed(metrics: dict) -> bool:
+    """The EDOPT verdict of one run's :func:`evaluate` dict with the rotation about the symmetry axis left out where
+    the run has one (``failed_sym``), else with the whole rotation (``failed``).
+
+    Example:
+        >>> sym_failed({"failed": True, "failed_sym": False}), sym_failed({"failed": True})
+        (False, True)
+    """
+    return bool(metrics.get("failed_sym", metrics["failed"]))
+
+
+def sym_rmse_r_deg(metrics: dict) -> float:
+    """The rotation RMSE (deg) of one run's :func:`evaluate` dict with the symmetry axis left out where the run has
+    one (``rmse_r_sym_deg``), else the whole rotation's (``rmse_r_deg``)."""
+    return float(metrics.get("rmse_r_sym_deg", metrics["rmse_r_deg"]))

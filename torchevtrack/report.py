@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from torchevtrack.metrics import sym_failed, sym_rmse_r_deg
+
 __all__ = ["FACTORS", "factor_tables", "noise_level", "sequence_factors", "suite_error_plot", "write_suite_report"]
 
 FACTORS = {
@@ -87,18 +89,14 @@ def _row(cells) -> str:
     return "| " + " | ".join(str(c) for c in cells) + " |"
 
 
-def _failed(run: dict) -> bool:
-    """The EDOPT rule with the symmetry axis left out where the run has one (``failed_sym``), else whole."""
-    return bool(run.get("failed_sym", run["failed"]))
-
-
 def _summary(rows: list[dict], sym: bool) -> list[str]:
     t = [r["rmse_t_cm"] for r in rows]
     cells = [f"{np.mean(t):.2f}", f"{np.median(t):.2f}", f"{np.mean([r['rmse_r_deg'] for r in rows]):.2f}",
-             f"{100 * np.mean([r['adds_auc'] for r in rows]):.1f}", f"{sum(bool(r['failed']) for r in rows)}/{len(rows)}"]
+             f"{100 * np.mean([r['adds_auc'] for r in rows]):.1f}",
+             f"{sum(bool(r['failed']) for r in rows)}/{len(rows)}"]
     if sym:  # the symmetry axis left out where a run has one, the whole rotation elsewhere
-        cells += [f"{np.mean([r.get('rmse_r_sym_deg', r['rmse_r_deg']) for r in rows]):.2f}",
-                  f"{sum(_failed(r) for r in rows)}/{len(rows)}"]
+        cells += [f"{np.mean([sym_rmse_r_deg(r) for r in rows]):.2f}",
+                  f"{sum(sym_failed(r) for r in rows)}/{len(rows)}"]
     return cells
 
 
@@ -124,7 +122,7 @@ def _held_by_motion_and_camera(runs: dict[str, dict[str, list[dict]]], factors: 
             for cam in cams + [None]:
                 rows = [r for s in factors if value(s, "motion") == motion and cam in (None, value(s, "camera"))
                         for r in seqs.get(s, [])]
-                cells.append(f"{sum(not _failed(r) for r in rows)}/{len(rows)}" if rows else "–")
+                cells.append(f"{sum(not sym_failed(r) for r in rows)}/{len(rows)}" if rows else "–")
             if any(c != "–" for c in cells):
                 lines.append(_row([motion, m] + cells))
     return lines + [""]
