@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -149,3 +151,51 @@ def test_propagate_and_twist_between_from_python_and_from_the_update_compile_onc
     )
     r = _run_cold(script, tmp_path)
     assert r.stdout.split() == ["1", "1"]
+
+
+CALLEE = "import numba\n\n\n@numba.njit(cache=True)\ndef f():\n    return {}\n"
+CALLER = "import numba\n\nfrom pkgx.{callee} import {fn}\n\n\n@numba.njit(cache=True)\ndef {name}():\n    return {fn}() + {add}\n"
+
+
+def _package(root: Path, guard: bool) -> None:
+    """``pkgx``: ``b.f`` (a kernel), ``a.g`` calls it, ``c.h`` calls ``a.g``; its ``__init__`` runs the stale-caller
+    check on import (``guard``) as torchevtrack's does, or not (numba alone)."""
+    pkg = root / "pkgx"
+    pkg.mkdir()
+    check = "from pathlib import Path\nfrom torchevtrack.kernels import drop_stale_callers\n" \
+            "print(drop_stale_callers(Path(__file__).parent, 'pkgx'))\n"
+    (pkg / "__init__.py").write_text(check if guard else "")
+    (pkg / "b.py").write_text(CALLEE.format(1))
+    (pkg / "a.py").write_text(CALLER.format(callee="b", fn="f", name="g", add=10))
+    (pkg / "c.py").write_text(CALLER.format(callee="a", fn="g", name="h", add=100))
+
+
+@pytest.mark.parametrize("user_cache_dir", [False, True], ids=["in-tree", "NUMBA_CACHE_DIR"])
+def test_an_edited_callee_recompiles_its_callers_in_other_modules(tmp_path, user_cache_dir):
+    """Numba alone keeps a caller's cached code of a callee edited in another module (the oracle: the stale value
+    after the edit); with the check on import, every module that reaches the edited one recompiles."""
+    for guard in (False, True):
+        root = tmp_path / f"guard{guard}"
+        root.mkdir()
+        cache = root / "cache" if user_cache_dir else None
+        _package(root, guard)
+        env = {**os.environ, "PYTHONPATH": f"{root}{os.pathsep}{ROOT}"}
+        env.pop("NUMBA_CACHE_DIR", None)
+        if cache is not None:
+            env["NUMBA_CACHE_DIR"] = str(cache)
+
+        def call() -> list[str]:
+            r = subprocess.run([sys.executable, "-c", "import pkgx.b, pkgx.c\nprint(pkgx.b.f(), pkgx.c.h())"],
+                               capture_output=True, text=True, env=env, timeout=300, check=True)
+            return r.stdout.splitlines()
+
+        first = call()
+        (root / "pkgx" / "b.py").write_text(CALLEE.format(22))  # the callee edited; its callers' files are not
+        second = call()
+        if guard:
+            assert first == ["[]", "1 111"]  # nothing cached yet
+            assert second == ["['pkgx.a', 'pkgx.c']", "22 132"]  # both callers, the one through the other too
+            assert call() == ["[]", "22 132"]  # nothing edited since
+        else:
+            assert first == ["1 111"]
+            assert second == ["22 111"], "numba's own cache was expected to miss the edit (the test's premise)"

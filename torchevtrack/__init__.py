@@ -33,6 +33,20 @@ if TYPE_CHECKING:
     from torchevtrack.tracker import EventPoseTracker
 
 
+def _drop_stale_callers() -> None:
+    """Numba's cache misses edits to a kernel's callees in other modules: drop their callers' code
+    (:func:`torchevtrack.kernels.drop_stale_callers`) before any kernel loads."""
+    from torchevtrack.kernels import drop_stale_callers
+
+    try:
+        drop_stale_callers()
+    except OSError:  # never fail an import on the cache: numba uses what it has
+        pass
+
+
+_drop_stale_callers()
+
+
 def __getattr__(name: str):
     if name not in _MODULE_OF:
         raise AttributeError(f"module 'torchevtrack' has no attribute {name!r}")

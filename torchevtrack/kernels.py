@@ -24,6 +24,7 @@ Example:
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import math
 import os
@@ -34,13 +35,110 @@ import threading
 from importlib import import_module
 from pathlib import Path
 
-__all__ = ["compile_cold", "decode_signature", "encode_signature", "loaded_signatures", "manifest", "uncached_kernels",
-           "warmup"]
+__all__ = ["compile_cold", "decode_signature", "encode_signature", "drop_stale_callers", "loaded_signatures", "manifest",
+           "uncached_kernels", "warmup"]
 
 MANIFEST = Path(__file__).with_name("kernels.json")
 SECONDS_PER_KERNEL = 1.6  # a kernel's compile time on average (150 s for the ~90 of a tracking run, idle 2-core VM)
 _lock = threading.Lock()
 _tried = False  # compile_cold ran in this process: it announces and compiles at most once
+
+
+# -- callers of an edited module: numba keys a kernel's cache on its own file only --------------------------------
+def _package_modules(root: Path, package: str) -> dict[str, Path]:
+    """Every module of the package in ``root``: ``{dotted name: file}``."""
+    out = {}
+    for f in sorted(root.rglob("*.py")):
+        parts = f.relative_to(root).with_suffix("").parts
+        out[".".join((package, *(parts[:-1] if parts[-1] == "__init__" else parts)))] = f
+    return out
+
+
+def _imports(source: str, modules: dict[str, Path], package: str) -> set[str]:
+    """The package's modules that ``source`` imports anywhere (top level or inside functions); none if it does
+    not parse."""
+    import ast  # only after an edit: not on every import
+
+    try:
+        tree = ast.parse(source)
+    except SyntaxError:
+        return set()
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            found.add(node.module)
+            found.update(f"{node.module}.{a.name}" for a in node.names)  # `from pkg.sub import module`
+    return {m for m in found if m == package or m.startswith(package + ".")} & set(modules)
+
+
+def _cache_dir(file: Path) -> Path:
+    """Where numba caches the kernels of ``file``: ``NUMBA_CACHE_DIR``'s subdirectory for the file's directory (as
+    numba names it), else the ``__pycache__`` beside it."""
+    user = os.environ.get("NUMBA_CACHE_DIR")
+    if not user:
+        return file.parent / "__pycache__"
+    folder = os.path.dirname(os.path.abspath(file))
+    return Path(user) / f"{os.path.basename(folder)}_{hashlib.sha1(folder.encode()).hexdigest()}"
+
+
+def drop_stale_callers(root: Path | None = None, package: str = "torchevtrack") -> list[str]:
+    """Delete the cached kernels of every module that imports, directly or through others, a module of the package
+    whose source changed since the last call; returns those modules' names (sorted).
+
+    Numba keys a kernel's cache on its own source file only, so a kernel that calls a compiled function of another
+    module keeps the machine code of that function's old source after it is edited (numba issue 1833): an edit to
+    ``stages/template.py`` would not reach the steps of ``update.py`` that call it. This runs on ``import
+    torchevtrack``: a stat of each source file when nothing changed (the record of sizes, times and content hashes
+    is a JSON file in the cache directory); after an edit the importers' kernels compile again on first call. With
+    no record (a first run, or a cache written before this check) every module that imports another is stale. Cache
+    problems (a read-only install, a race with
+    another process) are ignored: numba then uses what it has, as it would without this.
+
+    Example:
+        >>> drop_stale_callers()  # nothing edited since the last import
+        []
+    """
+    root = Path(__file__).parent if root is None else Path(root)
+    record = _cache_dir(root / "__init__.py") / f"{package}-sources.json"
+    modules = _package_modules(root, package)
+    stats = {m: [f.stat().st_mtime_ns, f.stat().st_size] for m, f in modules.items()}
+    try:
+        old = json.loads(record.read_text())
+    except (OSError, ValueError):
+        old = {}
+    if old.get("stats") == stats:
+        return []
+    texts = {m: f.read_bytes() for m, f in modules.items()}
+    hashes = {m: hashlib.sha1(t).hexdigest() for m, t in texts.items()}
+    graph = {m: _imports(t.decode("utf-8", "replace"), modules, package) for m, t in texts.items()}
+    if "hashes" in old:
+        edited = {m for m in set(hashes) | set(old["hashes"]) if old["hashes"].get(m) != hashes.get(m)}
+    else:  # no record: any module that imports another may hold code of an edit made before
+        edited = {m for m, deps in graph.items() if deps - {m}}
+    stale, grew = set(edited), True
+    while grew:  # every module that reaches an edited one through imports
+        new = {m for m, deps in graph.items() if m not in stale and deps & stale}
+        stale |= new
+        grew = bool(new)
+    dropped = []
+    for m in sorted(stale & set(modules)):
+        if m in edited and "hashes" in old:
+            continue  # numba sees its own source changed
+        stem = modules[m].stem
+        files = list(_cache_dir(modules[m]).glob(f"{stem}.*.nb[ic]"))
+        for f in files:
+            with contextlib.suppress(OSError):
+                f.unlink()
+        if files:
+            dropped.append(m)
+    with contextlib.suppress(OSError):
+        record.parent.mkdir(parents=True, exist_ok=True)
+        tmp = record.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(json.dumps({"stats": stats, "hashes": hashes}))
+        os.replace(tmp, record)
+    return dropped
 
 
 def _kernels() -> list:
