@@ -119,12 +119,13 @@ def test_batched_streams_with_empty_pushes_equal_offline(seq):
 class Recorder(EventPoseTracker):
     """Records the packed events of each update; its pose holds the running event count per element."""
 
+    lost = None  # no loss detector
+
     def __init__(self, batch_size: int, period_us: int) -> None:
         nn.Module.__init__(self)
         self.camera, self.batch_size, self.period_us = CAM, batch_size, period_us
         self.windows: list[list[tuple]] = []
         self.stage_ms = {}
-        self.loss_update = None  # no loss detector
 
     def reset(self, initial_pose, twist=None, mask=None) -> None:
         self.windows = []
@@ -287,7 +288,6 @@ class _Constant(EventPoseTracker):
         nn.Module.__init__(self)
         self.camera, self.batch_size, self.period_us = CAM, 1, period_us
         self.stage_ms = {"eros": 0.1, "flow": 0.2}
-        self.loss_update = None
 
     @property
     def lost(self) -> torch.Tensor:

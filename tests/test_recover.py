@@ -370,3 +370,53 @@ def test_a_batch_searches_the_same_events_with_and_without_the_pipeline(seq):
         runs.append(poses)
         tracker.close()
     assert torch.equal(runs[0], runs[1])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_fused_watch_gives_the_stage_calls_numbers(seed):
+    """`update.watch` (the tracker's one compiled call after an update) against the loss detector's own forward, then
+    the bookkeeping kernel with its verdict, then the search rule of the module docstring, one after the other."""
+    from torchevtrack.loss import LossDetector
+    from torchevtrack.recover import RecoverArrays
+    from torchevtrack.tracker import Quality
+    from torchevtrack.update import watch
+
+    rng = np.random.default_rng(seed)
+    B, T, period, retry, start_after, patience = 3, 200, 2000, 20_000, 48_000, 6
+    unit = [0.0, 0.0, 0.6, 1.0, 0.0, 0.0, 0.0]
+
+    def books():
+        return [np.zeros(B, bool), np.tile(unit, (B, 1)), np.zeros(B, np.int64), np.tile(unit, (B, 1)),
+                np.zeros(B, np.int64), np.zeros((B, 6)), np.full(B, -1, np.int64), np.zeros(B, np.int64),
+                np.zeros(B, np.int64), np.ones(B, bool)]
+
+    dets = [LossDetector(B, patience=patience, recovery=4) for _ in range(2)]
+    ref, fused = books(), books()
+    outs = [np.zeros(B, bool), np.zeros(B, bool), np.ones(1, bool)]
+    n = {"newly": 0, "search": 0, "may": 0}
+    for i in range(T):
+        t = np.full(B, period * (i + 1), np.int64)
+        pose = np.tile(unit, (B, 1))
+        pose[:, :3] += rng.normal(0.0, 0.01, (B, 3))
+        score = np.where(rng.random(B) < 0.1, np.nan, rng.gamma(2.0, 1.0 if (i // 40) % 2 == 0 else 0.1, B))
+        score = score.astype(np.float32)  # as the tracker's
+        flow_vectors = rng.integers(0, 8, B)
+        rejected, burst = rng.random(B) < 0.05, rng.random(B) < 0.05
+        upd = dets[0](Quality(torch.from_numpy(score), torch.from_numpy(flow_vectors), torch.zeros(B, dtype=torch.int64),
+                              torch.from_numpy(rejected), torch.from_numpy(burst)), torch.from_numpy(t))
+        due, starting = np.zeros(B, bool), np.zeros(B, bool)
+        bookkeeping_kernel(t, period, pose, upd.newly_lost.numpy(), dets[0].low_run.numpy(), *ref, retry, start_after,
+                           due, starting)
+        may = ref[0].any() or ref[9].any() or (dets[0].low_run.numpy() >= patience - 1).any()
+        newly, search = watch(dets[1].arrays(), RecoverArrays(*fused, retry, start_after, *outs), score, flow_vectors,
+                              rejected, burst, t, period, pose)
+        assert newly == bool(upd.newly_lost.any()) and search == bool((due | starting).any()), i
+        assert np.array_equal(outs[0], due) and np.array_equal(outs[1], starting) and outs[2][0] == may, i
+        for a, b in zip(ref, fused):
+            assert np.array_equal(a, b), i
+        for name, buf in dets[0].named_buffers():
+            torch.testing.assert_close(buf, getattr(dets[1], name), rtol=0, atol=0, equal_nan=True)
+        n["newly"] += newly
+        n["search"] += search
+        n["may"] += may
+    assert n["newly"] > 0 and n["search"] > 0 and 0 < n["may"] < T  # every branch taken

@@ -53,7 +53,7 @@ from torchevtrack.stages import BufferViews
 if TYPE_CHECKING:  # the tracker may import this module: no import cycle at run time
     from torchevtrack.tracker import Quality
 
-__all__ = ["LossDetector", "LossUpdate", "loss_kernel", "compare_with_ground_truth"]
+__all__ = ["LossArrays", "LossDetector", "LossUpdate", "compare_with_ground_truth", "loss_kernel", "loss_step"]
 
 OnLost = Callable[[torch.Tensor, torch.Tensor], "torch.Tensor | None"]
 
@@ -130,6 +130,33 @@ def loss_kernel(score, flow_vectors, rejected, burst, t_us, reference, confidenc
         lost[b] = now
 
 
+class LossArrays(NamedTuple):
+    """A :class:`LossDetector` as compiled kernels take it (:meth:`LossDetector.arrays`): numpy views of its buffers,
+    written in place (``newly_lost``: the elements that became lost in the last update), and its rule's settings."""
+
+    reference: np.ndarray
+    confidence: np.ndarray
+    low_run: np.ndarray
+    good_run: np.ndarray
+    lost: np.ndarray
+    lost_at_us: np.ndarray
+    newly_lost: np.ndarray
+    score_threshold: float
+    min_flow_vectors: int
+    patience: int
+    recovery: int
+    ema: float
+
+
+@numba.njit(cache=True, nogil=True)
+def loss_step(a, score, flow_vectors, rejected, burst, t_us):
+    """:func:`loss_kernel` on the detector's :class:`LossArrays` ``a`` in place; returns whether an element became
+    lost (``a.newly_lost``). Inputs as for :func:`loss_kernel` (``score`` of any float dtype)."""
+    loss_kernel(score, flow_vectors, rejected, burst, t_us, a.reference, a.confidence, a.low_run, a.good_run, a.lost,
+                a.lost_at_us, a.newly_lost, a.score_threshold, a.min_flow_vectors, a.patience, a.recovery, a.ema)
+    return a.newly_lost.any()
+
+
 class LossDetector(BufferViews, nn.Module):
     """Declare tracking loss per batch element from the tracker's per-update quality.
 
@@ -145,7 +172,8 @@ class LossDetector(BufferViews, nn.Module):
 
     Buffers (all ``(B,)``):
         reference, confidence: float64; low_run, good_run: int64; lost: bool;
-        lost_at_us: int64 time of the first loss declared since the last reset (-1: none).
+        lost_at_us: int64 time of the first loss declared since the last reset (-1: none);
+        newly_lost: bool, the elements that became lost in the last update.
 
     ``forward(quality, t_us) -> LossUpdate`` with ``t_us`` an int or ``(B,)`` int64 update time (us); the quality's
     fields may be tensors or numpy arrays (the tracker gives its numpy ones).
@@ -157,6 +185,7 @@ class LossDetector(BufferViews, nn.Module):
     good_run: torch.Tensor
     lost: torch.Tensor
     lost_at_us: torch.Tensor
+    newly_lost: torch.Tensor
 
     def __init__(self, batch_size: int, score_threshold: float = 0.3, min_flow_vectors: int = 3,
                  patience: int = 25, recovery: int = 10, ema: float = 0.05,
@@ -186,6 +215,7 @@ class LossDetector(BufferViews, nn.Module):
         self.register_buffer("good_run", torch.zeros(B, dtype=torch.int64))
         self.register_buffer("lost", torch.zeros(B, dtype=torch.bool))
         self.register_buffer("lost_at_us", torch.zeros(B, dtype=torch.int64))
+        self.register_buffer("newly_lost", torch.zeros(B, dtype=torch.bool))
         self.reset()
 
     def reset(self, mask: torch.Tensor | None = None) -> None:
@@ -207,10 +237,37 @@ class LossDetector(BufferViews, nn.Module):
         self.good_run[mask] = 0
         self.lost[mask] = False
         self.lost_at_us[mask] = -1
+        self.newly_lost[mask] = False
 
-    def _state(self) -> tuple[np.ndarray, ...]:
-        """Numpy views of the buffers in :func:`loss_kernel`'s order (:class:`~torchevtrack.stages.BufferViews`)."""
-        return self.buffer_views(("reference", "confidence", "low_run", "good_run", "lost", "lost_at_us"))
+    def arrays(self) -> LossArrays:
+        """The detector for compiled kernels (:func:`loss_step`): numpy views of the buffers (made again only when a
+        buffer's storage changes, :class:`~torchevtrack.stages.BufferViews`) and the rule's settings."""
+        views = self.buffer_views(("reference", "confidence", "low_run", "good_run", "lost", "lost_at_us",
+                                   "newly_lost"))
+        return LossArrays(*views, self.score_threshold, self.min_flow_vectors, self.patience, self.recovery, self.ema)
+
+    def report(self, t_us: np.ndarray) -> LossUpdate:
+        """The :class:`LossUpdate` of the last update at times ``t_us`` ``(B,)`` int64: the state's copies, and the
+        ``on_lost`` callback's poses for the elements that became lost (called here, once per update; those
+        elements restart)."""
+        index = torch.empty(0, dtype=torch.int64)
+        poses = torch.empty(0, 7, dtype=torch.float64)
+        newly = self.newly_lost.clone()
+        update = LossUpdate(self.confidence.clone(), self.lost.clone(), newly, index, poses)
+        if self.on_lost is None or not bool(newly.any()):
+            return update
+        idx = newly.nonzero()[:, 0]
+        out = self.on_lost(idx, torch.from_numpy(np.asarray(t_us, np.int64))[idx])
+        if out is None:
+            return update
+        out = torch.as_tensor(out, dtype=torch.float64)
+        if out.shape != (idx.numel(), 7):
+            raise ValueError(f"on_lost must return poses of shape ({idx.numel()}, 7) or None, got {tuple(out.shape)}")
+        poses = check_pose(out, "on_lost poses")
+        lost_at = self.lost_at_us.clone()
+        self.reset(idx)
+        self.lost_at_us.copy_(lost_at)  # the first loss stays on record
+        return update._replace(reinit_index=idx, reinit_pose=poses)
 
     def forward(self, quality: Quality, t_us: int | torch.Tensor) -> LossUpdate:
         B = self.batch_size
@@ -223,27 +280,9 @@ class LossDetector(BufferViews, nn.Module):
         t = np.full(B, t, np.int64) if t.ndim == 0 else _array(t, np.int64, B)
         burst = getattr(quality, "burst", None)
         burst = np.zeros(B, np.bool_) if burst is None else _array(burst, np.bool_, B)
-        newly = np.zeros(B, np.bool_)
-        state = self._state()
-        loss_kernel(_array(quality.score, np.float64, B), _array(quality.flow_vectors, np.int64, B),
-                    _array(quality.rejected, np.bool_, B), burst, t, *state, newly, self.score_threshold,
-                    self.min_flow_vectors, self.patience, self.recovery, self.ema)
-        confidence, lost = torch.from_numpy(state[1].copy()), torch.from_numpy(state[4].copy())
-        index = torch.empty(0, dtype=torch.int64)
-        poses = torch.empty(0, 7, dtype=torch.float64)
-        if self.on_lost is not None and newly.any():
-            idx = torch.from_numpy(np.flatnonzero(newly))
-            out = self.on_lost(idx, torch.from_numpy(t)[idx])
-            if out is not None:
-                out = torch.as_tensor(out, dtype=torch.float64)
-                if out.shape != (idx.numel(), 7):
-                    raise ValueError(f"on_lost must return poses of shape ({idx.numel()}, 7) or None, "
-                                     f"got {tuple(out.shape)}")
-                index, poses = idx, check_pose(out, "on_lost poses")
-                lost_at = self.lost_at_us.clone()
-                self.reset(idx)
-                self.lost_at_us.copy_(lost_at)  # the first loss stays on record
-        return LossUpdate(confidence, lost, torch.from_numpy(newly), index, poses)
+        loss_step(self.arrays(), _array(quality.score, np.float64, B), _array(quality.flow_vectors, np.int64, B),
+                  _array(quality.rejected, np.bool_, B), burst, t)
+        return self.report(t)
 
     def extra_repr(self) -> str:
         return (f"batch_size={self.batch_size}, score_threshold={self.score_threshold}, "

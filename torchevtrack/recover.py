@@ -47,7 +47,7 @@ Example:
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING, NamedTuple, Sequence
 
 import numba
 import numpy as np
@@ -65,11 +65,10 @@ from torchevtrack.stages.propagate import propagate, twist_between_kernel
 from torchevtrack.stages.relocalise import LEVELS, Level, Relocalisation, Relocaliser
 
 if TYPE_CHECKING:  # the tracker imports this module
-    from torchevtrack.loss import LossDetector
     from torchevtrack.tracker import EventPoseTracker
 
-__all__ = ["Recoverer", "beats", "beats_start", "confirms", "search_levels", "MAX_EXTRAPOLATION_US", "MAX_RETRY_US",
-           "TWIST_SPAN_US"]
+__all__ = ["MAX_EXTRAPOLATION_US", "MAX_RETRY_US", "RecoverArrays", "Recoverer", "TWIST_SPAN_US", "beats", "beats_start",
+           "confirms", "recover_step", "search_levels"]
 
 TWIST_SPAN_US = 20_000  # the good twist is measured over at least this span (one update's pose difference is noise)
 # the good pose is moved on by the good twist for at most this long: beyond, a constant twist is a guess that grows
@@ -142,6 +141,44 @@ def bookkeeping_kernel(t, period_us, pose, declared, low_run, lost, good_pose, g
             pending[b] = False
 
 
+class RecoverArrays(NamedTuple):
+    """A :class:`Recoverer` as compiled kernels take it (:meth:`Recoverer.arrays`): numpy views of its buffers in
+    :func:`bookkeeping_kernel`'s order, written in place, its ``retry_us`` and ``start_after_us``, and the last
+    update's outputs ``due``, ``starting`` ``(B,)`` bool and ``may`` ``(1,)`` bool (:meth:`Recoverer.may_search`)."""
+
+    lost: np.ndarray
+    good_pose: np.ndarray
+    good_us: np.ndarray
+    anchor_pose: np.ndarray
+    anchor_us: np.ndarray
+    twist: np.ndarray
+    started_us: np.ndarray
+    next_search_us: np.ndarray
+    retry_in_us: np.ndarray
+    start_pending: np.ndarray
+    retry_us: int
+    start_after_us: int
+    due: np.ndarray
+    starting: np.ndarray
+    may: np.ndarray
+
+
+@numba.njit(cache=True, nogil=True)
+def recover_step(r, t, period_us, pose, declared, low_run, patience):
+    """:func:`bookkeeping_kernel` on the :class:`RecoverArrays` ``r`` in place, for the update at times ``t`` ``(B,)``
+    int64 with output poses ``pose`` ``(B, 7)``, the detector's ``declared`` (newly lost) and ``low_run`` ``(B,)`` and
+    its ``patience``. Returns whether a search is due now (``r.due`` or ``r.starting``); ``r.may[0]``: whether the
+    next update may search (:meth:`Recoverer.may_search`)."""
+    bookkeeping_kernel(t, period_us, pose, declared, low_run, r.lost, r.good_pose, r.good_us, r.anchor_pose,
+                       r.anchor_us, r.twist, r.started_us, r.next_search_us, r.retry_in_us, r.start_pending,
+                       r.retry_us, r.start_after_us, r.due, r.starting)
+    may = r.lost.any() or r.start_pending.any()
+    for b in range(low_run.shape[0]):
+        may = may or low_run[b] >= patience - 1
+    r.may[0] = may
+    return r.due.any() or r.starting.any()
+
+
 class Recoverer(BufferViews, nn.Module):
     """Re-localise lost elements of an :class:`~torchevtrack.tracker.EventPoseTracker` (module docstring).
 
@@ -163,7 +200,8 @@ class Recoverer(BufferViews, nn.Module):
         started_us: ``(B,)`` int64 start of the first update's window since the last (re)start (-1: none yet).
         start_pending: ``(B,)`` bool, the start search is still to come.
 
-    ``forward(tracker, t_us)`` runs after each update of ``tracker`` with the update's ``(B,)`` int64 times.
+    After each update of the tracker, :func:`recover_step` keeps the books on :meth:`arrays` (compiled, with the
+    tracker's other steps) and :meth:`search` runs the searches it finds due.
     """
 
     lost: torch.Tensor
@@ -203,6 +241,8 @@ class Recoverer(BufferViews, nn.Module):
         self.register_buffer("started_us", torch.full((B,), -1, dtype=i64))
         self.register_buffer("lost", torch.zeros(B, dtype=torch.bool))
         self.register_buffer("start_pending", torch.zeros(B, dtype=torch.bool))
+        # the last update's bookkeeping (recover_step): searches due, and whether the next update may search
+        self._due, self._starting, self._may = np.zeros(B, np.bool_), np.zeros(B, np.bool_), np.ones(1, np.bool_)
 
     @classmethod
     def from_config(cls, cfg: RecoverConfig, camera: Camera, meshes: Sequence[trimesh.Trimesh], owner: Sequence[int],
@@ -228,41 +268,34 @@ class Recoverer(BufferViews, nn.Module):
         self.lost[m] = False
         self.started_us[m] = -1
         self.start_pending[m] = self.start_search
+        self._due[m.numpy()] = self._starting[m.numpy()] = False  # (a restart within an update: nothing to search)
+        self._may[0] = True
 
-    def may_search(self, loss: "LossDetector") -> bool:
-        """Whether the next update may search: an element is lost, ``loss`` (the tracker's detector) may declare one
-        lost in it (its low run one update short of the patience), or a start search is still to come. A search reads
-        the time surface of the events up to its update, so the tracker then takes no window in ahead."""
-        return bool(self.lost.numpy().any() or self.start_pending.numpy().any()
-                    or (loss.low_run.numpy() >= loss.patience - 1).any())
+    def may_search(self) -> bool:
+        """Whether the next update may search, as the last update's :func:`recover_step` found (true after a reset):
+        an element is lost, the tracker's detector may declare one lost in it (its low run one update short of the
+        patience), or a start search is still to come. A search reads the time surface of the events up to its
+        update, so the tracker then takes no window in ahead."""
+        return bool(self._may[0])
 
     def close(self) -> None:
         """Release the relocalisers' renderers."""
         for r in self.relocalisers:
             r.renderer.close()
 
-    def _state(self) -> tuple[np.ndarray, ...]:
-        """Numpy views of the buffers in :func:`bookkeeping_kernel`'s order
-        (:class:`~torchevtrack.stages.BufferViews`)."""
-        return self.buffer_views(("lost", "good_pose", "good_us", "anchor_pose", "anchor_us", "twist", "started_us",
-                                  "next_search_us", "retry_in_us", "start_pending"))
-
-    def forward(self, tracker: "EventPoseTracker", t_us: torch.Tensor | int) -> None:
-        # the bookkeeping of every update in one compiled call on the buffers; searches are rare
-        B = len(self.owner)
-        t = np.asarray(t_us)
-        t = np.full(B, t, np.int64) if t.ndim == 0 else np.array(t, np.int64).reshape(B)  # a copy: a restart resets
-        due, starting = np.zeros(B, np.bool_), np.zeros(B, np.bool_)
-        bookkeeping_kernel(t, tracker.period_us, tracker.pose.numpy(), tracker.loss_update.newly_lost.numpy(),
-                           tracker.loss.low_run.numpy(), *self._state(), self.retry_us, self.start_after_us,
-                           due, starting)
-        if due.any() or starting.any():
-            self._search(tracker, t, due, starting)
+    def arrays(self) -> RecoverArrays:
+        """The books for compiled kernels (:func:`recover_step`): numpy views of the buffers (made again only when a
+        buffer's storage changes, :class:`~torchevtrack.stages.BufferViews`) and the last update's outputs."""
+        views = self.buffer_views(("lost", "good_pose", "good_us", "anchor_pose", "anchor_us", "twist", "started_us",
+                                   "next_search_us", "retry_in_us", "start_pending"))
+        return RecoverArrays(*views, self.retry_us, self.start_after_us, self._due, self._starting, self._may)
 
     @torch.inference_mode()
-    def _search(self, tracker: "EventPoseTracker", t: np.ndarray, due: np.ndarray, starting: np.ndarray) -> None:
-        """Search for the ``due`` lost elements that have recent event pixels and the ``starting`` ones (``(B,)``
-        bool); restart those whose search is clear (a start search: :func:`beats_start`)."""
+    def search(self, tracker: "EventPoseTracker", t: np.ndarray) -> None:
+        """Search for the elements :func:`recover_step` found due at the update's times ``t`` ``(B,)`` int64: the lost
+        ones that have recent event pixels, and those whose start search is due; restart those whose search is clear
+        (a start search: :func:`beats_start`)."""
+        due, starting = self._due, self._starting
         B = len(self.owner)
         surface = tracker.last_event_us
         pose = tracker.pose.clone()

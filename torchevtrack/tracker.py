@@ -91,7 +91,7 @@ from torchevtrack.stages.template import Correction, TemplateCorrector, Template
 from torchevtrack.stages.ukf import PoseUKF
 from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, shift_twist
 from torchevtrack.update import (CorrectionStep, MotionArgs, OutputArgs, RenderModelBinding, bind_correction,
-                                 bind_intake, motion, output, render_ahead)
+                                 bind_intake, motion, output, render_ahead, watch)
 
 if TYPE_CHECKING:
     from torchevtrack.render import Renderer
@@ -281,7 +281,6 @@ class EventPoseTracker(nn.Module):
             raise ValueError("on_lost needs the loss detector: set loss.enabled in the config")
         else:
             self.loss = None
-        self.loss_update: LossUpdate | None = None
         self.recover = Recoverer.from_config(cfg.recover, camera, distinct, self._renderer_of, self._radius) \
             if cfg.recover.enabled else None
         if cfg.hypotheses.enabled:  # the twin: this tracker without the UKF (and without loss, recovery or a twin)
@@ -392,7 +391,7 @@ class EventPoseTracker(nn.Module):
             self.twin.reset(pose, twist, m)
             self.hypotheses.reset(m)
         if mask is None:
-            self.loss_update = None
+            self._run.loss_report = None
             self._render(pose.numpy(), shaded=False)
         else:
             self._render_depth(pose, m)
@@ -457,7 +456,7 @@ class EventPoseTracker(nn.Module):
             except ValueError:
                 next_window = None  # its own update raises
         ahead = next_window if self._take_in_ahead else None
-        if ahead is not None and self.recover is not None and self.recover.may_search(self.loss):
+        if ahead is not None and self.recover is not None and self.recover.may_search():
             ahead = None  # a search reads the time surface of this window's events: the next must not be going in
         with torch.inference_mode():
             try:
@@ -599,20 +598,24 @@ class EventPoseTracker(nn.Module):
         clock.lap("ukf")
         run.prev_pose[:] = run.pose
         run.pose[:] = out
-        self._run.quality = (score, n_vectors, n_events, bad | rejected) + (() if burst is None else (burst,))
-        t_now = run.t_last if t_us is None else t_us
-        if self.loss is not None:  # (given the quality's numpy fields: tensors of them cost more than its rule)
-            upd = self.loss(Quality(*self._run.quality), t_now)
-            self.loss_update = upd
-            if upd.reinit_index.numel():  # on_lost gave poses: those elements restart there (the detector did)
-                pose = self.pose.clone()
-                pose[upd.reinit_index] = upd.reinit_pose
-                lost_at = self.loss.lost_at_us.clone()
-                self.reset(pose, mask=upd.reinit_index)
-                self.loss.lost_at_us.copy_(lost_at)  # the first loss stays on record
+        rejected = bad | rejected
+        self._run.quality = (score, n_vectors, n_events, rejected) + (() if burst is None else (burst,))
+        if self.loss is not None:  # the loss rule and the re-localiser's books; the report is made when read
+            t_now = run.t_last.copy() if t_us is None else _update_times(t_us, B)  # a copy: a restart resets t_last
+            newly, search = watch(self.loss.arrays(), None if self.recover is None else self.recover.arrays(), score,
+                                  n_vectors, rejected, burst, t_now, self.period_us, run.pose)
+            self._run.loss_report = True
+            if newly and self.loss.on_lost is not None:
+                upd = self._run.loss_report = self.loss.report(t_now)
+                if upd.reinit_index.numel():  # on_lost gave poses: those elements restart there (the detector did)
+                    pose = self.pose.clone()
+                    pose[upd.reinit_index] = upd.reinit_pose
+                    lost_at = self.loss.lost_at_us.clone()
+                    self.reset(pose, mask=upd.reinit_index)
+                    self.loss.lost_at_us.copy_(lost_at)  # the first loss stays on record
             clock.lap("loss")
-        if self.recover is not None:  # may restart elements (a masked reset)
-            self.recover(self, t_now)
+            if search:  # may restart elements (a masked reset)
+                self.recover.search(self, t_now)
             clock.lap("recover")
         self.stage_ms = clock.ms
         return intake
@@ -630,12 +633,21 @@ class EventPoseTracker(nn.Module):
         return self._schedule.pipelined
 
     @property
+    def loss_update(self) -> LossUpdate | None:
+        """The loss detector's :class:`~torchevtrack.loss.LossUpdate` of the last update (made when first read after
+        it); ``None`` without a detector or before the first update."""
+        report = self._run.loss_report
+        if report is True:
+            report = self._run.loss_report = self.loss.report(np.zeros(self.batch_size, np.int64))  # (no callback)
+        return report
+
+    @property
     def lost(self) -> torch.Tensor | None:
         """``(B,)`` bool: the loss detector held the element lost after the last update (before any
         re-initialisation in that update); with ``config.recover``, the :class:`~torchevtrack.recover.Recoverer`'s
         flags (lost until a search restarts the element or confirms its pose); ``None`` without
         a detector or before the first update."""
-        if self.loss_update is None:
+        if self._run.loss_report is None:
             return None
         return self.loss_update.lost if self.recover is None else self.recover.lost.clone()
 
@@ -1122,6 +1134,7 @@ class _UpdateState:
     guarded: tuple | None = None
     models: "list[TemplateModel] | None" = None
     bound: "_Bound | None" = None
+    loss_report: "LossUpdate | bool | None" = None
 
 
 class _Intake(NamedTuple):
@@ -1183,6 +1196,15 @@ def _cat(parts: list[_T]) -> _T:
     if len(parts) == 1:
         return parts[0]
     return type(parts[0])(*(np.concatenate(f) if isinstance(f[0], np.ndarray) else torch.cat(f) for f in zip(*parts)))
+
+
+def _update_times(t_us, B: int) -> np.ndarray:
+    """``forward``'s ``t_us`` (an int, or one int64 per element) as a new ``(B,)`` int64 array."""
+    t = np.asarray(t_us)
+    if t.dtype.kind not in "iu" or t.size not in (1, B):
+        raise ValueError(f"t_us must be integer microseconds, one value or one per element ({B}), got "
+                         f"{t.dtype} of shape {tuple(t.shape)}")
+    return np.full(B, t.reshape(-1)[0], np.int64) if t.size == 1 else t.astype(np.int64).reshape(B)
 
 
 def _per_stream(value, default: list[int], name: str) -> list[int]:

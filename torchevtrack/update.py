@@ -34,6 +34,10 @@ the other (``tests/test_intake.py``, ``tests/test_motion.py``, ``tests/test_rend
   the :class:`~torchevtrack.stages.ukf.PoseUKF` predict and update (:func:`~torchevtrack.stages.ukf.ukf_step`; its
   pose is the output, without it the measured pose), the current pose where the output is not valid, and canonical
   quaternions (``w >= 0``, :func:`~torchevtrack.geometry.quat_canonical`).
+- :func:`watch`, after step 6 (with ``config.loss``): the :class:`~torchevtrack.loss.LossDetector`'s rule on the
+  update's quality (:func:`~torchevtrack.loss.loss_step`) and, with ``config.recover``, the
+  :class:`~torchevtrack.recover.Recoverer`'s books (:func:`~torchevtrack.recover.recover_step`): what the caller must
+  do in Python (a callback, a search) is rare, the books are every update.
 """
 
 from __future__ import annotations
@@ -47,7 +51,9 @@ import torch
 
 from torchevtrack.camera import Camera
 from torchevtrack.geometry import nb_normalise_quaternions
+from torchevtrack.loss import LossArrays, loss_step
 from torchevtrack.raster import AMBIENT, LIGHT_DIRECTION, RasterRenderer, render_kernel
+from torchevtrack.recover import RecoverArrays, recover_step
 from torchevtrack.stages.eros import (EROS, RecencyArrays, TimeSurface, canvas_kernel, eros_kernel, prepare_events,
                                       time_kernel)
 from torchevtrack.stages.flow import (FlowField, TripletFlow, event_arrays, events_in_range, flow_packet, range_error,
@@ -60,7 +66,7 @@ from torchevtrack.stages.ukf import UKFArrays, ukf_step
 from torchevtrack.stages.velocity import FeedbackArrays, KFArrays, feedback_step, shift_twist_kernel, velocity_step
 
 __all__ = ["CorrectionStep", "MotionArgs", "OutputArgs", "RenderModelBinding", "Rendered", "bind_correction",
-           "bind_intake", "motion", "output", "render_ahead"]
+           "bind_intake", "motion", "output", "render_ahead", "watch"]
 
 
 def bind_intake(eros: EROS, time_surface: TimeSurface | None, flow: TripletFlow,
@@ -516,3 +522,34 @@ def _output_kernel(pose, predicted, measured, twist, dt, min_depth, feedback, ax
         for j in range(3, 7):
             out[i, j] = sign * (out[i, j] / norm)
     return -1
+
+
+def watch(loss: LossArrays, recover: RecoverArrays | None, score: np.ndarray, flow_vectors: np.ndarray,
+          rejected: np.ndarray, burst: np.ndarray | None, t_us: np.ndarray, period_us: int,
+          pose: np.ndarray) -> tuple[bool, bool]:
+    """The loss rule and the re-localiser's books after an update (module docstring), in one compiled call,
+    unchecked; the records are updated in place.
+
+    Args:
+        loss: the detector's :meth:`~torchevtrack.loss.LossDetector.arrays`; recover: the re-localiser's
+            :meth:`~torchevtrack.recover.Recoverer.arrays` (``None``: none).
+        score: ``(B,)`` the template scores (NaN: none); flow_vectors: ``(B,)`` int64; rejected, burst: ``(B,)`` bool
+            (``burst`` ``None``: no burst guard); t_us: ``(B,)`` int64 the update's times; period_us: the tracker's
+            window (us); pose: ``(B, 7)`` float64 the update's output poses.
+
+    Returns:
+        ``(newly_lost, search)``: an element became lost (``loss.newly_lost``), a search is due
+        (:meth:`~torchevtrack.recover.Recoverer.search`).
+    """
+    burst = np.zeros(score.shape[0], np.bool_) if burst is None else burst
+    return _watch_kernel(loss, recover, score, flow_vectors, rejected, burst, t_us, np.int64(period_us), pose)
+
+
+@numba.njit(cache=True, nogil=True)
+def _watch_kernel(loss, recover, score, flow_vectors, rejected, burst, t_us, period_us, pose):
+    """:func:`watch`'s compiled body."""
+    newly = loss_step(loss, score, flow_vectors, rejected, burst, t_us)
+    search = False
+    if recover is not None:
+        search = recover_step(recover, t_us, period_us, pose, loss.newly_lost, loss.low_run, loss.patience)
+    return newly, search
