@@ -1,6 +1,6 @@
 """Recovery (torchevtrack.recover): a lost element keeps the tracker's own pose and its flag, is searched for only while
 events come, restarts where the search is clear and beats the tracker's pose, and is found again where the search
-confirms that pose; ``track --recover`` writes the lost flags beside the poses.
+confirms that pose; ``track`` (recovering unless ``--no-recover``) writes the lost flags beside the poses.
 
 The restart tests replace the wide search (:class:`~torchevtrack.stages.relocalise.Relocaliser`, tested on its own in
 tests/test_relocalise.py) by an oracle that returns the true pose, clear: they test what the recoverer does with a
@@ -159,10 +159,9 @@ def seqdirs(seq, tmp_path_factory):
     return d
 
 
-def test_track_recover_writes_the_lost_flags_the_tracker_reports(seq, seqdirs, tmp_path):
+def test_track_recovers_by_default_and_writes_the_lost_flags_the_tracker_reports(seq, seqdirs, tmp_path):
     out = tmp_path / "poses.txt"
-    assert main(["track", str(seqdirs / "dark"), "--out", str(out), "--recover", "--duration", "0.3",
-                 "--quiet"]) == 0
+    assert main(["track", str(seqdirs / "dark"), "--out", str(out), "--duration", "0.3", "--quiet"]) == 0
     t_file, poses_file = read_tum(out)
     t_lost, lost_file = read_lost(lost_path(out))
     assert lost_path(out).name == "poses.lost.txt"
@@ -176,6 +175,10 @@ def test_track_recover_writes_the_lost_flags_the_tracker_reports(seq, seqdirs, t
     assert torch.equal(lost_file, lost[0])
     assert torch.allclose(poses_file, poses[0], atol=1e-8)  # the pose file's digits
     assert 50 < int(lost_file.sum()) < len(lost_file)
+    plain = tmp_path / "plain.txt"  # --no-recover: the config as given, no detector, no flags
+    assert main(["track", str(seqdirs / "dark"), "--out", str(plain), "--no-recover", "--duration", "0.3",
+                 "--quiet"]) == 0
+    assert plain.exists() and not lost_path(plain).exists()
 
 
 def test_track_warns_and_flags_lost_after_a_wrong_init(seqdirs, tmp_path, capsys):
