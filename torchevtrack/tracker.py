@@ -1125,7 +1125,8 @@ class _UpdateState:
     kept events, counts and flags); rendering: render.ahead, the next update's render and model on the intake thread;
     observing: streaming, this update's EROS, time surface and observation there; models: the template of the last
     render, one per worker's share (reused while render.reuse_px allows); bound: the stages' compiled steps bound
-    to the tracker's buffers (made on first use).
+    to the tracker's buffers (made on first use); loss_report: the last update's :class:`~torchevtrack.loss.LossUpdate`
+    (``True``: the detector ran, the report is made when read; ``None``: no update since the last full reset).
     """
     quality: "Quality | tuple"
     ahead: "_Ahead | None" = None
