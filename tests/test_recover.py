@@ -393,7 +393,7 @@ def test_the_fused_watch_gives_the_stage_calls_numbers(seed):
                 np.zeros(B, np.int64), np.zeros((B, 6)), np.full(B, -1, np.int64), np.zeros(B, np.int64),
                 np.zeros(B, np.int64), np.ones(B, bool)]
 
-    dets = [LossDetector(B, patience=patience, recovery=4) for _ in range(2)]
+    dets = [LossDetector(B, score_threshold=0.3, patience=patience, recovery=4) for _ in range(2)]
     ref, fused = books(), books()
     outs = [np.zeros(B, bool), np.zeros(B, bool), np.ones(1, bool)]
     n = {"newly": 0, "search": 0, "may": 0}

@@ -171,7 +171,7 @@ class LossConfig:
     # Tracking-loss detection (torchevtrack.loss.LossDetector); it only reports, unless an on_lost callback
     # (or the user's masked reset) re-initialises the lost elements.
     enabled: bool = False
-    score_threshold: float = 0.3  # low update: template score below this fraction of the running reference
+    score_threshold: float = 0.6  # low update: template score below this fraction of the running reference
     min_flow_vectors: int = 3  # low update: fewer flow vectors (not applied unless velocity.source = "flow")
     patience: int = 25  # consecutive low updates that declare an element lost
     recovery: int = 10  # consecutive confident updates that clear it

@@ -187,7 +187,7 @@ class LossDetector(BufferViews, nn.Module):
     lost_at_us: torch.Tensor
     newly_lost: torch.Tensor
 
-    def __init__(self, batch_size: int, score_threshold: float = 0.3, min_flow_vectors: int = 3,
+    def __init__(self, batch_size: int, score_threshold: float = 0.6, min_flow_vectors: int = 3,
                  patience: int = 25, recovery: int = 10, ema: float = 0.05,
                  initial_reference: float | None = None, on_lost: OnLost | None = None) -> None:
         super().__init__()
