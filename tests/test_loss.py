@@ -326,3 +326,14 @@ def test_end_to_end_loss_is_flagged_only_for_broken_streams(seq):
         assert lost[b, times >= first].all()
     r = compare_with_ground_truth(times, lost[0], poses[0], seq.gt_t_us, seq.gt_poses)
     assert r["first_loss_us"] is None and r["first_failure_us"] is None and not r["false_alarm"]
+
+
+def test_update_times_take_one_time_or_one_per_element():
+    from torchevtrack.loss import update_times
+
+    assert update_times(5, 3).tolist() == [5, 5, 5]
+    assert update_times(torch.tensor([1, 2, 3]), 3).tolist() == [1, 2, 3]
+    with pytest.raises(TypeError, match="integer microseconds"):
+        update_times(1.5, 3)
+    with pytest.raises(ValueError, match=r"one per element \(3\)"):
+        update_times(torch.tensor([1, 2]), 3)

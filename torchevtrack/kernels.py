@@ -103,7 +103,7 @@ def drop_stale_callers(root: Path | None = None, package: str = "torchevtrack") 
     root = Path(__file__).parent if root is None else Path(root)
     record = _cache_dir(root / "__init__.py") / f"{package}-sources.json"
     modules = _package_modules(root, package)
-    stats = {m: [f.stat().st_mtime_ns, f.stat().st_size] for m, f in modules.items()}
+    stats = {m: [st.st_mtime_ns, st.st_size] for m, st in ((m, f.stat()) for m, f in modules.items())}
     try:
         old = json.loads(record.read_text())
     except (OSError, ValueError):

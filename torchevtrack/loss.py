@@ -53,7 +53,8 @@ from torchevtrack.stages import BufferViews
 if TYPE_CHECKING:  # the tracker may import this module: no import cycle at run time
     from torchevtrack.tracker import Quality
 
-__all__ = ["LossArrays", "LossDetector", "LossUpdate", "compare_with_ground_truth", "loss_kernel", "loss_step"]
+__all__ = ["LossArrays", "LossDetector", "LossUpdate", "compare_with_ground_truth", "loss_kernel", "loss_step",
+           "update_times"]
 
 OnLost = Callable[[torch.Tensor, torch.Tensor], "torch.Tensor | None"]
 
@@ -128,6 +129,21 @@ def loss_kernel(score, flow_vectors, rejected, burst, t_us, reference, confidenc
             if lost_at_us[b] < 0:
                 lost_at_us[b] = t_us[b]
         lost[b] = now
+
+
+def update_times(t_us: int | torch.Tensor | np.ndarray, B: int) -> np.ndarray:
+    """An update's time ``t_us`` (an integer for every element, or ``(B,)`` integers, microseconds) as a new ``(B,)``
+    int64 array.
+
+    Raises:
+        TypeError: not integers. ValueError: an array of another size than ``B``.
+    """
+    t = np.asarray(t_us)
+    if t.dtype.kind not in "iu":
+        raise TypeError(f"t_us must be integer microseconds, got {t.dtype}")
+    if t.ndim and t.size != B:
+        raise ValueError(f"t_us must be one time or one per element ({B}), got shape {tuple(t.shape)}")
+    return np.full(B, t, np.int64) if t.ndim == 0 else t.astype(np.int64).reshape(B)
 
 
 class LossArrays(NamedTuple):
@@ -274,10 +290,7 @@ class LossDetector(BufferViews, nn.Module):
         fields = (quality.score, quality.flow_vectors, quality.rejected)
         if any(np.shape(f) != (B,) for f in fields):
             raise ValueError(f"quality fields must have shape ({B},), got {[tuple(np.shape(f)) for f in fields]}")
-        t = np.asarray(t_us)
-        if t.dtype.kind not in "iu":
-            raise TypeError(f"t_us must be integer microseconds, got {t.dtype}")
-        t = np.full(B, t, np.int64) if t.ndim == 0 else _array(t, np.int64, B)
+        t = update_times(t_us, B)
         burst = getattr(quality, "burst", None)
         burst = np.zeros(B, np.bool_) if burst is None else _array(burst, np.bool_, B)
         loss_step(self.arrays(), _array(quality.score, np.float64, B), _array(quality.flow_vectors, np.int64, B),

@@ -268,7 +268,8 @@ class Recoverer(BufferViews, nn.Module):
         self.lost[m] = False
         self.started_us[m] = -1
         self.start_pending[m] = self.start_search
-        self._due[m.numpy()] = self._starting[m.numpy()] = False  # (a restart within an update: nothing to search)
+        k = m.numpy()
+        self._due[k] = self._starting[k] = False  # (a restart within an update: nothing to search)
         self._may[0] = True
 
     def may_search(self) -> bool:

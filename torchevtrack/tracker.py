@@ -74,7 +74,7 @@ from torchevtrack.config import TrackerConfig
 from torchevtrack.events import EventStream, check_window, first_invalid, pack_streams
 from torchevtrack.geometry import check_pose, quat_rotate
 from torchevtrack.hypotheses import Hypotheses
-from torchevtrack.loss import LossDetector, LossUpdate, OnLost
+from torchevtrack.loss import LossDetector, LossUpdate, OnLost, update_times
 from torchevtrack.kernels import compile_cold
 from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
 from torchevtrack.raster import RasterRenderer
@@ -601,7 +601,7 @@ class EventPoseTracker(nn.Module):
         rejected = bad | rejected
         self._run.quality = (score, n_vectors, n_events, rejected) + (() if burst is None else (burst,))
         if self.loss is not None:  # the loss rule and the re-localiser's books; the report is made when read
-            t_now = run.t_last.copy() if t_us is None else _update_times(t_us, B)  # a copy: a restart resets t_last
+            t_now = run.t_last.copy() if t_us is None else update_times(t_us, B)  # a copy: a restart resets t_last
             newly, search = watch(self.loss.arrays(), None if self.recover is None else self.recover.arrays(), score,
                                   n_vectors, rejected, burst, t_now, self.period_us, run.pose)
             self._run.loss_report = True
@@ -1197,15 +1197,6 @@ def _cat(parts: list[_T]) -> _T:
     if len(parts) == 1:
         return parts[0]
     return type(parts[0])(*(np.concatenate(f) if isinstance(f[0], np.ndarray) else torch.cat(f) for f in zip(*parts)))
-
-
-def _update_times(t_us, B: int) -> np.ndarray:
-    """``forward``'s ``t_us`` (an int, or one int64 per element) as a new ``(B,)`` int64 array."""
-    t = np.asarray(t_us)
-    if t.dtype.kind not in "iu" or t.size not in (1, B):
-        raise ValueError(f"t_us must be integer microseconds, one value or one per element ({B}), got "
-                         f"{t.dtype} of shape {tuple(t.shape)}")
-    return np.full(B, t.reshape(-1)[0], np.int64) if t.size == 1 else t.astype(np.int64).reshape(B)
 
 
 def _per_stream(value, default: list[int], name: str) -> list[int]:
