@@ -24,7 +24,7 @@ from torchevtrack.config import TrackerConfig
 from torchevtrack.geometry import quat_conj, quat_log, quat_mul
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.stages.eros import canvas_observation
-from torchevtrack.stages.template import template_model
+from torchevtrack.stages.template import area_weight, template_model
 from torchevtrack.synth.sequence import Sequence
 from torchevtrack.tracker import EventPoseTracker
 
@@ -40,16 +40,19 @@ def interpolate_gt(gt_t: torch.Tensor, gt: torch.Tensor, t: int) -> torch.Tensor
 def template_score(renderer: RasterRenderer, pose: torch.Tensor, tracker: EventPoseTracker, t_now: int,
                    cfg: TrackerConfig, recency_us: torch.Tensor) -> float:
     """Template score of ``pose`` ``(7,)`` against the tracker's current EROS observation (own render, canvas),
-    weighed with the recency window ``(1,)`` us the tracker's last update observed with."""
+    weighed with the recency window ``(1,)`` us the tracker's last update observed with: the tracker's own score
+    (its template with the interior, less the area term), so the two columns compare."""
     r = renderer.render(pose[None])
     if not bool((r.depth > 0).any()):
         return float("nan")
-    model = template_model(pose[None].double(), r.depth, r.gray, (0, 0), tracker.camera,
-                           canvas=cfg.template.canvas, margin_px=cfg.template.margin_px)
+    t = cfg.template
+    model = template_model(pose[None].double(), r.depth, r.gray, (0, 0), tracker.camera, canvas=t.canvas,
+                           margin_px=t.margin_px, interior=t.interior)
     times = tracker.flow.sae if tracker.time_surface is None else tracker.time_surface.last_us[:, None]
     obs = canvas_observation(tracker.eros.surface, times, model.box,
-                             cfg.template.canvas, torch.tensor([t_now]), cfg.eros.max_age_us, recency_us)
-    return float(model.fit_canvas(obs.reshape(1, -1)).s0[0])
+                             t.canvas, torch.tensor([t_now]), cfg.eros.max_age_us, recency_us).reshape(1, -1)
+    area = area_weight(obs[0].numpy(), model.valid[0].numpy(), t.canvas, t.interior)
+    return float(model.fit_canvas(obs).s0[0]) - area
 
 
 def main() -> None:
