@@ -58,6 +58,16 @@ def test_sequence_contents_and_info(tmp_path, capsys):
     assert main(["info", str(tmp_path / "s"), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["events"] == len(seq.events) and info["gt_poses"] == 26
+    (tmp_path / "s" / "gt_poses.txt").unlink()  # a recording: events and camera only
+    assert main(["info", str(tmp_path / "s")]) == 0
+    out = capsys.readouterr().out
+    assert f"events     {len(seq.events)} over" in out and "gt poses   none" in out
+    assert main(["info", str(tmp_path / "s"), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["events"] == len(seq.events) and info["gt_poses"] == 0 and "pose_range" not in info
+    (tmp_path / "s" / "camera.json").unlink()
+    assert main(["info", str(tmp_path / "s")]) == 2
+    assert "lacks camera.json" in capsys.readouterr().err
 
 
 def test_frames_move_at_most_half_a_pixel():

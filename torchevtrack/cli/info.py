@@ -1,4 +1,5 @@
-"""``torchevtrack info DIR``: what a sequence directory holds (events, rate, duration, speeds, pose range)."""
+"""``torchevtrack info DIR``: what a sequence directory holds (events, rate, duration; with ``gt_poses.txt`` also the
+speeds and the pose range)."""
 
 from __future__ import annotations
 
@@ -16,19 +17,19 @@ from torchevtrack.synth.trajectory import motion_stats
 
 
 def sequence_info(directory: str | Path) -> dict:
-    """Summary of a sequence directory; reads only the event count and end times from ``events.h5``."""
+    """Summary of a sequence directory; reads only the event count and end times from ``events.h5``.
+
+    ``events.h5`` and ``camera.json`` are required (FileNotFoundError naming the missing one); ``gt_poses.txt`` is
+    not (a recording): without it the summary has ``gt_poses = 0`` and no speeds or pose range."""
     d = Path(directory)
     if not d.is_dir():
         raise FileNotFoundError(f"sequence directory not found: {d}")
-    for name in ("events.h5", "camera.json", "gt_poses.txt"):
+    for name in ("events.h5", "camera.json"):
         if not (d / name).is_file():
             raise FileNotFoundError(f"sequence {d} lacks {name}")
     camera = Camera.load(d / "camera.json")
     ev = events_h5_summary(d / "events.h5")
-    t_us, poses = read_tum(d / "gt_poses.txt")
     duration_us = ev["t_last_us"] - ev["t_first_us"]
-    # rotation relative to the first pose, degrees
-    rel = quat_log(quat_mul(poses[:, 3:], quat_conj(poses[:1, 3:]))).norm(dim=-1)
     info = {
         "directory": str(d),
         "camera": camera.to_dict(),
@@ -37,9 +38,26 @@ def sequence_info(directory: str | Path) -> dict:
         "events_t_last_us": ev["t_last_us"],
         "events_duration_s": duration_us / 1e6,
         "events_per_s": ev["n"] / (duration_us / 1e6) if duration_us > 0 else 0.0,
+        "gt_poses": 0,
+    }
+    if (d / "gt_poses.txt").is_file():
+        info.update(_ground_truth_info(d / "gt_poses.txt", camera))
+    if (d / "meta.json").is_file():
+        meta = json.loads((d / "meta.json").read_text())
+        info["meta"] = {k: meta[k] for k in ("object", "motion", "seed") if k in meta}
+        info["effects"] = sensor_effects(meta)
+    return info
+
+
+def _ground_truth_info(path: Path, camera: Camera) -> dict:
+    """The ground truth's pose count, span, rate, pose range and (two poses or more) speeds."""
+    t_us, poses = read_tum(path)
+    span_s = float(t_us[-1] - t_us[0]) / 1e6
+    rel = quat_log(quat_mul(poses[:, 3:], quat_conj(poses[:1, 3:]))).norm(dim=-1)  # rotation from the first pose
+    info = {
         "gt_poses": int(t_us.numel()),
-        "gt_duration_s": float(t_us[-1] - t_us[0]) / 1e6,
-        "gt_rate_hz": (t_us.numel() - 1) / (float(t_us[-1] - t_us[0]) / 1e6) if t_us.numel() > 1 else 0.0,
+        "gt_duration_s": span_s,
+        "gt_rate_hz": (t_us.numel() - 1) / span_s if t_us.numel() > 1 else 0.0,
         "pose_range": {
             "t_min_m": poses[:, :3].amin(0).tolist(),
             "t_max_m": poses[:, :3].amax(0).tolist(),
@@ -48,10 +66,6 @@ def sequence_info(directory: str | Path) -> dict:
     }
     if t_us.numel() > 1:
         info["speeds"] = motion_stats(t_us, poses, camera)
-    if (d / "meta.json").is_file():
-        meta = json.loads((d / "meta.json").read_text())
-        info["meta"] = {k: meta[k] for k in ("object", "motion", "seed") if k in meta}
-        info["effects"] = sensor_effects(meta)
     return info
 
 
@@ -120,6 +134,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"camera     {c['width']}x{c['height']}, fx {c['fx']:g}, fy {c['fy']:g}, cx {c['cx']:g}, cy {c['cy']:g}")
     print(f"events     {info['events']} over {info['events_duration_s']:.3f} s "
           f"({info['events_per_s'] / 1e6:.3f} Mev/s)")
+    if not info["gt_poses"]:
+        print("gt poses   none (no gt_poses.txt: track it with --init)")
+        return 0
     print(f"gt poses   {info['gt_poses']} over {info['gt_duration_s']:.3f} s ({info['gt_rate_hz']:.0f} Hz)")
     if "speeds" in info:
         print("img speed  " + _fmt_stats(info["speeds"]["image_speed_px_s"], "px/s"))
@@ -134,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("info", help="summarise a sequence directory or an event file",
                               description="Events, event rate, duration, image and angular speeds (from the "
-                              "ground truth) and the pose range of a sequence directory.")
+                              "ground truth, if there is one) and the pose range of a sequence directory.")
     p.add_argument("directory", help="sequence directory, or an event file of any format `convert` reads")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=run)
