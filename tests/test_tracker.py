@@ -202,28 +202,6 @@ def test_invalid_updates_keep_the_last_pose():
     tracker.close()
 
 
-def test_render_reuse_skips_renders_only_within_the_threshold(seq):
-    def tracked(reuse_px):
-        tracker = EventPoseTracker(CAM, seq.mesh, TrackerConfig().replace(render={"reuse_px": reuse_px, "ahead": False}))
-        calls = []
-        render = tracker._render_one  # the tracker's path to the compiled rasteriser (one stream)
-        tracker._render_one = lambda poses, shaded, model: calls.append(shaded) or render(poses, shaded, model)
-        times, poses = tracker.track(seq.events, seq.gt_poses[0], t_start_us=int(seq.gt_t_us[0]),
-                                     t_end_us=int(seq.gt_t_us[-1]), progress=False)
-        tracker.close()
-        return evaluate(times[0], poses[0], seq.gt_t_us, seq.gt_poses), calls[1:]  # calls[0]: depth at reset
-
-    fresh, fresh_calls = tracked(0.0)
-    assert len(fresh_calls) == int(DURATION_S * 500) and all(fresh_calls)
-    # 0.6 px: the box moves about that much per update here, so some updates reuse the last render, not all.
-    reused, reused_calls = tracked(0.6)
-    assert 0 < len(reused_calls) < len(fresh_calls), len(reused_calls)
-    assert reused["rmse_t_cm"] < 2.0 and reused["rmse_r_deg"] < 5.0 and not reused["failed"], reused
-    # an unbounded threshold keeps the first render for the whole clip
-    frozen, frozen_calls = tracked(1e9)
-    assert len(frozen_calls) == 1
-
-
 def test_observation_drops_old_pixels_and_weighs_recent_ones(seq, monkeypatch):
     """The observation the tracker corrected against, captured from its kernel, against a per-pixel reference:
     EROS, zero where the last event is ``max_age_us`` old or older, times ``exp(-age / recency_us)``, then the
@@ -232,12 +210,13 @@ def test_observation_drops_old_pixels_and_weighs_recent_ones(seq, monkeypatch):
     from torchevtrack.stages.eros import observation
     from torchevtrack.stages.template import to_canvas
 
-    seen = []
+    seen, boxes = [], []
     kernel = update.canvas_kernel
 
-    def capture(*args):
+    def capture(*args):  # canvas_kernel(surface, last, box, t_now, ..., out)
         kernel(*args)
         seen.append(torch.from_numpy(args[-1].copy()))
+        boxes.append(torch.from_numpy(args[2].copy()))
 
     monkeypatch.setattr(update, "canvas_kernel", capture)
     cfg = TrackerConfig().replace(eros={"max_age_us": 4000, "recency_us": 1500.0})
@@ -247,7 +226,7 @@ def test_observation_drops_old_pixels_and_weighs_recent_ones(seq, monkeypatch):
     t = ev.t.long()
     tracker(ev.x.long(), ev.y.long(), t, ev.p.long())
     tracker.close()
-    t_now, box, N = tracker.t_last, tracker._model.box, cfg.template.canvas
+    t_now, box, N = tracker.t_last, boxes[0], cfg.template.canvas
     cu, cv, side = box[0].tolist()
     first, last = (0.5 - N / 2) * side / N, (N / 2 - 0.5) * side / N  # the canvas' outermost samples
     u0, v0 = max(math.floor(cu + first), 0), max(math.floor(cv + first), 0)
@@ -522,11 +501,6 @@ def test_a_failed_render_ahead_raises_in_the_update_that_needs_it_once(seq):
     assert tracker._run.rendering is None  # taken: the next update renders again rather than raise the same error
     assert torch.isfinite(tracker(w[2].x, w[2].y, w[2].t, w[2].p)).all()
     tracker.close()
-
-
-def test_render_ahead_excludes_render_reuse():
-    with pytest.raises(ValueError, match="needs render.ahead: false"):
-        TrackerConfig().replace(render={"ahead": True, "reuse_px": 0.5})
 
 
 def test_the_tracker_renders_what_the_renderer_renders(seq):

@@ -158,7 +158,6 @@ class UKFConfig:
 class RenderConfig:
     decimate: int | None = None  # faces of the hot-path mesh (None = full mesh)
     margin_px: int = 24  # region rendered around the projected object
-    reuse_px: float = 0.0  # > 0: keep the last render (and its template) while no object point moved this many pixels
     # Render each update's template at the pose the previous update predicted for it (its prediction moved on by
     # its twist for one period) instead of at the new prediction; the Newton search starts at the new prediction
     # all the same. With the pipeline, that render then runs on the intake thread during the previous update.
@@ -295,8 +294,6 @@ class TrackerConfig:
         if not h.ratio > 1 or h.patience < 1 or h.period_us <= 0:
             raise ValueError(f"hypotheses.ratio must be > 1, patience >= 1 and period_us > 0, got {h.ratio!r}, "
                              f"{h.patience!r}, {h.period_us!r}")
-        if self.render.ahead and self.render.reuse_px > 0:
-            raise ValueError("render.reuse_px > 0 needs render.ahead: false (each chooses where to render)")
 
     @property
     def period_us(self) -> int:

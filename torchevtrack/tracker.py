@@ -563,15 +563,13 @@ class EventPoseTracker(nn.Module):
 
         render_pose, pose32 = self._render_pose_ahead(predicted, twist) if cfg.render.ahead else \
             (predicted, predicted.astype(np.float32))
-        render = None  # None: the correction uses self._run.models (the last render's, or one made with this render)
-        if not (cfg.template.enabled and self._reusable(pose32)):
-            render = self._render(render_pose, shaded=cfg.template.enabled)
-            if render.models is not None:
-                self._run.models, render = render.models, None
-            if self._schedule.pipelined and cfg.render.ahead and run.render_next_ok.all():
-                # the template model too, unless the thread will take the next window in (it would then wait)
-                self._render_soon(run.render_next.copy(), cfg.template.enabled,
-                                  model=cfg.template.enabled and ahead is None)
+        render = self._render(render_pose, shaded=cfg.template.enabled)
+        if render.models is not None:  # None: the correction uses self._run.models, the template made with this render
+            self._run.models, render = render.models, None
+        if self._schedule.pipelined and cfg.render.ahead and run.render_next_ok.all():
+            # the template model too, unless the thread will take the next window in (it would then wait)
+            self._render_soon(run.render_next.copy(), cfg.template.enabled,
+                              model=cfg.template.enabled and ahead is None)
         clock.lap("render")
         n_events = counts
         run.events_seen[:] += seen
@@ -990,18 +988,6 @@ class EventPoseTracker(nn.Module):
             depth[i, v0 - v1:v0 - v1 + h0, u0 - u1:u0 - u1 + w0] = self.depth[i]
         return depth, origin
 
-    @property
-    def _model(self) -> TemplateModel | None:
-        """The template model of the last render, all ``B`` elements (the shares' concatenated)."""
-        return None if self._run.models is None else _cat(self._run.models)
-
-    def _reusable(self, pose: np.ndarray) -> bool:
-        """The last render's template serves ``pose`` ``(B, 7)``: ``render.reuse_px > 0`` and no object point of that
-        render moves that many pixels, for every batch element (the batch renders together)."""
-        reuse = self.config.render.reuse_px
-        return self._run.models is not None and reuse > 0 and \
-            bool((self._model.shift_px(torch.from_numpy(pose)) < reuse).all())
-
     def _guard(self, window: tuple) -> tuple[tuple, np.ndarray, np.ndarray, np.ndarray | None]:
         """The burst guard, then the denoise filter if on, on a packed ``window`` ``(x, y, t, p, b)``: its kept events
         (the window itself when nothing is dropped), each element's events in the window and kept ``(B,)`` int64, and
@@ -1124,7 +1110,7 @@ class _UpdateState:
     taken in on the intake thread; guarded: the next window as the burst guard judged it ahead (its original ``x``, its
     kept events, counts and flags); rendering: render.ahead, the next update's render and model on the intake thread;
     observing: streaming, this update's EROS, time surface and observation there; models: the template of the last
-    render, one per worker's share (reused while render.reuse_px allows); bound: the stages' compiled steps bound
+    render, one per worker's share; bound: the stages' compiled steps bound
     to the tracker's buffers (made on first use); loss_report: the last update's :class:`~torchevtrack.loss.LossUpdate`
     (``True``: the detector ran, the report is made when read; ``None``: no update since the last full reset).
     """
