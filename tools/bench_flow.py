@@ -88,7 +88,7 @@ def main(argv=None) -> int:
     if a.baseline:
         modules[a.baseline] = load_revision(a.baseline)
     stages = {name: m.TripletFlow(H, W, batch_size=a.batch, block=f.block, min_samples=f.min_samples, D=f.radius,
-                                  dt_max_us=f.dt_max_us, tol=f.tol, smooth=f.smooth, estimate=f.estimate)
+                                  dt_max_us=f.dt_max_us, tol=f.tol, estimate=f.estimate)
               for name, m in modules.items()}
     outs = {name: replay(s, wins) for name, s in stages.items()}  # compiles
     times = {name: [] for name in stages}

@@ -96,7 +96,6 @@ class FlowConfig:
     radius: int = 2  # D: triplet offsets |dx|, |dy| <= D
     dt_max_us: int = 50_000
     tol: float = 0.125
-    smooth: bool = False  # 3x3 smoothing over the block grid
     max_speed: float = 5000.0  # px/s; faster block flows are discarded as outliers (degenerate fits)
     estimate: str = "normal"  # "normal" (time-surface gradient fit of the inliers) or "register" (the paper)
 

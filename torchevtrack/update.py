@@ -56,8 +56,7 @@ from torchevtrack.raster import AMBIENT, LIGHT_DIRECTION, RasterRenderer, render
 from torchevtrack.recover import RecoverArrays, recover_step
 from torchevtrack.stages.eros import (EROS, RecencyArrays, TimeSurface, canvas_kernel, eros_kernel, prepare_events,
                                       time_kernel)
-from torchevtrack.stages.flow import (FlowField, TripletFlow, event_arrays, events_in_range, flow_packet, range_error,
-                                      smooth_flow)
+from torchevtrack.stages.flow import FlowField, TripletFlow, event_arrays, events_in_range, flow_packet, range_error
 from torchevtrack.stages.propagate import propagate_kernel, propagate_step, twist_between_kernel, valid_pose
 from torchevtrack.stages.template import (Correction, TemplateModel, box_kernel, camera_array, correct_canvas,
                                           model_filters, model_in_box, model_kernel, newton_arrays, render_box,
@@ -115,9 +114,6 @@ def bind_intake(eros: EROS, time_surface: TimeSurface | None, flow: TripletFlow,
         if not _intake_kernel(s, lam, r, last_np, surfaces, surfaces and times, sae_np, xn, yn, tn, pn, bn, C, batched,
                               *matching, out, uv, valid, count):
             _range_errors(x, y, t, p, b)
-        if flow.smooth:
-            out, uv = (a.numpy() for a in smooth_flow(torch.from_numpy(out), torch.from_numpy(uv),
-                                                      torch.from_numpy(valid), flow.gy, flow.gx))
         return FlowField(uv, out, valid, count)
     return run
 

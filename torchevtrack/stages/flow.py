@@ -55,7 +55,6 @@ from typing import NamedTuple
 import numba
 import numpy as np
 import torch
-import torch.nn.functional as Fnn
 from numba.cpython.unsafe.numbers import trailing_zeros
 from torch import nn
 
@@ -77,7 +76,6 @@ __all__ = [
     "register_blocks",
     "sae_update",
     "sae_update_",
-    "smooth_flow",
     "triplet_samples",
 ]
 
@@ -825,7 +823,7 @@ def _sample_blocks(ev, x, y, b, batched, block_x, block_y, G):
 @numba.njit(cache=True, nogil=True)
 def flow_packet(sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, chunk, block_x, block_y, G, min_samples,
                  max_candidates, tie_tol, normal, inlier, fill, out, uv, valid, count):
-    """:meth:`TripletFlow.forward` without its smoothing in one compiled call, unchecked, for compiled callers.
+    """:meth:`TripletFlow.forward` in one compiled call, unchecked, for compiled callers.
 
     The events of :func:`event_arrays` are matched against the padded SAE ``sae`` ``(B, C, H + 2 pad, W + 2 pad)``
     int64 (``TripletFlow.sae_padded``, written in place) with the flow's constants (``*TripletFlow.params``, see
@@ -839,20 +837,6 @@ def flow_packet(sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, chunk
         _register_all(block_id, event, flow, pixel, min_samples, max_candidates, tie_tol, normal, inlier, fill,
                       out.reshape(B * G, 2), uv.reshape(B * G, 2), valid.reshape(B * G), count.reshape(B * G))
     return ok
-
-
-def smooth_flow(flow: torch.Tensor, uv: torch.Tensor, valid: torch.Tensor, gy: int, gx: int):
-    """The smoothing of ``TripletFlow(smooth=True)``: each valid block's ``flow`` and ``uv`` ``(B, G, 2)`` replaced by
-    their means over the valid blocks of its 3x3 block neighbourhood on the ``gy x gx`` grid (``valid`` ``(B, G)``
-    bool); returns new ``(flow, uv)`` tensors."""
-    B = flow.shape[0]
-    w = valid.to(flow.dtype).view(B, 1, gy, gx)
-    both = torch.cat([flow, uv], 2).permute(0, 2, 1).reshape(B, 4, gy, gx)
-    num = Fnn.avg_pool2d(both * w, 3, 1, 1, count_include_pad=False)
-    den = Fnn.avg_pool2d(w, 3, 1, 1, count_include_pad=False).clamp(min=1e-12)
-    sm = (num / den).reshape(B, 4, -1).permute(0, 2, 1)
-    sm = torch.where(valid[..., None], sm, torch.cat([flow, uv], 2))
-    return sm[..., :2].contiguous(), sm[..., 2:].contiguous()
 
 
 class FlowParams(NamedTuple):
@@ -891,8 +875,6 @@ class TripletFlow(nn.Module):
         dt_max_us: maximum ``t0 - t1``, microseconds.
         tol: triplet timing tolerance ``|1 - dt12 / dt01| < tol``.
         per_polarity: one SAE channel per polarity (triplets match events of equal polarity only).
-        smooth: replace each valid block's flow and ``uv`` by their means over the valid blocks of its 3x3
-            block neighbourhood.
         max_candidates, tie_tol, estimate, inlier: see :func:`register_blocks`.
         chunk: a packet of more events is matched this many at a time, in bounded memory and with the
             same result exactly (module docstring).
@@ -913,12 +895,12 @@ class TripletFlow(nn.Module):
     def from_config(cls, height: int, width: int, cfg: FlowConfig, batch_size: int = 1) -> "TripletFlow":
         """The flow of the config section ``flow`` (:class:`~torchevtrack.config.FlowConfig`) for ``B`` streams."""
         return cls(height, width, batch_size=batch_size, block=cfg.block, min_samples=cfg.min_samples, D=cfg.radius,
-                   dt_max_us=cfg.dt_max_us, tol=cfg.tol, smooth=cfg.smooth, estimate=cfg.estimate)
+                   dt_max_us=cfg.dt_max_us, tol=cfg.tol, estimate=cfg.estimate)
 
     def __init__(self, height: int, width: int, batch_size: int = 1, block: int = FlowConfig.block,
                  min_samples: int = FlowConfig.min_samples, D: int = FlowConfig.radius,
                  dt_max_us: int = FlowConfig.dt_max_us, tol: float = FlowConfig.tol, per_polarity: bool = False,
-                 smooth: bool = FlowConfig.smooth, max_candidates: int = 128, tie_tol: float = 0.02,
+                 max_candidates: int = 128, tie_tol: float = 0.02,
                  estimate: str = FlowConfig.estimate, inlier: float = 0.25, chunk: int = 2 ** 16):
         super().__init__()
         for name, v in (("height", height), ("width", width), ("batch_size", batch_size), ("block", block),
@@ -931,7 +913,7 @@ class TripletFlow(nn.Module):
                              f"{tie_tol!r}, {inlier!r}, {estimate!r}")
         self.height, self.width, self.block = height, width, block
         self.min_samples, self.D, self.dt_max_us, self.tol = min_samples, D, int(dt_max_us), float(tol)
-        self.per_polarity, self.smooth = bool(per_polarity), bool(smooth)
+        self.per_polarity = bool(per_polarity)
         self.max_candidates, self.tie_tol = max_candidates, float(tie_tol)
         self.estimate, self.inlier = estimate, float(inlier)
         self.chunk = chunk
@@ -977,11 +959,7 @@ class TripletFlow(nn.Module):
         count = np.empty((B, G), dtype=np.int64)
         if not flow_packet(sae.numpy(), xn, yn, tn, pn, bn, C, batched, *self.params, out, uv, valid, count):
             range_error((B, C, self.height, self.width), x, y, t, p, b)
-        out, uv, valid, count = torch.from_numpy(out), torch.from_numpy(uv), torch.from_numpy(valid), \
-            torch.from_numpy(count)
-        if self.smooth:
-            out, uv = smooth_flow(out, uv, valid, self.gy, self.gx)
-        return FlowField(uv, out, valid, count)
+        return FlowField(torch.from_numpy(uv), torch.from_numpy(out), torch.from_numpy(valid), torch.from_numpy(count))
 
     def _match(self, xi: torch.Tensor, yi: torch.Tensor, ch: torch.Tensor, t: torch.Tensor):
         """Triplet samples of prepared events (:func:`_prepare`: pixel ``xi, yi``, SAE plane ``ch = b C + p``),
@@ -996,4 +974,4 @@ class TripletFlow(nn.Module):
     def extra_repr(self) -> str:
         return (f"height={self.height}, width={self.width}, block={self.block}, min_samples={self.min_samples}, "
                 f"D={self.D}, dt_max_us={self.dt_max_us}, tol={self.tol}, per_polarity={self.per_polarity}, "
-                f"smooth={self.smooth}, estimate={self.estimate!r}")
+                f"estimate={self.estimate!r}")
