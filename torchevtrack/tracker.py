@@ -395,7 +395,7 @@ class EventPoseTracker(nn.Module):
             self._render(pose.numpy(), shaded=False)
         else:
             self._render_depth(pose, m)
-        self._run.models = None  # the template of the last render (see render.reuse_px)
+        self._run.models = None  # the template of the last render
 
     def close(self) -> None:
         """Release the renderers' GL contexts and the worker threads."""
@@ -703,7 +703,7 @@ class EventPoseTracker(nn.Module):
             origin[i] = torch.tensor([u1, v1])
         self._set_depth(depth)
         self.origin.copy_(origin)
-        self._run.models = None  # the template of the last render (see render.reuse_px)
+        self._run.models = None  # the template of the last render
 
     # -- offline tracking --------------------------------------------------------------------
     def track(
