@@ -192,11 +192,11 @@ def test_track_warns_and_flags_lost_after_a_wrong_init(seqdirs, tmp_path, capsys
     assert lost[-1] and lost.sum() > 5
 
 
-@pytest.mark.parametrize("cost, own_cost, restarts", [(3.5, 9.0, 1), (1.0, 1.2, 0)])
+@pytest.mark.parametrize("cost, own_cost, restarts", [(3.5, 9.0, 1), (1.0, 1.2, 0), (1.0, 1.8, 0), (1.0, 2.05, 1)])
 def test_a_start_search_restarts_where_it_beats_the_trackers_pose(seq, monkeypatch, cost, own_cost, restarts):
-    """A start search restarts where the result beats the tracker's own pose by the margin, whatever its cost (3.5 px
-    is above the lost element's clear-winner cost); a result that costs about as much as the tracker's pose, clear or
-    not, leaves the element where it is."""
+    """A start search restarts where the result beats the tracker's own pose by ``START_MARGIN_PX`` (1 px), whatever
+    its cost (3.5 px is above the lost element's clear-winner cost); a result less than 1 px better than the tracker's
+    pose (0.2, 0.8 px), clear or not, leaves the element where it is."""
     def search(self, pose, last_us, t_now_us, own=None):
         found = interpolate_poses(seq.gt_t_us, seq.gt_poses, t_now_us)
         f64 = dict(dtype=torch.float64)
@@ -214,14 +214,17 @@ def test_a_start_search_restarts_where_it_beats_the_trackers_pose(seq, monkeypat
 
 
 def test_recover_on_the_command_line_may_be_refined_by_set():
-    """``--recover --set recover.start_search=true`` (track, benchmark): --recover comes first, --set refines it."""
+    """``--recover`` (track's default, benchmark's option) turns on the detector, recovery and the start search; --set
+    refines it (``--set recover.start_search=false``)."""
     import argparse
 
     from torchevtrack.cli.options import config_from_args
 
-    args = argparse.Namespace(config=None, set=["recover.start_search=true"], recover=True)
-    cfg = config_from_args(args)
+    cfg = config_from_args(argparse.Namespace(config=None, set=None, recover=True))
     assert cfg.loss.enabled and cfg.recover.enabled and cfg.recover.start_search
+    cfg = config_from_args(argparse.Namespace(config=None, set=["recover.start_search=false"], recover=True))
+    assert cfg.loss.enabled and cfg.recover.enabled and not cfg.recover.start_search
+    assert not config_from_args(argparse.Namespace(config=None, set=None, recover=False)).recover.enabled
     with pytest.raises(ValueError, match="needs recover.enabled"):
         config_from_args(argparse.Namespace(config=None, set=["recover.start_search=true"], recover=False))
 

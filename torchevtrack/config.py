@@ -209,9 +209,10 @@ class RecoverConfig:
     # torchevtrack.recover.MAX_RETRY_US), once min_events pixels fired within the last retry_us; the element restarts
     # at a clear result that beats its own pose, or is found again where the search confirms that pose.
     # start_search: one such search start_after_us after each (re)start, from the tracker's pose then; it restarts
-    # the element where its result costs 0.5 px less than both the runner-up and the tracker's pose
-    # (torchevtrack.recover.beats_start; no max_cost_px). search_m: the search's image-plane half-width (metres at
-    # the object's depth; its depth offsets scale with it); the search blocks the update (~0.3-1.5 s of wall time).
+    # the element where its result costs 1 px less than both the runner-up and the tracker's pose
+    # (torchevtrack.recover.beats_start, START_MARGIN_PX; no max_cost_px). search_m: the search's image-plane
+    # half-width (metres at the object's depth; its depth offsets scale with it); the search blocks the update (~0.3-1.5
+    # s of wall time).
     # max_cost_px: a result is clear (restarts the element) at a chamfer cost of at most this many pixels (and a
     # runner-up 0.5 px worse): after a blackout the object's recent edges are smeared, and found poses cost 1.6-4 px.
     enabled: bool = False

@@ -26,12 +26,12 @@ def add_ablation_option(p: argparse.ArgumentParser) -> None:
 
 
 def config_from_args(args: argparse.Namespace) -> TrackerConfig:
-    """The :class:`TrackerConfig` of ``--config`` (or the defaults), with the loss detector and recovery on for a
-    command's ``--recover``, then the ``--set`` changes applied (so ``--set recover.KEY=...`` may refine
+    """The :class:`TrackerConfig` of ``--config`` (or the defaults), with the loss detector, recovery and the start
+    search on for a command's ``--recover``, then the ``--set`` changes applied (so ``--set recover.KEY=...`` may refine
     ``--recover``), then a command's ``--ablation``, if given."""
     cfg = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
     if getattr(args, "recover", False):
-        cfg = cfg.replace(loss={"enabled": True}, recover={"enabled": True})
+        cfg = cfg.replace(loss={"enabled": True}, recover={"enabled": True, "start_search": True})
     cfg = cfg.override(args.set) if args.set else cfg
     ablation = getattr(args, "ablation", None)
     return cfg.replace(**ABLATIONS[ablation]) if ablation else cfg

@@ -10,9 +10,9 @@ Exit status: 0 tracked; 2 bad input (one line on stderr, nothing written): unrea
 ``--out`` a directory, no events in the tracked span, a start pose that puts the object out of view; 3 the poses
 were written but never moved from the start pose (a warning says why to look).
 
-The loss detector and the re-localiser (:mod:`torchevtrack.recover`) are on unless ``--no-recover`` (a recording has
-moments the tracker cannot follow, and offline a search costs only wall time; the library's config keeps them off,
-as a search blocks a streaming update for 0.3-1.5 s). With the loss detector on the lost flags go to a side file
+The loss detector, the re-localiser and its start search (:mod:`torchevtrack.recover`) are on unless ``--no-recover``
+(a recording has moments the tracker cannot follow and an ``--init`` may be rough, and offline a search costs only
+wall time; the library's config keeps them off, as a search blocks a streaming update for 0.3-1.5 s). With the loss detector on the lost flags go to a side file
 beside ``--out`` (:mod:`torchevtrack.io.lost`: ``poses.txt`` -> ``poses.lost.txt``) and a warning says how long the
 object was lost.
 """
@@ -52,8 +52,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "LAST (TUM order; the Python API's pose is [t, qw, qx, qy, qz]); default: first pose of gt_poses.txt")
     p.add_argument("--mesh", help="mesh file or object name (default: SEQDIR/mesh.ply)")
     p.add_argument("--recover", action=argparse.BooleanOptionalAction, default=True,
-                   help="detect tracking loss and find the object again with a wide search (on by default; blocks "
-                   "~0.3-1.5 s per search); writes the lost flags to OUT's side file (poses.txt -> poses.lost.txt)")
+                   help="detect tracking loss and find the object again with a wide search, and search once around "
+                   "the start pose 48 ms in (on by default; blocks ~0.3-1.5 s per search); writes the lost flags to "
+                   "OUT's side file (poses.txt -> poses.lost.txt)")
     p.add_argument("--duration", type=float, help="track only the first SECONDS")
     p.add_argument("--no-undistort", action="store_true",
                    help="do not undistort the events of a camera with distortion coefficients")
