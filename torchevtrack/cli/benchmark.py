@@ -50,8 +50,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=float, help="track only the first SECONDS of each sequence")
     add_config_options(p)
     p.add_argument("--recover", action="store_true",
-                   help="re-localise lost sequences (the loss detector and recover.enabled on; each search blocks "
-                   "~0.3-1.5 s); the loss table then counts the recoveries")
+                   help="re-localise lost sequences and search once around each start, as track does (the loss "
+                   "detector, recover.enabled and recover.start_search on; each search blocks ~0.3-1.5 s); the loss "
+                   "table then counts the recoveries")
     p.add_argument("--no-overlays", action="store_true", help="skip the overlay PNGs and GIFs")
     p.add_argument("--no-batch", action="store_true", help="one run per sequence instead of one batch")
     p.add_argument("--threads", type=int, help="torch threads (default: torch's choice)")
