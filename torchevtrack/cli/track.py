@@ -12,9 +12,9 @@ were written but never moved from the start pose (a warning says why to look).
 
 The loss detector, the re-localiser and its start search (:mod:`torchevtrack.recover`) are on unless ``--no-recover``
 (a recording has moments the tracker cannot follow and an ``--init`` may be rough, and offline a search costs only
-wall time; the library's config keeps them off, as a search blocks a streaming update for 0.3-1.5 s). With the loss detector on the lost flags go to a side file
-beside ``--out`` (:mod:`torchevtrack.io.lost`: ``poses.txt`` -> ``poses.lost.txt``) and a warning says how long the
-object was lost.
+wall time; the library's config keeps them off, as a search blocks a streaming update for 0.3-1.5 s). With the loss
+detector on the lost flags go to a side file beside ``--out`` (:mod:`torchevtrack.io.lost`: ``poses.txt`` ->
+``poses.lost.txt``) and a warning says how long the object was lost.
 """
 
 from __future__ import annotations
