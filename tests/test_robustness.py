@@ -358,12 +358,11 @@ def test_observation_of_a_one_pixel_wide_surface(shape):
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(packets(), st.integers(1, 5), st.integers(1, 4), st.booleans(), st.sampled_from(["normal", "register"]),
-       st.booleans())
-def test_triplet_flow_accepts_any_packet(packet, block, min_samples, per_polarity, estimate, smooth):
+@given(packets(), st.integers(1, 5), st.integers(1, 4), st.booleans(), st.sampled_from(["normal", "register"]))
+def test_triplet_flow_accepts_any_packet(packet, block, min_samples, per_polarity, estimate):
     H, W, B, (x, y, t, p, b), split = packet
     flow = TripletFlow(H, W, batch_size=B, block=block, min_samples=min_samples, D=2, per_polarity=per_polarity,
-                       estimate=estimate, smooth=smooth)
+                       estimate=estimate)
     G = flow.n_blocks
     for sl in (slice(0, split), slice(split, None)):
         out = flow(x[sl], y[sl], t[sl], p[sl], b[sl])
