@@ -16,7 +16,6 @@ filter's state to the true twist of the coming window after each update, with th
 from __future__ import annotations
 
 import argparse
-import math
 
 import torch
 

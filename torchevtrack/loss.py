@@ -46,6 +46,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from torchevtrack.config import LossConfig
 from torchevtrack.geometry import check_pose
 from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, failure_index, per_pose_errors
 from torchevtrack.stages import BufferViews
@@ -185,6 +186,7 @@ class LossDetector(BufferViews, nn.Module):
         ema: rate of the reference's moving average, in ``(0, 1]``.
         initial_reference: reference score before any update (default: the first positive score).
         on_lost: optional re-initialisation callback, see the module docstring.
+        (Defaults: the config section ``loss``, :class:`~torchevtrack.config.LossConfig`.)
 
     Buffers (all ``(B,)``):
         reference, confidence: float64; low_run, good_run: int64; lost: bool;
@@ -203,8 +205,9 @@ class LossDetector(BufferViews, nn.Module):
     lost_at_us: torch.Tensor
     newly_lost: torch.Tensor
 
-    def __init__(self, batch_size: int, score_threshold: float = 0.6, min_flow_vectors: int = 3,
-                 patience: int = 25, recovery: int = 10, ema: float = 0.05,
+    def __init__(self, batch_size: int, score_threshold: float = LossConfig.score_threshold,
+                 min_flow_vectors: int = LossConfig.min_flow_vectors, patience: int = LossConfig.patience,
+                 recovery: int = LossConfig.recovery, ema: float = LossConfig.ema,
                  initial_reference: float | None = None, on_lost: OnLost | None = None) -> None:
         super().__init__()
         for name, v, lo in (("batch_size", batch_size, 1), ("min_flow_vectors", min_flow_vectors, 0),
