@@ -190,3 +190,19 @@ def test_a_search_from_the_truth_does_not_beat_its_centre(box):
     out = reloc(TRUTH, edge_surface(renderer), torch.tensor([1000]))
     assert abs(float(out.own_cost[0]) - float(out.cost[0])) < reloc.min_margin_px
     assert not beats_start(out, reloc.min_margin_px)
+
+
+@pytest.mark.parametrize("seed_cost_px, refined", [(None, 3), (0.0, 6)])
+def test_more_seeds_are_refined_until_one_reaches_the_seed_cost(box, monkeypatch, seed_cost_px, refined):
+    """The ``beam`` (3) best first-level seeds are refined always, and more (up to ``max_seeds``, 6) while none has
+    reached ``seed_cost_px``, whatever the clear-winner cost: by default that cost (5 px, reached on the exact edges),
+    at 0 px (never reached) all six. One more level after the first: one search call per refined seed."""
+    renderer, radius = box
+    reloc = Relocaliser(renderer, radius, max_cost_px=5.0, seed_cost_px=seed_cost_px)
+    calls = []
+    search = reloc._search
+    monkeypatch.setattr(reloc, "_search", lambda *a: calls.append(1) or search(*a))
+    start = apply_steps(TRUTH, torch.tensor([[[0.02, 0.0, 0.0, math.radians(10), 0.0, 0.0]]], dtype=torch.float64))[0]
+    out = reloc(start, edge_surface(renderer), torch.tensor([1000]))
+    assert len(reloc.levels) == 2 and len(calls) - 1 == refined
+    assert errors(out.pose)[0] < 0.01  # found either way

@@ -67,8 +67,8 @@ from torchevtrack.stages.relocalise import LEVELS, Level, Relocalisation, Reloca
 if TYPE_CHECKING:  # the tracker imports this module
     from torchevtrack.tracker import EventPoseTracker
 
-__all__ = ["MAX_EXTRAPOLATION_US", "MAX_RETRY_US", "RecoverArrays", "Recoverer", "START_MARGIN_PX", "TWIST_SPAN_US",
-           "beats", "beats_start", "confirms", "recover_step", "search_levels"]
+__all__ = ["MAX_EXTRAPOLATION_US", "MAX_RETRY_US", "RecoverArrays", "Recoverer", "SEED_COST_PX", "START_MARGIN_PX",
+           "TWIST_SPAN_US", "beats", "beats_start", "confirms", "recover_step", "search_levels"]
 
 TWIST_SPAN_US = 20_000  # the good twist is measured over at least this span (one update's pose difference is noise)
 # the good pose is moved on by the good twist for at most this long: beyond, a constant twist is a guess that grows
@@ -84,6 +84,10 @@ MAX_RETRY_US = 320_000
 # start trials (2 cm / 10 deg off) kept 34 of 40 within the bounds at 0.2 s against 35 (docs/notebook.md, 2026-12-05
 # afternoon)
 START_MARGIN_PX = 1.0
+# the relocaliser refines more first-level seeds while none has reached this chamfer cost (px), whatever the clear-winner
+# cost: at the clear-winner cost of 5 px, stopping at 5 px too left a start search on `c_08_mug_fast_hd` with one
+# seed's basin and no distinct runner-up, and it restarted that run 42 deg off (docs/notebook.md, 2026-12-05 evening)
+SEED_COST_PX = 3.0
 
 
 def beats(found: Relocalisation, margin_px: float) -> bool:
@@ -255,10 +259,12 @@ class Recoverer(BufferViews, nn.Module):
                     radii: Sequence[float]) -> "Recoverer":
         """One relocaliser per distinct loaded mesh of ``meshes`` (the tracker's, already decimated as it renders
         them) with its bounding radius of ``radii`` (metres), :func:`search_levels` of ``cfg.search_m`` and the
-        shape's :func:`~torchevtrack.mesh.symmetry_axis` and the config's clear-winner cost ``max_cost_px``;
+        shape's :func:`~torchevtrack.mesh.symmetry_axis`, the config's clear-winner cost ``max_cost_px`` and
+        :data:`SEED_COST_PX`;
         ``owner`` gives each of the ``B`` elements its mesh."""
         relocs = [Relocaliser(RasterRenderer(mesh, camera), radius, levels=search_levels(cfg.search_m),
-                              max_cost_px=cfg.max_cost_px, symmetry_axis=symmetry_axis(mesh))
+                              max_cost_px=cfg.max_cost_px, seed_cost_px=SEED_COST_PX,
+                              symmetry_axis=symmetry_axis(mesh))
                   for mesh, radius in zip(meshes, radii)]
         return cls(relocs, owner, retry_us=cfg.retry_us, min_events=cfg.min_events, start_search=cfg.start_search,
                    start_after_us=cfg.start_after_us)

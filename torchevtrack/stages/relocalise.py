@@ -18,7 +18,7 @@ recent events and the rendered model's edges (:mod:`torchevtrack.chamfer`).
    costs one low-resolution render, one distance transform and two small FFTs. The best shift becomes the
    candidate's ``x, y`` (``dx = shift_px z / fx``). The ``beam`` best pairwise-distinct first-level candidates
    are each refined through the next levels (each level's best is the next one's centre) and polished (3.); while
-   none of them reaches ``max_cost_px``, the next-best distinct candidates are, up to ``max_seeds`` in all.
+   none of them reaches ``seed_cost_px``, the next-best distinct candidates are, up to ``max_seeds`` in all.
 3. **Polish** at full resolution: damped Gauss-Newton on the distances of the model's edge pixels to the nearest
    recent event (their image Jacobian through the interaction matrix, depth from the render), a fresh render per
    step, a step kept only when the two-sided cost falls (``polish_steps`` steps). The best polished seed is
@@ -147,6 +147,8 @@ class Relocaliser(nn.Module):
         cap_px: distances are truncated at this many full-resolution pixels.
         min_window_us, max_window_us, events_per_edge: the observation's adaptive recency window.
         beam, max_seeds: first-level candidates refined always / at most.
+        seed_cost_px: more candidates (up to ``max_seeds``) are refined while none has reached this cost: the more
+            seeds, the likelier a wrong result meets a distinct runner-up of about its cost (default: ``max_cost_px``).
         polish_steps: Gauss-Newton steps at full resolution per refined seed.
         kick_deg: the best result is polished again from six starts turned by +-``kick_deg`` about each camera
             axis, and replaced by a lower-cost one (0: no restarts).
@@ -175,7 +177,7 @@ class Relocaliser(nn.Module):
                  cap_px: float = 20.0, min_window_us: int = 1000, max_window_us: int = 30000,
                  events_per_edge: float = 1.0, beam: int = 3, max_seeds: int = 6, polish_steps: int = 15,
                  kick_deg: float = 7.5,
-                 max_cost_px: float = 1.5, min_margin_px: float = 0.5,
+                 max_cost_px: float = 1.5, min_margin_px: float = 0.5, seed_cost_px: float | None = None,
                  distinct_m: float = 0.02, distinct_deg: float = 15.0,
                  symmetry_axis: torch.Tensor | np.ndarray | None = None):
         super().__init__()
@@ -192,6 +194,7 @@ class Relocaliser(nn.Module):
         self.min_window_us, self.max_window_us = int(min_window_us), int(max_window_us)
         self.events_per_edge = float(events_per_edge)
         self.polish_steps, self.max_cost_px = int(polish_steps), float(max_cost_px)
+        self.seed_cost_px = self.max_cost_px if seed_cost_px is None else float(seed_cost_px)
         self.kick_deg = float(kick_deg)
         self.max_seeds = max(int(max_seeds), int(beam))
         self.beam, self.min_margin_px, self.distinct_m = int(beam), float(min_margin_px), float(distinct_m)
@@ -307,7 +310,7 @@ class Relocaliser(nn.Module):
         obs = self._full_res(events)
         finals = []
         for seed in seeds:  # the first `beam` seeds, then more while none has reached a low cost
-            if len(finals) >= self.beam and min(c for c, _ in finals) <= self.max_cost_px:
+            if len(finals) >= self.beam and min(c for c, _ in finals) <= self.seed_cost_px:
                 break
             for level in self.levels[1:]:
                 p, c = self._search(self._candidates(seed, level), self._region(seed, level, events), level)
