@@ -97,3 +97,6 @@ def test_recovery_trials(sequence: Path) -> None:
     printed = float(gap.split(" moved ")[1].split()[0])
     assert abs(printed - moved) <= 0.051 and 0.5 < moved <= 10.0  # (0.9 cm in these 10 ms)
     assert "at most 10 cm in the gap (issue 25's trials): 1 of 1" in gap
+    # the reference tracks the same sequence without the gap, in the same batch
+    assert gap.count("without the gap  after") == 1 and "without the gap: 1 of 1 counted trials within them" in gap
+    assert "0 of the 0 misses miss without the gap too" in gap
