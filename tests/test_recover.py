@@ -32,6 +32,7 @@ from torchevtrack.tracker import EventPoseTracker
 CAM = Camera(320, 240, 251.15, 251.15, 159.5, 119.5)
 GAP_US = (100_000, 300_000)  # the blackout, after the first pose
 RECOVER = TrackerConfig().replace(loss={"enabled": True}, recover={"enabled": True})
+CAP = RECOVER.recover.max_cost_px  # the clear-winner cost
 
 
 @pytest.fixture(scope="module")
@@ -228,9 +229,6 @@ def test_recover_on_the_command_line_may_be_refined_by_set():
     assert not config_from_args(argparse.Namespace(config=None, set=None, recover=False)).recover.enabled
     with pytest.raises(ValueError, match="needs recover.enabled"):
         config_from_args(argparse.Namespace(config=None, set=["recover.start_search=true"], recover=False))
-
-
-CAP = RECOVER.recover.max_cost_px  # the clear-winner cost
 
 
 @pytest.mark.parametrize("cost, own_cost, lost_after, restarts", [(0.9, 1.0, False, 0), (CAP + 0.8, CAP + 1.0, True, 0),

@@ -172,11 +172,11 @@ def main(argv=None) -> None:
           f"{sum(r['reached_us'] is not None for r in counted)} of {len(counted)} reached them by then")
     if truth_ok and args.mode == "start":
         print(f"started at the truth: {sum(truth_ok)} of {len(truth_ok)} sequences within them at that instant")
-    misses = [r for r in counted if not within(r["after"], args)]
     if truth_ok and args.mode == "blackout":
-        print(f"without the gap: {sum(r['reference_ok'] for r in counted)} of {len(counted)} counted trials within them at "
-              f"that instant; {sum(not r['reference_ok'] for r in misses)} of the {len(misses)} misses miss without the "
-              f"gap too (the tracker's own error)")
+        misses = [r for r in counted if not within(r["after"], args)]
+        print(f"without the gap: {sum(r['reference_ok'] for r in counted)} of {len(counted)} counted trials within "
+              f"them at that instant; {sum(not r['reference_ok'] for r in misses)} of the {len(misses)} misses miss "
+              f"without the gap too (the tracker's own error)")
     if args.mode == "blackout":
         spec = [r for r in counted if r["moved_cm"] <= MAX_MOVED_CM]
         print(f"blackout, the object moving at most {MAX_MOVED_CM:g} cm in the gap (issue 25's trials): "

@@ -84,9 +84,10 @@ MAX_RETRY_US = 320_000
 # start trials (2 cm / 10 deg off) kept 34 of 40 within the bounds at 0.2 s against 35 (docs/notebook.md, 2026-12-05
 # afternoon)
 START_MARGIN_PX = 1.0
-# the relocaliser refines more first-level seeds while none has reached this chamfer cost (px), whatever the clear-winner
-# cost: at the clear-winner cost of 5 px, stopping at 5 px too left a start search on `c_08_mug_fast_hd` with one
-# seed's basin and no distinct runner-up, and it restarted that run 42 deg off (docs/notebook.md, 2026-12-05 evening)
+# the relocaliser refines more first-level seeds while none has reached this chamfer cost (px), whatever the
+# clear-winner cost: at the clear-winner cost of 5 px, stopping at 5 px too left a start search on `c_08_mug_fast_hd`
+# with one seed's basin and no distinct runner-up, and it restarted that run 42 deg off (docs/notebook.md, 2026-12-05
+# evening)
 SEED_COST_PX = 3.0
 
 
