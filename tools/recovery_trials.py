@@ -74,24 +74,24 @@ def first_within(seq: Sequence, axis, t_us: torch.Tensor, poses: torch.Tensor, t
     return None if not bool(ok.any()) else int(t[int(ok.nonzero()[0, 0])]) - t_from
 
 
-def trial_batch(path, mode: str, args, cfg: TrackerConfig) -> tuple[list[dict], tuple[float, float] | None]:
+def trial_batch(path, mode: str, args, cfg: TrackerConfig) -> tuple[list[dict], tuple[float, float]]:
     """Track one sequence's draws as a batch: one record per draw, and the error at the judged instant of the
     reference element: started at the truth (start mode) or tracking without the gap (blackout mode)."""
     seq = Sequence.load(path)
     t0 = int(seq.gt_t_us[0])
-    events = seq.events
     if mode == "start":
         draws = args.draws
         gen = torch.Generator().manual_seed(args.seed)
         starts = torch.stack([perturb_pose(seq.gt_poses[0], args.offset_mm / 1e3, math.radians(args.offset_deg), gen)
                               for _ in range(draws)] + [seq.gt_poses[0]])  # the last: the reference from the truth
+        streams = [seq.events] * (draws + 1)
         t_before, t_from, t_judge = None, t0, t0 + round(args.settle * 1e6)
     else:
         draws = 1
         starts = seq.gt_poses[:1].repeat(2, 1)  # the second: the reference, without the gap
         gap0 = t0 + round(args.at * 1e6)
         gap1 = gap0 + round(args.gap_ms * 1e3)
-        events = [events.select((events.t < gap0) | (events.t >= gap1)), events]
+        streams = [seq.events.select((seq.events.t < gap0) | (seq.events.t >= gap1)), seq.events]
         t_before, t_from, t_judge = gap0, gap1, gap1 + round(args.settle * 1e6)
         ends = interpolate_poses(seq.gt_t_us, seq.gt_poses, torch.tensor([gap0, gap1]))
         moved_cm = float((ends[1, :3] - ends[0, :3]).norm()) * 100.0
@@ -101,7 +101,6 @@ def trial_batch(path, mode: str, args, cfg: TrackerConfig) -> tuple[list[dict], 
     B = starts.shape[0]
     tracker = EventPoseTracker(seq.camera, [str(path / "mesh.ply")] * B, cfg.replace(loss={"enabled": True}))
     try:
-        streams = events if isinstance(events, list) else [events] * B
         times, poses, lost = tracker.track(streams, starts, t_start_us=t0, t_end_us=t_end,
                                            return_lost=True, progress=False)
     finally:
@@ -116,7 +115,7 @@ def trial_batch(path, mode: str, args, cfg: TrackerConfig) -> tuple[list[dict], 
         rec["reached_us"] = first_within(seq, axis, times[b], poses[b], t_from, t_judge, args.max_cm, args.max_deg)
         rec["lost_flags"] = int(lost[b].sum())
         out.append(rec)
-    truth = error_at(seq, axis, times[draws], poses[draws], t_judge) if B > draws else None
+    truth = error_at(seq, axis, times[draws], poses[draws], t_judge)
     return out, truth
 
 
@@ -158,26 +157,24 @@ def main(argv=None) -> None:
             verdict = "ok" if within(r["after"], args) else "MISS"
             print(f"{r['sequence']:34s} {r['draw']:2d}{before}  after {r['after'][0]:6.2f} cm {r['after'][1]:6.2f} deg"
                   f"  reached {reached}  lost flags {r['lost_flags']:4d}  {verdict}", flush=True)
-        if truth is not None:
-            truth_ok.append(within(truth, args))
-            for r in trials:
-                r["reference_ok"] = truth_ok[-1]
-            label = "from the truth " if args.mode == "start" else "without the gap"
-            print(f"{path.name:34s} {label}  after {truth[0]:6.2f} cm {truth[1]:6.2f} deg  "
-                  f"{'ok' if truth_ok[-1] else 'MISS'}", flush=True)
+        truth_ok.append(within(truth, args))
+        for r in trials:
+            r["reference_ok"] = truth_ok[-1]
+        label = "from the truth " if args.mode == "start" else "without the gap"
+        print(f"{path.name:34s} {label}  after {truth[0]:6.2f} cm {truth[1]:6.2f} deg  "
+              f"{'ok' if truth_ok[-1] else 'MISS'}", flush=True)
     counted = [r for r in records if "before" not in r or within(r["before"], args)]
     ok = sum(within(r["after"], args) for r in counted)
     print(f"{args.mode}: {ok} of {len(counted)} within {args.max_cm} cm / {args.max_deg} deg "
           f"({len(records) - len(counted)} trials off before the gap, not counted); "
           f"{sum(r['reached_us'] is not None for r in counted)} of {len(counted)} reached them by then")
-    if truth_ok and args.mode == "start":
+    if args.mode == "start":
         print(f"started at the truth: {sum(truth_ok)} of {len(truth_ok)} sequences within them at that instant")
-    if truth_ok and args.mode == "blackout":
+    else:
         misses = [r for r in counted if not within(r["after"], args)]
         print(f"without the gap: {sum(r['reference_ok'] for r in counted)} of {len(counted)} counted trials within "
               f"them at that instant; {sum(not r['reference_ok'] for r in misses)} of the {len(misses)} misses miss "
               f"without the gap too (the tracker's own error)")
-    if args.mode == "blackout":
         spec = [r for r in counted if r["moved_cm"] <= MAX_MOVED_CM]
         print(f"blackout, the object moving at most {MAX_MOVED_CM:g} cm in the gap (issue 25's trials): "
               f"{sum(within(r['after'], args) for r in spec)} of {len(spec)}")
