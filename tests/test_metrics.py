@@ -329,6 +329,32 @@ def test_cli_eval_summary_and_failure(tmp_path, capsys):
     assert "FAILED at 0.060000 s (pose 30" in out
 
 
+def test_cli_eval_leaves_a_plain_cylinders_spin_out_as_the_benchmark_does(tmp_path, capsys):
+    """A prediction spun 60 deg about a plain (uncoloured) cylinder's axis fails the whole-rotation rule only; a box
+    (no continuous symmetry) gets no symmetric lines."""
+    import trimesh
+
+    from torchevtrack.cli import main
+    from torchevtrack.io.poses import write_tum
+
+    t = torch.arange(0, 200_000, 2_000)
+    gt = torch.tensor([0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0], dtype=torch.float64).expand(len(t), 7)
+    pred = gt.clone()
+    pred[:, 3:] = torch.tensor([math.cos(math.radians(30)), 0.0, 0.0, math.sin(math.radians(30))])  # 60 deg about z
+    pred[:, 0] += 0.002
+    write_tum(tmp_path / "gt.txt", t, gt)
+    write_tum(tmp_path / "pred.txt", t, pred)
+    trimesh.creation.cylinder(radius=0.03, height=0.1, sections=48).export(tmp_path / "can.ply")
+    trimesh.creation.box(extents=(0.06, 0.04, 0.08)).export(tmp_path / "box.ply")
+    args = ["eval", "--gt", str(tmp_path / "gt.txt"), "--pred", str(tmp_path / "pred.txt"), "--mesh"]
+    assert main(args + [str(tmp_path / "can.ply")]) == 0
+    out = capsys.readouterr().out
+    assert "rotation     : RMSE 60.000 deg" in out and "rotation sym : RMSE 0.000 deg" in out
+    assert "failure      : FAILED at 0.000000 s" in out and "failure sym  : no" in out
+    assert main(args + [str(tmp_path / "box.ply")]) == 0
+    assert "sym" not in capsys.readouterr().out
+
+
 def test_cli_eval_bop_gt_and_mesh_subsampling(tmp_path, capsys):
     import json
 

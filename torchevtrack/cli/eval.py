@@ -4,6 +4,10 @@ Example:
     torchevtrack eval --gt data/seq0 --pred out/seq0_poses.txt --json
     torchevtrack eval --gt data/seq0 --pred poses_in_us.txt --time-unit us --t-offset -1700000000
 
+With a mesh (``--mesh`` or the sequence directory's ``mesh.ply``) that has no colours and a continuous rotational
+symmetry (a plain can), the rotation error with the spin about that axis left out and the failure rule applied to it
+are reported too (``*_r_sym_*``, ``failed_sym``), as ``torchevtrack benchmark`` counts them.
+
 Exit status 2 (one line on stderr) when most predicted poses fall outside the ground truth's time range:
 the two files then use different time bases (units or origins), which ``--time-unit`` and ``--t-offset`` fix.
 """
@@ -17,6 +21,7 @@ from pathlib import Path
 import torch
 
 from torchevtrack.io.poses import FORMATS, detect_format, read_poses
+from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
 from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, MESH_POINTS, evaluate, load_mesh_points
 
 
@@ -83,11 +88,17 @@ def _summary(r: dict, gt: Path, pred: Path, mesh: Path | None) -> str:
             f"ADD / ADD-S  : AUC(0-10 cm) {r['add_auc']:.4f} / {r['adds_auc']:.4f}   "
             f"mean {r['mean_add_cm']:.3f} / {r['mean_adds_cm']:.3f} cm   ({r['n_mesh_points']} points of {mesh})"
         )
+    if "rmse_r_sym_deg" in r:
+        lines.append(f"rotation sym : RMSE {r['rmse_r_sym_deg']:.3f} deg  median {r['median_r_sym_deg']:.3f}  "
+                     f"max {r['max_r_sym_deg']:.3f} deg (the spin about the untextured mesh's symmetry axis left out)")
     rule = f"> {FAIL_T_M * 100:g} cm or > {FAIL_R_DEG:g} deg for {FAIL_WINDOW} samples"
     if r["failed"]:
         lines.append(f"failure      : FAILED at {r['first_failure_s']:.6f} s (pose {r['first_failure_index']}; {rule})")
     else:
         lines.append(f"failure      : no ({rule})")
+    if "failed_sym" in r:
+        lines.append("failure sym  : " + (f"FAILED at {r['first_failure_sym_s']:.6f} s" if r["failed_sym"] else "no")
+                     + " (the same rule on the rotation with the spin left out)")
     if "rmse_v_cm_s" in r:
         lines.append(f"velocity     : RMSE {r['rmse_v_cm_s']:.3f} cm/s, {r['rmse_w_deg_s']:.3f} deg/s")
     return "\n".join(lines)
@@ -106,7 +117,10 @@ def run(args: argparse.Namespace) -> int:
     pred_t = retime(pred_t, args.time_unit, args.t_offset)
     check_overlap(pred_t, gt_t)
     points = load_mesh_points(mesh_path) if mesh_path is not None else None
-    r = evaluate(pred_t, pred_p, gt_t, gt_p, mesh_points=points, symmetric=args.symmetric)
+    # as the benchmark: an untextured mesh's spin about its symmetry axis is unobservable, its error reported apart
+    axis = hidden_symmetry_axis(load_mesh(mesh_path)) if mesh_path is not None else None
+    r = evaluate(pred_t, pred_p, gt_t, gt_p, mesh_points=points, symmetric=args.symmetric,
+                 symmetry_axis=None if axis is None else torch.as_tensor(axis))
     r["n_mesh_points"] = None if points is None else int(points.shape[0])
     if args.json:
         print(json.dumps(r))
