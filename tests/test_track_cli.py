@@ -1,4 +1,4 @@
-"""``torchevtrack track`` on a camera with lens distortion: the events are undistorted while read.
+"""``torchevtrack track`` reads any event format and undistorts the events of a camera with lens distortion.
 
 Oracle: a pincushion model (``k1, k2 > 0``) stretches the image everywhere, so distorting a pinhole
 pixel, rounding to the sensor grid, undistorting and rounding again returns the original pixel exactly.
@@ -14,7 +14,7 @@ import torch
 
 from torchevtrack.camera import Camera
 from torchevtrack.cli import main
-from torchevtrack.cli.track import undistorted_events
+from torchevtrack.cli.track import read_camera_events
 from torchevtrack.distortion import distort_points, undistort_events
 from torchevtrack.events import EventStream
 from torchevtrack.io.events_h5 import read_events_h5, write_events_h5
@@ -50,7 +50,7 @@ def dirs(tmp_path_factory):
 def test_track_undistorts_the_events_of_a_distorted_camera(dirs, capsys):
     cam = Camera.load(dirs / "distorted" / "camera.json")
     assert cam.distortion == PINCUSHION
-    seen = undistorted_events(dirs / "distorted" / "events.h5", cam, chunk=777)  # what the command tracks
+    seen = read_camera_events(dirs / "distorted" / "events.h5", cam, chunk=777)  # what the command tracks
     pinhole = read_events_h5(dirs / "pinhole" / "events.h5")
     for f in "xytp":
         assert torch.equal(getattr(seen, f).long(), getattr(pinhole, f).long()), f
@@ -77,7 +77,31 @@ def test_chunked_undistortion_equals_the_whole_stream(tmp_path, capsys):
     whole = undistort_events(read_events_h5(tmp_path / "events.h5"), cam)
     assert 0 < len(whole) < n
     for chunk in (1, 333, n):
-        got = undistorted_events(tmp_path / "events.h5", cam, chunk=chunk)
+        got = read_camera_events(tmp_path / "events.h5", cam, chunk=chunk)
         for f in "xytp":
             assert torch.equal(getattr(got, f), getattr(whole, f)), (chunk, f)
         assert f"dropped {n - len(whole)} " in capsys.readouterr().out
+
+
+def test_track_reads_any_event_format_with_events(dirs, tmp_path, capsys):
+    """The pinhole recording converted to text and npz and given with ``--events`` is tracked to the same poses; a
+    directory without events.h5 and without ``--events`` is refused in one line."""
+    from torchevtrack.io.formats import write_events
+
+    seq = dirs / "pinhole"
+    assert main(["track", str(seq), "--out", str(tmp_path / "h5.txt"), "--quiet", "--no-recover"]) == 0
+    events = read_events_h5(seq / "events.h5")
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for f in ("camera.json", "mesh.ply", "gt_poses.txt"):
+        shutil.copy(seq / f, bare / f)
+    for name in ("ev.txt", "ev.npz"):
+        write_events(tmp_path / name, events, width=CAM.width, height=CAM.height)
+        out = tmp_path / f"{name}.poses.txt"
+        assert main(["track", str(bare), "--events", str(tmp_path / name), "--out", str(out), "--quiet",
+                     "--no-recover"]) == 0
+        assert out.read_text() == (tmp_path / "h5.txt").read_text(), name
+    capsys.readouterr()
+    assert main(["track", str(bare), "--out", str(tmp_path / "none.txt")]) == 2
+    assert "has no events.h5: give the event file with --events" in capsys.readouterr().err
+    assert not (tmp_path / "none.txt").exists()

@@ -30,7 +30,7 @@ import torch
 from torchevtrack.camera import Camera
 from torchevtrack.distortion import Undistorter
 from torchevtrack.events import EventStream
-from torchevtrack.io.events_h5 import iter_events_h5, read_events_h5
+from torchevtrack.io.formats import iter_events
 from torchevtrack.io.lost import lost_path, write_lost
 from torchevtrack.io.poses import read_tum, write_tum
 from torchevtrack.tracker import EventPoseTracker
@@ -51,6 +51,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--init", help='initial pose "tx ty tz qx qy qz qw": metres, then a unit quaternion with qw '
                    "LAST (TUM order; the Python API's pose is [t, qw, qx, qy, qz]); default: first pose of gt_poses.txt")
     p.add_argument("--mesh", help="mesh file or object name (default: SEQDIR/mesh.ply)")
+    p.add_argument("--events", type=Path, help="event file in any format `convert` reads (h5, npz, text, AEDAT4, "
+                   "EVT3, DSEC, YCB-Ev; detected from its content); default: SEQDIR/events.h5")
     p.add_argument("--recover", action=argparse.BooleanOptionalAction, default=True,
                    help="detect tracking loss and find the object again with a wide search, and search once around "
                    "the start pose 48 ms in (on by default; blocks ~0.3-1.5 s per search); writes the lost flags to "
@@ -128,14 +130,17 @@ def check_start_pose(camera: Camera, mesh, pose: torch.Tensor) -> str | None:
     return None
 
 
-def undistorted_events(path: Path, camera: Camera, chunk: int = 1_000_000) -> EventStream:
-    """Read an events.h5 file ``chunk`` events at a time, moving each chunk into the pinhole image of
-    ``camera`` (its distortion coefficients, :class:`~torchevtrack.distortion.Undistorter`); prints the
-    number of dropped events."""
-    undistort = Undistorter(camera)
-    events = EventStream.concat([undistort(c) for c in iter_events_h5(path, chunk, width=camera.width,
-                                                                      height=camera.height)])
-    print(f"undistorted {len(events) + int(undistort.dropped)} events, dropped {int(undistort.dropped)} "
+def read_camera_events(path: Path, camera: Camera, undistort: bool = True, chunk: int = 1_000_000) -> EventStream:
+    """Read an event file of any readable format (:func:`~torchevtrack.io.formats.iter_events`) ``chunk`` events at
+    a time, checked against ``camera``'s sensor size; with ``undistort`` and a camera with distortion coefficients
+    each chunk is moved into its pinhole image (:class:`~torchevtrack.distortion.Undistorter`) and the number of
+    events that leave it is printed."""
+    chunks = iter_events(path, chunk_events=chunk, width=camera.width, height=camera.height)
+    if not undistort or camera.distortion is None:
+        return EventStream.concat(list(chunks))
+    undistorter = Undistorter(camera)
+    events = EventStream.concat([undistorter(c) for c in chunks])
+    print(f"undistorted {len(events) + int(undistorter.dropped)} events, dropped {int(undistorter.dropped)} "
           "(outside the pinhole image)")
     return events
 
@@ -160,11 +165,9 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be positive seconds, got {args.duration}")
     camera = Camera.load(d / "camera.json")
-    if camera.distortion is not None and not args.no_undistort:
-        events = undistorted_events(d / "events.h5", camera)
-    else:
-        events = read_events_h5(d / "events.h5")
-        events.validate(camera.width, camera.height)
+    if args.events is None and not (d / "events.h5").is_file():
+        raise FileNotFoundError(f"{d} has no events.h5: give the event file with --events (any format `convert` reads)")
+    events = read_camera_events(args.events or d / "events.h5", camera, undistort=not args.no_undistort)
     mesh = args.mesh if args.mesh is not None else d / "mesh.ply"
     if args.mesh is None and not mesh.is_file():
         raise FileNotFoundError(f"{d} has no mesh.ply: give the object with --mesh")
