@@ -312,3 +312,22 @@ def test_cli_viz_real_recording_without_gt(seq_dir, tmp_path, capsys):
     assert (img == GREEN).all(-1).sum() > 30 and not (img == MAGENTA).all(-1).any()
     assert main(["viz", str(seq_dir), "--poses", pred, "--out", str(tmp_path / "x.jpg"), "--mesh", "box"]) == 2
     assert main(["viz", str(seq_dir), "--poses", pred, "--out", str(png), "--mesh", "box", "--time", "5"]) == 2
+
+
+def test_cli_viz_reads_events_in_another_format(seq_dir, tmp_path, capsys):
+    """``--events`` in text format draws the frame the directory's events.h5 draws; without either, one line."""
+    from torchevtrack.io.events_h5 import read_events_h5
+    from torchevtrack.io.formats import write_events
+
+    pred = str(tmp_path / "pred.txt")
+    write_events(tmp_path / "ev.txt", read_events_h5(seq_dir / "events.h5"), width=64, height=48)
+    frames = {}
+    for name, extra in (("h5", []), ("txt", ["--events", str(tmp_path / "ev.txt")])):
+        frames[name] = tmp_path / f"{name}.png"
+        assert main(["viz", str(seq_dir), "--poses", pred, "--out", str(frames[name]), "--time", "0.05",
+                     "--quiet"] + extra) == 0
+    assert np.array_equal(iio.imread(frames["h5"]), iio.imread(frames["txt"]))
+    (seq_dir / "events.h5").unlink()
+    capsys.readouterr()
+    assert main(["viz", str(seq_dir), "--poses", pred, "--out", str(tmp_path / "x.png"), "--quiet"]) == 2
+    assert "has no events.h5: give the event file with --events" in capsys.readouterr().err

@@ -1,12 +1,17 @@
 """Command-line options shared by the commands that run the tracker: ``--config`` and ``--set``, ``--ablation``;
-``--executor`` and ``--address`` for those that run many independent tracking tasks."""
+``--executor`` and ``--address`` for those that run many independent tracking tasks; ``--events`` (a recording in
+any readable format beside a directory's ``camera.json``) for those that read a sequence's events."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+from torchevtrack.camera import Camera
 from torchevtrack.config import ABLATIONS, TrackerConfig
+from torchevtrack.distortion import Undistorter
+from torchevtrack.events import EventStream
+from torchevtrack.io.formats import iter_events
 
 
 def add_config_options(p: argparse.ArgumentParser, default: str = "the built-in defaults") -> None:
@@ -56,3 +61,32 @@ def executor_from_args(args: argparse.Namespace):
     from torchevtrack.executor import make_executor
 
     return make_executor(args.executor, workers=args.jobs, address=args.address)
+
+
+def add_events_option(p: argparse.ArgumentParser, directory: str) -> None:
+    """Add ``--events FILE`` (default: the sequence directory's events.h5) to parser ``p``."""
+    p.add_argument("--events", type=Path, help="event file in any format `convert` reads (h5, npz, text, AEDAT4, "
+                   f"EVT3, DSEC, YCB-Ev; detected from its content); default: {directory}/events.h5")
+
+
+def events_path(args: argparse.Namespace, directory: Path) -> Path:
+    """``--events``, else ``directory``'s events.h5; ``FileNotFoundError`` (one line) when neither is given."""
+    if args.events is None and not (directory / "events.h5").is_file():
+        raise FileNotFoundError(f"{directory} has no events.h5: give the event file with --events (any format "
+                                "`convert` reads)")
+    return args.events or directory / "events.h5"
+
+
+def read_camera_events(path: Path, camera: Camera, undistort: bool = True, chunk: int = 1_000_000) -> EventStream:
+    """Read an event file of any readable format (:func:`~torchevtrack.io.formats.iter_events`) ``chunk`` events at
+    a time, checked against ``camera``'s sensor size; with ``undistort`` and a camera with distortion coefficients
+    each chunk is moved into its pinhole image (:class:`~torchevtrack.distortion.Undistorter`) and the number of
+    events that leave it is printed."""
+    chunks = iter_events(path, chunk_events=chunk, width=camera.width, height=camera.height)
+    if not undistort or camera.distortion is None:
+        return EventStream.concat(list(chunks))
+    undistorter = Undistorter(camera)
+    events = EventStream.concat([undistorter(c) for c in chunks])
+    print(f"undistorted {len(events) + int(undistorter.dropped)} events, dropped {int(undistorter.dropped)} "
+          "(outside the pinhole image)")
+    return events

@@ -28,13 +28,11 @@ from pathlib import Path
 import torch
 
 from torchevtrack.camera import Camera
-from torchevtrack.distortion import Undistorter
-from torchevtrack.events import EventStream
-from torchevtrack.io.formats import iter_events
 from torchevtrack.io.lost import lost_path, write_lost
 from torchevtrack.io.poses import read_tum, write_tum
 from torchevtrack.tracker import EventPoseTracker
-from torchevtrack.cli.options import add_ablation_option, add_config_options, config_from_args
+from torchevtrack.cli.options import (add_ablation_option, add_config_options, add_events_option, config_from_args,
+                                      events_path, read_camera_events)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -51,8 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--init", help='initial pose "tx ty tz qx qy qz qw": metres, then a unit quaternion with qw '
                    "LAST (TUM order; the Python API's pose is [t, qw, qx, qy, qz]); default: first pose of gt_poses.txt")
     p.add_argument("--mesh", help="mesh file or object name (default: SEQDIR/mesh.ply)")
-    p.add_argument("--events", type=Path, help="event file in any format `convert` reads (h5, npz, text, AEDAT4, "
-                   "EVT3, DSEC, YCB-Ev; detected from its content); default: SEQDIR/events.h5")
+    add_events_option(p, "SEQDIR")
     p.add_argument("--recover", action=argparse.BooleanOptionalAction, default=True,
                    help="detect tracking loss and find the object again with a wide search, and search once around "
                    "the start pose 48 ms in (on by default; blocks ~0.3-1.5 s per search); writes the lost flags to "
@@ -130,21 +127,6 @@ def check_start_pose(camera: Camera, mesh, pose: torch.Tensor) -> str | None:
     return None
 
 
-def read_camera_events(path: Path, camera: Camera, undistort: bool = True, chunk: int = 1_000_000) -> EventStream:
-    """Read an event file of any readable format (:func:`~torchevtrack.io.formats.iter_events`) ``chunk`` events at
-    a time, checked against ``camera``'s sensor size; with ``undistort`` and a camera with distortion coefficients
-    each chunk is moved into its pinhole image (:class:`~torchevtrack.distortion.Undistorter`) and the number of
-    events that leave it is printed."""
-    chunks = iter_events(path, chunk_events=chunk, width=camera.width, height=camera.height)
-    if not undistort or camera.distortion is None:
-        return EventStream.concat(list(chunks))
-    undistorter = Undistorter(camera)
-    events = EventStream.concat([undistorter(c) for c in chunks])
-    print(f"undistorted {len(events) + int(undistorter.dropped)} events, dropped {int(undistorter.dropped)} "
-          "(outside the pinhole image)")
-    return events
-
-
 def rerun_logger(args: argparse.Namespace, camera: Camera, mesh, truth, tracker: EventPoseTracker):
     """The :class:`~torchevtrack.watch.RerunLogger` of ``--rerun`` / ``--rerun-spawn`` attached to ``tracker``,
     or None."""
@@ -165,9 +147,7 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be positive seconds, got {args.duration}")
     camera = Camera.load(d / "camera.json")
-    if args.events is None and not (d / "events.h5").is_file():
-        raise FileNotFoundError(f"{d} has no events.h5: give the event file with --events (any format `convert` reads)")
-    events = read_camera_events(args.events or d / "events.h5", camera, undistort=not args.no_undistort)
+    events = read_camera_events(events_path(args, d), camera, undistort=not args.no_undistort)
     mesh = args.mesh if args.mesh is not None else d / "mesh.ply"
     if args.mesh is None and not mesh.is_file():
         raise FileNotFoundError(f"{d} has no mesh.ply: give the object with --mesh")

@@ -1,7 +1,8 @@
 """``torchevtrack viz``: mesh contours at the tracked (and ground-truth) poses over the EROS surface.
 
-Works on a sequence directory (events.h5, camera.json, optionally gt_poses.txt and mesh.ply) and any
-pose file; a directory without gt_poses.txt (a real recording) shows the tracked contour only.
+Works on a sequence directory (events.h5 or ``--events FILE`` in any readable format, camera.json, optionally
+gt_poses.txt and mesh.ply) and any pose file; a directory without gt_poses.txt (a real recording) shows the tracked
+contour only. The events of a camera with distortion coefficients are undistorted as ``track`` reads them.
 
 Examples:
     torchevtrack viz data/seq0 --poses out/seq0_poses.txt --out seq0.gif --every-ms 20 --fps 25
@@ -16,7 +17,7 @@ from pathlib import Path
 import torch
 
 from torchevtrack.camera import Camera
-from torchevtrack.io.events_h5 import read_events_h5
+from torchevtrack.cli.options import add_events_option, events_path, read_camera_events
 from torchevtrack.io.poses import FORMATS, detect_format, read_poses, read_tum
 
 US_PER_S = 1_000_000
@@ -58,9 +59,9 @@ def run(args: argparse.Namespace) -> int:
     ext = out.suffix.lower()
     if ext not in VIDEO_EXTENSIONS + (".png",):
         raise ValueError(f"--out must end with .png (one frame) or one of {VIDEO_EXTENSIONS}, got {out}")
-    for name in ("camera.json", "events.h5"):
-        if not (seq / name).is_file():
-            raise FileNotFoundError(f"sequence {seq} lacks {name}")
+    if not (seq / "camera.json").is_file():
+        raise FileNotFoundError(f"sequence {seq} lacks camera.json")
+    ev_path = events_path(args, seq)
     mesh = args.mesh if args.mesh is not None else seq / "mesh.ply"
     if args.mesh is None and not Path(mesh).is_file():
         raise FileNotFoundError(f"sequence {seq} has no mesh.ply: pass --mesh (a file or a built-in object name)")
@@ -73,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     gt_path = seq / "gt_poses.txt"
     gt = read_tum(gt_path) if gt_path.is_file() and not args.no_gt else None
     times = _frame_times(pred[0], args, still=ext == ".png")
-    events = read_events_h5(seq / "events.h5", width=camera.width, height=camera.height)
+    events = read_camera_events(ev_path, camera)  # undistorted as `track` reads them: the poses live in that image
 
     frames = iter_overlay_frames(events, camera, mesh, pred, times, gt, kernel_size=args.kernel_size,
                                  decay=args.decay, depth_jump=args.depth_jump, legend=not args.no_legend)
@@ -108,6 +109,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--poses", required=True, help="tracked pose file (TUM .txt, CSV .csv, BOP .json)")
     p.add_argument("--out", required=True, help="output .gif / .mp4, or .png for a single frame")
     p.add_argument("--mesh", help="mesh file or built-in object name (default: SEQUENCE/mesh.ply)")
+    add_events_option(p, "SEQUENCE")
     p.add_argument("--fps", type=float, default=30.0, help="video frame rate (default 30)")
     p.add_argument("--every-ms", type=float, default=20.0, help="sequence time between frames (default 20 ms)")
     p.add_argument("--start", type=float, help="first frame time, seconds (default: first tracked pose)")
