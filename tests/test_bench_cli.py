@@ -107,3 +107,25 @@ def test_the_packets_cover_the_events_once_in_order(seqdir):
     assert torch.equal(torch.cat([p.t for p in got]), seq.events.slice_time(t0, t_end).t)
     assert all(int(p.t.min()) >= t0 + 1000 * k and int(p.t.max()) < min(t0 + 1000 * (k + 1), t_end)
                for k, p in enumerate(got) if len(p))
+
+
+def test_bench_a_recording_in_another_format_from_a_given_start(seqdir, tmp_path, capsys):
+    """A directory with only camera.json: --events (text), --mesh and --init, the start at the first event."""
+    import shutil
+
+    from torchevtrack.io.formats import write_events
+
+    seq, d = seqdir
+    bare = tmp_path / "rec"
+    bare.mkdir()
+    shutil.copy(d / "camera.json", bare / "camera.json")
+    write_events(tmp_path / "ev.txt", seq.events, width=CAM.width, height=CAM.height)
+    p = seq.gt_poses[0].tolist()
+    init = " ".join(f"{a:.9f}" for a in p[:3] + p[4:] + p[3:4])  # TUM order, qw last
+    args = ["bench", str(bare), "--duration", "0.01", "--batch", "1", "--warmup", "0", "--json"]
+    assert main(args + ["--events", str(tmp_path / "ev.txt"), "--mesh", str(d / "mesh.ply"), "--init", init]) == 0
+    r = json.loads(capsys.readouterr().out)
+    t0 = int(seq.events.t[0])
+    assert r["n_updates"] == 5 and r["n_events"] == int(((seq.events.t >= t0) & (seq.events.t < t0 + 10_000)).sum())
+    assert main(args + ["--events", str(tmp_path / "ev.txt"), "--mesh", str(d / "mesh.ply")]) == 2
+    assert "has no gt_poses.txt: give the initial pose with --init" in capsys.readouterr().err

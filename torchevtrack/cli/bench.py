@@ -1,5 +1,8 @@
 """``torchevtrack bench SEQDIR [--batch B] [--duration S] [--json]``: tracker speed on one sequence.
 
+SEQDIR is read as ``track`` reads it: a synthetic sequence as it is, or a recording with ``--events FILE`` (any
+readable format), ``--mesh`` and ``--init`` (the speed of your own sensor's stream).
+
 Three measurements in one run, each after a short untimed warm-up:
 
 1. **streaming**: the events go through :class:`~torchevtrack.online.OnlineTracker` in pushes of
@@ -28,7 +31,6 @@ import json
 import os
 import platform
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -36,9 +38,9 @@ import torch
 from torchevtrack.config import TrackerConfig
 from torchevtrack.events import EventStream
 from torchevtrack.online import OnlineTracker
-from torchevtrack.synth.sequence import Sequence
 from torchevtrack.tracker import EventPoseTracker
 from torchevtrack.cli.options import add_ablation_option, add_config_options, config_from_args
+from torchevtrack.cli.track import Recording, add_recording_options, load_recording
 
 STAGES = ("eros", "flow", "velocity", "render", "correction", "ukf")
 
@@ -51,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "per-update latency (streaming pushes of --chunk-us of events), per-stage milliseconds and the speed-up "
         "of tracking --batch copies in one batch over sequential runs.",
     )
-    p.add_argument("seqdir", type=Path)
+    add_recording_options(p)
     p.add_argument("--batch", type=int, default=4, help="batch size B of the batched measurement (1: skip it)")
     p.add_argument("--duration", type=float, help="track only the first SECONDS (default: the whole sequence)")
     add_ablation_option(p)
@@ -74,31 +76,31 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be positive, got {args.duration}")
     torch.set_num_threads(args.threads)
-    seq = Sequence.load(args.seqdir)
+    recording = load_recording(args)
     cfg = config_from_args(args)
-    result = bench(seq, cfg, batch=args.batch, duration_s=args.duration, chunk_us=args.chunk_us,
+    result = bench(recording, cfg, batch=args.batch, duration_s=args.duration, chunk_us=args.chunk_us,
                    warmup=args.warmup, repeat=args.repeat)
     result = {"sequence": str(args.seqdir), "ablation": args.ablation or "default", **result}
     print(json.dumps(result, indent=2) if args.json else summary(result))
     return 0
 
 
-def bench(seq: Sequence, config: TrackerConfig, batch: int, duration_s: float | None = None,
+def bench(recording: Recording, config: TrackerConfig, batch: int, duration_s: float | None = None,
           chunk_us: int = 1000, warmup: int = 10, repeat: int = 1) -> dict:
     """Run the three measurements (see the module docstring; streaming and offline ``repeat`` times each, alternating)
-    and return the numbers as a JSON-ready dict."""
+    from the recording's start pose and time, and return the numbers as a JSON-ready dict."""
     P = config.period_us
-    t0 = int(seq.gt_t_us[0])
-    t_end = seq.events.t_end if duration_s is None else min(t0 + round(duration_s * 1e6), seq.events.t_end)
+    t0, all_events = recording.t0_us, recording.events
+    t_end = all_events.t_end if duration_s is None else min(t0 + round(duration_s * 1e6), all_events.t_end)
     n = (t_end - t0) // P
     if n < 1:
         raise ValueError(f"the sequence is shorter than one update period ({P} us) after t0 = {t0} us")
     t_end = t0 + n * P
-    events = seq.events.slice_time(t0, t_end)
-    pose0 = seq.gt_poses[0]
+    events = all_events.slice_time(t0, t_end)
+    pose0 = recording.pose0
     warm_end = t0 + min(warmup, n) * P
 
-    single = EventPoseTracker(seq.camera, seq.mesh, config)
+    single = EventPoseTracker(recording.camera, recording.mesh, config)
     walls, offline_walls, latencies, stages = [], [], [], []
     try:
         online = OnlineTracker(single)
@@ -147,7 +149,7 @@ def bench(seq: Sequence, config: TrackerConfig, batch: int, duration_s: float | 
         "batched": None,
     }
     if batch > 1:
-        batched = EventPoseTracker(seq.camera, [seq.mesh] * batch, config)
+        batched = EventPoseTracker(recording.camera, [recording.mesh] * batch, config)
         try:
             batched_wall = _timed_track(batched, events, pose0, t0, t_end, warm_end, batch)
         finally:

@@ -24,10 +24,12 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 
 from torchevtrack.camera import Camera
+from torchevtrack.events import EventStream
 from torchevtrack.io.lost import lost_path, write_lost
 from torchevtrack.io.poses import read_tum, write_tum
 from torchevtrack.tracker import EventPoseTracker
@@ -42,14 +44,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Track the object through SEQDIR (events.h5, camera.json, mesh.ply) and write the poses "
         "in TUM format (t tx ty tz qx qy qz qw, object in camera frame), one per update.",
     )
-    p.add_argument("seqdir", type=Path)
+    add_recording_options(p)
     p.add_argument("--out", type=Path, required=True, help="output TUM pose file")
     add_config_options(p, "configs/default.yaml values")
     add_ablation_option(p)
-    p.add_argument("--init", help='initial pose "tx ty tz qx qy qz qw": metres, then a unit quaternion with qw '
-                   "LAST (TUM order; the Python API's pose is [t, qw, qx, qy, qz]); default: first pose of gt_poses.txt")
-    p.add_argument("--mesh", help="mesh file or object name (default: SEQDIR/mesh.ply)")
-    add_events_option(p, "SEQDIR")
     p.add_argument("--recover", action=argparse.BooleanOptionalAction, default=True,
                    help="detect tracking loss and find the object again with a wide search, and search once around "
                    "the start pose 48 ms in (on by default; blocks ~0.3-1.5 s per search); writes the lost flags to "
@@ -127,6 +125,51 @@ def check_start_pose(camera: Camera, mesh, pose: torch.Tensor) -> str | None:
     return None
 
 
+class Recording(NamedTuple):
+    """What :func:`load_recording` reads: the camera, the (undistorted) events, the mesh (a path or an object name),
+    the ground truth ``(t_us (M,), poses (M, 7))`` or ``None``, the start pose ``(7,)`` and its time (int64 us)."""
+
+    camera: Camera
+    events: EventStream
+    mesh: Path | str
+    truth: tuple[torch.Tensor, torch.Tensor] | None
+    pose0: torch.Tensor
+    t0_us: int
+
+
+def add_recording_options(p: argparse.ArgumentParser) -> None:
+    """Add the positional ``seqdir`` and ``--init``, ``--mesh``, ``--events`` (read by :func:`load_recording`)."""
+    p.add_argument("seqdir", type=Path, help="sequence directory: camera.json, and by default events.h5, mesh.ply and "
+                   "gt_poses.txt")
+    p.add_argument("--init", help='initial pose "tx ty tz qx qy qz qw": metres, then a unit quaternion with qw '
+                   "LAST (TUM order; the Python API's pose is [t, qw, qx, qy, qz]), at the first event; default: "
+                   "first pose of gt_poses.txt")
+    p.add_argument("--mesh", help="mesh file or object name (default: SEQDIR/mesh.ply)")
+    add_events_option(p, "SEQDIR")
+
+
+def load_recording(args: argparse.Namespace, undistort: bool = True) -> Recording:
+    """The :class:`Recording` of ``args.seqdir`` with ``--events``, ``--mesh`` and ``--init`` (or the directory's
+    events.h5, mesh.ply and first ground-truth pose). Raises ``FileNotFoundError`` / ``ValueError`` (one line) for
+    a missing directory, file or start pose."""
+    d = args.seqdir
+    if not d.is_dir():
+        raise FileNotFoundError(f"sequence directory not found: {d}")
+    camera = Camera.load(d / "camera.json")
+    events = read_camera_events(events_path(args, d), camera, undistort=undistort)
+    mesh = args.mesh if args.mesh is not None else d / "mesh.ply"
+    if args.mesh is None and not mesh.is_file():
+        raise FileNotFoundError(f"{d} has no mesh.ply: give the object with --mesh")
+    truth = read_tum(d / "gt_poses.txt") if (d / "gt_poses.txt").is_file() else None
+    if args.init is not None:
+        pose0, t0 = parse_init(args.init), events.t_start
+    elif truth is not None:
+        pose0, t0 = truth[1][0], int(truth[0][0])
+    else:
+        raise ValueError(f"{d} has no gt_poses.txt: give the initial pose with --init")
+    return Recording(camera, events, mesh, truth, pose0, int(t0))
+
+
 def rerun_logger(args: argparse.Namespace, camera: Camera, mesh, truth, tracker: EventPoseTracker):
     """The :class:`~torchevtrack.watch.RerunLogger` of ``--rerun`` / ``--rerun-spawn`` attached to ``tracker``,
     or None."""
@@ -139,25 +182,11 @@ def rerun_logger(args: argparse.Namespace, camera: Camera, mesh, truth, tracker:
 
 def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
-    d = args.seqdir
-    if not d.is_dir():
-        raise FileNotFoundError(f"sequence directory not found: {d}")
     if args.out.is_dir():
         raise ValueError(f"--out {args.out} is a directory: give a file name, e.g. {args.out / 'poses.txt'}")
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be positive seconds, got {args.duration}")
-    camera = Camera.load(d / "camera.json")
-    events = read_camera_events(events_path(args, d), camera, undistort=not args.no_undistort)
-    mesh = args.mesh if args.mesh is not None else d / "mesh.ply"
-    if args.mesh is None and not mesh.is_file():
-        raise FileNotFoundError(f"{d} has no mesh.ply: give the object with --mesh")
-    truth = read_tum(d / "gt_poses.txt") if (d / "gt_poses.txt").is_file() else None
-    if args.init is not None:
-        pose0, t0 = parse_init(args.init), events.t_start
-    elif truth is not None:
-        pose0, t0 = truth[1][0], int(truth[0][0])
-    else:
-        raise ValueError(f"{d} has no gt_poses.txt: give the initial pose with --init")
+    camera, events, mesh, truth, pose0, t0 = load_recording(args, undistort=not args.no_undistort)
     cfg = config_from_args(args)
     t_end = t0 + round(args.duration * 1e6) if args.duration else events.t_end
     n_events = len(events.slice_time(t0, t_end + 1))
