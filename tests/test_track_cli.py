@@ -54,7 +54,7 @@ def test_track_undistorts_the_events_of_a_distorted_camera(dirs, capsys):
     pinhole = read_events_h5(dirs / "pinhole" / "events.h5")
     for f in "xytp":
         assert torch.equal(getattr(seen, f).long(), getattr(pinhole, f).long()), f
-    assert "dropped 0" in capsys.readouterr().out
+    assert "dropped 0" in capsys.readouterr().err
     runs = {}
     for name, src, extra in (("pinhole", "pinhole", []), ("undistorted", "distorted", []),
                              ("raw", "distorted", ["--no-undistort"])):
@@ -80,7 +80,7 @@ def test_chunked_undistortion_equals_the_whole_stream(tmp_path, capsys):
         got = read_camera_events(tmp_path / "events.h5", cam, chunk=chunk)
         for f in "xytp":
             assert torch.equal(getattr(got, f), getattr(whole, f)), (chunk, f)
-        assert f"dropped {n - len(whole)} " in capsys.readouterr().out
+        assert f"dropped {n - len(whole)} " in capsys.readouterr().err
 
 
 def test_track_reads_any_event_format_with_events(dirs, tmp_path, capsys):
@@ -105,3 +105,15 @@ def test_track_reads_any_event_format_with_events(dirs, tmp_path, capsys):
     assert main(["track", str(bare), "--out", str(tmp_path / "none.txt")]) == 2
     assert "has no events.h5: give the event file with --events" in capsys.readouterr().err
     assert not (tmp_path / "none.txt").exists()
+
+
+def test_bench_json_stays_one_json_object_on_a_distorted_camera(dirs, capsys):
+    """``bench`` reads a distorted camera's events as ``track`` does; the undistortion's note must not break its
+    ``--json`` output (one JSON object on stdout)."""
+    import json
+
+    assert main(["bench", str(dirs / "distorted"), "--duration", "0.01", "--batch", "1", "--warmup", "0",
+                 "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out)["n_updates"] == 5
+    assert "dropped 0" in err

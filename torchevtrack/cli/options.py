@@ -5,6 +5,7 @@ any readable format beside a directory's ``camera.json``) for those that read a 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from torchevtrack.camera import Camera
@@ -81,12 +82,12 @@ def read_camera_events(path: Path, camera: Camera, undistort: bool = True, chunk
     """Read an event file of any readable format (:func:`~torchevtrack.io.formats.iter_events`) ``chunk`` events at
     a time, checked against ``camera``'s sensor size; with ``undistort`` and a camera with distortion coefficients
     each chunk is moved into its pinhole image (:class:`~torchevtrack.distortion.Undistorter`) and the number of
-    events that leave it is printed."""
+    events that leave it is printed on stderr (stdout stays a command's output, e.g. ``bench --json``)."""
     chunks = iter_events(path, chunk_events=chunk, width=camera.width, height=camera.height)
     if not undistort or camera.distortion is None:
         return EventStream.concat(list(chunks))
     undistorter = Undistorter(camera)
     events = EventStream.concat([undistorter(c) for c in chunks])
     print(f"undistorted {len(events) + int(undistorter.dropped)} events, dropped {int(undistorter.dropped)} "
-          "(outside the pinhole image)")
+          "(outside the pinhole image)", file=sys.stderr)
     return events
