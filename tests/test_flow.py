@@ -11,13 +11,20 @@ from torchevtrack.stages.flow import (NEVER, TripletFlow, block_grid, register_b
 
 
 # ----------------------------------------------------------------------------------------------- oracles
-def triplet_oracle(sae0, xs, ys, ts, ps, bs, D, dt_max, tol):
-    """Per event: look up p0 + d and p0 + 2d in the current SAE, then write SAE[p0] = t0."""
+def triplet_oracle(sae0, xs, ys, ts, ps, bs, D, dt_max, tol, onset=0, last0=None):
+    """Per event: look up p0 + d and p0 + 2d in the current SAE, then write SAE[p0] = t0. With ``onset > 0`` only
+    events whose pixel's previous event (``last``, every event) is more than ``onset`` older look up and write."""
     sae = sae0.copy()
+    last = None if last0 is None else last0.copy()
     B, C, H, W = sae.shape
     out = []
     for i, (x, y, t, p, b) in enumerate(zip(xs, ys, ts, ps, bs)):
         c = int(p) if C == 2 else 0
+        if onset:
+            silent = int(t) - int(last[b, c, y, x]) > onset
+            last[b, c, y, x] = max(last[b, c, y, x], t)
+            if not silent:
+                continue
         for dy in range(-D, D + 1):
             for dx in range(-D, D + 1):
                 if dx == 0 and dy == 0:
@@ -30,7 +37,7 @@ def triplet_oracle(sae0, xs, ys, ts, ps, bs, D, dt_max, tol):
                     s = (dt01 + dt12) * 1e-6
                     out.append((i, -2 * dx / s, -2 * dy / s))
         sae[b, c, y, x] = max(sae[b, c, y, x], t)
-    return out, sae
+    return out, sae, last
 
 
 def edge_events(H, W, normal, speed, t_end_us, offset=0.0, dup=0):
@@ -43,6 +50,23 @@ def edge_events(H, W, normal, speed, t_end_us, offset=0.0, dup=0):
     if dup:
         x, y = np.tile(x, dup + 1), np.tile(y, dup + 1)
         t = np.concatenate([t + 30 * k for k in range(dup + 1)])
+    m = (t >= 0) & (t < t_end_us)
+    o = np.argsort(t[m], kind="stable")
+    return x[m][o], y[m][o], t[m][o]
+
+
+def ramp_edge_events(H, W, normal, speed, t_end_us, rng, k_max):
+    """As :func:`edge_events`, but each crossing fires 1 to ``k_max`` events (random): the first as the edge
+    arrives, the others at random times during the crossing (one pixel of travel), as a sensor fires one event per
+    contrast threshold."""
+    n = np.asarray(normal, float) / np.linalg.norm(normal)
+    yy, xx = np.mgrid[0:H, 0:W]
+    k = rng.integers(1, k_max + 1, H * W)
+    s = np.repeat((xx * n[0] + yy * n[1]).ravel(), k)
+    first = np.concatenate([[True], np.repeat(np.arange(H * W), k)[1:] != np.repeat(np.arange(H * W), k)[:-1]])
+    s = s + np.where(first, 0.0, rng.uniform(0, 1, s.size))
+    x, y = np.repeat(xx.ravel(), k), np.repeat(yy.ravel(), k)
+    t = np.round(s / speed * 1e6).astype(np.int64)
     m = (t >= 0) & (t < t_end_us)
     o = np.argsort(t[m], kind="stable")
     return x[m][o], y[m][o], t[m][o]
@@ -133,11 +157,13 @@ def register_oracle(flows, events, pixels, tie_tol, inlier):
 
 
 # ----------------------------------------------------------------------------------------------- tests
-@pytest.mark.parametrize("C,B,D", [(1, 1, 2), (2, 2, 2), (1, 1, 4)])  # D = 4: 80 directions, over one bit mask
-def test_triplet_samples_match_sequential_oracle(C, B, D):
+@pytest.mark.parametrize("C,B,D,onset", [(1, 1, 2, 0), (2, 2, 2, 0), (1, 1, 4, 0),  # D = 4: 80 directions, over one mask
+                                          (1, 1, 2, 60), (2, 2, 2, 60), (1, 1, 4, 60)])
+def test_triplet_samples_match_sequential_oracle(C, B, D, onset):
     rng = np.random.default_rng(3 + C)
     H, W, dt_max, tol = 9, 11, 3000, 0.4
     sae = np.full((B, C, H, W), NEVER, dtype=np.int64)
+    last = sae.copy() if onset else None
     t_now = 0
     total = 0
     for n in (300, 0, 500, 400):  # packets; SAE carries over
@@ -147,19 +173,57 @@ def test_triplet_samples_match_sequential_oracle(C, B, D):
         p = rng.integers(0, 2, n)
         t = t_now + np.cumsum(rng.integers(0, 40, n))
         t_now = int(t[-1]) if n else t_now
-        ref, sae_next = triplet_oracle(sae, x, y, t, p, b, D, dt_max, tol)
+        ref, sae_next, last_next = triplet_oracle(sae, x, y, t, p, b, D, dt_max, tol, onset, last)
         tx = [torch.from_numpy(a) for a in (x, y, t, p, b)]
         ev, fl = triplet_samples(torch.from_numpy(sae), tx[0].short(), tx[1].short(), tx[2], tx[3].to(torch.int8),
-                                 tx[4], D=D, dt_max_us=dt_max, tol=tol)
+                                 tx[4], D=D, dt_max_us=dt_max, tol=tol, onset_us=onset,
+                                 last=None if last is None else torch.from_numpy(last))
         got = sorted(zip(ev.tolist(), fl[:, 0].tolist(), fl[:, 1].tolist()))
         ref = sorted(ref)
         assert len(got) == len(ref)
         for g, r in zip(got, ref):
             assert g[0] == r[0] and g[1] == pytest.approx(r[1], rel=1e-6) and g[2] == pytest.approx(r[2], rel=1e-6)
-        np.testing.assert_array_equal(sae_update(torch.from_numpy(sae), *tx).numpy(), sae_next)
-        sae = sae_next
+        if not onset:
+            np.testing.assert_array_equal(sae_update(torch.from_numpy(sae), *tx).numpy(), sae_next)
+        sae, last = sae_next, last_next
         total += len(ref)
     assert total > 50  # the stream must exercise acceptance, not only rejection
+
+
+def test_module_keeps_the_onset_state_of_the_oracle():
+    """TripletFlow's SAE (onsets) and last-event times after packets equal the sequential oracle's."""
+    rng = np.random.default_rng(11)
+    B, C, H, W, D, onset = 2, 1, 9, 11, 2, 60
+    flow = TripletFlow(H, W, batch_size=B, block=4, min_samples=1, D=D, dt_max_us=3000, tol=0.4, onset_us=onset)
+    sae = np.full((B, C, H, W), NEVER, dtype=np.int64)
+    last = sae.copy()
+    t_now = 0
+    for n in (300, 0, 500):
+        x, y, b = rng.integers(0, W, n), rng.integers(0, H, n), rng.integers(0, B, n)
+        t = t_now + np.cumsum(rng.integers(0, 40, n))
+        t_now = int(t[-1]) if n else t_now
+        _, sae, last = triplet_oracle(sae, x, y, t, np.zeros(n, int), b, D, 3000, 0.4, onset, last)
+        flow(*(torch.from_numpy(a) for a in (x, y, t)), None, torch.from_numpy(b))
+        p = flow.pad
+        np.testing.assert_array_equal(flow.sae.numpy(), sae)
+        np.testing.assert_array_equal(flow.last_padded[:, :, p:p + H, p:p + W].numpy(), last)
+    assert (sae != last).any()  # some events were not onsets
+    flow.reset(torch.tensor([True, False]))
+    assert (flow.last_padded[0] == NEVER).all() and (flow.last_padded[1, :, p:p + H, p:p + W].numpy() == last[1]).all()
+
+
+def test_onsets_read_an_edge_that_fires_several_events_per_crossing():
+    """A crossing of 1-4 events (one per contrast threshold): matching every event reads the speed up to several
+    percent off; matching the onsets reads it exactly."""
+    H, W, speed = 60, 90, 1000.0
+    x, y, t = ramp_edge_events(H, W, (1, 0.3), speed, int(80 / speed * 1e6), np.random.default_rng(1), 4)
+    truth = torch.tensor([1.0, 0.3]) / math.hypot(1.0, 0.3) * speed
+    every = _field_errors(run_packets(TripletFlow(H, W, block=30, min_samples=20, onset_us=0), x, y, t, 2000),
+                          lambda uv: truth)
+    onsets = _field_errors(run_packets(TripletFlow(H, W, block=30, min_samples=20, onset_us=1000), x, y, t, 2000),
+                           lambda uv: truth)
+    assert len(onsets) >= 40 and (onsets < 0.01).all(), np.sort(onsets)[-5:]
+    assert (every > 0.03).mean() > 0.2, np.sort(every)
 
 
 def _register(block, events, flows, pixels, n_blocks, **kw):
@@ -398,6 +462,11 @@ def test_bad_inputs():
         m(torch.tensor([1]), torch.tensor([10]), torch.tensor([1]), torch.tensor([1]))
     with pytest.raises(ValueError, match="sae"):
         triplet_samples(torch.zeros(1, 1, 5, 5), torch.tensor([1]), torch.tensor([1]), torch.tensor([1]), None)
+    with pytest.raises(ValueError, match="onset_us"):
+        TripletFlow(10, 10, onset_us=-1)
+    sae = torch.full((1, 1, 5, 5), NEVER, dtype=torch.int64)
+    with pytest.raises(ValueError, match="needs last"):
+        triplet_samples(sae, torch.tensor([1]), torch.tensor([1]), torch.tensor([1]), None, onset_us=10)
 
 
 def test_rows_update_only_their_elements_as_the_whole_batch_would():

@@ -10,10 +10,10 @@ from torchevtrack.update import bind_intake
 H, W, B = 60, 80, 3
 
 
-def _stages(B=B):
+def _stages(B=B, onset_us=1000):
     """Two polarity channels: the flow checks the polarities too."""
     return EROS(H, W, batch_size=B), TimeSurface(H, W, batch_size=B), \
-        TripletFlow(H, W, batch_size=B, block=20, min_samples=5, per_polarity=True)
+        TripletFlow(H, W, batch_size=B, block=20, min_samples=5, per_polarity=True, onset_us=onset_us)
 
 
 def intake(eros, times, flow, x, y, t, p=None, b=None, rows=None):
@@ -34,9 +34,10 @@ def _window(seed, t0, n=3000, B=B):
     return x[order].int(), y[order].short(), t[order], p[order], b
 
 
-def test_intake_is_the_eros_then_the_flow_bit_for_bit():
-    eros, times, flow = _stages()
-    ref_eros, ref_times, ref_flow = _stages()
+@pytest.mark.parametrize("onset_us", [0, 1000])
+def test_intake_is_the_eros_then_the_flow_bit_for_bit(onset_us):
+    eros, times, flow = _stages(onset_us=onset_us)
+    ref_eros, ref_times, ref_flow = _stages(onset_us=onset_us)
     for k in range(3):  # later windows see the surfaces the earlier ones left
         x, y, t, p, b = _window(k, 10_000 + 2000 * k)
         got = intake(eros, times, flow, x, y, t, p, b)
@@ -46,10 +47,12 @@ def test_intake_is_the_eros_then_the_flow_bit_for_bit():
         for a, c in zip(got, want):
             assert a.dtype == c.dtype and torch.equal(a, c)
         assert torch.equal(eros.surface, ref_eros.surface) and torch.equal(flow.sae_padded, ref_flow.sae_padded)
+        assert torch.equal(flow.last_padded, ref_flow.last_padded)
         assert torch.equal(times.last_us, ref_times.last_us)
     assert int(want.valid.sum()) > 0 and float(eros.surface.max()) > 0  # the comparison covers real work
-    # the time surface holds the flow's SAE, either polarity: the observation may read either
-    assert torch.equal(times.last_us, flow.sae.amax(1))
+    # the time surface holds the flow's newest event times, either polarity: the observation may read either
+    assert torch.equal(times.last_us, flow.newest.amax(1))
+    assert torch.equal(flow.newest, flow.sae) == (onset_us == 0)  # with onsets, some events were not matched
 
 
 def test_rows_and_one_element_without_a_batch_index():

@@ -96,6 +96,7 @@ class FlowConfig:
     radius: int = 2  # D: triplet offsets |dx|, |dy| <= D
     dt_max_us: int = 50_000
     tol: float = 0.125
+    onset_us: int = 0  # > 0: only a crossing's first event is matched, one whose pixel was silent this long (0 = all)
     max_speed: float = 5000.0  # px/s; faster block flows are discarded as outliers (degenerate fits)
     estimate: str = "normal"  # "normal" (time-surface gradient fit of the inliers) or "register" (the paper)
 
@@ -263,6 +264,8 @@ class TrackerConfig:
             recency_windows(e.recency_us, e.recency_px, e.recency_min_us, e.recency_max_us)
         except ValueError as err:
             raise ValueError(f"eros.recency_*: {err}") from None
+        if isinstance(self.flow.onset_us, bool) or not isinstance(self.flow.onset_us, int) or self.flow.onset_us < 0:
+            raise ValueError(f"flow.onset_us must be an int >= 0 (0 = off), got {self.flow.onset_us!r}")
         if self.velocity.source not in ("flow", "poses", "none"):
             raise ValueError(f"velocity.source must be 'flow', 'poses' or 'none', got {self.velocity.source!r}")
         v = self.velocity

@@ -652,9 +652,9 @@ class EventPoseTracker(nn.Module):
     @property
     def last_event_us(self) -> torch.Tensor:
         """The newest event time per pixel, int64 microseconds: ``(B, H, W)`` (the ``time_surface`` stage, where the
-        tracker keeps one) or ``(B, C, H, W)`` per polarity channel (the flow's SAE); :data:`~torchevtrack.stages.NEVER`
+        tracker keeps one) or ``(B, C, H, W)`` per polarity channel (the flow's :attr:`~torchevtrack.stages.flow.TripletFlow.newest`); :data:`~torchevtrack.stages.NEVER`
         where none fired. The tracker's own buffer: clone it to keep it."""
-        return self.time_surface.last_us if self.time_surface is not None else self.flow.sae
+        return self.time_surface.last_us if self.time_surface is not None else self.flow.newest
 
     def _follow(self, owner: "EventPoseTracker") -> None:
         """Share ``owner``'s event stages (burst guard, denoise filter, EROS, time surface, flow), which depend on the
@@ -857,7 +857,7 @@ class EventPoseTracker(nn.Module):
                             self.velocity.arrays(), cfg.flow.max_speed,
                             max(cfg.flow.block // 4, 2),  # flow lies on edges: the pixel may fall just off
                             None if fb is None else fb.b.numpy())
-        times = self.flow.sae if self.time_surface is None else self.time_surface.last_us[:, None]  # (B, C, H, W)
+        times = self.flow.newest if self.time_surface is None else self.time_surface.last_us[:, None]  # (B, C, H, W)
         correct = [bind_correction(self.eros.surface[r].numpy(), times[r].numpy(), self.camera, canvas=o["canvas"],
                                    margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"],
                                    interior=o["interior"], dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"], rule=o["rule"],

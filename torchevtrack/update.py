@@ -85,6 +85,7 @@ def bind_intake(eros: EROS, time_surface: TimeSurface | None, flow: TripletFlow,
     """
     surface = eros.surface if rows is None else eros.surface[rows]
     sae = flow.sae_padded if rows is None else flow.sae_padded[rows]
+    seen = flow.last_padded if rows is None else flow.last_padded[rows]
     B, C = sae.shape[:2]
     times = time_surface is not None
     last = (time_surface.last_us if rows is None else time_surface.last_us[rows]) if times else \
@@ -93,7 +94,7 @@ def bind_intake(eros: EROS, time_surface: TimeSurface | None, flow: TripletFlow,
         raise ValueError(f"the EROS, the time surface and the flow must hold the same elements, got "
                          f"{surface.shape[0]}, {last.shape[0]} and {B}")
     G = flow.n_blocks
-    s, last_np, sae_np = surface.numpy(), last.numpy(), sae.numpy()
+    s, last_np, sae_np, seen_np = surface.numpy(), last.numpy(), sae.numpy(), seen.numpy()
     lam, r = s.dtype.type(eros.lam), eros.kernel_size // 2
     matching = flow.params
 
@@ -111,22 +112,22 @@ def bind_intake(eros: EROS, time_surface: TimeSurface | None, flow: TripletFlow,
             checked(xn, yn, tn, bn if batched else None)
         out, uv = np.zeros((B, G, 2), dtype=np.float32), np.empty((B, G, 2), dtype=np.float32)
         valid, count = np.empty((B, G), dtype=np.bool_), np.empty((B, G), dtype=np.int64)
-        if not _intake_kernel(s, lam, r, last_np, surfaces, surfaces and times, sae_np, xn, yn, tn, pn, bn, C, batched,
-                              *matching, out, uv, valid, count):
+        if not _intake_kernel(s, lam, r, last_np, surfaces, surfaces and times, sae_np, seen_np, xn, yn, tn, pn, bn, C,
+                              batched, *matching, out, uv, valid, count):
             _range_errors(x, y, t, p, b)
         return FlowField(uv, out, valid, count)
     return run
 
 
 @numba.njit(cache=True, nogil=True)
-def _intake_kernel(surface, lam, r, last, surfaces, times, sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us,
-                   tol, chunk, block_x, block_y, G, min_samples, max_candidates, tie_tol, normal, inlier, fill, out, uv,
-                   valid, count):
+def _intake_kernel(surface, lam, r, last, surfaces, times, sae, seen, x, y, t, p, b, C, batched, dirs, pad, dt_max_us,
+                   tol, onset_us, chunk, block_x, block_y, G, min_samples, max_candidates, tie_tol, normal, inlier, fill,
+                   out, uv, valid, count):
     """:func:`~torchevtrack.stages.flow.flow_packet`, then (``surfaces``) :func:`~torchevtrack.stages.eros.eros_kernel`
     and (``times``) :func:`~torchevtrack.stages.eros.time_kernel` if every event was in range (False: nothing
     written)."""
-    ok = flow_packet(sae, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, chunk, block_x, block_y, G,
-                     min_samples, max_candidates, tie_tol, normal, inlier, fill, out, uv, valid, count)
+    ok = flow_packet(sae, seen, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, onset_us, chunk, block_x, block_y,
+                     G, min_samples, max_candidates, tie_tol, normal, inlier, fill, out, uv, valid, count)
     if ok and surfaces and x.shape[0]:
         ok = eros_kernel(surface, x, y, b, batched, r, lam) and (not times or time_kernel(last, x, y, t, b, batched))
     return ok
