@@ -157,8 +157,9 @@ def register_oracle(flows, events, pixels, tie_tol, inlier):
 
 
 # ----------------------------------------------------------------------------------------------- tests
-@pytest.mark.parametrize("C,B,D,onset", [(1, 1, 2, 0), (2, 2, 2, 0), (1, 1, 4, 0),  # D = 4: 80 directions, over one mask
-                                          (1, 1, 2, 60), (2, 2, 2, 60), (1, 1, 4, 60)])
+# D = 4: 80 directions, more than one bit mask
+@pytest.mark.parametrize("C,B,D,onset", [(1, 1, 2, 0), (2, 2, 2, 0), (1, 1, 4, 0), (1, 1, 2, 60), (2, 2, 2, 60),
+                                          (1, 1, 4, 60)])
 def test_triplet_samples_match_sequential_oracle(C, B, D, onset):
     rng = np.random.default_rng(3 + C)
     H, W, dt_max, tol = 9, 11, 3000, 0.4

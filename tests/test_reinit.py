@@ -176,8 +176,8 @@ def test_ukf_masked_reset():
 # -- the tracker ---------------------------------------------------------------------------------------
 CAM = Camera(160, 120, 125.6, 125.6, 79.5, 59.5)
 P_US = 2000
-STATE = ["pose", "prev_pose", "events_seen", "t_last", "eros.surface", "flow.sae_padded", "flow.last_padded", "velocity.x",
-         "velocity.P", "ukf.x", "ukf.P"]
+STATE = ["pose", "prev_pose", "events_seen", "t_last", "eros.surface", "flow.sae_padded", "flow.last_padded",
+         "velocity.x", "velocity.P", "ukf.x", "ukf.P"]
 
 
 @pytest.fixture(scope="module")

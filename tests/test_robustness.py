@@ -166,8 +166,8 @@ def _burst_stream(g, n, B, H, W, t0):
     return x[order], y[order], t0 + t[order], torch.randint(0, 2, (n,), generator=g), b[order]
 
 
-@pytest.mark.parametrize("per_polarity, estimate, chunk, onset_us", [(False, "normal", 97, 1000), (True, "register", 13, 0),
-                                                                     (False, "register", 1, 50)])
+@pytest.mark.parametrize("per_polarity, estimate, chunk, onset_us",
+                         [(False, "normal", 97, 1000), (True, "register", 13, 0), (False, "register", 1, 50)])
 def test_triplet_flow_in_chunks_equals_one_pass(per_polarity, estimate, chunk, onset_us):
     """Samples, SAE and flow field of a packet matched in chunks equal one pass over it, bit for bit."""
     B, H, W, n = 2, 30, 40, 2500

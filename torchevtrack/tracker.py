@@ -652,8 +652,8 @@ class EventPoseTracker(nn.Module):
     @property
     def last_event_us(self) -> torch.Tensor:
         """The newest event time per pixel, int64 microseconds: ``(B, H, W)`` (the ``time_surface`` stage, where the
-        tracker keeps one) or ``(B, C, H, W)`` per polarity channel (the flow's :attr:`~torchevtrack.stages.flow.TripletFlow.newest`); :data:`~torchevtrack.stages.NEVER`
-        where none fired. The tracker's own buffer: clone it to keep it."""
+        tracker keeps one) or ``(B, C, H, W)`` per polarity channel (the flow's ``newest``);
+        :data:`~torchevtrack.stages.NEVER` where none fired. The tracker's own buffer: clone it to keep it."""
         return self.time_surface.last_us if self.time_surface is not None else self.flow.newest
 
     def _follow(self, owner: "EventPoseTracker") -> None:

@@ -121,8 +121,8 @@ def bind_intake(eros: EROS, time_surface: TimeSurface | None, flow: TripletFlow,
 
 @numba.njit(cache=True, nogil=True)
 def _intake_kernel(surface, lam, r, last, surfaces, times, sae, seen, x, y, t, p, b, C, batched, dirs, pad, dt_max_us,
-                   tol, onset_us, chunk, block_x, block_y, G, min_samples, max_candidates, tie_tol, normal, inlier, fill,
-                   out, uv, valid, count):
+                   tol, onset_us, chunk, block_x, block_y, G, min_samples, max_candidates, tie_tol, normal, inlier,
+                   fill, out, uv, valid, count):
     """:func:`~torchevtrack.stages.flow.flow_packet`, then (``surfaces``) :func:`~torchevtrack.stages.eros.eros_kernel`
     and (``times``) :func:`~torchevtrack.stages.eros.time_kernel` if every event was in range (False: nothing
     written)."""

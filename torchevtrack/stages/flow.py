@@ -246,8 +246,9 @@ def _match_packet(sae, last, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, to
     against the padded SAE ``(B, Cs, Hp, Wp)``, which they update in place as they go (each event looks up, then
     writes: the module docstring's "strictly earlier"), ``chunk`` events at a time (a buffer of ``chunk K``
     samples). With ``onset_us > 0`` only crossing onsets match and write, and ``last`` (the SAE's shape: each
-    pixel's newest event time) takes every event; with ``onset_us = 0`` ``last`` is not read (any array). Returns ``event (S,)`` (index into the packet), ``flow (S, 2)`` float32 and ``ok``: False, nothing
-    matched or written, if an event lies outside the SAE."""
+    pixel's newest event time) takes every event; with ``onset_us = 0`` ``last`` is not read (any array). Returns
+    ``event (S,)`` (index into the packet), ``flow (S, 2)`` float32 and ``ok``: False, nothing matched or written, if
+    an event lies outside the SAE."""
     B, Cs, Hp, Wp = sae.shape
     planes = B * Cs
     sae3 = sae.reshape(planes, Hp, Wp)
@@ -852,10 +853,11 @@ def flow_packet(sae, last, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol,
     """:meth:`TripletFlow.forward` in one compiled call, unchecked, for compiled callers.
 
     The events of :func:`event_arrays` are matched against the padded SAE ``sae`` ``(B, C, H + 2 pad, W + 2 pad)``
-    int64 (``TripletFlow.sae_padded``, written in place; ``last`` is ``TripletFlow.last_padded``) with the flow's constants (``*TripletFlow.params``, see
-    :class:`FlowParams`), and the blocks registered into ``out`` (zeros on entry) and ``uv`` ``(B, G, 2)`` float32 and
-    ``valid`` bool, ``count`` int64 ``(B, G)``. Returns False, nothing written, if an event lies outside the SAE.
-    (Its steps: :func:`_match_packet`, :func:`_sample_blocks`, :func:`_register_all`.)"""
+    int64 (``TripletFlow.sae_padded``, written in place, as ``last``, ``TripletFlow.last_padded``) with the flow's
+    constants (``*TripletFlow.params``, see :class:`FlowParams`), and the blocks registered into ``out`` (zeros on
+    entry) and ``uv`` ``(B, G, 2)`` float32 and ``valid`` bool, ``count`` int64 ``(B, G)``. Returns False, nothing
+    written, if an event lies outside the SAE. (Its steps: :func:`_match_packet`, :func:`_sample_blocks`,
+    :func:`_register_all`.)"""
     event, flow, ok = _match_packet(sae, last, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, onset_us, chunk)
     if ok:
         B = count.shape[0]
@@ -868,10 +870,10 @@ def flow_packet(sae, last, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol,
 class FlowParams(NamedTuple):
     """The constants :func:`flow_packet` takes after the events, in its argument order (``TripletFlow.params``).
 
-    ``dirs`` ``(K, 2)`` triplet directions, ``pad`` the SAE border (``2 D``), ``dt_max_us``, ``tol``, ``onset_us``, ``chunk`` (see
-    :class:`TripletFlow`), ``block_x`` ``(W,)`` block column of each pixel column, ``block_y`` ``(H,)`` first block
-    index of each pixel row, ``n_blocks`` ``G``, ``min_samples``, ``max_candidates``, ``tie_tol``, ``normal``
-    (``estimate == "normal"``), ``inlier``, ``centres`` ``(G, 2)`` block centres in pixels.
+    ``dirs`` ``(K, 2)`` triplet directions, ``pad`` the SAE border (``2 D``), ``dt_max_us``, ``tol``, ``onset_us``,
+    ``chunk`` (see :class:`TripletFlow`), ``block_x`` ``(W,)`` block column of each pixel column, ``block_y``
+    ``(H,)`` first block index of each pixel row, ``n_blocks`` ``G``, ``min_samples``, ``max_candidates``,
+    ``tie_tol``, ``normal`` (``estimate == "normal"``), ``inlier``, ``centres`` ``(G, 2)`` block centres in pixels.
     """
     dirs: np.ndarray
     pad: int
@@ -1019,5 +1021,6 @@ class TripletFlow(nn.Module):
 
     def extra_repr(self) -> str:
         return (f"height={self.height}, width={self.width}, block={self.block}, min_samples={self.min_samples}, "
-                f"D={self.D}, dt_max_us={self.dt_max_us}, tol={self.tol}, onset_us={self.onset_us}, per_polarity={self.per_polarity}, "
+                f"D={self.D}, dt_max_us={self.dt_max_us}, tol={self.tol}, onset_us={self.onset_us}, "
+                f"per_polarity={self.per_polarity}, "
                 f"estimate={self.estimate!r}")
