@@ -10,12 +10,16 @@ not, the observation itself is poor (noise, too few or blurred events). ``--orac
 filter's state to the true twist of the coming window after each update, with the flow and the feedback switched off
 (``tools/oracle_split.py``'s ``true-twist`` mode), so the propagation follows the truth exactly.
 
-    python tools/diagnose_loss.py SEQDIR --duration 0.5 --every 10 [--filter-events] [--config FILE]
+``--twist`` prints, in place of the score columns, the velocity filter's twist about the object centre (the state
+``x``, cm/s and deg/s) beside the true twist of the window, and at the end their RMS differences per axis.
+
+    python tools/diagnose_loss.py SEQDIR --duration 0.5 --every 10 [--twist] [--oracle-velocity] [--config FILE]
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 
 import torch
 
@@ -61,6 +65,9 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=10, help="print every N-th update")
     ap.add_argument("--config", help="tracker config YAML (default: the defaults)")
     ap.add_argument("--oracle-velocity", action="store_true", help="continue from the true twist after each update")
+    ap.add_argument("--twist", action="store_true",
+                    help="print the velocity filter's twist about the centre and the true one instead of the score "
+                         "columns (cm/s, deg/s), and their RMS differences at the end")
     args = ap.parse_args()
     torch.set_num_threads(1)
 
@@ -77,15 +84,22 @@ def main() -> None:
     bounds = torch.searchsorted(ev.t, t0 + torch.arange(n + 1) * period)
     tracker.reset(gt[0])
     print(f"{args.seqdir}: {len(ev)} events, {ev.event_rate() / 1e6:.2f} M/s")
-    print("   t_ms  dx_cm  dy_cm  dz_cm  rx_deg ry_deg rz_deg  events flow  score  score@gt  te_cm re_deg")
+    twist_names = [f"{q}{axis}_{k}" for q in "vw" for k in ("est", "gt") for axis in "xyz"]
+    columns = "".join(f" {c:>7s}" for c in twist_names) if args.twist else "  events flow  score  score@gt"
+    print("   t_ms  dx_cm  dy_cm  dz_cm  rx_deg ry_deg rz_deg" + columns + "  te_cm re_deg")
     first_fail = None
+    twist_errors = []
     for i in range(n):
         a, b = int(bounds[i]), int(bounds[i + 1])
         t_now = t0 + (i + 1) * period
         window = tracker.recency.window_us  # the update sets the next one: this is the window it observes with
+        true_twist = window_twist(gt_t, gt, t_now - period, period)[0]  # about the centre, as the filter's state
         if args.oracle_velocity:  # the twist of this window: the propagation follows the truth
-            tracker.velocity.x.copy_(window_twist(gt_t, gt, t_now - period, period).to(tracker.velocity.x.dtype))
+            tracker.velocity.x.copy_(true_twist[None].to(tracker.velocity.x.dtype))
         pose = tracker(ev.x[a:b], ev.y[a:b], ev.t[a:b], ev.p[a:b], t_us=t_now)[0]
+        scale = torch.tensor([100.0] * 3 + [180.0 / math.pi] * 3, dtype=torch.float64)  # cm/s, deg/s
+        est, true = tracker.velocity.x[0].double() * scale, true_twist.double() * scale
+        twist_errors.append((est - true) ** 2)
         g = interpolate_gt(gt_t, gt, t_now)
         dt_cm = (pose[:3] - g[:3]) * 100
         rot = torch.rad2deg(quat_log(quat_mul(pose[3:], quat_conj(g[3:]))))
@@ -93,13 +107,20 @@ def main() -> None:
         if first_fail is None and (te > 7 or re > 40):
             first_fail = i
         if i % args.every == 0 or (first_fail == i):
-            q = tracker.quality
-            s_gt = template_score(renderer, g, tracker, t_now, cfg, window)
+            if args.twist:
+                middle = "".join(f" {float(v):7.0f}" for v in torch.cat([est[:3], true[:3], est[3:], true[3:]]))
+            else:
+                q = tracker.quality
+                s_gt = template_score(renderer, g, tracker, t_now, cfg, window)
+                middle = f" {int(q.events[0]):7d} {int(q.flow_vectors[0]):4d} {float(q.score[0]):6.1f} {s_gt:8.1f}"
             print(f"{(t_now - t0) / 1000:7.1f} " + " ".join(f"{float(v):6.2f}" for v in dt_cm) + " "
-                  + " ".join(f"{float(v):6.1f}" for v in rot)
-                  + f" {int(q.events[0]):7d} {int(q.flow_vectors[0]):4d} {float(q.score[0]):6.1f} {s_gt:8.1f}"
+                  + " ".join(f"{float(v):6.1f}" for v in rot) + middle
                   + f" {te:6.2f} {re:6.1f}" + ("  <- error > 7 cm / 40 deg" if first_fail == i else ""))
     tracker.close()
+    if args.twist and twist_errors:
+        rms = torch.stack(twist_errors).mean(0).sqrt()
+        print("RMS twist error, velocity filter against the truth: v " + " ".join(f"{float(v):.1f}" for v in rms[:3])
+              + " cm/s, w " + " ".join(f"{float(v):.0f}" for v in rms[3:]) + " deg/s")
 
 
 if __name__ == "__main__":
