@@ -66,6 +66,23 @@ def test_diagnose_loss_oracle(sequence: Path) -> None:
     assert len(lines) >= 4 and lines[2].split()[0] == "2.0"
 
 
+def test_diagnose_loss_twist(sequence: Path) -> None:
+    """With the true twist put into the filter, ``--twist`` reads it back (its RMS against the truth near zero: the
+    state is the twist about the centre, as the oracle's); from the flow it is off by more."""
+    def rms(*extra: str) -> list[float]:
+        lines = _run("tools/diagnose_loss.py", str(sequence), "--duration", "0.04", "--every", "5", "--twist",
+                     *extra).splitlines()
+        assert lines[1].split()[7:19] == [f"{q}{a}_{k}" for q in "vw" for k in ("est", "gt") for a in "xyz"]
+        assert len(lines[2].split()) == 21  # time, 6 errors, 12 rates, 2 error norms
+        last = lines[-1].replace(",", " ").split()
+        assert last[:8] == ["RMS", "twist", "error", "velocity", "filter", "against", "the", "truth:"]
+        return [float(v) for v in last[9:12] + last[14:17]]
+
+    oracle, flow = rms("--oracle-velocity"), rms()
+    assert max(oracle[:3]) < 0.1 and max(oracle[3:]) < 5  # cm/s, deg/s
+    assert sum(flow) > sum(oracle) + 10
+
+
 def test_recovery_trials(sequence: Path) -> None:
     """A start at the truth is counted within the bounds one update later (and reached them at that first update,
     as the reference run from the truth did), a start 5 cm off is not and never reached them (20 ms cannot close

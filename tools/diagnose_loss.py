@@ -89,6 +89,7 @@ def main() -> None:
     print("   t_ms  dx_cm  dy_cm  dz_cm  rx_deg ry_deg rz_deg" + columns + "  te_cm re_deg")
     first_fail = None
     twist_errors = []
+    scale = torch.tensor([100.0] * 3 + [180.0 / math.pi] * 3, dtype=torch.float64)  # m/s, rad/s -> cm/s, deg/s
     for i in range(n):
         a, b = int(bounds[i]), int(bounds[i + 1])
         t_now = t0 + (i + 1) * period
@@ -97,7 +98,6 @@ def main() -> None:
         if args.oracle_velocity:  # the twist of this window: the propagation follows the truth
             tracker.velocity.x.copy_(true_twist[None].to(tracker.velocity.x.dtype))
         pose = tracker(ev.x[a:b], ev.y[a:b], ev.t[a:b], ev.p[a:b], t_us=t_now)[0]
-        scale = torch.tensor([100.0] * 3 + [180.0 / math.pi] * 3, dtype=torch.float64)  # cm/s, deg/s
         est, true = tracker.velocity.x[0].double() * scale, true_twist.double() * scale
         twist_errors.append((est - true) ** 2)
         g = interpolate_gt(gt_t, gt, t_now)
