@@ -94,12 +94,14 @@ def main() -> None:
         a, b = int(bounds[i]), int(bounds[i + 1])
         t_now = t0 + (i + 1) * period
         window = tracker.recency.window_us  # the update sets the next one: this is the window it observes with
-        true_twist = window_twist(gt_t, gt, t_now - period, period)[0]  # about the centre, as the filter's state
+        if args.oracle_velocity or args.twist:  # about the centre, as the filter's state
+            true_twist = window_twist(gt_t, gt, t_now - period, period)[0]
         if args.oracle_velocity:  # the twist of this window: the propagation follows the truth
             tracker.velocity.x.copy_(true_twist[None].to(tracker.velocity.x.dtype))
         pose = tracker(ev.x[a:b], ev.y[a:b], ev.t[a:b], ev.p[a:b], t_us=t_now)[0]
-        est, true = tracker.velocity.x[0].double() * scale, true_twist.double() * scale
-        twist_errors.append((est - true) ** 2)
+        if args.twist:
+            est, true = tracker.velocity.x[0].double() * scale, true_twist.double() * scale
+            twist_errors.append((est - true) ** 2)
         g = interpolate_gt(gt_t, gt, t_now)
         dt_cm = (pose[:3] - g[:3]) * 100
         rot = torch.rad2deg(quat_log(quat_mul(pose[3:], quat_conj(g[3:]))))
@@ -117,7 +119,7 @@ def main() -> None:
                   + " ".join(f"{float(v):6.1f}" for v in rot) + middle
                   + f" {te:6.2f} {re:6.1f}" + ("  <- error > 7 cm / 40 deg" if first_fail == i else ""))
     tracker.close()
-    if args.twist and twist_errors:
+    if twist_errors:
         rms = torch.stack(twist_errors).mean(0).sqrt()
         print("RMS twist error, velocity filter against the truth: v " + " ".join(f"{float(v):.1f}" for v in rms[:3])
               + " cm/s, w " + " ".join(f"{float(v):.0f}" for v in rms[3:]) + " deg/s")

@@ -1022,5 +1022,4 @@ class TripletFlow(nn.Module):
     def extra_repr(self) -> str:
         return (f"height={self.height}, width={self.width}, block={self.block}, min_samples={self.min_samples}, "
                 f"D={self.D}, dt_max_us={self.dt_max_us}, tol={self.tol}, onset_us={self.onset_us}, "
-                f"per_polarity={self.per_polarity}, "
-                f"estimate={self.estimate!r}")
+                f"per_polarity={self.per_polarity}, estimate={self.estimate!r}")
