@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -117,3 +118,26 @@ def test_recovery_trials(sequence: Path) -> None:
     # the reference tracks the same sequence without the gap, in the same batch
     assert gap.count("without the gap  after") == 1 and "without the gap: 1 of 1 counted trials within them" in gap
     assert "0 of the 0 misses miss without the gap too" in gap
+
+
+def test_hand_oracle(sequence: Path, tmp_path: Path) -> None:
+    import trimesh
+
+    suite = tmp_path / "suite"
+    suite.mkdir()
+    (suite / "can").symlink_to(sequence)  # no hand: left out
+    _run("-m", "torchevtrack", "synth", "--object", "box", "--motion", "regular", "--duration", "0.03", "--seed", "1",
+         "--width", "160", "--height", "120", "--fx", "125", "--fy", "125", "--occluder", "hand",
+         "--out", str(suite / "held"), "--quiet")
+    out = tmp_path / "grip"
+    _run("tools/hand_oracle.py", str(suite), "--out", str(out))
+    assert sorted(p.name for p in out.iterdir()) == ["held"]
+    obj = trimesh.load(suite / "held" / "mesh.ply", force="mesh")
+    union = trimesh.load(out / "held" / "mesh.ply", force="mesh")
+    a = int(np.argmax(obj.extents))  # the grip's axis: the palm, 2 cm thick, lies against the -a end face
+    assert union.bounds[0, a] == pytest.approx(obj.bounds[0, a] - 0.02, abs=1e-6)
+    assert union.bounds[1, a] == pytest.approx(obj.bounds[1, a], abs=1e-6)  # the fingers stop short of the far end
+    assert (out / "held" / "events.h5").resolve() == (suite / "held" / "events.h5").resolve()
+    done = subprocess.run([sys.executable, "tools/hand_oracle.py", str(sequence), "--out", str(tmp_path / "x")],
+                          cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "no sequence with a hand" in done.stderr
