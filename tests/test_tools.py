@@ -123,12 +123,16 @@ def test_recovery_trials(sequence: Path) -> None:
 def test_hand_oracle(sequence: Path, tmp_path: Path) -> None:
     import trimesh
 
+    from torchevtrack.render import DEFAULT_ALBEDO
+
     suite = tmp_path / "suite"
     suite.mkdir()
     (suite / "can").symlink_to(sequence)  # no hand: left out
-    _run("-m", "torchevtrack", "synth", "--object", "box", "--motion", "regular", "--duration", "0.03", "--seed", "1",
+    _run("-m", "torchevtrack", "synth", "--object", "can", "--motion", "regular", "--duration", "0.03", "--seed", "1",
          "--width", "160", "--height", "120", "--fx", "125", "--fy", "125", "--occluder", "hand",
          "--out", str(suite / "held"), "--quiet")
+    plain = trimesh.load(suite / "held" / "mesh.ply", force="mesh")  # the built-in can is coloured: a plain one
+    trimesh.Trimesh(plain.vertices, plain.faces).export(suite / "held" / "mesh.ply")
     out = tmp_path / "grip"
     _run("tools/hand_oracle.py", str(suite), "--out", str(out))
     assert sorted(p.name for p in out.iterdir()) == ["held"]
@@ -137,6 +141,9 @@ def test_hand_oracle(sequence: Path, tmp_path: Path) -> None:
     a = int(np.argmax(obj.extents))  # the grip's axis: the palm, 2 cm thick, lies against the -a end face
     assert union.bounds[0, a] == pytest.approx(obj.bounds[0, a] - 0.02, abs=1e-6)
     assert union.bounds[1, a] == pytest.approx(obj.bounds[1, a], abs=1e-6)  # the fingers stop short of the far end
+    assert obj.visual.kind is None and union.visual.kind == "vertex"  # painted the renderers' grey
+    grey = round(DEFAULT_ALBEDO * 255)
+    assert (union.visual.vertex_colors[:, :3] == grey).all(1).sum() >= len(obj.vertices)
     assert (out / "held" / "events.h5").resolve() == (suite / "held" / "events.h5").resolve()
     done = subprocess.run([sys.executable, "tools/hand_oracle.py", str(sequence), "--out", str(tmp_path / "x")],
                           cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=120)
