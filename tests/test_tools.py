@@ -148,3 +148,8 @@ def test_hand_oracle(sequence: Path, tmp_path: Path) -> None:
     done = subprocess.run([sys.executable, "tools/hand_oracle.py", str(sequence), "--out", str(tmp_path / "x")],
                           cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and "no sequence with a hand" in done.stderr
+    obj.apply_scale(1.1)  # another mesh than the one the hand was built from: refused
+    obj.export(suite / "held" / "mesh.ply")
+    done = subprocess.run([sys.executable, "tools/hand_oracle.py", str(suite), "--out", str(tmp_path / "y")],
+                          cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "does not reproduce" in done.stderr and len(done.stderr.splitlines()) == 1

@@ -4,18 +4,21 @@ modelling a hand.
 For every sequence directory under SRC (or SRC itself) whose ``meta.json`` says a hand holds the object
 (``torchevtrack synth --occluder hand``), writes OUT/<name>/ whose ``mesh.ply`` is the object's mesh joined with the
 grip (palm, fingers, thumb; not the forearm) that :func:`torchevtrack.synth.hand.make_hand` builds from that mesh, in
-the object's frame, as the generator did (an uncoloured object painted the renderers' grey, as the generator renders
-it); the other files are symbolic links to the sequence's. The poses and the ground truth stay the object's, so
-``torchevtrack benchmark OUT`` scores a tracker that knows the hand's shape (docs/notebook.md, 2026-12-06: 33 of 64
-dev hand runs held against 8). A sequence whose hand the mesh does not reproduce (the forearm's end points in
-``meta.json`` more than 1 mm from the rebuilt ones) is an error.
+the object's frame, joined and coloured as the generator renders them (:func:`~torchevtrack.synth.hand.with_hand`: an
+uncoloured object in the renderers' grey, the grip in skin); the other files are symbolic links to the sequence's.
+The poses and the ground truth stay the object's, so ``torchevtrack benchmark OUT`` scores a tracker that knows the
+hand's shape (docs/notebook.md, 2026-12-06: 33 of 64 dev hand runs held against 8). A sequence whose hand the mesh
+does not reproduce (the forearm's end points in ``meta.json`` more than 1 mm from the rebuilt ones) is an error
+(exit 2).
 
-Example: ``python tools/hand_oracle.py data/wide_dev --out data/wide_dev_grip``
+Example: ``python tools/hand_oracle.py data/wide_dev --out data/wide_dev_grip`` (then ``torchevtrack benchmark
+data/wide_dev_grip --out R``)
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -23,8 +26,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from torchevtrack.render import DEFAULT_ALBEDO
-from torchevtrack.synth.hand import make_hand
+from torchevtrack.synth.hand import make_hand, with_hand
 
 LINKED = ("events.h5", "camera.json", "gt_poses.txt", "meta.json")
 
@@ -48,11 +50,7 @@ def with_grip(seq: Path, out: Path) -> None:
         link = out / name
         if not link.exists():
             link.symlink_to((seq / name).resolve())
-    if mesh.visual.kind is None:  # the renderers' grey, which a join with the grip's coloured vertices would lose
-        grey = np.full((len(mesh.vertices), 4), 255, dtype=np.uint8)
-        grey[:, :3] = round(DEFAULT_ALBEDO * 255)
-        mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=grey)
-    trimesh.util.concatenate([mesh, hand.grip]).export(out / "mesh.ply")
+    with_hand(mesh, dataclasses.replace(hand, forearm=trimesh.Trimesh())).export(out / "mesh.ply")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -71,7 +69,11 @@ def main(argv: list[str] | None = None) -> int:
         print("error: --out must not be the source", file=sys.stderr)
         return 2
     for seq in seqs:
-        with_grip(seq, args.out / seq.name)
+        try:
+            with_grip(seq, args.out / seq.name)
+        except ValueError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
     print(f"{len(seqs)} sequences with a hand -> {args.out}")
     return 0
 
