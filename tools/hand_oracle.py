@@ -27,8 +27,9 @@ import numpy as np
 import trimesh
 
 from torchevtrack.synth.hand import make_hand, with_hand
+from torchevtrack.synth.sequence import SEQUENCE_FILES
 
-LINKED = ("events.h5", "camera.json", "gt_poses.txt", "meta.json")
+LINKED = tuple(name for name in SEQUENCE_FILES if name != "mesh.ply")  # the copy's own mesh.ply is written
 
 
 def hand_sequences(src: Path) -> list[Path]:
