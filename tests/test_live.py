@@ -193,3 +193,31 @@ def test_a_recording_read_to_its_end_gives_the_offline_poses(seqdir, offline, tm
     assert main(["live", str(tmp_path / "missing.h5"), "--camera", str(seqdir / "camera.json"), "--mesh", "box",
                  "--init", text]) == 2
     assert "camera[:NAME] or an existing file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("ahead, pulled_first", [(100, 2), (10_000, 4)])
+def test_realtime_playback_decodes_ahead_of_its_clock_and_gives_every_event(monkeypatch, ahead, pulled_first):
+    """A paced recording is decoded (up to AHEAD_EVENTS) before its first event is given out, so that decoding does not
+    share the tracker's time during the playback; all events come out, in order, in 1 ms pieces."""
+    from torchevtrack import live
+    from torchevtrack.events import EventStream
+
+    chunks = [EventStream.from_arrays(x=np.arange(50) % CAM.width, y=np.full(50, 3), t=i * 5000 + np.arange(50) * 100,
+                                      p=np.arange(50) % 2) for i in range(4)]  # 4 chunks of 50 events, 20 ms
+    pulled = []
+
+    def file():
+        for c in chunks:
+            pulled.append(len(c))
+            yield c
+
+    monkeypatch.setattr(live, "AHEAD_EVENTS", ahead)
+    source = live._FileSource.__new__(live._FileSource)
+    source.file, source.realtime = file(), True
+    given = iter(source)
+    first = next(given)  # the first 1 ms piece, or None while its time has not come
+    assert len(pulled) == pulled_first  # 100 events: the first two chunks; 10,000: the whole file
+    out = [c for c in (first, *given) if c is not None]
+    assert all(len(c) and int(c.t[-1]) - int(c.t[0]) < 1000 for c in out)
+    assert torch.equal(torch.cat([c.t for c in out]), torch.cat([c.t for c in chunks]))
+    assert torch.equal(torch.cat([c.x for c in out]), torch.cat([c.x for c in chunks]))

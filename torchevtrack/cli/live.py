@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     from torchevtrack.camera import Camera
     from torchevtrack.cli.track import parse_init
     from torchevtrack.distortion import Undistorter
-    from torchevtrack.live import LiveRunner, open_source, parse_source
+    from torchevtrack.live import AHEAD_EVENTS, LiveRunner, open_source, parse_source
     from torchevtrack.online import OnlineTracker
     from torchevtrack.tracker import EventPoseTracker
 
@@ -112,7 +112,9 @@ def run(args: argparse.Namespace) -> int:
     previous = signal.signal(signal.SIGINT, on_sigint)
     saved = 0
     last_status = last_save = time.perf_counter()
-    print(f"live: tracking {args.source} (Ctrl-C to stop)", flush=True)
+    ahead = f"; its first {AHEAD_EVENTS // 1_000_000} M events are decoded before its clock starts (about 1 s per " \
+        "10 M)" if args.realtime else ""
+    print(f"live: tracking {args.source} (Ctrl-C to stop){ahead}", flush=True)
     try:
         for chunk in source:
             runner.feed(chunk)
