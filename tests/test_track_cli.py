@@ -7,6 +7,7 @@ events the distortion pushed off the sensor): tracking must give the same poses,
 """
 
 import dataclasses
+import re
 import shutil
 
 import pytest
@@ -117,3 +118,16 @@ def test_bench_json_stays_one_json_object_on_a_distorted_camera(dirs, capsys):
     out, err = capsys.readouterr()
     assert json.loads(out)["n_updates"] == 5
     assert "dropped 0" in err
+
+
+def test_track_reports_the_tracking_rate_apart_from_the_searches(dirs, capsys):
+    """A search blocks its update for about a second: the summary gives the rate of the tracking without it, and the
+    search time beside it (a short recording's rate would otherwise be mostly the search's)."""
+    out = dirs / "searched.txt"
+    assert main(["track", str(dirs / "pinhole"), "--out", str(out), "--quiet", "--set",
+                 "recover.start_after_us=20000"]) == 0  # the start search within the 40 ms recording
+    printed = capsys.readouterr().out
+    m = re.search(r"(\d+) poses from \d+ events, \d+ updates/s \(\d+\.\d s, and \d+\.\d s in 1 search\)", printed)
+    assert m, printed
+    assert int(m[1]) == 20
+    assert re.search(r"lost in \d+ of 20 updates; 1 search, [01] restarts?\n", printed), printed

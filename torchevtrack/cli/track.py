@@ -120,8 +120,8 @@ def check_start_pose(camera: Camera, mesh, pose: torch.Tensor) -> str | None:
     rows, cols = inside.any(1).nonzero(), inside.any(0).nonzero()
     span = max(int(rows[-1] - rows[0]), int(cols[-1] - cols[0])) + 1
     if span < SMALL_PX:
-        return (f"the object spans {span} px at the start pose: below {SMALL_PX} px its flow gives few vectors and fast "
-                "turns out of the image plane are often lost (a closer object or a finer sensor helps)")
+        return (f"the object spans {span} px at the start pose: below {SMALL_PX} px its flow gives few vectors and "
+                "fast turns out of the image plane are often lost (a closer object or a finer sensor helps)")
     return None
 
 
@@ -210,13 +210,15 @@ def run(args: argparse.Namespace) -> int:
     tracker.close()
     write_tum(args.out, times[0], poses[0])
     n = times.shape[1]
-    print(f"{args.out}: {n} poses from {n_events} events, {n / wall:.0f} updates/s ({wall:.1f} s)")
+    r = tracker.recover
+    search_s = 0.0 if r is None else r.search_s  # a search blocks its update: the rate is the tracking's without it
+    searching = f", and {search_s:.1f} s in {_count(r.searches, 'search')}" if search_s > 0 else ""
+    print(f"{args.out}: {n} poses from {n_events} events, {n / max(wall - search_s, 1e-9):.0f} updates/s "
+          f"({wall - search_s:.1f} s{searching})")
     if lost:
         flags = lost[0][0]
         write_lost(lost_path(args.out), times[0], flags)
-        r = tracker.recover
-        searched = "" if r is None else (f"; {r.searches} searches ({r.search_s:.1f} s of the wall time), "
-                                         f"{r.restarts} restarts")
+        searched = "" if r is None else f"; {_count(r.searches, 'search')}, {_count(r.restarts, 'restart')}"
         print(f"{lost_path(args.out)}: lost in {int(flags.sum())} of {n} updates{searched}")
         if flags.any():
             first = int(times[0][flags.nonzero()[0, 0]])
@@ -230,3 +232,8 @@ def run(args: argparse.Namespace) -> int:
               "the object is in view and the events are of it", file=sys.stderr)
         return 3
     return 0
+
+
+def _count(n: int, noun: str) -> str:
+    """``n`` and ``noun``, plural unless one: ``_count(2, "search") == "2 searches"``."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}{'es' if noun.endswith(('s', 'sh', 'ch')) else 's'}"
