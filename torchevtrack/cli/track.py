@@ -212,13 +212,13 @@ def run(args: argparse.Namespace) -> int:
     n = times.shape[1]
     r = tracker.recover
     search_s = 0.0 if r is None else r.search_s  # a search blocks its update: the rate is the tracking's without it
-    searching = f", and {search_s:.1f} s in {_count(r.searches, 'search')}" if search_s > 0 else ""
+    searching = f", and {search_s:.1f} s in {_count(r.searches, 'search', 'searches')}" if search_s > 0 else ""
     print(f"{args.out}: {n} poses from {n_events} events, {n / max(wall - search_s, 1e-9):.0f} updates/s "
           f"({wall - search_s:.1f} s{searching})")
     if lost:
         flags = lost[0][0]
         write_lost(lost_path(args.out), times[0], flags)
-        searched = "" if r is None else f"; {_count(r.searches, 'search')}, {_count(r.restarts, 'restart')}"
+        searched = "" if r is None else f"; {_count(r.searches, 'search', 'searches')}, {_count(r.restarts, 'restart', 'restarts')}"
         print(f"{lost_path(args.out)}: lost in {int(flags.sum())} of {n} updates{searched}")
         if flags.any():
             first = int(times[0][flags.nonzero()[0, 0]])
@@ -234,6 +234,6 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _count(n: int, noun: str) -> str:
-    """``n`` and ``noun``, plural unless one: ``_count(2, "search") == "2 searches"``."""
-    return f"{n} {noun}" if n == 1 else f"{n} {noun}{'es' if noun.endswith(('s', 'sh', 'ch')) else 's'}"
+def _count(n: int, one: str, many: str) -> str:
+    """``n`` and its noun: ``_count(1, "search", "searches") == "1 search"``, ``"2 searches"`` for 2."""
+    return f"{n} {one if n == 1 else many}"
