@@ -218,7 +218,8 @@ def run(args: argparse.Namespace) -> int:
     if lost:
         flags = lost[0][0]
         write_lost(lost_path(args.out), times[0], flags)
-        searched = "" if r is None else f"; {_count(r.searches, 'search', 'searches')}, {_count(r.restarts, 'restart', 'restarts')}"
+        searched = "" if r is None else \
+            f"; {_count(r.searches, 'search', 'searches')}, {_count(r.restarts, 'restart', 'restarts')}"
         print(f"{lost_path(args.out)}: lost in {int(flags.sum())} of {n} updates{searched}")
         if flags.any():
             first = int(times[0][flags.nonzero()[0, 0]])
