@@ -104,3 +104,25 @@ def test_a_failing_frame_keeps_the_old_video(tmp_path):
         save_video(frames(), path, fps=5)
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["overlay.gif"]
+
+
+def test_a_live_pose_file_grows_as_one_file_and_formats_each_pose_once(tmp_path, monkeypatch):
+    """`live --out` saves a growing trajectory every few seconds: each save rewrites the file atomically (the file
+    equals write_tum's of every pose so far) and formats only the poses added since the last one."""
+    import torchevtrack.io.poses as poses_io
+    from torchevtrack.cli.live import PoseFile
+
+    n, rng = 30, np.random.default_rng(1)
+    t = torch.arange(1, n + 1, dtype=torch.int64) * 2000
+    q = torch.nn.functional.normalize(torch.from_numpy(rng.normal(size=(n, 4))), dim=1)
+    p = torch.cat([torch.from_numpy(rng.normal(size=(n, 3))), q], 1)
+    formatted = []
+    real = poses_io.tum_lines
+    monkeypatch.setattr(poses_io, "tum_lines", lambda tt, pp: formatted.append(len(tt)) or real(tt, pp))
+    out, ref = PoseFile(tmp_path / "sub" / "live.txt"), tmp_path / "ref.txt"
+    for a, b in ((0, 12), (12, 13), (13, 30)):
+        out.save(t[a:b], p[a:b])
+        write_tum(ref, t[:b], p[:b])
+        assert out.poses == b and out.path.read_bytes() == ref.read_bytes()
+    assert formatted[0::2] == [12, 1, 17] and formatted[1::2] == [12, 13, 30]  # each save, then the reference
+    assert not [f for f in out.path.parent.iterdir() if f.name != "live.txt"]  # no temporary file left

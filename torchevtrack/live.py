@@ -271,8 +271,9 @@ class LiveRunner:
             self.status.lag_ms = (now - self._wall_first) * 1e3 - reached / 1e3
         return self.status
 
-    def trajectory(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Every pose so far: ``t_us (N,)`` int64 (window ends) and ``poses (N, 7)`` float64."""
-        if not self._t_us:
+    def trajectory(self, since: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+        """The poses so far from the ``since``-th on (default every one): ``t_us (N,)`` int64 (window ends) and
+        ``poses (N, 7)`` float64 (a caller that saves as it goes asks for the new ones only)."""
+        if since >= len(self._t_us):
             return torch.zeros(0, dtype=torch.int64), torch.zeros(0, 7, dtype=torch.float64)
-        return torch.tensor(self._t_us, dtype=torch.int64), torch.stack(self._poses)
+        return torch.tensor(self._t_us[since:], dtype=torch.int64), torch.stack(self._poses[since:])

@@ -14,7 +14,6 @@ Example:
 from __future__ import annotations
 
 import argparse
-import os
 import signal
 import sys
 import time
@@ -52,18 +51,29 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def write_poses_atomic(path: Path, t_us: torch.Tensor, poses: torch.Tensor) -> None:
-    """Write a TUM file through a temporary file in the same directory, renamed over ``path``: a reader sees the
-    old file or the new one, never a part."""
-    from torchevtrack.io.poses import write_tum
+class PoseFile:
+    """The TUM file of a growing trajectory, rewritten whole and atomically at each :meth:`save` (a reader sees the
+    old file or the new one, never a part), each pose formatted once: saving every few seconds of an hour's run
+    costs the file's bytes, not the formatting of every pose again (1.3 s for 300,000 poses here)."""
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        write_tum(tmp, t_us, poses)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    def __init__(self, path: Path) -> None:
+        from torchevtrack.io.poses import TUM_HEADER
+
+        self.path, self.lines = path, [TUM_HEADER]
+
+    @property
+    def poses(self) -> int:
+        """Poses written so far."""
+        return len(self.lines) - 1
+
+    def save(self, t_us: torch.Tensor, poses: torch.Tensor) -> None:
+        """Add the poses ``(N, 7)`` at ``t_us`` ``(N,)`` (those after the ones already written) and rewrite the file."""
+        from torchevtrack.io.atomic import write_text
+        from torchevtrack.io.poses import tum_lines
+
+        self.lines.extend(tum_lines(t_us, poses))
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        write_text(self.path, "\n".join(self.lines) + "\n")
 
 
 def warm_up(tracker, pose0: torch.Tensor) -> None:
@@ -110,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
         stop.append(True)
 
     previous = signal.signal(signal.SIGINT, on_sigint)
-    saved = 0
+    out = None if args.out is None else PoseFile(args.out)
     last_status = last_save = time.perf_counter()
     ahead = f"; its first {AHEAD_EVENTS // 1_000_000} M events are decoded before its clock starts (about 1 s per " \
         "10 M)" if args.realtime else ""
@@ -123,9 +133,9 @@ def run(args: argparse.Namespace) -> int:
                 last_status = now
                 if not args.quiet:
                     print(runner.report().line(), flush=True)
-            if args.out is not None and now - last_save >= _SAVE_S and runner.status.poses > saved:
-                last_save, saved = now, runner.status.poses
-                write_poses_atomic(args.out, *runner.trajectory())
+            if out is not None and now - last_save >= _SAVE_S and runner.status.poses > out.poses:
+                last_save = now
+                out.save(*runner.trajectory(since=out.poses))
             if stop:
                 break
     finally:
@@ -133,9 +143,8 @@ def run(args: argparse.Namespace) -> int:
         if logger is not None:
             logger.close()
         tracker.close()
-        t_us, poses = runner.trajectory()
-        if args.out is not None and len(t_us):
-            write_poses_atomic(args.out, t_us, poses)
+        if out is not None and runner.status.poses > out.poses:
+            out.save(*runner.trajectory(since=out.poses))
     status = runner.report()
     print(status.line(), flush=True)
     how = "stopped (Ctrl-C)" if stop else "end of stream"

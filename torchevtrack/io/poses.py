@@ -40,6 +40,8 @@ from torchevtrack.io.atomic import write_text
 __all__ = [
     "read_tum",
     "write_tum",
+    "tum_lines",
+    "TUM_HEADER",
     "read_csv",
     "write_csv",
     "read_bop_scene_gt",
@@ -130,14 +132,30 @@ def read_tum(path: str | Path) -> tuple[torch.Tensor, torch.Tensor]:
     return _finish(path, _seconds_to_us(a[:, 0]), a[:, 1:4], a[:, [7, 4, 5, 6]])
 
 
-def write_tum(path: str | Path, t_us: torch.Tensor, poses: torch.Tensor) -> None:
-    """Write a TUM trajectory (seconds with microsecond resolution, 9 decimals for poses)."""
+TUM_HEADER = "# t tx ty tz qx qy qz qw (object in camera frame, OpenCV axes, metres)"
+
+
+def tum_lines(t_us: torch.Tensor, poses: torch.Tensor) -> list[str]:
+    """The TUM lines (no header, no newlines) of ``t_us`` ``(N,)`` int64 us and ``poses`` ``(N, 7)`` (validated):
+    seconds with microsecond resolution, 9 decimals for the pose. ``[TUM_HEADER, *lines]`` joined by newlines is
+    :func:`write_tum`'s file, so a caller that keeps a growing trajectory formats each pose once.
+
+    Example:
+        >>> import torch
+        >>> tum_lines(torch.tensor([1500]), torch.tensor([[0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0]]))
+        ['0.001500 0.000000000 0.000000000 0.500000000 0.000000000 0.000000000 0.000000000 1.000000000']
+    """
     t_us, poses = _check_trajectory(t_us, poses)
-    lines = ["# t tx ty tz qx qy qz qw (object in camera frame, OpenCV axes, metres)"]
+    lines = []
     for ti, row in zip(t_us.tolist(), poses.numpy()):
         tx, ty, tz, qw, qx, qy, qz = row
         lines.append(f"{_us_to_seconds_str(ti)} {tx:.9f} {ty:.9f} {tz:.9f} {qx:.9f} {qy:.9f} {qz:.9f} {qw:.9f}")
-    write_text(path, "\n".join(lines) + "\n")
+    return lines
+
+
+def write_tum(path: str | Path, t_us: torch.Tensor, poses: torch.Tensor) -> None:
+    """Write a TUM trajectory (seconds with microsecond resolution, 9 decimals for poses), atomically."""
+    write_text(path, "\n".join([TUM_HEADER, *tum_lines(t_us, poses)]) + "\n")
 
 
 def read_csv(path: str | Path) -> tuple[torch.Tensor, torch.Tensor]:
