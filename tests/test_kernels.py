@@ -120,6 +120,23 @@ def test_the_manifest_names_exactly_the_kernels_a_warm_tracking_run_calls_from_p
     assert seen == listed, "torchevtrack/kernels.json is out of date: run python tools/kernel_manifest.py"
 
 
+def test_load_gives_a_process_every_kernel_of_the_manifest():
+    # `live` loads them before its stream starts, so that its first updates do not wait for code to load
+    script = (
+        "import json\n"
+        "from torchevtrack.kernels import load, loaded_signatures, manifest\n"
+        "before = len(loaded_signatures())\n"
+        "n = load()\n"
+        "seen = {json.dumps(list(s)) for s in loaded_signatures()}\n"
+        "missing = [e['name'] for e in manifest() if json.dumps([e['name'], e['signature']]) not in seen]\n"
+        "print(json.dumps([before, n, len(manifest()), missing]))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=900, check=True)
+    before, n, listed, missing = json.loads(out.stdout.splitlines()[-1])
+    assert before == 0 and n == listed > 0 and missing == []
+
+
 def test_warmup_leaves_no_tracker_module_cold(capsys):
     import torchevtrack.online  # noqa: F401  (the modules a tracking run loads)
     import torchevtrack.tracker  # noqa: F401

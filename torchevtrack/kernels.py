@@ -35,8 +35,8 @@ import threading
 from importlib import import_module
 from pathlib import Path
 
-__all__ = ["compile_cold", "decode_signature", "encode_signature", "drop_stale_callers", "loaded_signatures", "manifest",
-           "uncached_kernels", "warmup"]
+__all__ = ["compile_cold", "decode_signature", "encode_signature", "drop_stale_callers", "load", "loaded_signatures",
+           "manifest", "uncached_kernels", "warmup"]
 
 MANIFEST = Path(__file__).with_name("kernels.json")
 SECONDS_PER_KERNEL = 1.6  # a kernel's compile time on average (150 s for the ~90 of a tracking run, idle 2-core VM)
@@ -237,6 +237,17 @@ def manifest() -> list[dict]:
     compile time first (``seconds``: one core of the machine that wrote it, callees included); empty while
     ``tools/kernel_manifest.py`` writes it (the kernels then compile on first call)."""
     return json.loads(MANIFEST.read_text())["kernels"] if MANIFEST.exists() else []
+
+
+def load() -> int:
+    """Load every kernel of the manifest into this process (from the cache; compiling an entry it does not hold), so
+    that no later call waits for one: a stream's first updates otherwise load their kernels as they first call them
+    (pushes of up to ~26 ms at 1280x720 instead of ~1-5 ms). About 0.6 s from a warm cache. Returns the entries
+    loaded."""
+    entries = manifest()
+    for entry in entries:
+        _compile_entry(entry)
+    return len(entries)
 
 
 # -- compiling in worker processes --------------------------------------------------------------------------------

@@ -77,8 +77,11 @@ class PoseFile:
 
 
 def warm_up(tracker, pose0: torch.Tensor) -> None:
-    """One update on an empty window, so that the first update of the stream does not wait for the compiled
-    kernels to load (seconds in a fresh process). The stream's start resets the tracker completely."""
+    """Every kernel loaded (:func:`torchevtrack.kernels.load`) and one update on an empty window, so that the
+    stream's first updates do not wait for compiled code to load. The stream's start resets the tracker completely."""
+    from torchevtrack.kernels import load
+
+    load()
     empty = torch.zeros(0, dtype=torch.int64)
     tracker.reset(pose0)
     tracker(empty, empty, empty, empty)
