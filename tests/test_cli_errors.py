@@ -205,3 +205,14 @@ def test_warmup_with_no_workers_is_a_one_line_error(capsys):
     code, err = _run(capsys, "warmup", "--jobs", "0")
     assert code == 2
     _one_line_error(err, "--jobs must be >= 1, got 0")
+
+
+def test_an_unknown_option_is_reported_by_its_command(tmp_path, capsys):
+    """The command's own usage and name, not the top level's (which only says `COMMAND ...`); nothing written."""
+    with pytest.raises(SystemExit) as e:
+        main(["synth", "--object", "box", "--hand", "--out", str(tmp_path / "seq")])
+    err = capsys.readouterr().err
+    assert e.value.code == 2
+    assert err.startswith("usage: torchevtrack synth ") and "--occluder" in err, err
+    assert err.strip().splitlines()[-1] == "torchevtrack synth: error: unrecognized arguments: --hand"
+    assert not (tmp_path / "seq").exists()

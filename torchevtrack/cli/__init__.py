@@ -30,9 +30,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
-def build_parser(command: str | None = None) -> argparse.ArgumentParser:
-    """The parser; the full parser of ``command``'s module (if one of :data:`COMMANDS`), a one-line entry for
-    the other commands."""
+def build_parser(command: str | None = None) -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
+    """The parser and its commands' parsers by name: the full parser of ``command``'s module (if one of
+    :data:`COMMANDS`), a one-line entry for the other commands."""
     parser = argparse.ArgumentParser(
         prog="torchevtrack", description="6D object pose tracking from events (learning-free, CPU)."
     )
@@ -43,7 +43,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
             sub.add_parser(name, help=help_text)
         elif name == command:
             importlib.import_module(f"torchevtrack.cli.{module}").register(sub)
-    return parser
+    return parser, sub.choices
 
 
 def _command_of(argv: list[str]) -> str | None:
@@ -53,7 +53,10 @@ def _command_of(argv: list[str]) -> str | None:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = build_parser(_command_of(argv)).parse_args(argv)
+    parser, commands = build_parser(_command_of(argv))
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # reported by the command's own parser: its usage line and name, not the top level's
+        commands[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
     with warnings.catch_warnings():  # warnings as one line each, like the errors (restored on return)
         warnings.showwarning = _one_line_warnings(args.command)
         try:
