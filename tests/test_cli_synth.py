@@ -137,4 +137,10 @@ def test_benchmark_names_and_seeds(tmp_path):
     assert meta["object"] == "010_potted_meat_can" and meta["motion"] == "regular"
     assert json.loads((tmp_path / "potted_regular" / "camera.json").read_text())["width"] == 640
     assert main(["synth-benchmark", "--out", str(tmp_path), "--only", "banana_fast"]) == 2
-    assert main(["info", str(tmp_path / "missing")]) == 2
+
+
+def test_info_on_a_missing_path_names_both_kinds(tmp_path, capsys):
+    """`info` takes a sequence directory or an event file: a missing one is neither, and the error says so."""
+    assert main(["info", str(tmp_path / "rec.h5")]) == 2
+    assert capsys.readouterr().err.strip() == f"torchevtrack info: error: no such sequence directory or event file: " \
+        f"{tmp_path / 'rec.h5'}"

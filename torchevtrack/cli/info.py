@@ -114,6 +114,8 @@ def _event_file_info(args: argparse.Namespace) -> int:
 def run(args: argparse.Namespace) -> int:
     if Path(args.directory).is_file():
         return _event_file_info(args)
+    if not Path(args.directory).exists():
+        raise FileNotFoundError(f"no such sequence directory or event file: {args.directory}")
     info = sequence_info(args.directory)
     if args.json:
         print(json.dumps(info, indent=2))
