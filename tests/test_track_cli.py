@@ -131,3 +131,36 @@ def test_track_reports_the_tracking_rate_apart_from_the_searches(dirs, capsys):
     assert m, printed
     assert int(m[1]) == 20
     assert re.search(r"lost in \d+ of 20 updates; 1 search, [01] restarts?\n", printed), printed
+
+
+def test_start_tracks_as_the_recording_cut_there(dirs, tmp_path, capsys):
+    """``--start S`` tracks as the recording whose events and ground truth begin at ``S``: from the first
+    ground-truth pose at or after it, or from ``--init`` at ``S``; a time outside the events is refused in one line."""
+    from torchevtrack.io.poses import read_tum, write_tum
+
+    seq = dirs / "pinhole"
+    events = read_events_h5(seq / "events.h5")
+    t_gt, poses = read_tum(seq / "gt_poses.txt")
+    t_s = int(events.t[len(events) // 2])  # an event's time: the cut recording's first event is there
+    k = int(torch.searchsorted(t_gt, t_s))
+    assert t_gt[k] > t_s and k > 0  # the ground truth's next pose is later: tracking from there
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    for f in ("camera.json", "mesh.ply"):
+        shutil.copy(seq / f, cut / f)
+    write_events_h5(cut / "events.h5", events.slice_time(t_s, events.t_end + 1), width=CAM.width, height=CAM.height)
+    write_tum(cut / "gt_poses.txt", t_gt[k:], poses[k:])
+    init = " ".join(f"{v:.9f}" for v in (*poses[k, :3].tolist(), *poses[k, 4:].tolist(), poses[k, 3].item()))
+    for extra in ([], ["--init", init]):
+        a, b = tmp_path / "a.txt", tmp_path / "b.txt"
+        assert main(["track", str(seq), "--start", f"{t_s / 1e6:.6f}", "--out", str(a), "--quiet", "--no-recover",
+                     *extra]) == 0
+        assert main(["track", str(cut), "--out", str(b), "--quiet", "--no-recover", *extra]) == 0
+        first = read_tum(a)[0][0]
+        assert int(first) == (t_s if extra else int(t_gt[k])) + 2000, extra
+        assert a.read_text() == b.read_text(), extra
+    capsys.readouterr()
+    assert main(["track", str(seq), "--start", "5", "--out", str(tmp_path / "late.txt"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("torchevtrack track: error: --start 5.0 s is outside the events (") and "\n" not in err
+    assert not (tmp_path / "late.txt").exists()

@@ -142,8 +142,12 @@ def add_recording_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("seqdir", type=Path, help="sequence directory: camera.json, and by default events.h5, mesh.ply and "
                    "gt_poses.txt")
     p.add_argument("--init", help='initial pose "tx ty tz qx qy qz qw": metres, then a unit quaternion with qw '
-                   "LAST (TUM order; the Python API's pose is [t, qw, qx, qy, qz]), at the first event; default: "
-                   "first pose of gt_poses.txt")
+                   "LAST (TUM order; the Python API's pose is [t, qw, qx, qy, qz]), at the first event (or at "
+                   "--start); default: first pose of gt_poses.txt")
+    p.add_argument("--start", type=float, metavar="SECONDS",
+                   help="start tracking at this time (seconds in the events' time base, as in TUM files): --init is "
+                   "the pose then; without --init, the first ground-truth pose at or after it (default: the first "
+                   "event with --init, else the first ground-truth pose)")
     p.add_argument("--mesh", help="mesh file or object name (default: SEQDIR/mesh.ply)")
     add_events_option(p, "SEQDIR")
 
@@ -161,10 +165,17 @@ def load_recording(args: argparse.Namespace, undistort: bool = True) -> Recordin
     if args.mesh is None and not mesh.is_file():
         raise FileNotFoundError(f"{d} has no mesh.ply: give the object with --mesh")
     truth = read_tum(d / "gt_poses.txt") if (d / "gt_poses.txt").is_file() else None
+    start = None if args.start is None else round(args.start * 1e6)
+    if start is not None and not events.t_start <= start < events.t_end:
+        raise ValueError(f"--start {args.start} s is outside the events ({events.t_start / 1e6:.6f} .. "
+                         f"{events.t_end / 1e6:.6f} s)")
     if args.init is not None:
-        pose0, t0 = parse_init(args.init), events.t_start
+        pose0, t0 = parse_init(args.init), events.t_start if start is None else start
     elif truth is not None:
-        pose0, t0 = truth[1][0], int(truth[0][0])
+        k = 0 if start is None else int(torch.searchsorted(truth[0], start))
+        if k == len(truth[0]):
+            raise ValueError(f"gt_poses.txt ends at {int(truth[0][-1]) / 1e6:.6f} s, before --start {args.start} s")
+        pose0, t0 = truth[1][k], int(truth[0][k])
     else:
         raise ValueError(f"{d} has no gt_poses.txt: give the initial pose with --init")
     return Recording(camera, events, mesh, truth, pose0, int(t0))
