@@ -256,17 +256,30 @@ def test_compare_with_ground_truth_delay_and_outcomes():
     assert r["missed"] and r["first_loss_us"] is None and r["delay_us"] is None
     r = compare_with_ground_truth(t, lost, gt, t, gt)
     assert r["false_alarm"] and r["first_failure_us"] is None
-    # declared twice before the failure, found again in between and once after it: two false alarms, one recovery
+    # declared twice before the failure and found again in between: the first is a false alarm, the second, still
+    # held when the failure run starts (sample 80), detects it early
     flicker = torch.zeros(200, dtype=torch.bool)
     flicker[10:20] = True
     flicker[30:] = True
     r = compare_with_ground_truth(t, flicker, pred, t, gt)
-    assert (r["declarations"], r["false_alarms"], r["recoveries"]) == (2, 2, 1)
+    assert (r["declarations"], r["false_alarms"], r["recoveries"]) == (2, 1, 1)
+    assert (r["first_loss_us"], r["delay_us"], r["missed"]) == (20_000, -100_000, False)
+    # a false alarm found again before the failure does not detect it: the declaration after the failure does
     late = torch.zeros(200, dtype=torch.bool)
     late[10:20] = True
     late[90:] = True
     r = compare_with_ground_truth(t, late, pred, t, gt)
     assert (r["declarations"], r["false_alarms"], r["recoveries"]) == (2, 1, 1)
+    assert (r["first_loss_us"], r["delay_us"], r["missed"]) == (20_000, 20_000, False)
+    early = torch.zeros(200, dtype=torch.bool)
+    early[10:20] = True  # ... and without it the failure is missed
+    r = compare_with_ground_truth(t, early, pred, t, gt)
+    assert (r["false_alarms"], r["delay_us"], r["missed"], r["false_alarm"]) == (1, None, True, False)
+    # found again exactly when the failure run starts: closed by then, a false alarm
+    edge = torch.zeros(200, dtype=torch.bool)
+    edge[70:80] = True
+    r = compare_with_ground_truth(t, edge, pred, t, gt)
+    assert (r["false_alarms"], r["missed"]) == (1, True)
     # A 40-sample excursion is not a failure under the 50-sample rule, but is with window=30.
     short = gt.clone()
     short[10:50, 0] += 0.10

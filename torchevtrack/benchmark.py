@@ -30,8 +30,8 @@ hold the first trial; ``trials[method][sequence]`` the metrics of every trial, a
 Tracking loss: every run carries the tracker's :class:`~torchevtrack.loss.LossDetector` (the config's
 ``loss`` parameters, switched on whatever ``loss.enabled`` says; alone it only reports, no pose changes). Per
 sequence, :func:`torchevtrack.loss.compare_with_ground_truth` sets when loss was first declared against
-the start of the first ground-truth failure run, and counts the declarations, the false alarms (declared before
-the first failure run) and the recoveries (the lost flag turning off): ``results[method][sequence]["loss"]``. With
+the start of the first ground-truth failure run, whether a declaration still held detects that failure, and counts the
+declarations, the false alarms (declared and found again before the first failure run) and the recoveries (the lost flag turning off): ``results[method][sequence]["loss"]``. With
 ``recover.enabled`` (``benchmark --recover``) the lost sequences are re-localised (:mod:`torchevtrack.recover`); the
 lost flags are then the recoverer's and each run's timing counts its searches (``searches``, ``search_s``,
 ``restarts``).
@@ -632,7 +632,7 @@ def table_markdown(results: dict) -> str:
                     "–" if v is None else f"{(v - t0) / 1e6:.3f}"
                     for v in (r["loss"]["first_loss_us"], r["loss"]["first_failure_us"])))
             losses = [r["loss"] for r in per_method[m].values()]
-            cells += [str(sum(x["first_loss_us"] is not None and x["first_failure_us"] is not None for x in losses)),
+            cells += [str(sum(x["first_failure_us"] is not None and not x["missed"] for x in losses)),
                       str(sum(x["missed"] for x in losses)), str(sum(x["false_alarm"] for x in losses))]
             failed = [x for x in losses if x["first_failure_us"] is not None]
             soon = sum(x["delay_us"] is not None and x["delay_us"] <= LOSS_DELAY_US for x in failed)
@@ -644,11 +644,11 @@ def table_markdown(results: dict) -> str:
         lines.append("")
         lines.append("declared: first update the loss detector held the sequence lost; failed: first of "
                      f"{FAIL_WINDOW} consecutive updates with translation error > {FAIL_T_M * 100:g} cm or rotation "
-                     f"error > {FAIL_R_DEG:g} deg; –: never. detected: both happened (in either order); missed: "
-                     "failed, never declared; false alarms: declared, never failed; within 50 ms: failed sequences "
-                     f"declared lost at most {LOSS_DELAY_US // 1000} ms after the failure run began (or before); "
-                     "false alarms / min: declarations before the first failure run (all, in a sequence that never "
-                     "failed) per minute tracked; recoveries: updates where the lost flag turned off (the "
+                     f"error > {FAIL_R_DEG:g} deg; –: never. detected: failed, and held lost when the failure run "
+                     "began or declared lost after it; missed: failed, not detected; false alarms: declared, never "
+                     f"failed; within 50 ms: failed sequences detected at most {LOSS_DELAY_US // 1000} ms after the "
+                     "failure run began (or held lost since before); false alarms / min: declarations found again "
+                     "before the first failure run began (all, in a sequence that never failed) per minute tracked; recoveries: updates where the lost flag turned off (the "
                      "re-localiser's restarts, with recover.enabled).")
 
     runs = results.get("runs") or {}

@@ -324,14 +324,29 @@ def compare_with_ground_truth(
         poses: ``(N, 7)`` tracker poses; gt_t_us, gt_poses: ``(G,)``, ``(G, 7)`` ground truth.
         max_t, max_r_deg, window: the failure rule (defaults: 7 cm, 40 deg, 50 samples).
 
+    A declaration (``lost`` turning on) opens an episode that lasts until ``lost`` turns off (or the end). The
+    failure is **detected** by the first episode still open when the failure run starts, or opened after it; an
+    episode that closed before the failure run started is a false alarm (so is every episode of a run that never
+    fails), and it does not count as detecting the failure.
+
     Returns:
         ``first_loss_us`` (first update declared lost, or None), ``first_failure_us`` (first sample of the
-        first failure run, or None), ``delay_us`` (loss - failure; negative: declared before the failure
-        run started; None unless both exist), ``missed`` (failed, never declared), ``false_alarm``
-        (declared, never failed), ``declarations`` (updates where ``lost`` turned on), ``false_alarms`` (those
-        before the first failure run started, all of them if none did), ``recoveries`` (updates where ``lost``
-        turned off) and ``tracked_us`` (time span of the compared updates). Updates outside the ground-truth
-        time range are ignored.
+        first failure run, or None), ``delay_us`` (the detecting episode's declaration - failure; negative: declared
+        before the failure run started and still lost then; None unless detected), ``missed`` (failed, no episode
+        detected it), ``false_alarm`` (declared, never failed), ``declarations`` (updates where ``lost`` turned on),
+        ``false_alarms`` (episodes closed before the first failure run started, all of them if none did),
+        ``recoveries`` (updates where ``lost`` turned off) and ``tracked_us`` (time span of the compared updates).
+        Updates outside the ground-truth time range are ignored.
+
+    Example:
+        >>> import torch
+        >>> t = torch.arange(100, dtype=torch.int64) * 2000
+        >>> gt = torch.tensor([0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0], dtype=torch.float64).expand(100, 7)
+        >>> pred = gt.clone(); pred[40:, 0] += 0.1                  # 10 cm off from t = 80 ms on: failed there
+        >>> lost = torch.zeros(100, dtype=torch.bool); lost[5:10] = True; lost[45:] = True
+        >>> r = compare_with_ground_truth(t, lost, pred, t, gt)     # a false alarm at 10 ms, found lost at 90 ms
+        >>> r["first_loss_us"], r["delay_us"], r["false_alarms"], r["missed"]
+        (10000, 10000, 1, False)
     """
     lost = torch.as_tensor(lost)
     if lost.dtype != torch.bool or lost.ndim != 1:
@@ -346,16 +361,21 @@ def compare_with_ground_truth(
     first_failure = int(e["t_us"][k]) if k is not None else None
     flags = lost.to(torch.int8)
     rises = torch.cat((flags[:1], flags[1:] - flags[:-1])) if flags.numel() else flags
-    at = e["t_us"][rises > 0]
-    early = at if first_failure is None else at[at < first_failure]
+    opened = e["t_us"][rises > 0].tolist()
+    closed = e["t_us"][rises < 0].tolist() + [None] * (len(opened) - int((rises < 0).sum()))  # None: open at the end
+    if first_failure is None:
+        detecting, early = None, len(opened)
+    else:  # the episodes closed by the failure run's start are false alarms; the next one detects it
+        early = sum(c is not None and c <= first_failure for c in closed)
+        detecting = opened[early] if early < len(opened) else None
     return {
         "first_loss_us": first_loss,
         "first_failure_us": first_failure,
-        "delay_us": first_loss - first_failure if first_loss is not None and first_failure is not None else None,
-        "missed": first_failure is not None and first_loss is None,
+        "delay_us": None if detecting is None else detecting - first_failure,
+        "missed": first_failure is not None and detecting is None,
         "false_alarm": first_loss is not None and first_failure is None,
-        "declarations": int((rises > 0).sum()),
-        "false_alarms": int(early.numel()),
+        "declarations": len(opened),
+        "false_alarms": early,
         "recoveries": int((rises < 0).sum()),
         "tracked_us": int(e["t_us"][-1] - e["t_us"][0]) if e["t_us"].numel() else 0,
     }
