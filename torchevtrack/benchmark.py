@@ -30,11 +30,11 @@ hold the first trial; ``trials[method][sequence]`` the metrics of every trial, a
 Tracking loss: every run carries the tracker's :class:`~torchevtrack.loss.LossDetector` (the config's
 ``loss`` parameters, switched on whatever ``loss.enabled`` says; alone it only reports, no pose changes). Per
 sequence, :func:`torchevtrack.loss.compare_with_ground_truth` sets when loss was first declared against
-the start of the first ground-truth failure run, whether a declaration still held detects that failure, and counts the
-declarations, the false alarms (declared and found again before the first failure run) and the recoveries (the lost flag turning off): ``results[method][sequence]["loss"]``. With
-``recover.enabled`` (``benchmark --recover``) the lost sequences are re-localised (:mod:`torchevtrack.recover`); the
-lost flags are then the recoverer's and each run's timing counts its searches (``searches``, ``search_s``,
-``restarts``).
+the start of the first ground-truth failure run, whether a declaration still held detects that failure, and counts
+the declarations, the false alarms (declared and found again before the first failure run) and the recoveries (the
+lost flag turning off): ``results[method][sequence]["loss"]``. With ``recover.enabled`` (``benchmark --recover``)
+the lost sequences are re-localised (:mod:`torchevtrack.recover`); the lost flags are then the recoverer's and each
+run's timing counts its searches (``searches``, ``search_s``, ``restarts``).
 
 Example:
     >>> from torchevtrack.benchmark import run_benchmark, table_markdown
@@ -648,8 +648,9 @@ def table_markdown(results: dict) -> str:
                      "began or declared lost after it; missed: failed, not detected; false alarms: declared, never "
                      f"failed; within 50 ms: failed sequences detected at most {LOSS_DELAY_US // 1000} ms after the "
                      "failure run began (or held lost since before); false alarms / min: declarations found again "
-                     "before the first failure run began (all, in a sequence that never failed) per minute tracked; recoveries: updates where the lost flag turned off (the "
-                     "re-localiser's restarts, with recover.enabled).")
+                     "before the first failure run began (all, in a sequence that never failed) per minute tracked; "
+                     "recoveries: updates where the lost flag turned off (the re-localiser's restarts, with "
+                     "recover.enabled).")
 
     runs = results.get("runs") or {}
     if runs:
