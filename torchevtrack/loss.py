@@ -356,13 +356,12 @@ def compare_with_ground_truth(
     e = per_pose_errors(t_us, poses, gt_t_us, gt_poses)
     lost = lost[e["keep"]]
     k = failure_index(e["te"], e["re"], max_t=max_t, max_r_deg=max_r_deg, window=window)
-    hits = lost.nonzero()
-    first_loss = int(e["t_us"][hits[0, 0]]) if hits.numel() else None
     first_failure = int(e["t_us"][k]) if k is not None else None
     flags = lost.to(torch.int8)
     rises = torch.cat((flags[:1], flags[1:] - flags[:-1])) if flags.numel() else flags
-    opened = e["t_us"][rises > 0].tolist()
-    closed = e["t_us"][rises < 0].tolist() + [None] * (len(opened) - int((rises < 0).sum()))  # None: open at the end
+    opened, found = e["t_us"][rises > 0].tolist(), e["t_us"][rises < 0].tolist()  # each episode's start and end
+    first_loss = opened[0] if opened else None
+    closed = found + [None] * (len(opened) - len(found))  # None: still open at the end
     if first_failure is None:
         detecting, early = None, len(opened)
     else:  # the episodes closed by the failure run's start are false alarms; the next one detects it
@@ -376,6 +375,6 @@ def compare_with_ground_truth(
         "false_alarm": first_loss is not None and first_failure is None,
         "declarations": len(opened),
         "false_alarms": early,
-        "recoveries": int((rises < 0).sum()),
+        "recoveries": len(found),
         "tracked_us": int(e["t_us"][-1] - e["t_us"][0]) if e["t_us"].numel() else 0,
     }
