@@ -15,7 +15,7 @@ CAM = Camera.default()
 F64 = torch.float64
 T_NOW = 1_000_000
 OPTIONS = dict(canvas=64, margin_px=20.0, edge_clip=0.1, silhouette=True, interior=0.7)
-SEARCH = dict(dp_px=1.0, dtheta_deg=0.5, iterations=4, max_dz=0.002)
+SEARCH = dict(dp_px=1.0, dtheta_deg=0.5, iterations=4)
 MAX_AGE_US = 40_000
 RECENCY_US = torch.tensor([5_000.0, 2_250.0])  # one window per element
 

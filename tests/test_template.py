@@ -8,7 +8,6 @@ from scipy.spatial.transform import Rotation
 
 from torchevtrack import geometry as g
 from torchevtrack.camera import Camera
-from torchevtrack.config import TrackerConfig
 from torchevtrack.mesh import load_mesh
 from torchevtrack.render import Renderer
 from torchevtrack import reference
@@ -774,46 +773,6 @@ def test_compiled_newton_search_with_interior_equals_the_generic_search(scenes, 
         assert torch.allclose(out.pose, ref.pose, atol=1e-9)
         # the scores carry the area term's constant (hundreds): the 28-score fit of the oracle rounds at ~1e-8 of it
         assert torch.allclose(out.score, ref.score, rtol=1e-7) and torch.allclose(out.scores, ref.scores, rtol=1e-7)
-
-
-@pytest.mark.parametrize("name", ["box", "006_mustard_bottle"])
-def test_compiled_depth_bound_clips_each_newton_step_as_the_generic_search(scenes, name):
-    # the oracle: reference.rule_search's newton rule with the same bound (each step's depth clipped before it is
-    # scored); the bound is half the depth the unbounded search moves, so it binds, and no pose leaves it
-    model, starts, obs = _search_case(scenes[name], 12, 0.8, texture=0.3)
-    free = tm.newton_search(model, starts, obs, CAM, iterations=4)
-    max_dz = 0.5 * float((free.pose[:, 2] - starts[:, 2]).abs().max())
-    ref = reference.rule_search(model, starts, obs, CAM, dp_px=1.0, dtheta_deg=0.5, rule="newton", iterations=4,
-                                max_dz=max_dz)
-    out = tm.newton_search(model, starts, obs, CAM, iterations=4, max_dz=max_dz)
-    assert torch.equal(out.iterations, ref.iterations)
-    assert torch.allclose(out.pose, ref.pose, atol=1e-9) and torch.allclose(out.score, ref.score, rtol=1e-7)
-    dz = (out.pose[:, 2] - starts[:, 2]).abs()
-    assert (dz <= max_dz * (1 + 1e-12)).all() and (dz >= max_dz * (1 - 1e-9)).any()
-    assert not torch.equal(out.pose, free.pose)
-    far = tm.newton_search(model, starts, obs, CAM, iterations=4, max_dz=100 * max_dz)  # a bound never reached
-    assert torch.equal(far.pose, free.pose) and torch.equal(far.score, free.score)
-
-
-@pytest.mark.parametrize("rule", ["argmax", "group"])
-def test_depth_bound_keeps_the_hypothesis_rules_within_it(scenes, rule):
-    # the chosen pose's depth is clipped and scored there: the element moves only while that beats the centre
-    model, starts, obs = _search_case(scenes["box"], 12)
-    free = tm.correct_canvas(model, starts, obs, CAM, rule=rule, iterations=4)
-    max_dz = 0.5 * float((free.pose[:, 2] - starts[:, 2]).abs().max())
-    out = tm.correct_canvas(model, starts, obs, CAM, rule=rule, iterations=4, max_dz=max_dz)
-    dz = (out.pose[:, 2] - starts[:, 2]).abs()
-    assert (dz <= max_dz * (1 + 1e-6)).all() and (dz >= max_dz * (1 - 1e-6)).any()
-    assert (out.score >= out.scores[:, 0]).all() and (out.iterations > 0).any()
-
-
-def test_the_stage_bound_is_the_configured_speed_times_the_period():
-    cfg = TrackerConfig().template
-    c = tm.TemplateCorrector.from_config(CAM, cfg, 0.002)
-    assert c.options["max_dz"] == pytest.approx(cfg.max_depth_speed * 0.002)
-    for bad in (0.0, -1.0, float("nan"), "1"):
-        with pytest.raises(ValueError, match="max_dz"):
-            tm.TemplateCorrector(CAM, max_dz=bad)
 
 
 @pytest.mark.parametrize("name", ["box", "006_mustard_bottle"])

@@ -510,7 +510,6 @@ def search(
     dtheta_deg: float = 0.5,
     rule: str = "argmax",
     iterations: int = 1,
-    max_dz: float = math.inf,
 ) -> Correction:
     """Hypothesis search (:mod:`torchevtrack.stages.template`, items 3 and 5) with any scorer of poses.
 
@@ -521,14 +520,11 @@ def search(
             of ``apply_steps(centre, steps)``, ``score_poses`` poses ``(B, P, 7)`` to scores.
         gain: ``(B,)`` :func:`~torchevtrack.reference.radial_gain` (sets the z step).
         camera, dp_px, dtheta_deg, rule, iterations: see :func:`correct`.
-        max_dz: the largest depth change from ``pose`` (metres): the newton rule clips each step's depth to it; the
-            others clip the chosen pose's depth and score it there, moving only if it still beats the centre.
 
     Shape: ``(B, 7) -> Correction``.
     """
     B = pose.shape[0]
     current = pose
-    z_lo, z_hi = pose[:, 2] - max_dz, pose[:, 2] + max_dz
     current_score = None
     active = torch.ones(B, dtype=torch.bool)
     moved = torch.zeros(B, dtype=torch.int64)
@@ -540,7 +536,6 @@ def search(
         if rule == "newton":
             # The pose moves only if the step's score beats the null; "applied" then flags no hypothesis.
             delta = newton_step(score_steps, steps[:, 1::2].diagonal(dim1=1, dim2=2))
-            delta[:, 2] = torch.minimum(torch.maximum(delta[:, 2], z_lo - current[:, 2]), z_hi - current[:, 2])
             new_score = score_steps(delta[:, None])[:, 0]
             moves = new_score > s[:, 0]
             new_pose = apply_steps(current, delta[:, None])[:, 0]
@@ -552,12 +547,6 @@ def search(
                 new_score = s.gather(1, s.argmax(1, keepdim=True))[:, 0]
             else:
                 new_score = score_poses(new_pose[:, None])[:, 0]
-            z = new_pose[:, 2].clamp(z_lo, z_hi)
-            clipped = z != new_pose[:, 2]
-            if bool(clipped.any()):
-                new_pose = torch.cat((new_pose[:, :2], z[:, None], new_pose[:, 3:]), 1)
-                new_score = torch.where(clipped, score_poses(new_pose[:, None])[:, 0], new_score)
-                moves = moves & (~clipped | (new_score > s[:, 0]))
         if first is None:
             first = (s, s.argmax(1), applied)
             current_score = s[:, 0]
@@ -644,7 +633,7 @@ def correct_model(
 
 
 def rule_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, camera: Camera, *, dp_px: float,
-                dtheta_deg: float, rule: str, iterations: int, max_dz: float = math.inf) -> Correction:
+                dtheta_deg: float, rule: str, iterations: int) -> Correction:
     """:func:`search` with the model's second-order score (:meth:`~torchevtrack.stages.template.TemplateModel.at`
     and ``fit_canvas``, refitted at every iteration's pose), unchecked: the ``"argmax"`` and ``"group"`` rules of
     :func:`~torchevtrack.stages.template.correct_canvas` (which checks the inputs and runs this), or ``"newton"``
@@ -673,7 +662,7 @@ def rule_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, cam
                 lambda poses: (quad.evaluate(poses) + area_term(poses[..., 2].double() - zc)).to(dtype))
 
     return search(pose, scorer, model.gain, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule,
-                  iterations=iterations, max_dz=max_dz)
+                  iterations=iterations)
 
 
 def correct_warp(pose: torch.Tensor, depth: torch.Tensor, gray: torch.Tensor | None, origin, observation: torch.Tensor,

@@ -244,7 +244,7 @@ class EventPoseTracker(nn.Module):
         self.velocity = VelocityKF.from_config(camera, v, normal=cfg.flow.estimate == "normal", batch_size=B)
         # Feedback of the corrections into the flow twist (needs both; off in the paper's ablations without them).
         self.feedback = CorrectionFeedback.from_config(v, batch_size=B) if self._feedback_on(cfg) else None
-        self.corrector = TemplateCorrector.from_config(camera, t, self.dt)
+        self.corrector = TemplateCorrector.from_config(camera, t)
         o = self.corrector.options
         # each compiled rasteriser's render (and template model) of a pose in its window, in one compiled call
         self._render_bindings = [
@@ -861,7 +861,7 @@ class EventPoseTracker(nn.Module):
         correct = [bind_correction(self.eros.surface[r].numpy(), times[r].numpy(), self.camera, canvas=o["canvas"],
                                    margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"],
                                    interior=o["interior"], dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"], rule=o["rule"],
-                                   iterations=o["iterations"], max_dz=o["max_dz"], max_age_us=e.max_age_us,
+                                   iterations=o["iterations"], max_age_us=e.max_age_us,
                                    recency=self.recency.arrays(e.max_age_us, r))
                    for r in self._schedule.shares]
         output = OutputArgs(self.pose.numpy(), dt, self._min_depth.numpy(),

@@ -396,13 +396,12 @@ class CorrectionStep(NamedTuple):
 
 def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *, canvas: int, margin_px: float,
                     edge_clip: float, silhouette: bool, interior: float, dp_px: float, dtheta_deg: float, rule: str,
-                    iterations: int, max_dz: float, max_age_us: int,
-                    recency: RecencyArrays) -> Callable[..., CorrectionStep]:
+                    iterations: int, max_age_us: int, recency: RecencyArrays) -> Callable[..., CorrectionStep]:
     """Step 5 (see the module docstring) bound to the EROS ``surface`` ``(B, H, W)`` float32 and the time surface
     ``last_us`` ``(B, C, H, W)`` int64 (numpy views, read at each call) and the options, unchecked.
 
     Options: ``canvas, margin_px, edge_clip, silhouette, interior`` as for
-    :func:`~torchevtrack.stages.template.template_model`; ``dp_px, dtheta_deg, rule, iterations, max_dz`` as for
+    :func:`~torchevtrack.stages.template.template_model`; ``dp_px, dtheta_deg, rule, iterations`` as for
     :func:`~torchevtrack.stages.template.correct_canvas`; ``max_age_us`` as for
     :func:`~torchevtrack.stages.eros.canvas_observation`; ``recency`` the elements' recency windows
     (:meth:`~torchevtrack.stages.eros.Recency.arrays`, read at each call).
@@ -442,9 +441,9 @@ def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *,
                                  gray is not None, origin64, cam, box, gain, N, edge_clip, silhouette, interior)
         if rule != "newton":
             c = correct_canvas(model, torch.from_numpy(predicted), torch.from_numpy(obs), camera, dp_px=dp_px,
-                               dtheta_deg=dtheta_deg, rule=rule, iterations=iterations, max_dz=max_dz)
+                               dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
             return CorrectionStep(model, Correction(*(f.numpy() for f in c)))
-        c = newton_arrays(model, predicted, obs, camera.fx, camera.fy, dp, dtheta, iterations, max_dz)
+        c = newton_arrays(model, predicted, obs, camera.fx, camera.fy, dp, dtheta, iterations)
         return CorrectionStep(model, c)
     return run
 

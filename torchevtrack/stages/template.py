@@ -56,10 +56,7 @@ path (:func:`template_model`, :func:`quadratic_score`, :func:`newton_search`) ru
    whole step per round, so an object that turns and shifts at once needs several rounds; Newton follows both, and
    by fractions of a step. With ``iterations > 1`` the correction repeats around the new pose while the score of the
    corrected pose keeps improving, re-warping the same render (a first-order warp, accurate for a few pixels of
-   cumulative motion). A correction's depth stays within ``max_dz`` of its start (the tracker's: 2.5 m/s times the
-   period): each Newton step's depth is clipped to what remains and the next round searches the other axes there; the
-   other rules clip the chosen pose's depth and score it there. A depth step is ``z dp / pbar``, centimetres for a
-   small distant object, and edges that are not the object's (a hand) pulled the depth by that much per update.
+   cumulative motion).
 6. **Scores without warping** (the production path; item 4 is its torch reference, :mod:`torchevtrack.reference`).
    Around a centre pose ``P`` a step ``delta = [dt, phi]`` moves canvas
    pixel ``q`` by ``J(q) delta`` to first order (the interaction matrix of the canvas intrinsics at
@@ -680,13 +677,13 @@ def area_weight(obs, valid, N, interior):
 
 @numba.njit(cache=True, nogil=True)
 def newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, iterations, damping, max_step,
-                  max_dz, valid, interior, out_pose, out_score, out_scores, out_moved):
+                  valid, interior, out_pose, out_score, out_scores, out_moved):
     """:func:`newton_search` on numpy arrays, unchecked, into ``out_pose`` ``(B, 7)``, ``out_score`` ``(B,)``,
     ``out_scores`` ``(B, 13)`` (float64) and ``out_moved`` ``(B,)`` int64; releases the GIL. The model's fields
     (``coef``, ``Z = depth``, ``K`` float64, ``render_pose``, ``gain`` float64), the start poses ``pose`` ``(B, 7)``
     float64, ``obs`` ``(B, N * N)``, the frame's ``fx, fy``, the steps ``dp`` (pixels) and ``dtheta`` (radians), and
-    ``iterations, damping, max_step, max_dz`` as for :func:`newton_search`, the model's ``valid`` object points and
-    the ``interior`` weights ``(B,)`` float64 of its template.
+    ``iterations, damping, max_step`` as for :func:`newton_search`, the model's ``valid`` object points and the
+    ``interior`` weights ``(B,)`` float64 of its template.
 
     The ``"newton"`` rule of :func:`~torchevtrack.reference.search` on the exact second-order model, per element.
     With ``interior > 0`` the score also pays ``tau`` per canvas pixel the object covers (:func:`area_weight`): the
@@ -698,9 +695,7 @@ def newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, 
     Hu)^-1 gu`` (:func:`~torchevtrack.reference.newton_step`'s ``lambda``), clipped per axis, is taken if its score
     beats ``s0``, else the search stops. ``unit`` holds the hypothesis step sizes of the start pose per axis
     (:func:`~torchevtrack.reference.hypothesis_steps` of ``gain``, the frame's ``fx``, ``fy``, ``dp`` pixels and
-    ``dtheta`` radians); the translation units scale with the current depth. Each round's depth step is then clipped
-    so that the pose stays within ``max_dz`` metres of the start pose's depth (the other axes keep their step, and
-    the next round is searched at the clipped depth).
+    ``dtheta`` radians); the translation units scale with the current depth.
     """
     for b in range(coef.shape[0]):
         z = pose[b, 2]
@@ -752,7 +747,6 @@ def newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, 
             cholesky_solve(L, gu, step)
             for i in range(6):
                 delta[i] = min(max(step[i], -max_step), max_step) * un[i]
-            delta[2] = min(max(delta[2], pose[b, 2] - max_dz - cur[2]), pose[b, 2] + max_dz - cur[2])
             gd = dMd = 0.0  # g . delta and delta^T M delta (small loops: no BLAS calls)
             for i in range(6):
                 gd += g[i] * delta[i]
@@ -1192,15 +1186,12 @@ def model_in_box(pose: np.ndarray, depth: np.ndarray, shade: np.ndarray, use_gra
 
 
 # -- the stage --------------------------------------------------------------------------------
-def check_options(rule, iterations, max_dz=math.inf) -> None:
-    """A one-line ``ValueError`` unless ``rule`` is one of ``RULES``, ``iterations`` an integer >= 1 and ``max_dz``
-    positive (metres; ``inf``: no bound)."""
+def check_options(rule, iterations) -> None:
+    """A one-line ``ValueError`` unless ``rule`` is one of ``RULES`` and ``iterations`` an integer >= 1."""
     if rule not in RULES:
         raise ValueError(f"rule must be one of {RULES}, got {rule!r}")
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
         raise ValueError(f"iterations must be an integer >= 1, got {iterations!r}")
-    if isinstance(max_dz, bool) or not isinstance(max_dz, (int, float)) or not max_dz > 0:
-        raise ValueError(f"max_dz must be a positive number of metres (inf: no bound), got {max_dz!r}")
 
 
 def correct_canvas(
@@ -1213,7 +1204,6 @@ def correct_canvas(
     dtheta_deg: float = 0.5,
     rule: str = "newton",
     iterations: int = 1,
-    max_dz: float = math.inf,
 ) -> Correction:
     """Correct poses near a render's with its :class:`TemplateModel` against an observation already in the model's
     canvas (:meth:`TemplateModel.observe`, or :func:`torchevtrack.stages.eros.canvas_observation` of ``model.box``).
@@ -1228,13 +1218,12 @@ def correct_canvas(
         dp_px, dtheta_deg: translation step (image pixels) and rotation step (degrees) of the hypotheses (module
             docstring, item 3); rule: ``"newton"``, ``"argmax"`` or ``"group"`` (item 5); iterations: maximum
             corrections, repeated while the score keeps improving. Every rule's scores pay the area term of the
-            model's ``interior`` (:func:`newton_kernel`). max_dz: the largest depth change of a corrected pose from
-            ``pose`` (metres; each step's depth is clipped to it, the other axes searched at the clipped depth).
+            model's ``interior`` (:func:`newton_kernel`).
 
     Shape: ``TemplateModel, (B, 7), (B, N, N) or (B, N * N) -> Correction``.
     """
     pose = check_poses(pose, "pose")
-    check_options(rule, iterations, max_dz)
+    check_options(rule, iterations)
     B, N = model.pose.shape[0], model.depth.shape[-1]
     if pose.shape[0] != B:
         raise ValueError(f"pose must have one row per model element ({B}), got {tuple(pose.shape)}")
@@ -1242,23 +1231,21 @@ def correct_canvas(
         raise ValueError(f"obs must be the ({B}, {N}, {N}) canvas observation, got {tuple(obs.shape)}")
     obs = obs.reshape(B, N * N)
     if rule == "newton":
-        return newton_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, iterations=iterations,
-                             max_dz=max_dz)
+        return newton_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, iterations=iterations)
     from torchevtrack.reference import rule_search  # the ablation switch (reference imports this module)
 
-    return rule_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule, iterations=iterations,
-                       max_dz=max_dz)
+    return rule_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
 
 
 def newton_arrays(model: TemplateModel, pose: np.ndarray, obs: np.ndarray, fx: float, fy: float, dp: float,
-                  dtheta: float, iterations: int, max_dz: float = math.inf) -> Correction:
+                  dtheta: float, iterations: int) -> Correction:
     """The compiled Newton search of :func:`newton_search` on numpy arrays (the tracker's hot path calls this).
 
     Args:
         model: the render's :class:`TemplateModel`; pose: ``(B, 7)`` float64 start poses; obs: ``(B, N, N)`` or
             ``(B, N * N)`` observation in the canvas; fx, fy: the frame's focal lengths (px); dp: the image step
             (px); dtheta: the rotation step (radians); iterations: the maximum number of Newton rounds (the area
-            term of the model's ``interior`` included); max_dz: the largest depth change from ``pose`` (metres).
+            term of the model's ``interior`` included).
     Returns: a :class:`Correction` of numpy arrays: ``pose`` ``(B, 7)`` float64, ``score`` ``(B,)`` and ``scores``
         ``(B, 13)`` in the model's dtype, ``index`` (the first of ties, as torch's ``argmax``), ``applied`` all false
         (the step is not one of the hypotheses) and ``iterations`` ``(B,)`` int64 (the rounds that moved).
@@ -1269,8 +1256,8 @@ def newton_arrays(model: TemplateModel, pose: np.ndarray, obs: np.ndarray, fx: f
     newton_kernel(_np(model.coef), _np(model.depth), _np(model.K).astype(np.float64, copy=False),
                   _np(model.render_pose), np.ascontiguousarray(pose, dtype=np.float64), obs.reshape(B, -1),
                   _np(model.gain).astype(np.float64, copy=False), float(fx), float(fy), float(dp), float(dtheta),
-                  int(iterations), NEWTON_DAMPING, NEWTON_MAX_STEP, float(max_dz), _np(model.valid),
-                  _np(model.interior), out, score, scores, moved)
+                  int(iterations), NEWTON_DAMPING, NEWTON_MAX_STEP, _np(model.valid), _np(model.interior), out, score,
+                  scores, moved)
     dtype = _np(model.depth).dtype
     scores = scores.astype(dtype)
     return Correction(out, score.astype(dtype), scores, scores.argmax(1),
@@ -1278,8 +1265,7 @@ def newton_arrays(model: TemplateModel, pose: np.ndarray, obs: np.ndarray, fx: f
 
 
 def newton_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, camera: Camera, *,
-                  dp_px: float = 1.0, dtheta_deg: float = 0.5, iterations: int = 1,
-                  max_dz: float = math.inf) -> Correction:
+                  dp_px: float = 1.0, dtheta_deg: float = 0.5, iterations: int = 1) -> Correction:
     """The ``"newton"`` rule's search on the model's exact quadratic, compiled in one call (the tracker's).
 
     The same search as :func:`~torchevtrack.reference.search` with ``rule="newton"`` and the scorer of
@@ -1292,12 +1278,12 @@ def newton_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, c
     Args:
         model: the render's :class:`TemplateModel`; pose: ``(B, 7)`` start poses; obs: ``(B, N * N)``
             observation in the canvas (:meth:`TemplateModel.observe`).
-        dp_px, dtheta_deg, iterations, max_dz: see :func:`correct_canvas`.
+        dp_px, dtheta_deg, iterations: see :func:`correct_canvas`.
 
     Shape: ``(B, 7), (B, N * N) -> Correction`` (``applied`` all false: the step is not one of the hypotheses).
     """
     c = newton_arrays(model, _np(pose.double()), _np(obs), camera.fx, camera.fy, dp_px, math.radians(dtheta_deg),
-                      iterations, max_dz)
+                      iterations)
     return Correction(torch.from_numpy(c.pose).to(pose.dtype), *(torch.from_numpy(f) for f in c[1:]))
 
 
@@ -1310,8 +1296,7 @@ class TemplateCorrector(nn.Module):
         canvas: canvas size in pixels (100..150 in the paper); margin_px: margin around the object's bounding box,
             frame pixels; edge_clip: Sobel magnitude at which edges saturate; silhouette: add the mask's edges to
             the grey edges; interior: weight of the object's coverage in the template (:func:`template_model`).
-        dp_px, dtheta_deg, rule, iterations, max_dz: see :func:`correct_canvas` (``max_dz``: metres per call; the
-        tracker's is ``template.max_depth_speed`` times its period).
+        dp_px, dtheta_deg, rule, iterations: see :func:`correct_canvas`.
         (Defaults: the config section ``template``, :class:`~torchevtrack.config.TemplateConfig`.)
 
     Calls:
@@ -1344,12 +1329,11 @@ class TemplateCorrector(nn.Module):
         edge_clip: float = 0.1,
         silhouette: bool = True,
         interior: float = TemplateConfig.interior,
-        max_dz: float = math.inf,
     ) -> None:
         super().__init__()
         if not isinstance(camera, Camera):
             raise TypeError(f"camera must be a torchevtrack Camera, got {type(camera).__name__}")
-        check_options(rule, iterations, max_dz)
+        check_options(rule, iterations)
         if not (dp_px > 0 and dtheta_deg > 0 and margin_px >= 0 and edge_clip > 0):
             raise ValueError("dp_px, dtheta_deg and edge_clip must be positive and margin_px non-negative")
         if not (math.isfinite(interior) and interior >= 0):
@@ -1357,16 +1341,14 @@ class TemplateCorrector(nn.Module):
         self.camera = camera
         self.options = dict(
             canvas=canvas, margin_px=margin_px, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule,
-            iterations=iterations, edge_clip=edge_clip, silhouette=silhouette, interior=interior, max_dz=max_dz,
+            iterations=iterations, edge_clip=edge_clip, silhouette=silhouette, interior=interior,
         )
 
     @classmethod
-    def from_config(cls, camera: Camera, cfg: TemplateConfig, period_s: float) -> "TemplateCorrector":
-        """The correction of the config section ``template`` (:class:`~torchevtrack.config.TemplateConfig`) for
-        updates ``period_s`` seconds apart (``max_dz = cfg.max_depth_speed * period_s``)."""
+    def from_config(cls, camera: Camera, cfg: TemplateConfig) -> "TemplateCorrector":
+        """The correction of the config section ``template`` (:class:`~torchevtrack.config.TemplateConfig`)."""
         return cls(camera, canvas=cfg.canvas, margin_px=cfg.margin_px, dp_px=cfg.dp_px, dtheta_deg=cfg.dtheta_deg,
-                   rule=cfg.rule, iterations=cfg.iterations, interior=cfg.interior,
-                   max_dz=cfg.max_depth_speed * period_s)
+                   rule=cfg.rule, iterations=cfg.iterations, interior=cfg.interior)
 
     def forward(self, pose, depth, gray, origin, observation, observation_origin=(0, 0)) -> Correction:
         check_correct(pose, depth, gray, observation, **self.options)
@@ -1388,15 +1370,14 @@ class TemplateCorrector(nn.Module):
         """:func:`correct_canvas` (the observation already in the model's canvas) with this corrector's options."""
         o = self.options
         return correct_canvas(model, pose, obs, self.camera, dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"],
-                              rule=o["rule"], iterations=o["iterations"], max_dz=o["max_dz"])
+                              rule=o["rule"], iterations=o["iterations"])
 
     def extra_repr(self) -> str:
         return ", ".join(f"{k}={v!r}" for k, v in self.options.items())
 
 
 # -- input checks -----------------------------------------------------------------------------
-def check_correct(pose, depth, gray, observation, *, canvas, rule, iterations, silhouette, max_dz=math.inf,
-                  **_) -> None:
+def check_correct(pose, depth, gray, observation, *, canvas, rule, iterations, silhouette, **_) -> None:
     """The checks of a correction's inputs and options (:meth:`TemplateCorrector.forward`,
     :func:`~torchevtrack.reference.correct`): a one-line ``TypeError`` / ``ValueError`` for the first problem, else
     ``None``."""
@@ -1411,7 +1392,7 @@ def check_correct(pose, depth, gray, observation, *, canvas, rule, iterations, s
         raise ValueError("without a grey render the template needs silhouette=True")
     if check_images(observation, "observation").shape[0] != B:
         raise ValueError(f"observation must have one image per pose ({B}), got {tuple(observation.shape)}")
-    check_options(rule, iterations, max_dz)
+    check_options(rule, iterations)
     if isinstance(canvas, bool) or not isinstance(canvas, int) or canvas < 16:
         raise ValueError(f"canvas must be an integer >= 16 pixels, got {canvas!r}")
 
