@@ -421,3 +421,36 @@ def test_foreign_prediction_errors(bench, tmp_path, capsys):
     assert main(["benchmark", str(bench), "--out", str(tmp_path), "--pred", f"a={tmp_path}", "--pred",
                  f"a={tmp_path}"]) == 2
     assert "more than once" in capsys.readouterr().err
+
+
+def test_textured_tracks_a_printed_object_with_its_textured_model(bench, tmp_path):
+    """``textured=True``: a sequence with its printed model is tracked with that model (the poses of a tracker given
+    the model directly), one without it with ``mesh.ply`` as before; the scoring is the same."""
+    from torchevtrack.synth.sequence import TEXTURED_MESH
+
+    root = tmp_path / "bench"
+    generate_sequence("box", "turn", DURATION_S, seed=5, camera=CAM, texture="random",
+                      progress=False).save(root / "printed_turn")
+    shutil.copytree(bench / "tomato_fast", root / "tomato_fast")
+    assert (root / "printed_turn" / TEXTURED_MESH).is_file() and not (root / "tomato_fast" / TEXTURED_MESH).exists()
+    kw = dict(methods=("no_ukf",), overlays=False, progress=False)
+    plain, printed = (run_benchmark(root, tmp_path / name, textured=t, **kw) for name, t in (("a", False), ("b", True)))
+    assert not plain["textured"] and printed["textured"]
+    assert {k: v["mesh"] for k, v in printed["sequences"].items()} == {"printed_turn": TEXTURED_MESH,
+                                                                        "tomato_fast": "mesh.ply"}
+    assert "textured models" in table_markdown(printed) and "textured models" not in table_markdown(plain)
+
+    def poses(res, out, name):
+        return read_tum(out / res["results"]["no_ukf"][name]["pose_file"])[1]
+
+    assert torch.equal(poses(plain, tmp_path / "a", "tomato_fast"), poses(printed, tmp_path / "b", "tomato_fast"))
+    seq = Sequence.load(root / "printed_turn")
+    tracker = EventPoseTracker(CAM, str(root / "printed_turn" / TEXTURED_MESH))
+    try:
+        _, direct = tracker.track(seq.events, seq.gt_poses[0], t_start_us=int(seq.gt_t_us[0]),
+                                  t_end_us=int(seq.gt_t_us[-1]), progress=False)
+    finally:
+        tracker.close()
+    got = poses(printed, tmp_path / "b", "printed_turn")
+    assert torch.allclose(got, direct[0].to(got.dtype), atol=1e-5)  # (a batch of two: float32 rounding)
+    assert not torch.allclose(got, poses(plain, tmp_path / "a", "printed_turn"), atol=1e-4)

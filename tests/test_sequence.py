@@ -50,6 +50,24 @@ def test_roundtrip(tmp_path):
         assert f["t"].dtype == np.int64 and f["x"].dtype == np.int16 and f["t"].compression == "gzip"
 
 
+def test_a_textured_model_round_trips_beside_the_mesh(tmp_path):
+    from torchevtrack.raster import raster_arrays
+    from torchevtrack.synth.sequence import TEXTURED_MESH
+    from torchevtrack.synth.texture import printed_texture
+
+    seq = make_sequence()
+    seq.save(tmp_path / "plain")
+    assert not (tmp_path / "plain" / TEXTURED_MESH).exists() and Sequence.load(tmp_path / "plain").textured_mesh is None
+    seq.textured_mesh = printed_texture(seq.mesh, seed=5, size=64)
+    back = Sequence.load(seq.save(tmp_path / "printed"))
+    assert back.mesh.visual.kind is None  # mesh.ply stays the geometry
+    a, tex = raster_arrays(back.textured_mesh)
+    a0, tex0 = raster_arrays(seq.textured_mesh)  # the rasteriser reads the same triangles, UVs and texels
+    assert tex is not None and np.array_equal(tex.texels, tex0.texels) and np.array_equal(tex.levels, tex0.levels)
+    assert np.allclose(a.vertices, a0.vertices) and np.array_equal(a.faces, a0.faces)
+    assert np.allclose(tex.uv, tex0.uv, atol=1e-6)
+
+
 def test_h5_bytes_deterministic(tmp_path):
     ev = random_events()
     write_events_h5(tmp_path / "a.h5", ev, width=64, height=48)

@@ -326,5 +326,8 @@ def test_texture_makes_events_inside_the_silhouette(tmp_path, backend):
     assert torch.equal(plain.gt_poses, printed.gt_poses)
     assert printed.meta["texture"] == {"kind": "random", "seed": 4} and "texture" not in plain.meta
     assert printed.mesh.visual.kind is None  # the saved mesh stays the geometry
+    assert plain.textured_mesh is None and printed.textured_mesh.visual.kind == "texture"  # the print beside it
+    corners = printed.textured_mesh.vertices[printed.textured_mesh.faces]  # the same triangles (vertices split)
+    assert np.allclose(corners, printed.mesh.vertices[printed.mesh.faces])
     n_plain, n_printed = _inside_events(plain), _inside_events(printed)
     assert n_printed > 3 * max(n_plain, 100)

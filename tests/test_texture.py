@@ -105,6 +105,14 @@ def test_printed_texture_is_deterministic_in_seed_and_contrasted():
     assert (np.hypot(gx, gy) > 0.1).mean() > 0.01  # many sharp edges
 
 
+@pytest.mark.parametrize("size", [48, 64, 100, 128])
+def test_printed_texture_small_images(size):
+    """Every size from the documented 48 px draws (marks narrower than a pixel are one pixel wide), with ink on paper."""
+    for seed in range(10):
+        image = np.asarray(printed_texture(load_mesh("box"), seed, size=size).visual.material.image)
+        assert image.shape == (size, size, 3) and np.ptp(image @ np.array([0.299, 0.587, 0.114])) > 100
+
+
 def test_printed_texture_bad_inputs():
     with pytest.raises(TypeError, match="trimesh"):
         printed_texture(np.zeros((3, 3)), 0)

@@ -73,7 +73,7 @@ LOSS_DELAY_US = 50_000  # a failure counts as flagged in time when declared at m
 from torchevtrack.mesh import hidden_symmetry_axis
 from torchevtrack.metrics import (FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, evaluate, mesh_points, per_pose_errors,
                                   sym_failed, sym_rmse_r_deg)
-from torchevtrack.synth.sequence import SEQUENCE_FILES, Sequence
+from torchevtrack.synth.sequence import SEQUENCE_FILES, TEXTURED_MESH, Sequence
 from torchevtrack.tracker import EventPoseTracker
 
 __all__ = [
@@ -211,11 +211,14 @@ def _trial_metrics(m: dict) -> dict:
     return {k: m[k] for k in keys if k in m}
 
 
-def _track(items: list[_Item], camera: Camera, cfg: TrackerConfig, progress: bool, starts: dict[str, torch.Tensor]):
+def _track(items: list[_Item], camera: Camera, cfg: TrackerConfig, progress: bool, starts: dict[str, torch.Tensor],
+           textured: bool = False):
     """Track ``items`` as one batch from their ``starts``; per item its own ``(t_us (n_i,), poses (n_i, 7),
-    lost (n_i,))`` and the timing (the loss detector runs, passively, whatever the config says)."""
+    lost (n_i,))`` and the timing (the loss detector runs, passively, whatever the config says). ``textured``: each
+    item's :data:`~torchevtrack.synth.sequence.TEXTURED_MESH` where it has one is the tracker's mesh."""
     setup = time.perf_counter()
-    tracker = EventPoseTracker(camera, [str(it.path / "mesh.ply") for it in items], cfg.replace(loss={"enabled": True}))
+    tracker = EventPoseTracker(camera, [str(_mesh_file(it.path, textured)) for it in items],
+                               cfg.replace(loss={"enabled": True}))
     start = time.perf_counter()
     try:
         times, poses, lost = tracker.track([it.seq.events for it in items],
@@ -244,6 +247,11 @@ def _track(items: list[_Item], camera: Camera, cfg: TrackerConfig, progress: boo
     out = [(times[i, :it.n_updates].clone(), poses[i, :it.n_updates].clone(), lost[i, :it.n_updates].clone())
            for i, it in enumerate(items)]
     return out, run
+
+
+def _mesh_file(path: Path, textured: bool) -> Path:
+    """The mesh a sequence directory gives the tracker: its printed model if asked for and present, else ``mesh.ply``."""
+    return path / TEXTURED_MESH if textured and (path / TEXTURED_MESH).is_file() else path / "mesh.ply"
 
 
 def _check_predictions(predictions, methods: list[str]) -> dict[str, Path]:
@@ -297,6 +305,7 @@ class _TrackTask:
     config: TrackerConfig
     starts: dict[str, torch.Tensor]
     progress: bool
+    textured: bool = False
     items: list[_Item] | None = None
 
     def __getstate__(self) -> dict:
@@ -306,7 +315,7 @@ class _TrackTask:
 def _run_task(task: _TrackTask):
     """:func:`_track` of a task (in any process): per sequence ``(t_us, poses, lost)`` and the run's timing."""
     items = task.items or [_prepare(p, task.duration_s, task.config.period_us) for p in task.paths]
-    return _track(items, items[0].seq.camera, task.config, task.progress, task.starts)
+    return _track(items, items[0].seq.camera, task.config, task.progress, task.starts, task.textured)
 
 
 def _machine() -> dict:
@@ -336,6 +345,7 @@ def run_benchmark(
     seed: int = 0,
     predictions: dict[str, str | Path] | None = None,
     executor: Executor | None = None,
+    textured: bool = False,
 ) -> dict:
     """Run the ablation benchmark and write its report (see the module docstring for the files).
 
@@ -362,6 +372,9 @@ def run_benchmark(
         executor: where the tracking runs go (:mod:`torchevtrack.executor`; default serial in this process):
             each (batch of sequences, method, draw) is one task, read from disk by the worker (on a cluster the
             benchmark directory must be at the same path on every node). The results do not depend on it.
+        textured: track each sequence that has its printed model (:data:`~torchevtrack.synth.sequence.TEXTURED_MESH`,
+            written by ``synth --texture random``) with that model instead of ``mesh.ply``, as a user with a
+            textured scan of the object would; the scoring is the same (the geometry is).
 
     Returns:
         The dict written to ``results.json``: ``results[method][sequence]`` holds ``metrics`` (the
@@ -404,6 +417,7 @@ def run_benchmark(
         "duration_s": duration_s,
         "batch": batch,
         "executor": ex.name,
+        "textured": bool(textured),
         "methods": methods,
         "config": base.to_dict(),
         "ablations": {m: ABLATIONS[m] for m in methods},
@@ -411,6 +425,7 @@ def run_benchmark(
             it.name: {"group": it.group, "object": it.seq.meta.get("object"), "t_start_us": it.t_start_us,
                       "t_end_us": it.t_end_us, "updates": it.n_updates, "events": len(it.seq.events),
                       "mesh_points": int(it.points.shape[0]), "camera": dataclasses.asdict(it.seq.camera),
+                      "mesh": _mesh_file(it.path, textured).name,
                       "symmetry_axis": None if it.symmetry_axis is None else it.symmetry_axis.tolist()}
             for it in items
         },
@@ -428,7 +443,7 @@ def run_benchmark(
 
     tasks = [_TrackTask(method, k, [it.path.resolve() for it in group], duration_s,
                         base.replace(**ABLATIONS[method]), {it.name: starts[k][it.name] for it in group},
-                        progress and not ex.parallel, group)
+                        progress and not ex.parallel, bool(textured), group)
              for method in methods for k in range(trials) for group in batches]
     outputs = ex.map(_run_task, tasks, desc="tracking runs", progress=progress)
     for method in methods:
@@ -560,7 +575,8 @@ def table_markdown(results: dict) -> str:
     dur = results.get("duration_s")
     lines.append(f"torchevtrack {results.get('torchevtrack_version', '?')}, {results.get('date', '?')}; "
                  f"{'first ' + format(dur, 'g') + ' s of each sequence' if dur else 'whole sequences'}; "
-                 f"columns: {', '.join(dict.fromkeys(groups))} sequences.")
+                 f"columns: {', '.join(dict.fromkeys(groups))} sequences"
+                 + ("; printed objects tracked with their textured models." if results.get("textured") else "."))
     lines += ["", "## Pose error: e_p(σ) cm / e_r(σ) deg", ""]
     lines.append(_row(["Method"] + cols + ["Mean"]))
     lines.append(_row(["---"] * (len(cols) + 2)))

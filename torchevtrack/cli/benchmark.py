@@ -53,6 +53,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="re-localise lost sequences and search once around each start, as track does (the loss "
                    "detector, recover.enabled and recover.start_search on; each search blocks ~0.3-1.5 s); the loss "
                    "table then counts the recoveries")
+    p.add_argument("--textured", action="store_true",
+                   help="track each printed object with its textured model (mesh_textured.glb, written by synth "
+                   "--texture random) instead of mesh.ply, as with a textured scan; scored the same")
     p.add_argument("--no-overlays", action="store_true", help="skip the overlay PNGs and GIFs")
     p.add_argument("--no-batch", action="store_true", help="one run per sequence instead of one batch")
     p.add_argument("--threads", type=int, help="torch threads (default: torch's choice)")
@@ -88,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         res = run_benchmark(args.benchdir, args.out, methods=args.methods, only=args.only, duration_s=args.duration,
                             config=cfg, batch=not args.no_batch, overlays=not args.no_overlays,
                             progress=not args.quiet, init_noise=args.init_noise, trials=args.trials, seed=args.seed,
-                            predictions=predictions, executor=executor)
+                            predictions=predictions, executor=executor, textured=args.textured)
     print(table_markdown(res), end="")
     from torchevtrack.report import write_suite_report
 

@@ -127,8 +127,8 @@ def generate_sequence(
             :class:`torchevtrack.synth.esim.ESIM` parameters (the refractory period applies to every event).
         occluder: ``"none"`` or ``"hand"`` (:mod:`torchevtrack.synth.hand`).
         texture: ``"none"`` or ``"random"``: a printed texture (seeded by ``seed``) on the rendered object; the
-            saved mesh stays untextured (regenerate the textured model with
-            ``printed_texture(load_mesh(object_name), seed)``).
+            sequence's ``mesh`` stays untextured (a CAD model's geometry) and its ``textured_mesh`` is the printed
+            object (``printed_texture(load_mesh(object_name), seed)``, a textured scan's model).
         depth_range: ``(min, max)`` object distance, metres (raised for objects too large to fit).
         background: grey level of the static background, in ``[0, 1]``.
         max_px_per_frame: largest image motion between two rendered frames, pixels.
@@ -140,7 +140,8 @@ def generate_sequence(
         progress: show a tqdm bar over frames.
 
     Returns:
-        The :class:`Sequence` (events, camera, ground truth at ``gt_rate_hz``, full mesh, metadata).
+        The :class:`Sequence` (events, camera, ground truth at ``gt_rate_hz``, full mesh, metadata and, with a
+        texture, the printed model).
     """
     camera = Camera.default() if camera is None else camera
     if not 0.0 <= background <= 1.0:
@@ -154,10 +155,12 @@ def generate_sequence(
         raise ValueError(f"gt_rate_hz must divide 10 kHz evenly (e.g. 500, 1000), got {gt_rate_hz}")
     mesh = load_mesh(object_name)
     render_mesh = mesh if render_faces is None else load_mesh(object_name, decimate=render_faces)
-    if texture == "random":  # rendered only: the saved mesh stays the object's geometry, as a CAD model
+    textured_mesh = None
+    if texture == "random":  # the tracker's mesh stays the object's geometry, as a CAD model; the print goes beside it
         from torchevtrack.synth.texture import printed_texture
 
         render_mesh = printed_texture(render_mesh, seed)
+        textured_mesh = render_mesh if render_faces is None else printed_texture(mesh, seed)
     t_us, poses = make_trajectory(motion, duration_s, seed, camera, mesh, dt_us=dt_us, depth_range=depth_range)
     hand = make_hand(mesh) if occluder == "hand" else None
     # Frames follow the object and the hand's grip; the forearm (long, leaving the image) only widens the windows.
@@ -233,7 +236,7 @@ def generate_sequence(
         meta["generator"]["depth_range_m"] = [float(v) for v in depth_range]
     if render_backend != "pyrender":
         meta["generator"]["render_backend"] = render_backend
-    return Sequence(events, camera, gt_t, gt_poses, mesh, meta)
+    return Sequence(events, camera, gt_t, gt_poses, mesh, meta, textured_mesh)
 
 
 def occluded_fraction(obj: trimesh.Trimesh, scene: trimesh.Trimesh, camera: Camera, poses: torch.Tensor,

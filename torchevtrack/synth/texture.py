@@ -109,8 +109,9 @@ def _print_cell(draw: ImageDraw.ImageDraw, rng: np.random.Generator, x0: int, y0
     """One packaging side in the ``c x c`` square at ``(x0, y0)``: a paper colour, colour blocks, a band of
     stripes, a logo disc and lines of text-like marks."""
 
-    def rect(u0, v0, u1, v1, colour):  # fractions of the cell
-        draw.rectangle((x0 + u0 * c, y0 + v0 * c, x0 + u1 * c - 1, y0 + v1 * c - 1), fill=colour)
+    def rect(u0, v0, u1, v1, colour):  # fractions of the cell; at least one pixel (Pillow rejects an inverted box)
+        left, top = x0 + u0 * c, y0 + v0 * c
+        draw.rectangle((left, top, max(x0 + u1 * c - 1, left), max(y0 + v1 * c - 1, top)), fill=colour)
 
     paper = _pick(rng, _PAPERS)
     rect(0, 0, 1, 1, paper)
