@@ -57,7 +57,7 @@ def test_sequence_contents_and_info(tmp_path, capsys):
     assert f"events     {len(seq.events)} over" in out and "500 Hz" in out
     assert main(["info", str(tmp_path / "s"), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
-    assert info["events"] == len(seq.events) and info["gt_poses"] == 26
+    assert info["events"] == len(seq.events) and info["gt_poses"] == 26 and info["textured_mesh"] is None
     (tmp_path / "s" / "gt_poses.txt").unlink()  # a recording: events and camera only
     assert main(["info", str(tmp_path / "s")]) == 0
     out = capsys.readouterr().out

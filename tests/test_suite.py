@@ -163,7 +163,7 @@ def test_camera_presets_and_overrides(tmp_path, capsys):
     cam = json.loads((tmp_path / "d" / "camera.json").read_text())
     assert (cam["width"], cam["height"], cam["fx"], cam["fy"], cam["cx"], cam["cy"]) == (346, 260, 255, 255, 173, 130)
     assert main(["synth", *args, "--camera", "hd", "--width", "320", "--height", "200", "--fx", "300",
-                 "--hot-pixels", "3", "--noise-rate", "0.5", "--out", str(tmp_path / "h")]) == 0
+                 "--hot-pixels", "3", "--noise-rate", "0.5", "--texture", "random", "--out", str(tmp_path / "h")]) == 0
     cam = json.loads((tmp_path / "h" / "camera.json").read_text())
     assert (cam["width"], cam["height"], cam["fx"], cam["fy"], cam["cx"], cam["cy"]) == (320, 200, 300, 1000, 160, 100)
     meta = json.loads((tmp_path / "h" / "meta.json").read_text())
@@ -172,6 +172,9 @@ def test_camera_presets_and_overrides(tmp_path, capsys):
     assert main(["info", str(tmp_path / "h")]) == 0
     out = capsys.readouterr().out
     assert "noise 0.5 Hz/pixel" in out and "3 hot pixels at 100 Hz" in out and "occluder none" in out
+    assert "texture random (its model: mesh_textured.glb)" in out and (tmp_path / "h" / "mesh_textured.glb").is_file()
+    assert main(["info", str(tmp_path / "d")]) == 0
+    assert "texture none;" in capsys.readouterr().out
 
 
 def test_wide_suite_dry_run_and_disjoint_splits(tmp_path):

@@ -107,7 +107,7 @@ def test_printed_texture_is_deterministic_in_seed_and_contrasted():
 
 @pytest.mark.parametrize("size", [48, 64, 100, 128])
 def test_printed_texture_small_images(size):
-    """Every size from the documented 48 px draws (marks narrower than a pixel are one pixel wide), with ink on paper."""
+    """Every size from the documented 48 px draws (marks narrower than a pixel are one pixel wide), ink on paper."""
     for seed in range(10):
         image = np.asarray(printed_texture(load_mesh("box"), seed, size=size).visual.material.image)
         assert image.shape == (size, size, 3) and np.ptp(image @ np.array([0.299, 0.587, 0.114])) > 100

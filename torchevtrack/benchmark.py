@@ -250,7 +250,7 @@ def _track(items: list[_Item], camera: Camera, cfg: TrackerConfig, progress: boo
 
 
 def _mesh_file(path: Path, textured: bool) -> Path:
-    """The mesh a sequence directory gives the tracker: its printed model if asked for and present, else ``mesh.ply``."""
+    """The mesh a sequence directory gives the tracker: its printed model if asked for and there, else ``mesh.ply``."""
     return path / TEXTURED_MESH if textured and (path / TEXTURED_MESH).is_file() else path / "mesh.ply"
 
 

@@ -13,6 +13,7 @@ from torchevtrack.camera import Camera
 from torchevtrack.geometry import quat_conj, quat_log, quat_mul
 from torchevtrack.io.events_h5 import events_h5_summary
 from torchevtrack.io.poses import read_tum
+from torchevtrack.synth.sequence import TEXTURED_MESH
 from torchevtrack.synth.trajectory import motion_stats
 
 
@@ -46,6 +47,7 @@ def sequence_info(directory: str | Path) -> dict:
         meta = json.loads((d / "meta.json").read_text())
         info["meta"] = {k: meta[k] for k in ("object", "motion", "seed") if k in meta}
         info["effects"] = sensor_effects(meta)
+    info["textured_mesh"] = TEXTURED_MESH if (d / TEXTURED_MESH).is_file() else None
     return info
 
 
@@ -132,7 +134,8 @@ def run(args: argparse.Namespace) -> int:
         hand = "none" if occ is None else (f"{e['occluder']}, hides {100 * occ['median']:.0f} % of the silhouette "
                                            f"(median; {100 * occ['min']:.0f}-{100 * occ['max']:.0f} %)")
         lo, hi = e["depth_range_m"]
-        print(f"world      occluder {hand}; texture {e['texture']}; depth range {lo:g}-{hi:g} m")
+        model = f" (its model: {info['textured_mesh']})" if info["textured_mesh"] else ""
+        print(f"world      occluder {hand}; texture {e['texture']}{model}; depth range {lo:g}-{hi:g} m")
     print(f"camera     {c['width']}x{c['height']}, fx {c['fx']:g}, fy {c['fy']:g}, cx {c['cx']:g}, cy {c['cy']:g}")
     print(f"events     {info['events']} over {info['events_duration_s']:.3f} s "
           f"({info['events_per_s'] / 1e6:.3f} Mev/s)")

@@ -22,15 +22,18 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
-import trimesh
 
 from torchevtrack.camera import Camera
 from torchevtrack.events import EventStream
 from torchevtrack.io.atomic import replacing, write_text
 from torchevtrack.io.events_h5 import read_events_h5, write_events_h5
 from torchevtrack.io.poses import read_tum, write_tum
+
+if TYPE_CHECKING:  # trimesh takes a second or two to import: only reading a mesh does (`info` never)
+    import trimesh
 
 __all__ = ["Sequence", "SEQUENCE_FILES", "TEXTURED_MESH"]
 
@@ -112,6 +115,8 @@ class Sequence:
 
 
 def _read_mesh(path: Path) -> trimesh.Trimesh:
+    import trimesh
+
     try:
         mesh = trimesh.load(path, force="mesh", process=False)
     except Exception as e:  # trimesh raises many types for corrupt files
