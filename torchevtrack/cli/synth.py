@@ -76,7 +76,8 @@ def _add_world(g: argparse._ArgumentGroup) -> None:
     g.add_argument("--hot-pixel-rate", type=float, default=100.0, help="events per second of each hot pixel")
     g.add_argument("--occluder", choices=OCCLUDERS, default="none",
                    help="hand: a hand holds the object at one end (its own events; hides part of the silhouette)")
-    g.add_argument("--texture", choices=TEXTURES, default="none", help="random: a seeded printed texture (its model: mesh_textured.glb)")
+    g.add_argument("--texture", choices=TEXTURES, default="none",
+                   help="random: a seeded printed texture (its model: mesh_textured.glb)")
     g.add_argument("--depth", type=_depth, default=(0.3, 0.7), metavar="MIN,MAX",
                    help="object distance range, metres (default 0.3,0.7; raised for objects too large to fit)")
     g.add_argument("--render-backend", choices=BACKENDS, default="pyrender",
