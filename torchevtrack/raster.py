@@ -436,8 +436,17 @@ def _bilinear(texels, level, u, v):
     x, y = u * w - 0.5, (1.0 - v) * h - 0.5
     fx, fy = math.floor(x), math.floor(y)
     ax, ay = x - fx, y - fy
-    c0, r0 = int(fx) % w, int(fy) % h
-    c1, r1 = (c0 + 1) % w, (r0 + 1) % h
+    c0, r0 = int(fx), int(fy)
+    if 0 <= c0 < w - 1:  # inside: no wrap (an integer modulo per texel is most of a sample's cost)
+        c1 = c0 + 1
+    else:
+        c0 %= w
+        c1 = (c0 + 1) % w
+    if 0 <= r0 < h - 1:
+        r1 = r0 + 1
+    else:
+        r0 %= h
+        r1 = (r0 + 1) % h
     top = (1.0 - ax) * texels[offset + r0 * w + c0] + ax * texels[offset + r0 * w + c1]
     bottom = (1.0 - ax) * texels[offset + r1 * w + c0] + ax * texels[offset + r1 * w + c1]
     return (1.0 - ay) * top + ay * bottom
