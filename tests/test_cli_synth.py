@@ -108,6 +108,24 @@ def grey_box_sequence(tmp_path_factory):
     return generate_sequence(str(path), "fast", 0.04, 5, CAM, progress=False)
 
 
+def test_synth_leave_view_has_no_events_while_the_object_is_away(tmp_path, capsys):
+    """``--leave-view START,AWAY``: the excursion is in meta.json, no event fires while the object is out of view (no
+    noise asked for), events fire before and after; an excursion that would not end in time is a one-line error."""
+    out = tmp_path / "away"
+    assert main(["synth", "--object", "box", "--duration", "1.0", "--leave-view", "0.1,0.2", "--seed", "2", "--out",
+                 str(out), *TINY]) == 0
+    seq = Sequence.load(out)
+    assert seq.meta["leave_view"] == {"start_s": 0.1, "away_s": 0.2}
+    t = seq.events.t
+    assert int(((t >= 450_000) & (t < 650_000)).sum()) == 0  # 0.1 + 0.35 s out, 0.2 s away
+    assert int((t < 100_000).sum()) > 0 and int((t > 1_000_000 - 50_000).sum()) > 0
+    rc = main(["synth", "--object", "box", "--duration", "0.5", "--leave-view", "0.1,0.2", "--out",
+               str(tmp_path / "late"), *TINY])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "would not be back in view" in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "late").exists()
+
+
 def test_events_only_where_the_object_was(grey_box_sequence):
     seq = grey_box_sequence
     entered_p, left_p = [], []

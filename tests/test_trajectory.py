@@ -7,7 +7,8 @@ from scipy.spatial.transform import Rotation
 
 from torchevtrack.camera import Camera
 from torchevtrack.mesh import load_mesh
-from torchevtrack.synth.trajectory import MOTION_GROUPS, make_trajectory, motion_stats, pose_at
+from torchevtrack.synth.trajectory import (MOTION_GROUPS, SLIDE_S, leave_and_return, make_trajectory, motion_stats,
+                                          pose_at)
 
 CAM = Camera.default()
 
@@ -121,3 +122,26 @@ def test_bad_arguments(can):
         make_trajectory("fast", 0.0, 0, CAM, can)
     with pytest.raises(TypeError, match="seed"):
         make_trajectory("fast", 1.0, 0.5, CAM, can)
+
+
+def test_leave_and_return_goes_out_of_view_and_back_onto_the_path(can):
+    """Before the excursion and after it the poses are the path's; while away every pixel of the object's bounding
+    sphere is outside the image; depth and rotation never change; the object slides steadily out and back."""
+    t, path = make_trajectory("regular", 2.0, 5, CAM, can)
+    start, away = 0.4, 0.3
+    poses = leave_and_return(t, path, CAM, can, start, away)
+    s = t.double() / 1e6
+    before, after = s < start, s > start + 2 * SLIDE_S + away
+    gone = (s >= start + SLIDE_S) & (s <= start + SLIDE_S + away)
+    assert torch.equal(poses[before], path[before]) and torch.equal(poses[after], path[after])
+    assert torch.equal(poses[:, 2:], path[:, 2:].double())
+    radius = float(can.bounding_sphere.primitive.radius + np.linalg.norm(can.bounding_sphere.primitive.center))
+    z = poses[gone, 2]
+    u = CAM.fx * poses[gone, 0] / z + CAM.cx
+    r_px = CAM.fx * radius / (z - radius)
+    assert bool(((u - r_px > CAM.width - 1) | (u + r_px < 0)).all())
+    sliding = (s > start) & (s < start + SLIDE_S)
+    du = torch.diff(CAM.fx * poses[sliding, 0] / poses[sliding, 2] - CAM.fx * path[sliding, 0] / path[sliding, 2])
+    assert bool((du > 0).all() or (du < 0).all())  # one way out, relative to the path
+    with pytest.raises(ValueError, match="start_s >= 0"):
+        leave_and_return(t, path, CAM, can, -0.1, 0.2)

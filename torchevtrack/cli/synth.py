@@ -10,6 +10,7 @@ from pathlib import Path
 from torchevtrack.camera import Camera
 from torchevtrack.cli.options import add_executor_options, executor_from_args
 from torchevtrack.synth.suite import CAMERA_PRESETS, MOTIONS
+from torchevtrack.synth.trajectory import SLIDE_S
 
 
 def _camera(args: argparse.Namespace) -> Camera:
@@ -34,7 +35,7 @@ def _generate(object_name: str, motion: str, duration: float, seed: int, camera:
         refractory_us=args.refractory_us, noise_rate_hz=args.noise_rate, hot_pixels=args.hot_pixels,
         hot_pixel_rate_hz=args.hot_pixel_rate, occluder=args.occluder, texture=args.texture,
         depth_range=args.depth, background=args.background, render_faces=args.render_faces,
-        render_backend=args.render_backend, progress=not args.quiet,
+        render_backend=args.render_backend, leave_view=args.leave_view, progress=not args.quiet,
     )
     seq.save(out)
     took = time.perf_counter() - start
@@ -67,6 +68,16 @@ def _depth(text: str) -> tuple[float, float]:
     return lo, hi
 
 
+def _leave_view(text: str) -> tuple[float, float]:
+    try:
+        start, away = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected START,AWAY seconds, got {text!r}") from None
+    if not (start >= 0 and away >= 0):
+        raise argparse.ArgumentTypeError(f"need START >= 0 and AWAY >= 0 seconds, got {text!r}")
+    return start, away
+
+
 def _add_world(g: argparse._ArgumentGroup) -> None:
     """The flags of one sequence's world beyond the standard benchmark's (``synth`` only)."""
     from torchevtrack.render import BACKENDS
@@ -80,6 +91,8 @@ def _add_world(g: argparse._ArgumentGroup) -> None:
                    help="random: a seeded printed texture (its model: mesh_textured.glb)")
     g.add_argument("--depth", type=_depth, default=(0.3, 0.7), metavar="MIN,MAX",
                    help="object distance range, metres (default 0.3,0.7; raised for objects too large to fit)")
+    g.add_argument("--leave-view", type=_leave_view, metavar="START,AWAY",
+                   help="the object slides out of the view at START s (over 0.35 s), stays out AWAY s and slides back")
     g.add_argument("--render-backend", choices=BACKENDS, default="pyrender",
                    help="renderer of the frames (raster: compiled CPU z-buffer, several times faster)")
 
@@ -87,6 +100,9 @@ def _add_world(g: argparse._ArgumentGroup) -> None:
 def run_synth(args: argparse.Namespace) -> int:
     if args.duration <= 0:
         raise ValueError(f"--duration must be positive, got {args.duration}")
+    if args.leave_view is not None and sum(args.leave_view) + 2 * SLIDE_S > args.duration:
+        raise ValueError(f"--leave-view {args.leave_view[0]:g},{args.leave_view[1]:g}: the object would not be back "
+                         f"in view by the end of the {args.duration:g} s sequence (it slides {SLIDE_S:g} s each way)")
     _generate(args.object, args.motion, args.duration, args.seed, _camera(args), Path(args.out), args)
     return 0
 

@@ -41,7 +41,8 @@ from torchevtrack.render import make_renderer
 from torchevtrack.synth.esim import ESIM
 from torchevtrack.synth.hand import Hand, make_hand, with_hand
 from torchevtrack.synth.sequence import Sequence
-from torchevtrack.synth.trajectory import bbox_corners, make_trajectory, motion_stats, projected_bbox
+from torchevtrack.synth.trajectory import (bbox_corners, leave_and_return, make_trajectory, motion_stats,
+                                          projected_bbox)
 
 __all__ = ["OCCLUDERS", "TEXTURES", "frame_times", "roi_union", "generate_sequence", "occluded_fraction"]
 
@@ -81,13 +82,14 @@ def _project_corners(poses: torch.Tensor, camera: Camera, corners: torch.Tensor)
 
 def roi_union(boxes: torch.Tensor, camera: Camera, margin: int = _ROI_MARGIN) -> tuple[int, int, int, int]:
     """Integer window ``(u0, v0, w, h)`` covering image boxes ``(K, 4)`` ``[u_min, v_min, u_max, v_max]``
-    plus ``margin`` pixels, clipped to the sensor."""
+    plus ``margin`` pixels, clipped to the sensor; ``(0, 0, 1, 1)`` (one pixel of background) where the boxes lie
+    outside it (an object out of view: nothing of it to render)."""
     u0 = max(int(math.floor(float(boxes[:, 0].min()))) - margin, 0)
     v0 = max(int(math.floor(float(boxes[:, 1].min()))) - margin, 0)
     u1 = min(int(math.ceil(float(boxes[:, 2].max()))) + margin, camera.width - 1)
     v1 = min(int(math.ceil(float(boxes[:, 3].max()))) + margin, camera.height - 1)
     if u1 < u0 or v1 < v0:
-        raise ValueError("the object is outside the image")
+        return 0, 0, 1, 1
     return u0, v0, u1 - u0 + 1, v1 - v0 + 1
 
 
@@ -112,6 +114,7 @@ def generate_sequence(
     gt_rate_hz: int = 500,
     render_faces: int | None = None,
     render_backend: str = "pyrender",
+    leave_view: tuple[float, float] | None = None,
     progress: bool = True,
 ) -> Sequence:
     """Simulate one sequence.
@@ -137,6 +140,9 @@ def generate_sequence(
             poses stay those of the full mesh); ``None`` renders the full mesh.
         render_backend: ``"pyrender"`` or ``"raster"`` (:func:`torchevtrack.render.make_renderer`; the same
             images up to rasterisation ties, the compiled raster several times faster).
+        leave_view: ``(start_s, away_s)``: the object slides out of the view from ``start_s``, stays out for
+            ``away_s`` seconds and slides back (:func:`~torchevtrack.synth.trajectory.leave_and_return`); ``None``:
+            it stays in view throughout.
         progress: show a tqdm bar over frames.
 
     Returns:
@@ -162,6 +168,8 @@ def generate_sequence(
         render_mesh = printed_texture(render_mesh, seed)
         textured_mesh = render_mesh if render_faces is None else printed_texture(mesh, seed)
     t_us, poses = make_trajectory(motion, duration_s, seed, camera, mesh, dt_us=dt_us, depth_range=depth_range)
+    if leave_view is not None:
+        poses = leave_and_return(t_us, poses, camera, mesh, *leave_view)
     hand = make_hand(mesh) if occluder == "hand" else None
     # Frames follow the object and the hand's grip; the forearm (long, leaving the image) only widens the windows.
     corners = bbox_corners(mesh if hand is None else trimesh.util.concatenate([mesh, hand.grip]))
@@ -236,6 +244,8 @@ def generate_sequence(
         meta["generator"]["depth_range_m"] = [float(v) for v in depth_range]
     if render_backend != "pyrender":
         meta["generator"]["render_backend"] = render_backend
+    if leave_view is not None:
+        meta["leave_view"] = {"start_s": float(leave_view[0]), "away_s": float(leave_view[1])}
     return Sequence(events, camera, gt_t, gt_poses, mesh, meta, textured_mesh)
 
 

@@ -50,6 +50,8 @@ __all__ = [
     "MOTION_GROUPS",
     "MotionGroup",
     "make_trajectory",
+    "SLIDE_S",
+    "leave_and_return",
     "pose_at",
     "centroid_image_speed",
     "angular_speed",
@@ -276,6 +278,48 @@ def _arc_length_path(arc, freq, phase, amp, centre, half) -> np.ndarray:
             break
         s_max *= 2.0
     return curve(np.interp(arc, length, s))
+
+
+SLIDE_S = 0.35  # leave_and_return: seconds the object takes to slide out of the view, and back
+
+
+def leave_and_return(t_us: torch.Tensor, poses: torch.Tensor, camera: Camera, mesh, start_s: float,
+                     away_s: float) -> torch.Tensor:
+    """The trajectory with an excursion out of the view and back: from ``start_s`` the object slides sideways (its
+    image position eased over :data:`SLIDE_S` seconds, depth and rotation as they were) to beyond the nearer side
+    border (its bounding sphere's image radius past it), stays out of view for ``away_s`` seconds, and slides back
+    over :data:`SLIDE_S` seconds onto its own path. For a tracker's recovery: an object that leaves the view and returns.
+
+    Shape: ``(N,), (N, 7) -> (N, 7)`` float64 (``t_us`` int64 microseconds; ``mesh`` in metres, as
+    :func:`make_trajectory`'s).
+
+    Example:
+        >>> import torch, trimesh
+        >>> cam = Camera.default()
+        >>> t, poses = make_trajectory("regular", 1.0, 0, cam, trimesh.creation.box((0.1, 0.1, 0.1)))
+        >>> away = leave_and_return(t, poses, cam, trimesh.creation.box((0.1, 0.1, 0.1)), 0.2, 0.2)
+        >>> u = cam.project(away[:, :3])[:, 0]
+        >>> bool(torch.equal(away[:2000], poses[:2000])), bool((u[5500:7500] > 640).all() or (u[5500:7500] < 0).all())
+        (True, True)
+    """
+    if not (start_s >= 0 and away_s >= 0):
+        raise ValueError(f"need start_s >= 0 and away_s >= 0 seconds, got {start_s}, {away_s}")
+    t = t_us.to(torch.float64) / 1e6
+    radius = float(bbox_corners(mesh).norm(dim=-1).max())
+
+    def ease(a: float) -> torch.Tensor:
+        x = ((t - a) / SLIDE_S).clamp(0.0, 1.0)
+        return x * x * (3.0 - 2.0 * x)
+
+    share = ease(start_s) - ease(start_s + SLIDE_S + away_s)  # 0 on the path, 1 out of view
+    out = poses.to(torch.float64).clone()
+    z = out[:, 2]
+    u = camera.fx * out[:, 0] / z + camera.cx
+    beyond = camera.fx * radius / (z - radius).clamp(min=1e-3) + 2.0  # the bounding sphere's image radius, and 2 px
+    mid = float(u[(share > 0).nonzero()[0, 0]]) if bool((share > 0).any()) else float(u[0])
+    goal = camera.width - 1 + beyond if mid >= (camera.width - 1) / 2 else -beyond
+    out[:, 0] = torch.where(share > 0, ((u + share * (goal - u)) - camera.cx) * z / camera.fx, out[:, 0])
+    return out
 
 
 def pose_at(t_us: torch.Tensor, poses: torch.Tensor, query_us) -> torch.Tensor:
