@@ -22,7 +22,8 @@ from torchevtrack.geometry import interpolate_poses, perturb_pose
 from torchevtrack.io.lost import lost_path, read_lost
 from torchevtrack.io.poses import read_tum
 from torchevtrack.metrics import per_pose_errors
-from torchevtrack.recover import TWIST_SPAN_US, bookkeeping_kernel
+from torchevtrack.raster import RasterRenderer
+from torchevtrack.recover import TWIST_SPAN_US, bookkeeping_kernel, found_again
 from torchevtrack.stages.propagate import twist_between
 from torchevtrack.stages.relocalise import Relocalisation, Relocaliser
 from torchevtrack.synth.generate import generate_sequence
@@ -128,6 +129,26 @@ def test_the_real_search_restarts_a_noisy_640x480_box_after_a_blackout_at_the_de
     assert RECOVER.recover.max_cost_px == 5.0
     assert result[5.0][0] <= 0.01 and result[5.0][1] <= 5.0 and result[5.0][2] >= 1, result
     assert result[3.0][0] > 0.01 and result[3.0][2] == 0, result
+
+
+def test_an_object_that_left_the_view_is_found_again_when_it_returns():
+    """End to end, no oracle: the box slides out of the image (0.15-0.5 s), stays out 0.1 s and slides back (0.6-0.95
+    s; ``generate_sequence(leave_view=...)``). The tracker loses it; the searches around its last pose (out of view)
+    find nothing, the frame scan finds it back in view: from 1.05 s it is within 2 cm / 15 deg (its accuracy on this
+    small image), where without the scan it stayed lost, far off."""
+    away = generate_sequence("box", "regular", 1.3, seed=5, camera=CAM, leave_view=(0.15, 0.1), progress=False)
+    assert away.meta["leave_view"] == {"start_s": 0.15, "away_s": 0.1}
+    result = {}
+    for name, cfg in (("plain", TrackerConfig().replace(loss={"enabled": True})), ("recover", RECOVER)):
+        tracker = EventPoseTracker(CAM, away.mesh, cfg)
+        times, poses, lost = tracker.track(away.events, away.gt_poses[0], progress=False, return_lost=True)
+        tracker.close()
+        t, te, re = errors(away, times[0], poses[0])
+        back = t >= int(away.gt_t_us[0]) + 1_050_000
+        result[name] = (float(te[back].max()), float(re[back].max()), bool(lost[0][-1]), bool(lost[0].any()))
+    assert result["plain"][0] > 0.2 and result["plain"][2], result
+    assert result["recover"][0] < 0.02 and result["recover"][1] < 15 and not result["recover"][2], result
+    assert result["recover"][3] and tracker.recover.restarts >= 1  # it was lost, and found
 
 
 def test_a_start_search_moves_a_wrong_start_into_the_basin(seq, truth_search):
@@ -266,8 +287,9 @@ def test_a_search_confirms_restarts_or_keeps_looking_against_the_trackers_own_po
 
 def test_searches_that_find_nothing_come_ever_further_apart(seq, monkeypatch):
     """A lost element whose searches find nothing (not clear, its own pose above the clear-winner cost) is searched
-    at the declaration, then ``retry_us`` later, then at doubling intervals."""
-    calls = []
+    at the declaration, then ``retry_us`` later, then at doubling intervals; each time around its last pose, then
+    around the frame scan's candidate (the same update)."""
+    calls, scans = [], []
 
     def search(self, pose, last_us, t_now_us, own=None):
         calls.append(int(t_now_us[0]))
@@ -275,15 +297,45 @@ def test_searches_that_find_nothing_come_ever_further_apart(seq, monkeypatch):
         return Relocalisation(pose.clone(), torch.full((1,), 5.0, **f64), torch.full((1,), 5.1, **f64),
                               torch.tensor([False]), torch.full((1,), 5.2, **f64))
 
+    scan = Relocaliser.scan
+
+    def record(self, pose, last_us, t_now_us):
+        scans.append(int(t_now_us))
+        return scan(self, pose, last_us, t_now_us)
+
     monkeypatch.setattr(Relocaliser, "forward", search)
+    monkeypatch.setattr(Relocaliser, "scan", record)
     t0 = int(seq.gt_t_us[0])
     cfg = TrackerConfig().replace(loss={"enabled": True, "min_flow_vectors": 1000}, recover={"enabled": True})
     tracker = EventPoseTracker(CAM, seq.mesh, cfg)
     tracker.track(seq.events, seq.gt_poses[0], t_start_us=t0, t_end_us=t0 + 400_000, progress=False)
     tracker.close()
-    gaps = [b - a for a, b in zip(calls, calls[1:])]
-    assert len(calls) == 5 and tracker.recover.restarts == 0 and bool(tracker.lost[0])
+    gaps = [b - a for a, b in zip(scans, scans[1:])]
+    assert calls == [t for t in scans for _ in range(2)], (calls, scans)
+    assert tracker.recover.searches == 5 and tracker.recover.restarts == 0 and bool(tracker.lost[0])
     assert gaps == [20_000, 40_000, 80_000, 160_000], gaps
+
+
+def test_a_restart_needs_the_object_in_view_and_near_the_search_in_depth(seq):
+    """A clear result that beats the tracker's pose restarts a lost element only with the object's centre in view
+    and its depth within twice the search's depth reach of the search centre."""
+    reloc = Relocaliser(RasterRenderer(seq.mesh, CAM), 0.1)
+    centre = seq.gt_poses[:1].double()
+    z = float(centre[0, 2])
+
+    def result(pose, own=4.0):
+        f64 = dict(dtype=torch.float64)
+        return Relocalisation(pose, torch.ones(1, **f64), torch.full((1,), math.inf, **f64), torch.tensor([True]),
+                              torch.full((1,), own, **f64))
+
+    aside, deep = centre.clone(), centre.clone()
+    aside[0, 0] += z * CAM.width / CAM.fx  # a frame's width to the side: out of view
+    deep[0, :3] *= 1 + (2 * reloc.depth_reach_m + 0.01) / z  # along its line of sight: in view, too deep
+    assert reloc.depth_reach_m == pytest.approx(0.1)
+    assert found_again(result(centre), centre, reloc) and found_again(result(deep), deep, reloc)
+    assert not found_again(result(aside), centre, reloc)
+    assert not found_again(result(deep), centre, reloc)
+    assert not found_again(result(centre, own=1.2), centre, reloc)  # no better than the tracker's own pose
 
 
 def reference_bookkeeping(t, period_us, pose, declared, low_run, state, retry_us, start_after_us):

@@ -14,7 +14,7 @@ from torchevtrack.chamfer import chamfer, distance_map, model_edges, newest, rec
 from torchevtrack.geometry import quat_conj, quat_log, quat_mul
 from torchevtrack.mesh import load_mesh
 from torchevtrack.raster import RasterRenderer
-from torchevtrack.recover import beats_start
+from torchevtrack.recover import beats_start, search_levels
 from torchevtrack.stages.relocalise import Relocaliser
 from torchevtrack.stages.template import apply_steps
 
@@ -74,6 +74,25 @@ def test_not_clear_without_the_object(box):
     far[0, 0] += 0.16
     out = Relocaliser(renderer, radius)(TRUTH, edge_surface(renderer, far), torch.tensor([1000]))
     assert not bool(out.clear[0])
+
+
+def test_the_frame_scan_finds_the_object_beyond_the_search(box):
+    """The object 16 cm from the search centre, elsewhere in the frame, beyond a search of 5 cm: the frame scan puts it
+    within 1 cm in the image plane and 4 cm in depth, and the search centred there finds it, clear."""
+    renderer, radius = box
+    far = TRUTH.clone()
+    far[0, :2] += torch.tensor([-0.15, 0.05], dtype=torch.float64)
+    surface = edge_surface(renderer, far)
+    reloc = Relocaliser(renderer, radius, levels=search_levels(0.05))
+    assert not bool(reloc(TRUTH, surface, torch.tensor([1000])).clear[0])
+    seed, cost = reloc.scan(TRUTH, surface[0], 1000)
+    assert float((seed[0, :2] - far[0, :2]).norm()) < 0.01 and abs(float(seed[0, 2] - far[0, 2])) < 0.04, seed
+    out = reloc(seed, surface, torch.tensor([1000]))
+    te = float((out.pose[0, :3] - far[0, :3]).norm())
+    re = math.degrees(float(quat_log(quat_mul(out.pose[0, 3:], quat_conj(far[0, 3:]))).norm()))
+    assert te < 0.01 and re < 5 and bool(out.clear[0]), (te, re)
+    with pytest.raises(ValueError, match="expected pose"):
+        reloc.scan(TRUTH[0], surface[0], 1000)
 
 
 def test_bad_shapes(box):

@@ -207,8 +207,10 @@ class RecoverConfig:
     # declares lost keeps tracking (its output flagged lost), a wide search
     # (torchevtrack.stages.relocalise.Relocaliser), centred on its last good pose moved on by its last good twist,
     # runs at the declaration, retry_us of event time later, then at doubling intervals (up to
-    # torchevtrack.recover.MAX_RETRY_US), once min_events pixels fired within the last retry_us; the element restarts
-    # at a clear result that beats its own pose, or is found again where the search confirms that pose.
+    # torchevtrack.recover.MAX_RETRY_US), once min_events pixels fired within the last retry_us beside another that
+    # did (isolated noise does not count); where that search finds nothing, a second one centred where a scan of the
+    # whole frame puts the object (out of view and back, or far after a blackout); the element restarts at a clear
+    # result that beats its own pose, or is found again where the search confirms that pose.
     # start_search: one such search start_after_us after each (re)start, from the tracker's pose then; it restarts
     # the element where its result costs 1 px less than both the runner-up and the tracker's pose
     # (torchevtrack.recover.beats_start, START_MARGIN_PX; no max_cost_px). search_m: the search's image-plane

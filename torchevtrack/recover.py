@@ -15,12 +15,17 @@ masked :meth:`~torchevtrack.tracker.EventPoseTracker.reset`. Per batch element:
   keeps tracking meanwhile and its output stays its own pose, flagged lost (a false alarm then costs nothing; the
   good pose stays in :attr:`good_pose`). At the declaration, ``retry_us`` of event time later, then at intervals
   doubling up to ``MAX_RETRY_US``, each time once at least ``min_events`` pixels of its time surface fired within the
-  last ``retry_us`` (the search needs the object's recent edges: none in a blackout),
-  the :class:`~torchevtrack.stages.relocalise.Relocaliser` searches around the good pose moved on by the good twist
+  last ``retry_us`` beside another such pixel (the search needs the object's recent edges: none in a blackout or
+  with the object out of view, and isolated noise events do not count), the
+  :class:`~torchevtrack.stages.relocalise.Relocaliser` searches around the good pose moved on by the good twist
   over the time since, at most ``MAX_EXTRAPOLATION_US`` (:func:`~torchevtrack.stages.propagate.propagate`), against
-  the tracker's time surface, and costs the tracker's own pose too. A ``clear`` result that beats that pose
-  (:func:`beats`) restarts the element there (twist zero); where the search finds nothing better than a pose of the
-  tracker's that costs at most the clear-winner cost (:func:`confirms`), the element is found again as it is.
+  the tracker's time surface, and costs the tracker's own pose too. Where it neither restarts nor confirms (below),
+  the object may be back elsewhere in the frame (it left the view, or moved far in a blackout): the relocaliser's
+  frame scan (:meth:`~torchevtrack.stages.relocalise.Relocaliser.scan`, the good pose's depth and rotation tried
+  over the whole frame) gives a candidate, and a second search centred on it is judged the same way. A ``clear``
+  result that beats the tracker's pose, in view and within the search's depth reach (:func:`found_again`), restarts
+  the element there (twist zero); where the search finds nothing better than a pose of the tracker's that costs at
+  most the clear-winner cost (:func:`confirms`), the element is found again as it is.
 * **Start search** (``start_search``): ``start_after_us`` after each (re)start, once the time surface holds that
   much of the object's motion, one search around the tracker's pose then; a result that beats both its runner-up and
   the tracker's pose by ``START_MARGIN_PX`` (:func:`beats_start`) restarts the element there, with the twist the UKF
@@ -56,7 +61,7 @@ import trimesh
 from torch import nn
 
 from torchevtrack.camera import Camera
-from torchevtrack.chamfer import newest
+from torchevtrack.chamfer import recent_events
 from torchevtrack.config import RecoverConfig
 from torchevtrack.mesh import symmetry_axis
 from torchevtrack.raster import RasterRenderer
@@ -68,7 +73,7 @@ if TYPE_CHECKING:  # the tracker imports this module
     from torchevtrack.tracker import EventPoseTracker
 
 __all__ = ["MAX_EXTRAPOLATION_US", "MAX_RETRY_US", "RecoverArrays", "Recoverer", "SEED_COST_PX", "START_MARGIN_PX",
-           "TWIST_SPAN_US", "beats", "beats_start", "confirms", "recover_step", "search_levels"]
+           "TWIST_SPAN_US", "beats", "beats_start", "confirms", "found_again", "recover_step", "search_levels"]
 
 TWIST_SPAN_US = 20_000  # the good twist is measured over at least this span (one update's pose difference is noise)
 # the good pose is moved on by the good twist for at most this long: beyond, a constant twist is a guess that grows
@@ -102,6 +107,18 @@ def beats_start(found: Relocalisation, margin_px: float) -> bool:
     a start the recent events are few and smeared, the true pose itself costs 4-4.5 px on the standard
     ``potted_regular``."""
     return float(found.runner_up[0]) - float(found.cost[0]) >= margin_px and beats(found, margin_px)
+
+
+def found_again(found: Relocalisation, centre: torch.Tensor, reloc: Relocaliser) -> bool:
+    """Whether a lost element's search (one element, centred on ``centre`` ``(1, 7)``) restarts it: a clear result
+    that beats the tracker's own pose (:func:`beats`), with the object's centre in view and its depth within
+    ``2 reloc.depth_reach_m`` of the search centre's. A search's Gauss-Newton polish on an object half out of view
+    (few edges, all at the border) can slide it metres away along the line of sight at a low cost: not a find."""
+    x, y, z = (float(v) for v in found.pose[0, :3])
+    cam = reloc.camera
+    u, v = cam.fx * x / z + cam.cx, cam.fy * y / z + cam.cy
+    return bool(found.clear[0]) and beats(found, reloc.min_margin_px) and 0 <= u < cam.width \
+        and 0 <= v < cam.height and abs(z - float(centre[0, 2])) <= 2 * reloc.depth_reach_m
 
 
 def confirms(found: Relocalisation, max_cost_px: float, margin_px: float) -> bool:
@@ -320,8 +337,10 @@ class Recoverer(BufferViews, nn.Module):
         twist[~torch.from_numpy(starting)] = 0.0
         for i in np.flatnonzero(due | starting).tolist():
             if due[i]:
-                recent = (int(t[i]) - newest(surface[i])) <= self.retry_us
-                if int(recent.sum()) < self.min_events:  # no edges to search in (e.g. no events): retry later
+                # pixels that fired lately beside another (an edge's, not isolated noise): none in a blackout or with
+                # the object out of view, and a search then waits, at no cost, for the first update that has them
+                recent = recent_events(surface[i], int(t[i]), self.retry_us, min_support=1)
+                if int(recent.sum()) < self.min_events:  # no edges to search in: retry later
                     continue
                 dt = min(float(t[i] - self.good_us[i]), MAX_EXTRAPOLATION_US) * 1e-6
                 centre = propagate(self.good_pose[i:i + 1], self.twist[i:i + 1], dt)
@@ -333,11 +352,19 @@ class Recoverer(BufferViews, nn.Module):
             if not float(centre[0, 2]) > 1.5 * reloc.radius:  # extrapolated to (or behind) the camera
                 centre = self.good_pose[i:i + 1]
             start = time.perf_counter()
-            out = reloc(centre, surface[i:i + 1].clone(), torch.from_numpy(t[i:i + 1]), pose[i:i + 1])
-            self.search_s += time.perf_counter() - start
+            snapshot, t_i = surface[i:i + 1].clone(), torch.from_numpy(t[i:i + 1])
+            out = reloc(centre, snapshot, t_i, pose[i:i + 1])
             self.searches += 1
-            wins = (bool(out.clear[0]) and beats(out, reloc.min_margin_px)) if due[i] \
-                else beats_start(out, START_MARGIN_PX)
+            if due[i]:
+                wins = found_again(out, centre, reloc)
+                if not wins and not confirms(out, reloc.max_cost_px, reloc.min_margin_px):
+                    # not near its last pose: where in the frame is it (back in view elsewhere, or moved far)?
+                    seed, _ = reloc.scan(centre, snapshot[0], int(t[i]))
+                    out = reloc(seed, snapshot, t_i, pose[i:i + 1])
+                    wins = found_again(out, seed, reloc)
+            else:
+                wins = beats_start(out, START_MARGIN_PX)
+            self.search_s += time.perf_counter() - start
             if wins:
                 restart[i] = True
                 found[i] = out.pose[0]

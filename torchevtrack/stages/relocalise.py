@@ -30,6 +30,10 @@ recent events and the rendered model's edges (:mod:`torchevtrack.chamfer`).
    by default the search's centre), for a caller with a pose of its own to compare with (the tracker's:
    :func:`~torchevtrack.recover.beats`).
 
+:meth:`Relocaliser.scan` runs the first level alone over the whole frame (the candidates placed at its centre, the
+shift radius the frame's half-size), for an object that is back in view far from where it was lost; a search centred
+on its result then refines and judges it.
+
 Costs are in full-resolution pixels (lower is better). Batch elements are searched one after the other. The
 renderer may hold a decimated mesh (:func:`~torchevtrack.mesh.load_mesh` ``decimate``): the renders dominate the
 cost. ``tools/bench_relocalise.py`` measures success rates and the cost of a call, ``tools/chamfer_table.py``
@@ -202,10 +206,17 @@ class Relocaliser(nn.Module):
         self.symmetry_axis = None if symmetry_axis is None else \
             torch.nn.functional.normalize(torch.as_tensor(symmetry_axis, dtype=torch.float64), dim=0)
 
+    @property
+    def depth_reach_m(self) -> float:
+        """How far in depth the levels reach from a search's centre (metres): the sum of their largest depth
+        offsets."""
+        return sum(max(abs(dz) for dz in lv.dz_m) for lv in self.levels)
+
     # -- the observation ------------------------------------------------------------------------------------------
-    def _events(self, pose: torch.Tensor, last_us: torch.Tensor, t_now: int) -> np.ndarray:
-        """Recent event pixels ``(K, 2)`` (u, v) in the first level's region, with the adaptive window."""
-        level = self.levels[0]
+    def _events(self, pose: torch.Tensor, last_us: torch.Tensor, t_now: int, level: Level | None = None) -> np.ndarray:
+        """Recent event pixels ``(K, 2)`` (u, v) in ``level``'s region (default the first level's), with the adaptive
+        window."""
+        level = self.levels[0] if level is None else level
         u0, v0, side = self._square(pose, level)
         last = newest(last_us)
         H, W = last.shape
@@ -420,6 +431,50 @@ class Relocaliser(nn.Module):
             else:
                 lam *= 10
         return cost, pose
+
+    def scan(self, pose: torch.Tensor, last_us: torch.Tensor, t_now_us: int) -> tuple[torch.Tensor, float]:
+        """Where in the whole frame the object is, at about ``pose``'s depth and rotation: the first level's candidates
+        (its rotations and depth offsets) placed at the frame's centre, each at its best image-plane shift over the
+        whole frame (the FFT correlations of step 2, module docstring), against the recent events of the whole frame.
+        For an object that left the view, or moved far during a blackout, and came back elsewhere: a search centred
+        on its last pose reaches only ``levels[0].xy_m`` around it. The result is coarse (the first level's scale and
+        steps); :meth:`forward` centred on it refines and judges it.
+
+        Args:
+            pose: ``(1, 7)`` the pose whose depth and rotation are tried (its position is ignored).
+            last_us: ``(H, W)`` or ``(C, H, W)`` int64 time surface (us).
+            t_now_us: the search's time (us).
+
+        Returns:
+            The best candidate ``(1, 7)`` float64 and its cost (full-resolution pixels at the first level's scale,
+            over the whole frame's recent events: not comparable with :meth:`forward`'s costs).
+
+        Example:
+            >>> import torch
+            >>> from torchevtrack.camera import Camera
+            >>> from torchevtrack.mesh import load_mesh
+            >>> reloc = Relocaliser(RasterRenderer(load_mesh("box"), Camera(160, 120, 150.0, 150.0, 80.0, 60.0)), 0.1)
+            >>> last = torch.full((120, 160), -(2 ** 62))  # no events: a candidate, at the cap
+            >>> found, cost = reloc.scan(torch.tensor([[0.3, 0.0, 0.6, 1.0, 0.0, 0.0, 0.0]]), last, 1000)
+            >>> tuple(found.shape), cost
+            ((1, 7), 20.0)
+        """
+        pose = torch.as_tensor(pose, dtype=torch.float64)
+        if pose.shape != (1, 7) or last_us.ndim not in (2, 3) or last_us.dtype != torch.int64 \
+                or tuple(last_us.shape[-2:]) != (self.camera.height, self.camera.width):
+            raise ValueError(f"expected pose (1, 7) and last_us (H, W) or (C, H, W) int64 of the camera's "
+                             f"{self.camera.height}x{self.camera.width}, got {tuple(pose.shape)}, "
+                             f"{tuple(last_us.shape)} {last_us.dtype}")
+        cam = self.camera
+        centre = pose.clone()
+        z = max(float(centre[0, 2]), 1.5 * self.radius - min(self.levels[0].dz_m) + 1e-6)
+        centre[0, :3] = torch.tensor([((cam.width - 1) / 2 - cam.cx) * z / cam.fx,
+                                      ((cam.height - 1) / 2 - cam.cy) * z / cam.fy, z], dtype=torch.float64)
+        level = self.levels[0]._replace(xy_m=0.5 * z * max(cam.width / cam.fx, cam.height / cam.fy))
+        events = self._events(centre, last_us, int(t_now_us), level)
+        poses, costs = self._search(self._candidates(centre, level), self._region(centre, level, events), level)
+        j = int(costs.argmin())
+        return poses[j:j + 1], float(costs[j])
 
     def costs(self, poses: torch.Tensor, last_us: torch.Tensor, t_now_us: int) -> torch.Tensor:
         """The two-sided chamfer cost of each of ``poses`` against one observation of the recent events, for comparing
