@@ -153,3 +153,21 @@ def test_hand_oracle(sequence: Path, tmp_path: Path) -> None:
     done = subprocess.run([sys.executable, "tools/hand_oracle.py", str(suite), "--out", str(tmp_path / "y")],
                           cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and "does not reproduce" in done.stderr and len(done.stderr.splitlines()) == 1
+
+
+def test_recovery_trials_away(tmp_path: Path) -> None:
+    """Away mode judges a ``synth --leave-view`` sequence ``--settle`` after the object is back (0.1 + 0.2 + 0.7 s
+    here), reports the error before it left, and refuses a sequence made without an excursion."""
+    from torchevtrack.cli import main
+
+    tiny = ["--width", "64", "--height", "48", "--fx", "50", "--fy", "50", "--quiet"]
+    assert main(["synth", "--object", "box", "--duration", "1.1", "--leave-view", "0.1,0.2", "--out",
+                 str(tmp_path / "bench" / "away"), *tiny]) == 0
+    out = _run("tools/recovery_trials.py", str(tmp_path / "bench"), "--mode", "away", "--settle", "0.05",
+               "--max-cm", "100", "--max-deg", "180", "--set", "loss.enabled=true", "--set", "recover.enabled=true")
+    assert out.split()[:3] == ["away", "0", "before"] and "away: 1 of 1 within 100.0 cm / 180.0 deg" in out, out
+    assert "(0 trials off before it left, not counted)" in out and "without the gap" not in out
+    assert main(["synth", "--object", "box", "--duration", "0.05", "--out", str(tmp_path / "plain" / "p"), *tiny]) == 0
+    done = subprocess.run([sys.executable, "tools/recovery_trials.py", str(tmp_path / "plain"), "--mode", "away"],
+                          cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600)
+    assert done.returncode != 0 and "not a sequence made with synth --leave-view" in done.stderr

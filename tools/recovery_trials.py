@@ -15,6 +15,11 @@ the rotation about a hidden symmetry axis of an untextured symmetric object left
   of the batch tracks the same sequence without the gap (``without the gap``): a miss whose reference misses too is
   the tracker's own error at that instant, not a failed recovery.
 
+* ``away``: on sequences made with ``synth --leave-view START,AWAY`` (the object slides out of the view and back,
+  ``meta.json``'s ``leave_view``), started at the true pose, the tracker must be there ``--settle`` seconds after the
+  object is fully back (``START + AWAY + 2 SLIDE_S``). A trial already off when the object starts to leave is
+  reported but not counted. There is no reference without the excursion.
+
 Every trial also prints when its error first came within the bounds after the start (or after the gap), if it did
 by the judged instant (``reached ... ms``): "reach within 0.2 s" read as a first arrival, where the judged instant
 asks that it still be there. Each sequence's draws run as one batch; the loss detector runs (passively unless
@@ -23,6 +28,7 @@ as ``track --set`` does, e.g. ``--set recover.enabled=true --set loss.enabled=tr
 
     python tools/recovery_trials.py DIR --mode start [--draws 5] [--only A,B] [--set KEY=VALUE ...]
     python tools/recovery_trials.py DIR --mode blackout [--at 0.3] [--gap-ms 200] [--settle 0.1]
+    python tools/recovery_trials.py DIR --mode away [--settle 0.2]
 """
 
 from __future__ import annotations
@@ -38,6 +44,7 @@ from torchevtrack.geometry import interpolate_poses, perturb_pose
 from torchevtrack.mesh import hidden_symmetry_axis
 from torchevtrack.metrics import per_pose_errors
 from torchevtrack.synth.sequence import Sequence
+from torchevtrack.synth.trajectory import SLIDE_S
 from torchevtrack.tracker import EventPoseTracker
 
 
@@ -74,9 +81,10 @@ def first_within(seq: Sequence, axis, t_us: torch.Tensor, poses: torch.Tensor, t
     return None if not bool(ok.any()) else int(t[int(ok.nonzero()[0, 0])]) - t_from
 
 
-def trial_batch(path, mode: str, args, cfg: TrackerConfig) -> tuple[list[dict], tuple[float, float]]:
+def trial_batch(path, mode: str, args, cfg: TrackerConfig) -> tuple[list[dict], tuple[float, float] | None]:
     """Track one sequence's draws as a batch: one record per draw, and the error at the judged instant of the
-    reference element: started at the truth (start mode) or tracking without the gap (blackout mode)."""
+    reference element: started at the truth (start mode) or tracking without the gap (blackout mode); ``None`` in
+    away mode (no reference)."""
     seq = Sequence.load(path)
     t0 = int(seq.gt_t_us[0])
     if mode == "start":
@@ -86,6 +94,14 @@ def trial_batch(path, mode: str, args, cfg: TrackerConfig) -> tuple[list[dict], 
                               for _ in range(draws)] + [seq.gt_poses[0]])  # the last: the reference from the truth
         streams = [seq.events] * (draws + 1)
         t_before, t_from, t_judge = None, t0, t0 + round(args.settle * 1e6)
+    elif mode == "away":
+        if "leave_view" not in seq.meta:
+            raise SystemExit(f"{path.name}: not a sequence made with synth --leave-view")
+        draws, starts, streams = 1, seq.gt_poses[:1], [seq.events]
+        leave = seq.meta["leave_view"]
+        t_before = t0 + round(leave["start_s"] * 1e6)
+        t_from = t_before + round((leave["away_s"] + 2 * SLIDE_S) * 1e6)
+        t_judge = t_from + round(args.settle * 1e6)
     else:
         draws = 1
         starts = seq.gt_poses[:1].repeat(2, 1)  # the second: the reference, without the gap
@@ -110,12 +126,13 @@ def trial_batch(path, mode: str, args, cfg: TrackerConfig) -> tuple[list[dict], 
         rec = {"sequence": path.name, "draw": b}
         if t_before is not None:
             rec["before"] = error_at(seq, axis, times[b], poses[b], t_before)
+        if mode == "blackout":
             rec["moved_cm"] = moved_cm
         rec["after"] = error_at(seq, axis, times[b], poses[b], t_judge)
         rec["reached_us"] = first_within(seq, axis, times[b], poses[b], t_from, t_judge, args.max_cm, args.max_deg)
         rec["lost_flags"] = int(lost[b].sum())
         out.append(rec)
-    truth = error_at(seq, axis, times[draws], poses[draws], t_judge)
+    truth = None if draws == B else error_at(seq, axis, times[draws], poses[draws], t_judge)
     return out, truth
 
 
@@ -126,7 +143,7 @@ def within(e: tuple[float, float], args) -> bool:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("benchdir")
-    ap.add_argument("--mode", choices=("start", "blackout"), required=True)
+    ap.add_argument("--mode", choices=("start", "blackout", "away"), required=True)
     ap.add_argument("--only", default=None, help="comma-separated sequence names")
     ap.add_argument("--draws", type=int, default=5, help="start mode: start draws per sequence")
     ap.add_argument("--seed", type=int, default=0)
@@ -135,7 +152,8 @@ def main(argv=None) -> None:
     ap.add_argument("--at", type=float, default=0.3, help="blackout mode: the gap's start (s after the first pose)")
     ap.add_argument("--gap-ms", type=float, default=200.0)
     ap.add_argument("--settle", type=float, default=None,
-                    help="seconds after the start (start mode, default 0.2) or after the gap (blackout, default 0.1)")
+                    help="seconds after the start (start mode, default 0.2), after the gap (blackout, default 0.1) "
+                    "or after the object is back in view (away, default 0.2)")
     ap.add_argument("--max-cm", type=float, default=1.0)
     ap.add_argument("--max-deg", type=float, default=5.0)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
@@ -143,7 +161,7 @@ def main(argv=None) -> None:
     if args.draws < 1 or args.gap_ms < 0 or args.at < 0 or (args.settle is not None and args.settle < 0):
         ap.error("--draws must be >= 1 and --at, --gap-ms, --settle >= 0")
     if args.settle is None:
-        args.settle = 0.2 if args.mode == "start" else 0.1
+        args.settle = 0.1 if args.mode == "blackout" else 0.2
     cfg = TrackerConfig().override(args.set)
     paths = find_sequences(args.benchdir, None if args.only is None else args.only.split(","))
     records, truth_ok = [], []
@@ -151,12 +169,14 @@ def main(argv=None) -> None:
         trials, truth = trial_batch(path, args.mode, args, cfg)
         for r in trials:
             records.append(r)
-            before = "" if "before" not in r else f"  moved {r['moved_cm']:5.1f} cm  before {r['before'][0]:6.2f} cm " \
-                f"{r['before'][1]:6.2f} deg"
+            moved = f"  moved {r['moved_cm']:5.1f} cm" if "moved_cm" in r else ""
+            before = "" if "before" not in r else f"{moved}  before {r['before'][0]:6.2f} cm {r['before'][1]:6.2f} deg"
             reached = "never" if r["reached_us"] is None else f"{r['reached_us'] / 1e3:5.0f} ms"
             verdict = "ok" if within(r["after"], args) else "MISS"
             print(f"{r['sequence']:34s} {r['draw']:2d}{before}  after {r['after'][0]:6.2f} cm {r['after'][1]:6.2f} deg"
                   f"  reached {reached}  lost flags {r['lost_flags']:4d}  {verdict}", flush=True)
+        if truth is None:
+            continue
         truth_ok.append(within(truth, args))
         for r in trials:
             r["reference_ok"] = truth_ok[-1]
@@ -166,11 +186,12 @@ def main(argv=None) -> None:
     counted = [r for r in records if "before" not in r or within(r["before"], args)]
     ok = sum(within(r["after"], args) for r in counted)
     print(f"{args.mode}: {ok} of {len(counted)} within {args.max_cm} cm / {args.max_deg} deg "
-          f"({len(records) - len(counted)} trials off before the gap, not counted); "
+          f"({len(records) - len(counted)} trials off before {'it left' if args.mode == 'away' else 'the gap'}, not "
+          f"counted); "
           f"{sum(r['reached_us'] is not None for r in counted)} of {len(counted)} reached them by then")
     if args.mode == "start":
         print(f"started at the truth: {sum(truth_ok)} of {len(truth_ok)} sequences within them at that instant")
-    else:
+    elif args.mode == "blackout":
         misses = [r for r in counted if not within(r["after"], args)]
         print(f"without the gap: {sum(r['reference_ok'] for r in counted)} of {len(counted)} counted trials within "
               f"them at that instant; {sum(not r['reference_ok'] for r in misses)} of the {len(misses)} misses miss "
