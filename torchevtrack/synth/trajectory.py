@@ -288,7 +288,8 @@ def leave_and_return(t_us: torch.Tensor, poses: torch.Tensor, camera: Camera, me
     """The trajectory with an excursion out of the view and back: from ``start_s`` the object slides sideways (its
     image position eased over :data:`SLIDE_S` seconds, depth and rotation as they were) to beyond the nearer side
     border (its bounding sphere's image radius past it), stays out of view for ``away_s`` seconds, and slides back
-    over :data:`SLIDE_S` seconds onto its own path. For a tracker's recovery: an object that leaves the view and returns.
+    over :data:`SLIDE_S` seconds onto its own path: an object that leaves the view and returns, for a tracker's
+    recovery.
 
     Shape: ``(N,), (N, 7) -> (N, 7)`` float64 (``t_us`` int64 microseconds; ``mesh`` in metres, as
     :func:`make_trajectory`'s).
@@ -316,8 +317,8 @@ def leave_and_return(t_us: torch.Tensor, poses: torch.Tensor, camera: Camera, me
     z = out[:, 2]
     u = camera.fx * out[:, 0] / z + camera.cx
     beyond = camera.fx * radius / (z - radius).clamp(min=1e-3) + 2.0  # the bounding sphere's image radius, and 2 px
-    mid = float(u[(share > 0).nonzero()[0, 0]]) if bool((share > 0).any()) else float(u[0])
-    goal = camera.width - 1 + beyond if mid >= (camera.width - 1) / 2 else -beyond
+    leaving = float(u[(share > 0).nonzero()[0, 0]]) if bool((share > 0).any()) else float(u[0])  # where it starts
+    goal = camera.width - 1 + beyond if leaving >= (camera.width - 1) / 2 else -beyond
     out[:, 0] = torch.where(share > 0, ((u + share * (goal - u)) - camera.cx) * z / camera.fx, out[:, 0])
     return out
 
