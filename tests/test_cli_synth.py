@@ -119,6 +119,9 @@ def test_synth_leave_view_has_no_events_while_the_object_is_away(tmp_path, capsy
     t = seq.events.t
     assert int(((t >= 450_000) & (t < 650_000)).sum()) == 0  # 0.1 + 0.35 s out, 0.2 s away
     assert int((t < 100_000).sum()) > 0 and int((t > 1_000_000 - 50_000).sum()) > 0
+    capsys.readouterr()
+    assert main(["info", str(out)]) == 0
+    assert "depth range 0.3-0.7 m; leaves the view at 0.1 s for 0.2 s" in capsys.readouterr().out
     rc = main(["synth", "--object", "box", "--duration", "0.5", "--leave-view", "0.1,0.2", "--out",
                str(tmp_path / "late"), *TINY])
     err = capsys.readouterr().err.strip()

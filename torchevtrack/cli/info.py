@@ -74,7 +74,8 @@ def _ground_truth_info(path: Path, camera: Camera) -> dict:
 def sensor_effects(meta: dict) -> dict:
     """The simulated world of a generated sequence from its ``meta.json``: contrast threshold and its spread,
     noise rate, refractory period, hot pixels (count, rate), hand (occluded silhouette fraction), texture,
-    depth range. Effects the generator did not record (older or standard sequences) take their off values."""
+    depth range, an excursion out of the view (``leave_view``: start and time away, s). Effects the generator did not
+    record (older or standard sequences) take their off values."""
     gen = meta.get("generator", {})
     esim = gen.get("esim", {})
     occ = meta.get("occluder")
@@ -89,6 +90,7 @@ def sensor_effects(meta: dict) -> dict:
         "occluded_fraction": None if occ is None else occ["occluded_fraction"],
         "texture": (meta.get("texture") or {}).get("kind", "none"),
         "depth_range_m": gen.get("depth_range_m", [0.3, 0.7]),
+        "leave_view": meta.get("leave_view"),
     }
 
 
@@ -135,7 +137,9 @@ def run(args: argparse.Namespace) -> int:
                                            f"(median; {100 * occ['min']:.0f}-{100 * occ['max']:.0f} %)")
         lo, hi = e["depth_range_m"]
         model = f" (its model: {info['textured_mesh']})" if info["textured_mesh"] else ""
-        print(f"world      occluder {hand}; texture {e['texture']}{model}; depth range {lo:g}-{hi:g} m")
+        away = "" if e["leave_view"] is None else \
+            f"; leaves the view at {e['leave_view']['start_s']:g} s for {e['leave_view']['away_s']:g} s"
+        print(f"world      occluder {hand}; texture {e['texture']}{model}; depth range {lo:g}-{hi:g} m{away}")
     print(f"camera     {c['width']}x{c['height']}, fx {c['fx']:g}, fy {c['fy']:g}, cx {c['cx']:g}, cy {c['cy']:g}")
     print(f"events     {info['events']} over {info['events_duration_s']:.3f} s "
           f"({info['events_per_s'] / 1e6:.3f} Mev/s)")
