@@ -31,7 +31,8 @@ masked :meth:`~torchevtrack.tracker.EventPoseTracker.reset`. Per batch element:
   the tracker's pose by ``START_MARGIN_PX`` (:func:`beats_start`) restarts the element there, with the twist the UKF
   measured meanwhile (from a rough start pose, the local tracker alone may never reach the basin of the true one).
 
-The search runs inside the update and blocks it: about 0.3-1.5 s of wall time per search (the event time does not
+The search runs inside the update and blocks it: about 0.3-1.5 s of wall time per search, and a lost element's
+search that finds nothing scans the frame too (about 1 s more at 640x480, 3 s at 1280x720; the event time does not
 advance meanwhile, so offline tracking gives the same poses however long it takes). :attr:`Recoverer.searches`,
 :attr:`Recoverer.search_s` and :attr:`Recoverer.restarts` count them.
 
