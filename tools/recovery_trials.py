@@ -17,8 +17,8 @@ the rotation about a hidden symmetry axis of an untextured symmetric object left
 
 * ``away``: on sequences made with ``synth --leave-view START,AWAY`` (the object slides out of the view and back,
   ``meta.json``'s ``leave_view``), started at the true pose, the tracker must be there ``--settle`` seconds after the
-  object is fully back (``START + AWAY + 2 SLIDE_S``). A trial already off when the object starts to leave is
-  reported but not counted. There is no reference without the excursion.
+  object is fully back (``back_on_path_s``: ``START + AWAY + 2 SLIDE_S``). A trial already off when the object starts
+  to leave is reported but not counted. There is no reference without the excursion.
 
 Every trial also prints when its error first came within the bounds after the start (or after the gap), if it did
 by the judged instant (``reached ... ms``): "reach within 0.2 s" read as a first arrival, where the judged instant
@@ -44,7 +44,7 @@ from torchevtrack.geometry import interpolate_poses, perturb_pose
 from torchevtrack.mesh import hidden_symmetry_axis
 from torchevtrack.metrics import per_pose_errors
 from torchevtrack.synth.sequence import Sequence
-from torchevtrack.synth.trajectory import SLIDE_S
+from torchevtrack.synth.trajectory import back_on_path_s
 from torchevtrack.tracker import EventPoseTracker
 
 
@@ -100,7 +100,7 @@ def trial_batch(path, mode: str, args, cfg: TrackerConfig) -> tuple[list[dict], 
         draws, starts, streams = 1, seq.gt_poses[:1], [seq.events]
         leave = seq.meta["leave_view"]
         t_before = t0 + round(leave["start_s"] * 1e6)
-        t_from = t_before + round((leave["away_s"] + 2 * SLIDE_S) * 1e6)
+        t_from = t0 + round(back_on_path_s(leave["start_s"], leave["away_s"]) * 1e6)
         t_judge = t_from + round(args.settle * 1e6)
     else:
         draws = 1

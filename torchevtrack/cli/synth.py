@@ -10,7 +10,7 @@ from pathlib import Path
 from torchevtrack.camera import Camera
 from torchevtrack.cli.options import add_executor_options, executor_from_args
 from torchevtrack.synth.suite import CAMERA_PRESETS, MOTIONS
-from torchevtrack.synth.trajectory import SLIDE_S
+from torchevtrack.synth.trajectory import SLIDE_S, back_on_path_s
 
 
 def _camera(args: argparse.Namespace) -> Camera:
@@ -100,7 +100,7 @@ def _add_world(g: argparse._ArgumentGroup) -> None:
 def run_synth(args: argparse.Namespace) -> int:
     if args.duration <= 0:
         raise ValueError(f"--duration must be positive, got {args.duration}")
-    if args.leave_view is not None and sum(args.leave_view) + 2 * SLIDE_S > args.duration:
+    if args.leave_view is not None and back_on_path_s(*args.leave_view) > args.duration:
         raise ValueError(f"--leave-view {args.leave_view[0]:g},{args.leave_view[1]:g}: the object would not be back "
                          f"in view by the end of the {args.duration:g} s sequence (it slides {SLIDE_S:g} s each way)")
     _generate(args.object, args.motion, args.duration, args.seed, _camera(args), Path(args.out), args)

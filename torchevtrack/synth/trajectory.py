@@ -51,6 +51,7 @@ __all__ = [
     "MotionGroup",
     "make_trajectory",
     "SLIDE_S",
+    "back_on_path_s",
     "leave_and_return",
     "pose_at",
     "centroid_image_speed",
@@ -281,6 +282,12 @@ def _arc_length_path(arc, freq, phase, amp, centre, half) -> np.ndarray:
 
 
 SLIDE_S = 0.35  # leave_and_return: seconds the object takes to slide out of the view, and back
+
+
+def back_on_path_s(start_s: float, away_s: float) -> float:
+    """When :func:`leave_and_return`'s object, leaving at ``start_s`` for ``away_s`` seconds, is back on its path (s):
+    ``start_s + away_s + 2 SLIDE_S``."""
+    return start_s + away_s + 2 * SLIDE_S
 
 
 def leave_and_return(t_us: torch.Tensor, poses: torch.Tensor, camera: Camera, mesh, start_s: float,
