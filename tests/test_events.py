@@ -18,6 +18,28 @@ def test_dtypes_and_polarity_encodings():
     assert EventStream.from_arrays([1], [1], [1], [True]).p.tolist() == [1]
 
 
+@pytest.mark.parametrize("dtype", [torch.int8, torch.uint8, torch.int32, torch.int64, torch.bool])
+def test_polarity_of_any_integer_dtype(dtype):
+    # every encoding maps to int8 {0, 1}, against a per-element reference; int8 {0, 1} is taken without a copy
+    values = [0, 1, 1, 0] if dtype in (torch.uint8, torch.bool) else [0, 1, -1, 1]
+    p = torch.tensor(values).to(dtype)
+    ev = EventStream.from_arrays([0] * 4, [0] * 4, [1, 2, 3, 4], p)
+    assert ev.p.dtype == torch.int8 and ev.p.tolist() == [int(v > 0) for v in values]
+    assert (ev.p.data_ptr() == p.data_ptr()) == (dtype == torch.int8 and min(values) >= 0)
+    if dtype != torch.bool:  # a bool is always a polarity
+        with pytest.raises(ValueError, match="polarity"):
+            EventStream.from_arrays([0], [0], [1], torch.tensor([2 if dtype == torch.uint8 else -2]).to(dtype))
+
+
+def test_pixels_beyond_int16_are_refused():
+    for x in (np.array([1 << 15], np.int32), torch.tensor([-(1 << 15) - 1]), [70_000]):
+        with pytest.raises(ValueError, match="int16 range"):
+            EventStream.from_arrays(x, [0], [1], [1])
+    edge = EventStream.from_arrays(np.array([(1 << 15) - 1, -(1 << 15)], np.int64), [0, 0], [1, 2], [1, 1],
+                                   validate=False)  # (a negative pixel is the validation's to refuse)
+    assert edge.x.tolist() == [(1 << 15) - 1, -(1 << 15)]
+
+
 def test_slice_time_is_a_view_with_half_open_bounds():
     ev = _stream()
     s = ev.slice_time(20_000, 30_000)

@@ -28,7 +28,8 @@ __all__ = ["EventStream", "US_PER_S", "check_window", "first_invalid", "pack_str
 US_PER_S = 1_000_000
 
 
-def _as_tensor(a, dtype: torch.dtype, name: str) -> torch.Tensor:
+def _as_tensor(a, name: str) -> torch.Tensor:
+    """``a`` as a 1-D integer (or bool) tensor of its own dtype (a numpy array or tensor is not copied)."""
     if isinstance(a, torch.Tensor):
         t = a
     else:
@@ -40,7 +41,28 @@ def _as_tensor(a, dtype: torch.dtype, name: str) -> torch.Tensor:
         raise TypeError(f"event field {name!r} must be an integer tensor, got {t.dtype}")
     if t.ndim != 1:
         raise ValueError(f"event field {name!r} must be 1-D, got shape {tuple(t.shape)}")
-    return t.to(dtype)
+    return t
+
+
+def _pixels(a, name: str) -> torch.Tensor:
+    """Pixel coordinates as int16 (checked to fit unless they are int16 already)."""
+    t = _as_tensor(a, name)
+    if t.dtype != torch.int16 and t.numel():
+        lo, hi = (int(v) for v in torch.aminmax(t.to(torch.int64) if t.dtype == torch.bool else t))
+        if lo < -(1 << 15) or hi >= (1 << 15):
+            raise ValueError(f"event field {name!r} has pixel coordinates beyond the int16 range")
+    return t.to(torch.int16)
+
+
+def _polarity(a) -> torch.Tensor:
+    """Polarity {0, 1}, {-1, 1} or bool as int8 {0, 1} (int8 {0, 1} is kept as it is)."""
+    t = _as_tensor(a, "p")
+    if t.dtype == torch.bool or not t.numel():
+        return t.to(torch.int8)
+    lo, hi = (int(v) for v in torch.aminmax(t))
+    if lo < -1 or hi > 1:
+        raise ValueError("polarity must be in {0, 1} or {-1, 1}")
+    return t if lo >= 0 and t.dtype == torch.int8 else (t > 0).to(torch.int8)
 
 
 @dataclass(frozen=True)
@@ -63,16 +85,7 @@ class EventStream:
     def from_arrays(cls, x, y, t, p, *, validate: bool = True, width: int | None = None,
                     height: int | None = None) -> "EventStream":
         """Build from array-likes; polarity may be {0, 1}, {-1, 1} or bool (all map to {0, 1})."""
-        tt = _as_tensor(t, torch.int64, "t")
-        pp = _as_tensor(p, torch.int64, "p")
-        if pp.numel() and bool((pp < -1).any() or (pp > 1).any()):
-            raise ValueError("polarity must be in {0, 1} or {-1, 1}")
-        ev = cls(
-            _as_tensor(x, torch.int16, "x") if _fits16(x) else _bad16("x"),
-            _as_tensor(y, torch.int16, "y") if _fits16(y) else _bad16("y"),
-            tt,
-            (pp > 0).to(torch.int8),
-        )
+        ev = cls(_pixels(x, "x"), _pixels(y, "y"), _as_tensor(t, "t").to(torch.int64), _polarity(p))
         if validate:
             ev.validate(width, height)
         return ev
@@ -299,14 +312,3 @@ def _first_outside(f, size):
         if f[i] < 0 or f[i] >= size:
             return i
     return -1
-
-
-def _fits16(a) -> bool:
-    arr = a if isinstance(a, torch.Tensor) else np.asarray(a)
-    if len(arr) == 0:
-        return True
-    return int(arr.min()) >= -(1 << 15) and int(arr.max()) < (1 << 15)
-
-
-def _bad16(name: str):
-    raise ValueError(f"event field {name!r} has pixel coordinates beyond the int16 range")
