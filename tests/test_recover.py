@@ -24,7 +24,9 @@ from torchevtrack.io.lost import lost_path, read_lost
 from torchevtrack.io.poses import read_tum
 from torchevtrack.metrics import per_pose_errors
 from torchevtrack.raster import RasterRenderer
-from torchevtrack.recover import TWIST_SPAN_US, bookkeeping_kernel, found_again
+import torchevtrack.recover as recover
+from torchevtrack.geometry import quat_to_matrix
+from torchevtrack.recover import TWIST_SPAN_US, bookkeeping_kernel, found_again, turned_poses
 from torchevtrack.stages.propagate import twist_between
 from torchevtrack.stages.relocalise import Relocalisation, Relocaliser
 from torchevtrack.synth.generate import generate_sequence
@@ -253,6 +255,7 @@ def test_a_start_search_restarts_where_it_beats_the_trackers_pose(seq, monkeypat
                               torch.tensor([cost <= CAP]), torch.full((1,), own_cost, **f64))
 
     monkeypatch.setattr(Relocaliser, "forward", search)
+    monkeypatch.setattr(recover, "TURN_MARGIN", math.inf)  # (the turned poses never restart here: the next test)
     t0 = int(seq.gt_t_us[0])
     tracker = EventPoseTracker(CAM, seq.mesh, RECOVER.replace(recover={"start_search": True}))
     start = perturb_pose(seq.gt_poses[0], 0.02, math.radians(10.0), torch.Generator().manual_seed(5))
@@ -260,6 +263,86 @@ def test_a_start_search_restarts_where_it_beats_the_trackers_pose(seq, monkeypat
     tracker.track(seq.events, start, t_start_us=t0, t_end_us=end, progress=False)
     tracker.close()
     assert tracker.recover.searches == 1 and tracker.recover.restarts == restarts
+
+
+@pytest.mark.parametrize("gain, restarts", [(1.5, 1), (0.5, 0), (-3.0, 0)])
+def test_a_start_search_turns_the_trackers_pose_where_the_chamfer_result_does_not_beat_it(seq, monkeypatch, gain,
+                                                                                          restarts):
+    """Where the chamfer result does not beat the tracker's pose, the tracker's pose turned (:func:`turned_poses`) and
+    refined by the template (:meth:`EventPoseTracker.refine`, an oracle here that scores the tracker's own pose 10 and
+    the fifth turned pose ``10 + gain``) restarts the element at that refined pose if it scores ``TURN_MARGIN`` (10 %)
+    more: 15 % does, 5 % does not."""
+    def search(self, pose, last_us, t_now_us, own=None):
+        f64 = dict(dtype=torch.float64)
+        return Relocalisation(own.clone(), torch.full((1,), 2.0, **f64), torch.full((1,), math.inf, **f64),
+                              torch.ones(1, dtype=torch.bool), torch.full((1,), 2.0, **f64))
+
+    calls = []
+
+    def refine(self, poses, index, t_us, rounds=2):
+        calls.append((poses.clone(), self.pose[index].clone()))
+        score = torch.full((len(poses),), 9.0, dtype=torch.float64)
+        score[0], score[5] = 10.0, 10.0 + gain
+        return poses + torch.tensor([0.001, 0, 0, 0, 0, 0, 0]), score  # "refined": moved 1 mm along x
+
+    monkeypatch.setattr(Relocaliser, "forward", search)
+    monkeypatch.setattr(EventPoseTracker, "refine", refine)
+    t0 = int(seq.gt_t_us[0])
+    tracker = EventPoseTracker(CAM, seq.mesh, RECOVER.replace(recover={"start_search": True}))
+    start = perturb_pose(seq.gt_poses[0], 0.02, math.radians(10.0), torch.Generator().manual_seed(5))
+    at = t0 + RECOVER.recover.start_after_us
+    reset = []
+    real_reset = EventPoseTracker.reset
+    monkeypatch.setattr(EventPoseTracker, "reset", lambda self, pose, twist=None, mask=None: (
+        reset.append(pose.clone()), real_reset(self, pose, twist, mask))[1])
+    tracker.track(seq.events, start, t_start_us=t0, t_end_us=at + 10_000, progress=False)
+    tracker.close()
+    (poses, own), = calls  # one start search
+    assert torch.equal(poses, turned_poses(own, recover.TURN_DEG))
+    assert tracker.recover.restarts == restarts
+    if restarts:  # the restart pose is the refined fifth candidate
+        assert torch.allclose(reset[-1][0], poses[5] + torch.tensor([0.001, 0, 0, 0, 0, 0, 0]), atol=1e-9)
+
+
+def test_turned_poses_turn_about_each_camera_axis_through_the_object():
+    pose = perturb_pose(torch.tensor([0.1, -0.05, 0.6, 1.0, 0.0, 0.0, 0.0]), 0.0, 0.7, torch.Generator().manual_seed(1))
+    out = turned_poses(pose, (10.0, 20.0))
+    assert out.shape == (13, 7) and torch.equal(out[0], pose.double())
+    R0 = quat_to_matrix(pose.double()[3:])
+    k = 1
+    for axis in range(3):
+        for deg in (10.0, 20.0):
+            for sign in (1.0, -1.0):  # the camera-frame rotation about ``axis``, applied on the left
+                a = math.radians(sign * deg)
+                c, s_ = math.cos(a), math.sin(a)
+                i, j = [(1, 2), (2, 0), (0, 1)][axis]
+                Ra = torch.eye(3, dtype=torch.float64)
+                Ra[i, i], Ra[i, j], Ra[j, i], Ra[j, j] = c, -s_, s_, c
+                assert torch.allclose(quat_to_matrix(out[k, 3:]), Ra @ R0, atol=1e-12)
+                assert torch.equal(out[k, :3], pose.double()[:3])
+                k += 1
+
+
+def test_refine_scores_poses_against_the_observation_and_leaves_the_tracker_as_it_was(seq):
+    """``refine`` with no rounds returns the poses as given; an object out of view scores ``-inf`` and is not moved;
+    a pose in view scores a finite, positive score (edges seen) and moves with rounds; the tracker's state stays."""
+    t0 = int(seq.gt_t_us[0])
+    t = t0 + 60_000
+    tracker = EventPoseTracker(CAM, seq.mesh)
+    tracker.track(seq.events, seq.gt_poses[0], t_start_us=t0, t_end_us=t, progress=False)
+    before = copy.deepcopy(tracker.state_dict())
+    truth = interpolate_poses(seq.gt_t_us, seq.gt_poses, torch.tensor([t]))[0]
+    away = truth.clone()
+    away[0] = 5.0  # far beside the view
+    poses = torch.stack([truth, away])
+    same, score0 = tracker.refine(poses, 0, t, rounds=0)
+    moved, score2 = tracker.refine(poses, 0, t, rounds=2)
+    assert torch.equal(same, poses) and torch.equal(moved[1], away)
+    assert score0[0] > 0 and math.isfinite(score2[0]) and score0[1] == score2[1] == -math.inf
+    assert not torch.equal(moved[0], truth)
+    after = tracker.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    tracker.close()
 
 
 def test_recover_on_the_command_line_may_be_refined_by_set():

@@ -58,6 +58,7 @@ Example:
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -84,10 +85,10 @@ from torchevtrack.schedule import Job, Schedule
 from torchevtrack.stages import batch_mask, periods
 from torchevtrack.stages.burst import BurstGuard, keep_events
 from torchevtrack.stages.denoise import BackgroundActivityFilter
-from torchevtrack.stages.eros import EROS, Recency, TimeSurface, bind_observe
+from torchevtrack.stages.eros import EROS, Recency, TimeSurface, bind_observe, canvas_observation
 from torchevtrack.stages.flow import FlowField, TripletFlow
 from torchevtrack.stages.propagate import invalid_poses, propagate
-from torchevtrack.stages.template import Correction, TemplateCorrector, TemplateModel, window_of
+from torchevtrack.stages.template import Correction, TemplateCorrector, TemplateModel, area_weight, window_of
 from torchevtrack.stages.ukf import PoseUKF
 from torchevtrack.stages.velocity import CorrectionFeedback, VelocityKF, shift_twist
 from torchevtrack.update import (CorrectionStep, MotionArgs, OutputArgs, RenderModelBinding, bind_correction,
@@ -655,6 +656,60 @@ class EventPoseTracker(nn.Module):
         tracker keeps one) or ``(B, C, H, W)`` per polarity channel (the flow's ``newest``);
         :data:`~torchevtrack.stages.NEVER` where none fired. The tracker's own buffer: clone it to keep it."""
         return self.time_surface.last_us if self.time_surface is not None else self.flow.newest
+
+    @torch.inference_mode()
+    def refine(self, poses: torch.Tensor, index: int, t_us: int, rounds: int = 2) -> tuple[torch.Tensor, torch.Tensor]:
+        """Candidate poses of element ``index`` refined by the template correction against its current observation.
+
+        Each pose gets ``rounds`` corrections (a render at the pose, its template model, the update's Newton search
+        against the EROS observation in that model's canvas at time ``t_us``, the element's recency window), then a
+        last render scores it as the correction does (edges and interior, less the area term). Slow path (a full
+        frame render per round, Python glue): for searches, not for updates. The element's state is not changed.
+
+        Args:
+            poses: ``(K, 7)`` float64 poses of the element's object.
+            index: the element; t_us: the observation's time (int microseconds, the element's last update).
+            rounds: corrections before the score (``>= 0``).
+
+        Returns:
+            ``(K, 7)`` float64 refined poses and ``(K,)`` float64 scores (``-inf`` where the object is out of view).
+
+        Example:
+            >>> import torch
+            >>> from torchevtrack import Camera, EventPoseTracker
+            >>> tracker = EventPoseTracker(Camera(64, 48, 60.0, 60.0, 31.5, 23.5), "box")
+            >>> pose = torch.tensor([[0.0, 0.0, 0.6, 1.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+            >>> tracker.reset(pose)
+            >>> refined, score = tracker.refine(pose, 0, 0)  # no events yet: an empty observation scores 0
+            >>> tuple(refined.shape), score.tolist()
+            ((1, 7), [0.0])
+        """
+        poses = torch.as_tensor(poses, dtype=torch.float64)
+        if poses.ndim != 2 or poses.shape[1] != 7 or not 0 <= index < self.batch_size or rounds < 0:
+            raise ValueError(f"expected poses (K, 7), 0 <= index < {self.batch_size} and rounds >= 0, got "
+                             f"{tuple(poses.shape)}, {index}, {rounds}")
+        renderer = self._renderers[self._renderer_of[index]]
+        last = self.last_event_us[index:index + 1]
+        last = last[:, None] if last.ndim == 3 else last
+        surface, window = self.eros.surface[index:index + 1], self.recency.window_us[index:index + 1]
+        t_now, max_age = torch.tensor([int(t_us)]), self.config.eros.max_age_us
+        out, scores = poses.clone(), torch.full((len(poses),), -math.inf, dtype=torch.float64)
+        for k in range(len(poses)):
+            pose = out[k:k + 1]
+            for r in range(rounds + 1):
+                render = renderer.render(pose.float())
+                if not bool((render.depth > 0).any()):
+                    break
+                model = self.corrector.template_model(pose, render.depth, render.gray, (0, 0))
+                canvas = model.depth.shape[-1]
+                obs = canvas_observation(surface, last, model.box, canvas, t_now, max_age, window).reshape(1, -1)
+                if r == rounds:
+                    area = area_weight(obs[0].numpy(), model.valid[0].numpy(), canvas, float(model.interior[0]))
+                    scores[k] = float(model.fit_canvas(obs).s0[0]) - area
+                else:
+                    pose = self.corrector.correct_canvas(model, pose, obs).pose.double()
+            out[k] = pose[0]
+        return out, scores
 
     def _follow(self, owner: "EventPoseTracker") -> None:
         """Share ``owner``'s event stages (burst guard, denoise filter, EROS, time surface, flow), which depend on the
