@@ -19,13 +19,12 @@ from torchevtrack.camera import Camera
 from torchevtrack.cli import main
 from torchevtrack.config import ABLATIONS, TrackerConfig
 from torchevtrack.events import EventStream
-from torchevtrack.geometry import interpolate_poses, perturb_pose
+from torchevtrack.geometry import interpolate_poses, perturb_pose, quat_to_matrix
 from torchevtrack.io.lost import lost_path, read_lost
 from torchevtrack.io.poses import read_tum
 from torchevtrack.metrics import per_pose_errors
 from torchevtrack.raster import RasterRenderer
-import torchevtrack.recover as recover
-from torchevtrack.geometry import quat_to_matrix
+from torchevtrack import recover
 from torchevtrack.recover import TWIST_SPAN_US, bookkeeping_kernel, found_again, turned_poses
 from torchevtrack.stages.propagate import twist_between
 from torchevtrack.stages.relocalise import Relocalisation, Relocaliser

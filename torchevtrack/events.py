@@ -29,7 +29,7 @@ US_PER_S = 1_000_000
 
 
 def _as_tensor(a, name: str) -> torch.Tensor:
-    """``a`` as a 1-D integer (or bool) tensor of its own dtype (a numpy array or tensor is not copied)."""
+    """``a`` as a 1-D integer (or bool) tensor of its own dtype (a tensor or a contiguous numpy array is not copied)."""
     if isinstance(a, torch.Tensor):
         t = a
     else:
