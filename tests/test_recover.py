@@ -27,7 +27,9 @@ from torchevtrack.raster import RasterRenderer
 from torchevtrack import recover
 from torchevtrack.recover import TWIST_SPAN_US, bookkeeping_kernel, found_again, turned_poses
 from torchevtrack.stages.propagate import twist_between
+from torchevtrack.stages.eros import canvas_observation
 from torchevtrack.stages.relocalise import Relocalisation, Relocaliser
+from torchevtrack.stages.template import area_weight
 from torchevtrack.synth.generate import generate_sequence
 from torchevtrack.synth.sequence import Sequence
 from torchevtrack.tracker import EventPoseTracker
@@ -341,6 +343,35 @@ def test_refine_scores_poses_against_the_observation_and_leaves_the_tracker_as_i
     assert not torch.equal(moved[0], truth)
     after = tracker.state_dict()
     assert all(torch.equal(before[k], after[k]) for k in before)
+    tracker.close()
+
+
+def test_refine_scores_as_a_render_of_the_whole_frame_would(seq):
+    """``refine`` renders each pose in a window around it, as updates do; its score (no rounds) is the one of an
+    independent full-frame render of the pose made into a template model and scored against the same observation,
+    for the truth and a pose 5 mm beside it."""
+    t0 = int(seq.gt_t_us[0])
+    t = t0 + 60_000
+    tracker = EventPoseTracker(CAM, seq.mesh)
+    tracker.track(seq.events, seq.gt_poses[0], t_start_us=t0, t_end_us=t, progress=False)
+    truth = interpolate_poses(seq.gt_t_us, seq.gt_poses, torch.tensor([t]))[0].double()
+    beside = truth.clone()
+    beside[0] += 0.005
+    poses = torch.stack([truth, beside])
+    _, score = tracker.refine(poses, 0, t, rounds=0)
+    renderer = RasterRenderer(seq.mesh, CAM)
+    last = tracker.last_event_us[0:1]
+    last = last[:, None] if last.ndim == 3 else last
+    for k in range(2):
+        full = renderer.render(poses[k:k + 1].float())
+        model = tracker.corrector.template_model(poses[k:k + 1], full.depth, full.gray, (0, 0))
+        canvas = model.depth.shape[-1]
+        obs = canvas_observation(tracker.eros.surface[0:1], last, model.box, canvas, torch.tensor([t]),
+                                 tracker.config.eros.max_age_us, tracker.recency.window_us[0:1]).reshape(1, -1)
+        area = area_weight(obs[0].numpy(), model.valid[0].numpy(), canvas, float(model.interior[0]))
+        expected = float(model.fit_canvas(obs).s0[0]) - area
+        assert expected > 0 and float(score[k]) == pytest.approx(expected, rel=1e-4)
+    renderer.close()
     tracker.close()
 
 
