@@ -657,6 +657,11 @@ class EventPoseTracker(nn.Module):
         :data:`~torchevtrack.stages.NEVER` where none fired. The tracker's own buffer: clone it to keep it."""
         return self.time_surface.last_us if self.time_surface is not None else self.flow.newest
 
+    def _observed_us(self) -> torch.Tensor:
+        """:attr:`last_event_us` as the observation reads it: ``(B, C, H, W)`` (one channel for the time surface)."""
+        last = self.last_event_us
+        return last[:, None] if last.ndim == 3 else last
+
     @torch.inference_mode()
     def refine(self, poses: torch.Tensor, index: int, t_us: int, rounds: int = 2) -> tuple[torch.Tensor, torch.Tensor]:
         """Candidate poses of element ``index`` refined by the template correction against its current observation.
@@ -690,8 +695,7 @@ class EventPoseTracker(nn.Module):
             raise ValueError(f"expected poses (K, 7), 0 <= index < {self.batch_size} and rounds >= 0, got "
                              f"{tuple(poses.shape)}, {index}, {rounds}")
         renderer = self._renderers[self._renderer_of[index]]
-        last = self.last_event_us[index:index + 1]
-        last = last[:, None] if last.ndim == 3 else last
+        last = self._observed_us()[index:index + 1]
         surface, window = self.eros.surface[index:index + 1], self.recency.window_us[index:index + 1]
         t_now, max_age = torch.tensor([int(t_us)]), self.config.eros.max_age_us
         out, scores = poses.clone(), torch.full((len(poses),), -math.inf, dtype=torch.float64)
@@ -915,7 +919,7 @@ class EventPoseTracker(nn.Module):
                             self.velocity.arrays(), cfg.flow.max_speed,
                             max(cfg.flow.block // 4, 2),  # flow lies on edges: the pixel may fall just off
                             None if fb is None else fb.b.numpy())
-        times = self.flow.newest if self.time_surface is None else self.time_surface.last_us[:, None]  # (B, C, H, W)
+        times = self._observed_us()
         correct = [bind_correction(self.eros.surface[r].numpy(), times[r].numpy(), self.camera, canvas=o["canvas"],
                                    margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"],
                                    interior=o["interior"], dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"], rule=o["rule"],
