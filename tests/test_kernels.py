@@ -13,10 +13,10 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _run_cold(script: str, cache_dir: Path) -> subprocess.CompletedProcess:
-    """``script`` in a fresh Python process whose numba cache is the empty ``cache_dir``."""
+def _run_cold(script: str, cache_dir: Path, *args: str) -> subprocess.CompletedProcess:
+    """``script`` (with ``args``) in a fresh Python process whose numba cache is ``cache_dir``."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_CACHE_DIR": str(cache_dir)}
-    return subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=600,
+    return subprocess.run([sys.executable, "-c", script, *args], capture_output=True, text=True, env=env, timeout=600,
                           check=True)
 
 
@@ -216,3 +216,101 @@ def test_an_edited_callee_recompiles_its_callers_in_other_modules(tmp_path, user
         else:
             assert first == ["1 111"]
             assert second == ["22 111"], "numba's own cache was expected to miss the edit (the test's premise)"
+
+
+NEWTON = (
+    "import sys, torch\n"
+    "from torchevtrack.stages import template as tm\n"
+    "model, starts, obs, fx, fy = torch.load(sys.argv[1])\n"
+    "c = tm.newton_arrays(tm.TemplateModel(*model), starts.numpy(), obs.numpy(), fx, fy, 1.0, 0.0087266, 4)\n"
+    "torch.save([torch.from_numpy(x) for x in (c.pose, c.score, c.scores, c.iterations)], sys.argv[2])\n"
+    "print(sum(tm.newton_kernel.stats.cache_misses.values()), sum(tm.newton_kernel.stats.cache_hits.values()))\n"
+)
+
+
+def test_a_process_that_compiles_the_correction_and_one_that_loads_it_correct_alike(tmp_path):
+    """The template correction (its Newton search with the score's terms summed in any order, ``fastmath``) in a
+    process that compiles it and in the next, which loads the cached code: the same poses, to the bit. Numba links a
+    copy of every compiled callee into each caller and optimises it again; the compiling process calls the callee's
+    own code, a loading process the copy. The two differed when the callee summed in any order (14 of 100 calls of a
+    tracking run, by up to 3e-14): such a callee is inlined into its caller (``kernels.EXACT_FASTMATH``)."""
+    import numpy as np
+    import torch
+
+    from torchevtrack import geometry as g
+    from torchevtrack.camera import Camera
+    from torchevtrack.config import TrackerConfig
+    from torchevtrack.mesh import load_mesh
+    from torchevtrack.reference import edge_map
+    from torchevtrack.render import Renderer
+    from torchevtrack.stages import template as tm
+
+    camera, mesh = Camera.default(), load_mesh("006_mustard_bottle", decimate=4000)
+    pose = torch.cat((torch.tensor([0.03, -0.02, 0.5]), g.quat_exp(torch.tensor([0.4, -0.6, 0.3]))))[None].double()
+    gen = torch.Generator().manual_seed(3)
+    B = 32
+    steps = (torch.rand(B, 6, generator=gen, dtype=torch.float64) * 2 - 1) * torch.tensor([4e-3] * 3 + [0.03] * 3)
+    starts = tm.apply_steps(pose, steps[None])[0]
+    radius = float(np.linalg.norm(mesh.vertices, axis=1).max())
+    roi = tuple(int(v) for v in tm.render_window(pose, camera, radius, 24)[0])
+    with Renderer(mesh, camera) as r:
+        base = r.render(pose.float(), roi=roi)
+    corrector = tm.TemplateCorrector.from_config(camera, TrackerConfig().template)
+    model = corrector.template_model(pose, base.depth, base.gray, roi[:2])
+    model = tm.TemplateModel(*(x.expand(B, *x.shape[1:]).contiguous() for x in model))
+    # a decaying surface's values, over many magnitudes (sums of values of a few magnitudes are exact in any order):
+    # edges, a third of the object's pixels (a texture: the area term weighs it) and some noise
+    shape = (B, *base.depth.shape[1:])
+    seen = edge_map(base.gray, (base.depth > 0).float()) + (base.depth > 0) * (torch.rand(shape, generator=gen) < 0.3)
+    seen = (seen + (torch.rand(shape, generator=gen) < 0.02)) * torch.exp(-30 * torch.rand(shape, generator=gen))
+    obs = model.observe(seen, roi[:2])
+    torch.save([list(model), starts, obs, camera.fx, camera.fy], tmp_path / "in.pt")
+    runs = []
+    for k in range(2):
+        r = _run_cold(NEWTON, tmp_path / "cache", str(tmp_path / "in.pt"), str(tmp_path / f"out{k}.pt"))
+        runs.append((r.stdout.split(), torch.load(tmp_path / f"out{k}.pt")))
+    assert runs[0][0] == ["1", "0"] and runs[1][0] == ["0", "1"]  # compiled, then loaded
+    assert int(runs[0][1][3].sum()) > B  # the searches moved (more than one round on average)
+    for a, b in zip(runs[0][1], runs[1][1]):
+        assert torch.equal(a, b)
+
+
+def _flags(kernel) -> set:
+    """A dispatcher's ``fastmath`` flags as a set (``True``: all of LLVM's, ``"fast"``)."""
+    fm = kernel.targetoptions.get("fastmath", False)
+    return {"fast"} if fm is True else set(fm or ())
+
+
+def test_a_kernel_whose_results_depend_on_its_optimisation_is_called_by_no_other_kernel_unless_inlined():
+    """A kernel compiled with flags that let LLVM change its results (reassociation, contraction, approximate
+    division or functions: beyond ``EXACT_FASTMATH``) runs as different machine code in a process that compiled it
+    and in one that loaded its caller from the cache (the test above), unless numba inlines it into its callers
+    (``inline="always"``), which compile it once each. Found by name in every kernel's source; the one exception
+    sums distances whose rounding only widens bounds that hold in any order (``flow._spread_sums``)."""
+    import ast
+    import importlib
+    import inspect
+    import pkgutil
+
+    import torchevtrack
+    from torchevtrack.kernels import EXACT_FASTMATH, _kernels
+
+    for m in pkgutil.walk_packages(torchevtrack.__path__, "torchevtrack."):
+        if m.name.endswith("__main__"):  # runs the command line
+            continue
+        try:
+            importlib.import_module(m.name)
+        except ImportError:  # an optional extra's reader
+            pass
+    kernels = _kernels()
+    inexact = {id(k): k for k in kernels if _flags(k) - EXACT_FASTMATH}
+    assert {k.py_func.__name__ for k in inexact.values()} >= {"_quadratic_terms", "_spread_sums"}  # found at all
+    called = []
+    for caller in kernels:
+        tree = ast.parse(inspect.getsource(caller.py_func).lstrip())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name):
+                callee = caller.py_func.__globals__.get(node.func.id)
+                if id(callee) in inexact and callee.targetoptions.get("inline") != "always":
+                    called.append(f"{caller.py_func.__qualname__} -> {callee.py_func.__qualname__}")
+    assert called == ["_sum_bounds -> _spread_sums"]

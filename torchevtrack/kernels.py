@@ -11,6 +11,14 @@ types a tracking run calls it with, and its measured compile time) into the shar
 tracking process then loads them. A kernel the manifest misses (or that a worker failed on) still compiles on its
 first call, as before: the manifest only saves time. ``python tools/kernel_manifest.py`` writes it anew.
 
+A process computes the same whether it compiled a kernel or loaded it from the cache. Numba links a copy of each
+compiled callee into its caller and optimises it again; a process that compiled the callee runs the callee's own code,
+one that loaded the caller runs the copy. The two compute alike unless the callee's ``fastmath`` flags let LLVM change
+its results (reassociation, contraction, approximate division or functions: any flag beyond
+:data:`EXACT_FASTMATH`), so a kernel with such flags is called only from Python or inlined into its callers
+(``inline="always"``: each caller compiles it under its own flags), unless its rounding only widens bounds that hold
+in any order (the flow's ``_spread_sums``); ``tests/test_kernels.py`` checks both.
+
 Each distinct argument type signature compiles a kernel again. Numba types a constant passed by a compiled caller
 as a literal (``Literal[int](0)``, not ``int64``), so such call sites pass typed values (``np.int64(0)``,
 ``np.bool_(True)``) and optional arguments are given the same way from every caller: one signature per kernel.
@@ -35,10 +43,16 @@ import threading
 from importlib import import_module
 from pathlib import Path
 
-__all__ = ["compile_cold", "decode_signature", "encode_signature", "drop_stale_callers", "load", "loaded_signatures",
-           "manifest", "uncached_kernels", "warmup"]
+__all__ = ["ANY_ORDER_FASTMATH", "EXACT_FASTMATH", "compile_cold", "decode_signature", "encode_signature",
+           "drop_stale_callers", "load", "loaded_signatures", "manifest", "uncached_kernels", "warmup"]
 
 MANIFEST = Path(__file__).with_name("kernels.json")
+EXACT_FASTMATH = {"nnan", "ninf", "nsz"}
+"""The ``fastmath`` flags that leave a kernel's results on finite numbers as they are, whatever LLVM makes of it
+(the flags of a kernel that other kernels call; a set, as numba takes it: never mutated)."""
+ANY_ORDER_FASTMATH = {"reassoc", "nsz", "arcp", "contract", "afn"}
+"""The ``fastmath`` flags of a kernel that sums in any order (in vector lanes), with NaN and infinity kept: for a
+kernel called only from Python, or inlined into its callers."""
 SECONDS_PER_KERNEL = 1.6  # a kernel's compile time on average (150 s for the ~90 of a tracking run, idle 2-core VM)
 _lock = threading.Lock()
 _tried = False  # compile_cold ran in this process: it announces and compiles at most once

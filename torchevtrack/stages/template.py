@@ -112,6 +112,7 @@ from torchevtrack.config import RULES, TemplateConfig
 from torchevtrack.geometry import (nb_quat_canonical, nb_quat_exp, nb_quat_mul,
                                    nb_quat_to_matrix, quat_canonical, quat_conj, quat_exp, quat_log, quat_mul,
                                    quat_rotate)
+from torchevtrack.kernels import ANY_ORDER_FASTMATH, EXACT_FASTMATH
 from torchevtrack.linalg import cholesky, cholesky_solve, eigh
 from torchevtrack.stages import canvas_taps
 
@@ -254,7 +255,7 @@ def render_scale(w, h, canvas):
     return max(1, (min(w, h) + canvas) // (2 * canvas))
 
 
-@numba.njit(cache=True, nogil=True, fastmath=True)
+@numba.njit(cache=True, nogil=True, fastmath=EXACT_FASTMATH)
 def window_extent(depth, u0, v0, cx, cy, gain):
     """The object's extent in one render window ``depth`` ``(h, w)`` whose top-left frame pixel is ``(u0, v0)``
     (compiled; :func:`~torchevtrack.reference.canvas_box` and :func:`~torchevtrack.reference.radial_gain` reduce it):
@@ -469,7 +470,7 @@ def _tap_rows(c, r, w, d, dd):
             k0 * dd[0] + k1 * dd[1] + k2 * dd[2] + k3 * dd[3])
 
 
-@numba.njit(cache=True, nogil=True, fastmath=True, inline="always")
+@numba.njit(cache=True, nogil=True, fastmath=ANY_ORDER_FASTMATH, inline="always")
 def _hessian_row(c, nb, k, Tu, Tv, Tuu, Tuv, Tvv):
     """Block sums of :func:`_quadratic_terms`' ``g[k]`` (``O grad T . G[k]``) and row ``k`` of ``M``
     (``hu G_u + hv G_v`` with ``hu = T_uu G_u[k] + T_uv G_v[k]``, ``hv = T_uv G_u[k] + T_vv G_v[k]``), float32: seven
@@ -512,7 +513,7 @@ def _observed_points(Z, K, obs):
     return o, X
 
 
-@numba.njit(cache=True, nogil=True, fastmath=True)
+@numba.njit(cache=True, nogil=True, fastmath=ANY_ORDER_FASTMATH, inline="always")
 def _quadratic_terms(coef, K, render_pose, pose, o, X):
     """Taylor terms ``(s0, g (6,), M (6, 6))`` of one element's warped-template score around ``pose``.
 
@@ -531,6 +532,8 @@ def _quadratic_terms(coef, K, render_pose, pose, o, X):
     17-32 the 4 x 4 taps, 33-38 ``O`` times ``T, T_u, T_v, T_uu, T_uv, T_vv``. The warp is float64; the
     per-pixel terms and a block's sums are float32 (twice the vector lanes; the template is float32, and a
     block's sums round at ~1e-7), the totals float64. Of the symmetric ``M`` only the upper triangle is summed.
+    Inlined into its callers, which sum in any order (:data:`~torchevtrack.kernels.ANY_ORDER_FASTMATH`): a copy
+    optimised apart from them could sum in another (:mod:`torchevtrack.kernels`).
     """
     N = coef.shape[0] - 6
     B = _BLOCK
@@ -619,7 +622,7 @@ def _quadratic_terms(coef, K, render_pose, pose, o, X):
     return s0, g, M
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=ANY_ORDER_FASTMATH)
 def _quadratic_kernel(coef, Z, K, render_pose, pose, obs, s0, g, M):
     """:func:`_quadratic_terms` of every batch element into ``s0`` ``(B,)``, ``g`` ``(B, 6)``, ``M`` ``(B, 6, 6)``."""
     for b in range(coef.shape[0]):
@@ -638,7 +641,7 @@ def _apply_step(pose, delta):
     return out
 
 
-@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "nsz"})
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "nsz"}, inline="always")
 def area_weight(obs, valid, N, interior):
     """The area term's weight ``a = interior tau A`` of one element (see :func:`newton_kernel`), float64.
 
@@ -646,7 +649,8 @@ def area_weight(obs, valid, N, interior):
     :func:`model_kernel`, every ``max(1, N // 16)``-th pixel): a canvas pixel is on the object when its grid cell's
     point is. ``A`` is the object's area (canvas pixels), ``rho_f`` and ``rho_b`` the mean observation on and off
     it (``rho_b`` at least ``1e-5``) and ``tau = (rho_f - rho_b) / log(rho_f / rho_b)``, the density at which a pixel
-    is as likely the object's as the background's under two Poisson rates (0 when ``rho_f <= rho_b``).
+    is as likely the object's as the background's under two Poisson rates (0 when ``rho_f <= rho_b``). Its sums go in
+    any order: inlined into :func:`newton_kernel` (under its flags), called from Python on its own.
     """
     if interior == 0.0:
         return 0.0
@@ -675,7 +679,7 @@ def area_weight(obs, valid, N, interior):
     return interior * (rho_f - rho_b) / math.log(rho_f / rho_b) * area
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=ANY_ORDER_FASTMATH)
 def newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, iterations, damping, max_step,
                   valid, interior, out_pose, out_score, out_scores, out_moved):
     """:func:`newton_search` on numpy arrays, unchecked, into ``out_pose`` ``(B, 7)``, ``out_score`` ``(B,)``,
@@ -901,7 +905,7 @@ class TemplateModel(NamedTuple):
         return torch.where(self.valid, shift, torch.zeros_like(shift)).amax(1)
 
 
-@numba.njit(cache=True, nogil=True, fastmath=True)
+@numba.njit(cache=True, nogil=True, fastmath=EXACT_FASTMATH)
 def _taps_pass(src, k, step, dst):
     """``dst[q] = sum_i k[i] src[q + i step]`` (flat arrays), the taps added in order (up to four per pass)."""
     L, n4 = len(dst), (len(k) - 1) // 4 * 4
@@ -931,7 +935,7 @@ def _blur(x, k, tmp, out):
     _taps_pass(t[p - r:], k, np.int64(1), out.reshape(-1)[p:n * W - p])  # along the rows (the pads keep rows apart)
 
 
-@numba.njit(cache=True, nogil=True, fastmath=True)
+@numba.njit(cache=True, nogil=True, fastmath=EXACT_FASTMATH)
 def _sobel2(a, b, c, u0, u, u1):
     """``|Sobel|^2`` (unnormalised) at column ``u`` of rows ``a, b, c`` with neighbour columns ``u0, u1``."""
     gu = (a[u1] - a[u0]) + 2 * (b[u1] - b[u0]) + (c[u1] - c[u0])
@@ -939,7 +943,7 @@ def _sobel2(a, b, c, u0, u, u1):
     return gu * gu + gv * gv
 
 
-@numba.njit(cache=True, nogil=True, fastmath=True)
+@numba.njit(cache=True, nogil=True, fastmath=EXACT_FASTMATH)
 def _edges(x, y, scale, E):
     """``E[p:p + N, p:p + M] = min(sqrt(max(|Sobel x|^2, |Sobel y|^2)) * scale, 1)`` (replicated border, the
     squares rounded to float32) with ``p`` the padding of ``E``."""
@@ -1043,7 +1047,7 @@ def _add_interior(mask, c, T, Tp):
             Tp[v + p, u + p] += c * mask[v, u]
 
 
-@numba.njit(cache=True, nogil=True, fastmath=True)
+@numba.njit(cache=True, nogil=True, fastmath=EXACT_FASTMATH)
 def _dog_template(B1, B2, T, Tp):
     """``T = clip(D * 0.5 / max|D|, -0.5, 0.5)`` of the Difference of Gaussians ``D = B1 - B2`` (into ``B1``), also
     into ``Tp`` (``T`` zero-padded by ``p``); ``B1``, ``B2`` are :func:`_blur` outputs ``(N, N + 2p)``."""
