@@ -233,7 +233,8 @@ def test_a_process_that_compiles_the_correction_and_one_that_loads_it_correct_al
     process that compiles it and in the next, which loads the cached code: the same poses, to the bit. Numba links a
     copy of every compiled callee into each caller and optimises it again; the compiling process calls the callee's
     own code, a loading process the copy. The two differed when the callee summed in any order (14 of 100 calls of a
-    tracking run, by up to 3e-14): such a callee is inlined into its caller (``kernels.EXACT_FASTMATH``)."""
+    tracking run, by up to 3e-14): such a callee is now inlined into its callers (the rule in
+    ``torchevtrack.kernels``)."""
     import numpy as np
     import torch
 
@@ -285,8 +286,8 @@ def test_a_kernel_whose_results_depend_on_its_optimisation_is_called_by_no_other
     """A kernel compiled with flags that let LLVM change its results (reassociation, contraction, approximate
     division or functions: beyond ``EXACT_FASTMATH``) runs as different machine code in a process that compiled it
     and in one that loaded its caller from the cache (the test above), unless numba inlines it into its callers
-    (``inline="always"``), which compile it once each. Found by name in every kernel's source; the one exception
-    sums distances whose rounding only widens bounds that hold in any order (``flow._spread_sums``)."""
+    (``inline="always"``), which compile it once each. Found by the names called in every kernel's source; the one
+    exception sums distances whose rounding only widens bounds that hold in any order (``flow._spread_sums``)."""
     import ast
     import importlib
     import inspect
