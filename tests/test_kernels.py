@@ -120,6 +120,37 @@ def test_the_manifest_names_exactly_the_kernels_a_warm_tracking_run_calls_from_p
     assert seen == listed, "torchevtrack/kernels.json is out of date: run python tools/kernel_manifest.py"
 
 
+def test_the_manifest_holds_what_a_start_search_calls_from_python():
+    # `track` searches around its start pose; where the chamfer result does not win it refines turned poses with the
+    # template correction: kernels a plain tracking run never calls from Python, which a first `track` after `make
+    # demo` or `warmup` compiled in the middle of its stream (20 s on 2 cores) while they were not in the manifest
+    script = (
+        "import json\n"
+        "import numpy as np, torch\n"
+        "from torchevtrack import Camera, EventPoseTracker\n"
+        "from torchevtrack.config import TrackerConfig\n"
+        "from torchevtrack.events import EventStream\n"
+        "from torchevtrack.kernels import _warmup_events, load, loaded_signatures, manifest\n"
+        "from torchevtrack.mesh import load_mesh\n"
+        "from torchevtrack.raster import RasterRenderer\n"
+        "from torchevtrack.recover import TURN_DEG, turned_poses\n"
+        "load()\n"
+        "camera, mesh = Camera(160, 120, 150.0, 150.0, 80.0, 60.0), load_mesh('box')\n"
+        "events, pose0 = _warmup_events(camera, mesh, RasterRenderer, EventStream, np, torch)\n"
+        "cfg = TrackerConfig().replace(loss={'enabled': True}, recover={'enabled': True, 'start_search': True})\n"
+        "tracker = EventPoseTracker(camera, mesh, cfg)\n"
+        "times, _ = tracker.track(events, pose0, progress=False)\n"
+        "tracker.refine(turned_poses(tracker.pose[0], TURN_DEG), 0, int(times[0, -1]))\n"
+        "listed = {json.dumps([e['name'], e['signature']]) for e in manifest()}\n"
+        "print(json.dumps([tracker.recover.searches, sorted({n for n, s in loaded_signatures()\n"
+        "                                                     if json.dumps([n, s]) not in listed})]))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=900, check=True)
+    searches, unlisted = json.loads(out.stdout.splitlines()[-1])
+    assert searches >= 1 and unlisted == []
+
+
 def test_load_gives_a_process_every_kernel_of_the_manifest():
     # `live` loads them before its stream starts, so that its first updates do not wait for code to load
     script = (

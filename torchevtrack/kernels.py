@@ -434,13 +434,15 @@ def warmup(progress: bool = True, jobs: int | None = None) -> int:
     camera = Camera(160, 120, 150.0, 150.0, 80.0, 60.0)
     mesh = load_mesh("box")
     events, pose0 = _warmup_events(camera, mesh, RasterRenderer, EventStream, np, torch)
-    # the optional stages on too (denoise, loss detector, recovery, the UKF): their modules load with the tracker, and
-    # a cold kernel would be announced; then the defaults (the output step without the UKF)
-    optional = TrackerConfig().replace(denoise={"enabled": True}, loss={"enabled": True}, recover={"enabled": True},
-                                       ukf={"enabled": True})
+    # the optional stages on too (denoise, loss detector, recovery and its start search, the UKF): their modules load
+    # with the tracker, and a cold kernel would be announced; then the defaults (the output step without the UKF)
+    optional = TrackerConfig().replace(denoise={"enabled": True}, loss={"enabled": True},
+                                       recover={"enabled": True, "start_search": True}, ukf={"enabled": True})
     for cfg in (optional, TrackerConfig()):
         tracker = EventPoseTracker(camera, mesh, cfg)
-        tracker.track(events, pose0, progress=False)
+        times, _ = tracker.track(events, pose0, progress=False)
+        if cfg.recover.start_search:  # a start search whose chamfer result does not win refines turned poses
+            tracker.refine(tracker.pose[:1], 0, int(times[0, -1]))
         tracker.close()
     _compile_relocaliser(np)
     return len(missing - set(uncached_kernels()))
