@@ -217,7 +217,8 @@ def test_more_seeds_are_refined_until_one_reaches_the_seed_cost(box, monkeypatch
     reached ``seed_cost_px``, whatever the clear-winner cost: by default that cost (5 px, reached on the exact edges),
     at 0 px (never reached) all six. One more level after the first: one search call per refined seed."""
     renderer, radius = box
-    reloc = Relocaliser(renderer, radius, max_cost_px=5.0, seed_cost_px=seed_cost_px)
+    # one thread: more threads refine extra seeds side by side and drop those past the stop (the next test)
+    reloc = Relocaliser(renderer, radius, max_cost_px=5.0, seed_cost_px=seed_cost_px, workers=1)
     calls = []
     search = reloc._search
     monkeypatch.setattr(reloc, "_search", lambda *a: calls.append(1) or search(*a))
@@ -225,3 +226,25 @@ def test_more_seeds_are_refined_until_one_reaches_the_seed_cost(box, monkeypatch
     out = reloc(start, edge_surface(renderer), torch.tensor([1000]))
     assert len(reloc.levels) == 2 and len(calls) - 1 == refined
     assert errors(out.pose)[0] < 0.01  # found either way
+
+
+@pytest.mark.parametrize("seed_cost_px", [None, 0.145, 0.0])
+def test_any_number_of_threads_gives_the_same_search(box, seed_cost_px):
+    """The first level's candidates are shared among the threads, seeds refined and restarts polished side by side,
+    extra seeds `workers` at a time with those past the stop dropped: bit for bit the search of one thread, whether
+    the beam's seeds suffice (default), more are refined until the fourth reaches the seed cost (0.145 px: the
+    beam's best polishes to 0.149, the fourth to 0.140; the fifth and sixth are dropped), or all six (0)."""
+    renderer, radius = box
+    start = apply_steps(TRUTH, torch.tensor([[[0.02, 0.0, 0.0, math.radians(10), 0.0, 0.0]]], dtype=torch.float64))[0]
+    surface = edge_surface(renderer)
+    out, scans = [], []
+    for workers in (1, 2, 3):
+        reloc = Relocaliser(renderer, radius, max_cost_px=5.0, seed_cost_px=seed_cost_px, workers=workers)
+        out.append(reloc(start, surface, torch.tensor([1000])))
+        scans.append(reloc.scan(start, surface[0], 1000))
+    for other, scan in zip(out[1:], scans[1:]):
+        assert all(torch.equal(a, b) for a, b in zip(out[0], other))
+        assert torch.equal(scan[0], scans[0][0]) and scan[1] == scans[0][1]
+    assert errors(out[0].pose)[0] < 0.01
+    with pytest.raises(ValueError, match="workers"):
+        Relocaliser(renderer, radius, workers=0)
