@@ -37,9 +37,8 @@ on its result then refines and judges it.
 Costs are in full-resolution pixels (lower is better). Batch elements are searched one after the other; within a
 search, ``workers`` threads share the first level's (and the frame scan's) candidates, refine seeds and polish the
 restarts side by side, with the result of one thread (a 640x480 search on ``mustard_fast``: 0.93-0.98 s -> 0.71-0.84
-s on 2 cores). The
-renderer may hold a decimated mesh (:func:`~torchevtrack.mesh.load_mesh` ``decimate``): the renders dominate the
-cost. ``tools/bench_relocalise.py`` measures success rates and the cost of a call, ``tools/chamfer_table.py``
+s on 2 cores). The renderer may hold a decimated mesh (:func:`~torchevtrack.mesh.load_mesh` ``decimate``): the
+renders dominate the cost. ``tools/bench_relocalise.py`` measures success rates and the cost of a call, ``tools/chamfer_table.py``
 compares the chamfer cost with the template score at fixed offsets from the truth.
 
 Status (measured, ``tools/bench_relocalise.py``; sugar box fast with and without noise, gelatin box fast, mustard
@@ -292,7 +291,8 @@ class Relocaliser(nn.Module):
         pixels; ``cap_px`` for a candidate not seen). With a ``pool`` (:func:`_threads`), its threads take a share of
         the candidates each (every candidate's cost is its own: the same result)."""
         if pool is not None and self.workers > 1 and len(poses) > 1:
-            shares = pool.map(lambda part: self._search(part, region, level), poses.tensor_split(self.workers))
+            parts = poses.tensor_split(min(self.workers, len(poses)))
+            shares = pool.map(lambda part: self._search(part, region, level), parts)
             found, costs = zip(*shares)
             return torch.cat(found), torch.cat(costs)
         depth, gray = self.renderer.render_unit(poses.numpy(), region.camera, shaded=True)
@@ -334,14 +334,13 @@ class Relocaliser(nn.Module):
             rot = rot - (rot @ n)[:, None] * n
         return (d[:, :3].norm(dim=1) > self.distinct_m) | (rot.norm(dim=1) > self.distinct_rad)
 
-    def _one(self, pose: torch.Tensor, own: torch.Tensor, last_us: torch.Tensor,
-             t_now: int) -> tuple[torch.Tensor, float, float, float]:
+    def _one(self, pose: torch.Tensor, own: torch.Tensor, last_us: torch.Tensor, t_now: int,
+             pool) -> tuple[torch.Tensor, float, float, float]:
+        """The search of one element (module docstring), its threads' work on ``pool`` (:func:`_threads`)."""
         centre = pose.double()
         events = self._events(centre, last_us, t_now)
         first = self.levels[0]
-        with _threads(self.workers) as pool:
-            poses, costs = self._search(self._candidates(centre, first), self._region(centre, first, events), first,
-                                        pool)
+        poses, costs = self._search(self._candidates(centre, first), self._region(centre, first, events), first, pool)
         seeds = []  # the best first-level candidates, pairwise distinct
         for j in costs.argsort().tolist():
             if len(seeds) == self.max_seeds:
@@ -356,26 +355,25 @@ class Relocaliser(nn.Module):
                 seed = p[int(c.argmin()):int(c.argmin()) + 1]
             return self._polish(seed, obs)
 
-        with _threads(self.workers) as pool:
-            finals = list(pool.map(refine, seeds[:self.beam]))
-            rest = seeds[self.beam:]
-            # more seeds while none has reached a low cost: `workers` at a time, those past the stop dropped (the
-            # result as if refined one by one)
-            while rest and min(c for c, _ in finals) > self.seed_cost_px:
-                for done in pool.map(refine, rest[:self.workers]):
-                    if min(c for c, _ in finals) <= self.seed_cost_px:
-                        break
-                    finals.append(done)
-                rest = rest[self.workers:]
-            finals.sort(key=lambda cp: cp[0])
-            cost, best = finals[0]
-            if self.kick_deg > 0:  # restarts turned by +-kick about each axis: out of a nearby local minimum
-                k = math.radians(self.kick_deg)
-                kicks = torch.tensor([[0, 0, 0] + [sg * k if i == ax else 0.0 for i in range(3)]
-                                      for ax in range(3) for sg in (-1, 1)], dtype=torch.float64)
-                for c, p in pool.map(lambda start: self._polish(start[None], obs), apply_steps(best, kicks[None])[0]):
-                    if c < cost:
-                        cost, best = c, p
+        finals = list(pool.map(refine, seeds[:self.beam]))
+        rest = seeds[self.beam:]
+        # more seeds while none has reached a low cost: `workers` at a time, those past the stop dropped (the result
+        # as if refined one by one)
+        while rest and min(c for c, _ in finals) > self.seed_cost_px:
+            for done in pool.map(refine, rest[:self.workers]):
+                if min(c for c, _ in finals) <= self.seed_cost_px:
+                    break
+                finals.append(done)
+            rest = rest[self.workers:]
+        finals.sort(key=lambda cp: cp[0])
+        cost, best = finals[0]
+        if self.kick_deg > 0:  # restarts turned by +-kick about each axis: out of a nearby local minimum
+            k = math.radians(self.kick_deg)
+            kicks = torch.tensor([[0, 0, 0] + [sg * k if i == ax else 0.0 for i in range(3)]
+                                  for ax in range(3) for sg in (-1, 1)], dtype=torch.float64)
+            for c, p in pool.map(lambda start: self._polish(start[None], obs), apply_steps(best, kicks[None])[0]):
+                if c < cost:
+                    cost, best = c, p
         others = [c for c, p in finals[1:] if bool(self._distinct(best, p)[0])]
         return best[0], cost, min(others, default=math.inf), self._cost_of(self._edges_full(own.double()), obs)
 
@@ -572,7 +570,8 @@ class Relocaliser(nn.Module):
         if tuple(last_us.shape[-2:]) != (self.camera.height, self.camera.width):
             raise ValueError(f"last_us must be {self.camera.height}x{self.camera.width} (the renderer's camera), got "
                              f"{tuple(last_us.shape[-2:])}")
-        out = [self._one(pose[k:k + 1], own[k:k + 1], last_us[k], int(t_now_us[k])) for k in range(B)]
+        with _threads(self.workers) as pool:
+            out = [self._one(pose[k:k + 1], own[k:k + 1], last_us[k], int(t_now_us[k]), pool) for k in range(B)]
         best = torch.stack([o[0] for o in out])
         cost = torch.tensor([o[1] for o in out], dtype=torch.float64)
         runner = torch.tensor([o[2] for o in out], dtype=torch.float64)
