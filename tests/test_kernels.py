@@ -13,6 +13,13 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _printed_json(script: str):
+    """The JSON value that ``script``, run in a fresh Python process (the package's own cache), printed last."""
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=900, check=True)
+    return json.loads(out.stdout.splitlines()[-1])
+
+
 def _run_cold(script: str, cache_dir: Path, *args: str) -> subprocess.CompletedProcess:
     """``script`` (with ``args``) in a fresh Python process whose numba cache is ``cache_dir``."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_CACHE_DIR": str(cache_dir)}
@@ -110,13 +117,10 @@ def test_the_manifest_names_exactly_the_kernels_a_warm_tracking_run_calls_from_p
         "listed = sorted(([e['name'], e['signature']] for e in manifest()), key=json.dumps)\n"
         "print(json.dumps([seen, listed]))\n"
     )
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
     # the first run compiles whatever earlier tests left cold (a kernel compiled here types its callees too), the
     # second loads everything from the cache
-    for _ in range(2):
-        out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=900,
-                             check=True)
-    seen, listed = json.loads(out.stdout.splitlines()[-1])
+    _printed_json(script)
+    seen, listed = _printed_json(script)
     assert seen == listed, "torchevtrack/kernels.json is out of date: run python tools/kernel_manifest.py"
 
 
@@ -145,9 +149,7 @@ def test_the_manifest_holds_what_a_start_search_calls_from_python():
         "print(json.dumps([tracker.recover.searches, sorted({n for n, s in loaded_signatures()\n"
         "                                                     if json.dumps([n, s]) not in listed})]))\n"
     )
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                         env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=900, check=True)
-    searches, unlisted = json.loads(out.stdout.splitlines()[-1])
+    searches, unlisted = _printed_json(script)
     assert searches >= 1 and unlisted == []
 
 
@@ -162,9 +164,7 @@ def test_load_gives_a_process_every_kernel_of_the_manifest():
         "missing = [e['name'] for e in manifest() if json.dumps([e['name'], e['signature']]) not in seen]\n"
         "print(json.dumps([before, n, len(manifest()), missing]))\n"
     )
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                         env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=900, check=True)
-    before, n, listed, missing = json.loads(out.stdout.splitlines()[-1])
+    before, n, listed, missing = _printed_json(script)
     assert before == 0 and n == listed > 0 and missing == []
 
 
