@@ -38,8 +38,8 @@ Costs are in full-resolution pixels (lower is better). Batch elements are search
 search, ``workers`` threads share the first level's (and the frame scan's) candidates, refine seeds and polish the
 restarts side by side, with the result of one thread (a 640x480 search on ``mustard_fast``: 0.93-0.98 s -> 0.71-0.84
 s on 2 cores). The renderer may hold a decimated mesh (:func:`~torchevtrack.mesh.load_mesh` ``decimate``): the
-renders dominate the cost. ``tools/bench_relocalise.py`` measures success rates and the cost of a call, ``tools/chamfer_table.py``
-compares the chamfer cost with the template score at fixed offsets from the truth.
+renders dominate the cost. ``tools/bench_relocalise.py`` measures success rates and the cost of a call,
+``tools/chamfer_table.py`` compares the chamfer cost with the template score at fixed offsets from the truth.
 
 Status (measured, ``tools/bench_relocalise.py``; sugar box fast with and without noise, gelatin box fast, mustard
 bottle fast, 2-s sequences x 3 times x 4 random starts): within 1 cm / 5 deg from 5 cm / 20 deg starts in 42 of 48,
