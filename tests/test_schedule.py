@@ -5,7 +5,7 @@ import threading
 
 import pytest
 
-from torchevtrack.schedule import Job, PipelineThread, Schedule
+from torchevtrack.schedule import Job, PipelineThread, Schedule, thread_count, usable_cores
 
 
 def test_jobs_run_in_order_on_the_thread():
@@ -66,3 +66,12 @@ def test_a_failing_share_waits_for_the_others():
         schedule.map(fn, ["a", "b", "c"])
     assert sorted(done) == ["b", "c"] and threading.current_thread().name in threads and len(threads) >= 2
     schedule.close()
+
+
+@pytest.mark.parametrize("bad", [0, -1, True, 1.5, "2"])
+def test_a_thread_count_is_a_positive_int_or_none_for_every_caller(bad):
+    assert thread_count(None) == usable_cores() and thread_count(3) == 3
+    with pytest.raises(ValueError, match="workers must be a positive int or None"):
+        thread_count(bad)
+    with pytest.raises(ValueError, match="workers must be a positive int or None"):
+        Schedule(batch_size=2, workers=bad)

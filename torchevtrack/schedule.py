@@ -119,6 +119,19 @@ def usable_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
+def thread_count(workers: int | None) -> int:
+    """``workers`` threads as a caller asked for them: a positive int as it is, ``None`` the :func:`usable_cores`.
+
+    Raises:
+        ValueError: ``workers`` neither a positive int (a bool is not one) nor None.
+    """
+    if workers is None:
+        return usable_cores()
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be a positive int or None, got {workers!r}")
+    return workers
+
+
 class Schedule:
     """The threads of a batch of ``batch_size`` elements.
 
@@ -141,11 +154,7 @@ class Schedule:
     def __init__(self, batch_size: int, workers: int | None = None, pipeline: bool | None = None) -> None:
         B = batch_size
         cores = usable_cores()
-        if workers is None:
-            workers = min(B, cores)
-        elif isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-            raise ValueError(f"workers must be a positive int or None, got {workers!r}")
-        n = min(workers, B)
+        n = min(thread_count(workers), B)
         self.batch_size = B
         self.shares = [slice(i * B // n, (i + 1) * B // n) for i in range(n)]
         # the calling thread works the first share itself (map): the pool's threads take the others

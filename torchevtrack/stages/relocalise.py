@@ -68,7 +68,7 @@ from torchevtrack.camera import Camera, interaction_matrix
 from torchevtrack.chamfer import distance_map, model_edges, newest, recent_events
 from torchevtrack.geometry import quat_rotate
 from torchevtrack.raster import RasterRenderer
-from torchevtrack.schedule import usable_cores
+from torchevtrack.schedule import thread_count
 from torchevtrack.stages.template import apply_steps, pose_delta, render_window
 
 __all__ = ["LEVELS", "Level", "Relocalisation", "Relocaliser"]
@@ -223,9 +223,7 @@ class Relocaliser(nn.Module):
         self.distinct_rad = math.radians(distinct_deg)
         self.symmetry_axis = None if symmetry_axis is None else \
             torch.nn.functional.normalize(torch.as_tensor(symmetry_axis, dtype=torch.float64), dim=0)
-        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
-            raise ValueError(f"workers must be a positive int or None, got {workers!r}")
-        self.workers = usable_cores() if workers is None else workers
+        self.workers = thread_count(workers)
 
     @property
     def depth_reach_m(self) -> float:
