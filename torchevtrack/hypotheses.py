@@ -112,8 +112,10 @@ class Hypotheses(nn.Module):
     def from_config(cls, cfg: "HypothesesConfig", camera: Camera, meshes: Sequence[trimesh.Trimesh],
                     owner: Sequence[int], radii: Sequence[float]) -> "Hypotheses":
         """One scorer per distinct loaded mesh of ``meshes`` with its bounding radius of ``radii`` (metres); ``owner``
-        gives each of the ``B`` elements its mesh."""
-        scorers = [Relocaliser(RasterRenderer(mesh, camera), radius) for mesh, radius in zip(meshes, radii)]
+        gives each of the ``B`` elements its mesh. The scorers observe one event pixel per model edge pixel, the
+        window the ratio and patience were chosen with."""
+        scorers = [Relocaliser(RasterRenderer(mesh, camera), radius, events_per_edge=1.0)
+                   for mesh, radius in zip(meshes, radii)]
         return cls(scorers, owner, ratio=cfg.ratio, patience=cfg.patience, period_us=cfg.period_us)
 
     def reset(self, mask: torch.Tensor | None = None) -> None:

@@ -8,7 +8,9 @@ recent events and the rendered model's edges (:mod:`torchevtrack.chamfer`).
 1. **Observation**, once per call: the pixels of the time surface that fired within a window before ``t_now``
    and have a recent neighbour (:func:`~torchevtrack.chamfer.recent_events`). The window adapts to the motion: the
    shortest one (between ``min_window_us`` and ``max_window_us``) whose event pixels in the search region number
-   ``events_per_edge`` times the model's edge pixels at the start pose.
+   ``events_per_edge`` times the model's silhouette edge pixels at the start pose (4 by default: with one, 48 ms
+   after a start the few events cover part of the outline and the cost's minimum can sit 7 cm deeper than the
+   truth, cheaper than it; docs/notebook.md, 2026-12-07 morning).
 2. **Levels** (coarse to fine, :data:`LEVELS`). At each level every combination of a rotation offset
    ``{-a, 0, a}`` about each camera axis (through the object origin, applied on the left as everywhere) and a
    depth offset from the level's list is rendered around the current centre, at the level's image ``scale``, in
@@ -41,13 +43,13 @@ s on 2 cores). The renderer may hold a decimated mesh (:func:`~torchevtrack.mesh
 renders dominate the cost. ``tools/bench_relocalise.py`` measures success rates and the cost of a call,
 ``tools/chamfer_table.py`` compares the chamfer cost with the template score at fixed offsets from the truth.
 
-Status (measured, ``tools/bench_relocalise.py``; sugar box fast with and without noise, gelatin box fast, mustard
-bottle fast, 2-s sequences x 3 times x 4 random starts): within 1 cm / 5 deg from 5 cm / 20 deg starts in 42 of 48,
-from 2 cm / 10 deg starts in 44 of 48. Every miss is the sugar box, 0.5-1.1 cm / 8-12 deg off, and ``clear``: there
-the cost of the miss is within 0.2 px of the truth's; gross misses (3.5 cm / 16 deg, seen before the restarts) end
-above ``max_cost_px``. A call costs about 1.0-1.5 s at 640x480 with a 16k-face mesh (renders a third, FFTs and
-distance transforms a fifth each); a mesh decimated to 2000 faces halves that but found 29 of 47 from 2 cm / 10 deg
-(before the restarts; the full mesh then found 41 of 48).
+Status (measured with one event per edge, ``tools/bench_relocalise.py``; sugar box fast with and without noise,
+gelatin box fast, mustard bottle fast, 2-s sequences x 3 times x 4 random starts): within 1 cm / 5 deg from 5 cm / 20
+deg starts in 42 of 48, from 2 cm / 10 deg starts in 44 of 48. Every miss is the sugar box, 0.5-1.1 cm / 8-12 deg off,
+and ``clear``: there the cost of the miss is within 0.2 px of the truth's; gross misses (3.5 cm / 16 deg, seen before
+the restarts) end above ``max_cost_px``. A call costs about 1.0-1.5 s at 640x480 with a 16k-face mesh (renders a
+third, FFTs and distance transforms a fifth each); a mesh decimated to 2000 faces halves that but found 29 of 47 from
+2 cm / 10 deg (before the restarts; the full mesh then found 41 of 48).
 """
 
 from __future__ import annotations
@@ -165,7 +167,8 @@ class Relocaliser(nn.Module):
         radius: the object's bounding radius (metres), for the search regions.
         levels: the search levels (default :data:`LEVELS`).
         cap_px: distances are truncated at this many full-resolution pixels.
-        min_window_us, max_window_us, events_per_edge: the observation's adaptive recency window.
+        min_window_us, max_window_us, events_per_edge: the observation's adaptive recency window (module
+            docstring, 1.).
         beam, max_seeds: first-level candidates refined always / at most.
         seed_cost_px: more candidates (up to ``max_seeds``) are refined while none has reached this cost: the more
             seeds, the likelier a wrong result meets a distinct runner-up of about its cost (default: ``max_cost_px``).
@@ -197,7 +200,7 @@ class Relocaliser(nn.Module):
 
     def __init__(self, renderer: RasterRenderer, radius: float, *, levels: tuple[Level, ...] = LEVELS,
                  cap_px: float = 20.0, min_window_us: int = 1000, max_window_us: int = 30000,
-                 events_per_edge: float = 1.0, beam: int = 3, max_seeds: int = 6, polish_steps: int = 15,
+                 events_per_edge: float = 4.0, beam: int = 3, max_seeds: int = 6, polish_steps: int = 15,
                  kick_deg: float = 7.5,
                  max_cost_px: float = 1.5, min_margin_px: float = 0.5, seed_cost_px: float | None = None,
                  distinct_m: float = 0.02, distinct_deg: float = 15.0,
