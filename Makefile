@@ -21,8 +21,10 @@ install: $(BIN)/torchevtrack
 demo: install
 	$(BIN)/torchevtrack demo --out demo_out
 
+# the suite in one process per core (pytest-xdist), each test file whole in one of them (its module fixtures once)
+TEST_JOBS ?= auto
 test: install
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n $(TEST_JOBS) --dist loadfile
 
 # The README's speed figures: the standard benchmark data (made once), then the bench command it quotes.
 data/bench/mustard_fast/events.h5: | install
