@@ -346,3 +346,54 @@ def test_a_kernel_whose_results_depend_on_its_optimisation_is_called_by_no_other
                 if id(callee) in inexact and callee.targetoptions.get("inline") != "always":
                     called.append(f"{caller.py_func.__qualname__} -> {callee.py_func.__qualname__}")
     assert called == ["_sum_bounds -> _spread_sums"]
+
+
+INHERIT = (
+    "import json, sys, numba, numpy as np\n"
+    "from numba.core.compiler import Flags\n"
+    "from torchevtrack.linalg import eigh\n"
+    "@numba.njit(fastmath=True, error_model='numpy')\n"
+    "def caller(a, d, v):\n"
+    "    eigh(a, d, v)\n"
+    "a = np.array([[2.0, 1.0], [1.0, 3.0]])\n"
+    "(caller if sys.argv[1] == 'caller' else eigh)(a.copy(), np.empty(2), np.empty((2, 2)))\n"
+    "(tag,) = eigh.overloads[eigh.signatures[0]].fndesc.abi_tags\n"
+    "print(json.dumps([sum(eigh.stats.cache_misses.values()), Flags.demangle(tag)]))\n"
+)
+
+
+def test_a_kernel_compiled_first_by_a_caller_keeps_its_own_flags(tmp_path):
+    """Numba compiles a kernel that a caller's compilation reaches first with the caller's ``fastmath`` and error
+    model where the kernel leaves them unset, and caches that code by argument types alone; so which caller a fresh
+    install's workers compiled first changed what later processes ran (two fresh caches of one source tracked apart).
+    ``linalg.eigh`` compiled first from a caller with every ``fastmath`` flag and numpy's error model gets exactly
+    the flags it gets compiled alone, in a process with an empty cache each."""
+    runs = {}
+    for first in ("caller", "alone"):
+        out = _run_cold(INHERIT, tmp_path / first, first)
+        runs[first] = json.loads(out.stdout.splitlines()[-1])
+    assert runs["caller"][0] == runs["alone"][0] == 1  # compiled in each process, not loaded
+    assert runs["caller"][1] == runs["alone"][1]
+    assert "fastmath" not in runs["caller"][1] and "error_model" not in runs["caller"][1]
+
+
+def test_every_kernel_states_its_fastmath_flags_and_error_model():
+    """Every compiled kernel of the package is made by ``kernels.kernel`` (or states both options itself), so no
+    kernel takes a caller's (the test above)."""
+    import importlib
+    import pkgutil
+
+    import torchevtrack
+    from torchevtrack.kernels import _kernels
+
+    for m in pkgutil.walk_packages(torchevtrack.__path__, "torchevtrack."):
+        if not m.name.endswith("__main__"):
+            try:
+                importlib.import_module(m.name)
+            except ImportError:  # an optional extra's reader
+                pass
+    kernels = _kernels()
+    assert len(kernels) > 100
+    unstated = [k.py_func.__qualname__ for k in kernels
+                if "fastmath" not in k.targetoptions or "error_model" not in k.targetoptions]
+    assert unstated == []

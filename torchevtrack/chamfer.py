@@ -31,9 +31,10 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 import torch
+
+from torchevtrack.kernels import kernel
 
 __all__ = ["chamfer", "distance_map", "model_edges", "newest", "recent_events"]
 
@@ -70,7 +71,7 @@ def recent_events(last_us: torch.Tensor, t_now_us: int, window_us: int, min_supp
     return mask
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _recent_kernel(last, t_now, window, min_support, out):
     """:func:`recent_events` into ``out`` ``(H, W)`` bool: two passes, the recent pixels, then their support (the
     8 neighbours inside the image)."""
@@ -111,7 +112,7 @@ def model_edges(depth: np.ndarray, gray: np.ndarray | None = None, gray_step: fl
     return out.reshape(d.shape)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _edges_kernel(depth, gray, shaded, gray_step, depth_step, out):
     K, h, w = depth.shape
     for k in range(K):
@@ -154,7 +155,7 @@ _FORWARD = np.array([(-2, -1, _S5), (-2, 1, _S5), (-1, -2, _S5), (-1, -1, _S2), 
                      (-1, 2, _S5), (0, -1, 1.0)], np.float32)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _chamfer_kernel(mask, cap, out):
     K, h, w = mask.shape
     steps = _FORWARD

@@ -19,9 +19,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Iterator, Sequence
 
-import numba
 import numpy as np
 import torch
+
+from torchevtrack.kernels import kernel
 
 __all__ = ["EventStream", "US_PER_S", "check_window", "first_invalid", "pack_streams"]
 
@@ -287,7 +288,7 @@ def pack_streams(parts: Sequence[EventStream]) -> tuple:
     return cat("x"), cat("y"), cat("t"), cat("p"), b
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def first_invalid(x, y, t, width, height):
     """The first problem of non-empty events (numpy ``(N,)`` arrays ``x, y, t``, ``N > 0``), in
     :meth:`EventStream.validate`'s order of checks, as ``(kind, index)``: 1 a negative first time, 2 time going back
@@ -305,7 +306,7 @@ def first_invalid(x, y, t, width, height):
     return (4, i) if i >= 0 else (0, 0)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _first_outside(f, size):
     """Index of the first value of ``f`` outside ``[0, size)``, or -1."""
     for i in range(f.shape[0]):

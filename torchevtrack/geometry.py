@@ -24,10 +24,11 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 import torch
 from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_matrix_to_quaternion
+
+from torchevtrack.kernels import kernel
 
 __all__ = [
     "quat_normalize",
@@ -287,13 +288,13 @@ def check_pose(pose: torch.Tensor, name: str = "pose", atol: float = 1e-3) -> to
 # above operation by operation, so the two agree to float64 rounding.
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def nb_cross(a0, a1, a2, b0, b1, b2):
     """``a x b`` (as :func:`torch.linalg.cross`)."""
     return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def nb_quat_mul(a0, a1, a2, a3, b0, b1, b2, b3):
     """:func:`quat_mul` (the same sums in the same order)."""
     return (a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3,
@@ -302,7 +303,7 @@ def nb_quat_mul(a0, a1, a2, a3, b0, b1, b2, b3):
             a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0)
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def nb_quat_canonical(q0, q1, q2, q3):
     """:func:`quat_canonical`."""
     n = max(math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3), 1e-12)
@@ -312,7 +313,7 @@ def nb_quat_canonical(q0, q1, q2, q3):
     return q0, q1, q2, q3
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def nb_normalise_quaternions(p, norm):
     """Divide the quaternions of poses ``p`` ``(B, 7)`` by their norms (squares summed in order) in place, the norms
     into ``norm`` ``(B,)``."""
@@ -323,7 +324,7 @@ def nb_normalise_quaternions(p, norm):
             p[b, k] /= n
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def nb_quat_exp(a0, a1, a2):
     """:func:`quat_exp`."""
     sq = a0 * a0 + a1 * a1 + a2 * a2
@@ -335,7 +336,7 @@ def nb_quat_exp(a0, a1, a2):
     return 1.0, a0 * 0.5, a1 * 0.5, a2 * 0.5
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def nb_quat_log(q0, q1, q2, q3):
     """:func:`quat_log` (of the canonical quaternion)."""
     c, x, y, z = nb_quat_canonical(q0, q1, q2, q3)
@@ -349,7 +350,7 @@ def nb_quat_log(q0, q1, q2, q3):
     return x * k + 0.0, y * k + 0.0, z * k + 0.0
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def nb_quat_rotate(q0, q1, q2, q3, v0, v1, v2):
     """:func:`quat_rotate`."""
     c0, c1, c2 = nb_cross(q1, q2, q3, v0, v1, v2)
@@ -357,7 +358,7 @@ def nb_quat_rotate(q0, q1, q2, q3, v0, v1, v2):
     return v0 + 2.0 * (q0 * c0 + d0), v1 + 2.0 * (q0 * c1 + d1), v2 + 2.0 * (q0 * c2 + d2)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def nb_quat_to_matrix(w, x, y, z):
     """Rotation matrix ``(3, 3)`` of the unit quaternion ``(w, x, y, z)`` (:func:`quat_to_matrix` without the
     normalisation)."""

@@ -17,7 +17,9 @@ one that loaded the caller runs the copy. The two compute alike unless the calle
 its results (reassociation, contraction, approximate division or functions: any flag beyond
 :data:`EXACT_FASTMATH`), so a kernel with such flags is called only from Python or inlined into its callers
 (``inline="always"``: each caller compiles it under its own flags), unless its rounding only widens bounds that hold
-in any order (the flow's ``_spread_sums``); ``tests/test_kernels.py`` checks both.
+in any order (the flow's ``_spread_sums``); ``tests/test_kernels.py`` checks both. And every kernel is compiled
+with :func:`kernel`, which states its ``fastmath`` flags and error model: numba would otherwise give a kernel its
+first compiling caller's, so that the cached code depended on which caller a process compiled first.
 
 Each distinct argument type signature compiles a kernel again. Numba types a constant passed by a compiled caller
 as a literal (``Literal[int](0)``, not ``int64``), so such call sites pass typed values (``np.int64(0)``,
@@ -44,7 +46,7 @@ from importlib import import_module
 from pathlib import Path
 
 __all__ = ["ANY_ORDER_FASTMATH", "EXACT_FASTMATH", "compile_cold", "decode_signature", "encode_signature",
-           "drop_stale_callers", "load", "loaded_signatures", "manifest", "uncached_kernels", "warmup"]
+           "drop_stale_callers", "kernel", "load", "loaded_signatures", "manifest", "uncached_kernels", "warmup"]
 
 MANIFEST = Path(__file__).with_name("kernels.json")
 EXACT_FASTMATH = {"nnan", "ninf", "nsz"}
@@ -53,6 +55,30 @@ EXACT_FASTMATH = {"nnan", "ninf", "nsz"}
 ANY_ORDER_FASTMATH = {"reassoc", "nsz", "arcp", "contract", "afn"}
 """The ``fastmath`` flags of a kernel that sums in any order (in vector lanes), with NaN and infinity kept: for a
 kernel called only from Python, or inlined into its callers."""
+
+
+def kernel(fn=None, *, fastmath=False, error_model="python", inline="never"):
+    """``numba.njit`` as every kernel of the package is compiled: cached on disk, without the GIL, and with its own
+    ``fastmath`` flags and error model, never a caller's (``@kernel`` or ``@kernel(fastmath=...)``).
+
+    Numba compiles a kernel that a caller's compilation reaches first with the caller's ``fastmath`` and
+    ``error_model`` wherever the kernel leaves them unset, and caches its code by argument types only: which caller a
+    process happened to compile first (the order of :func:`compile_cold`'s workers) then decided for every later
+    process whether, say, :func:`torchevtrack.linalg.eigh` summed in any order, and two fresh installs of the same
+    source tracked differently. Stated on every kernel, both flags are the kernel's own whatever the order
+    (``tests/test_kernels.py``).
+
+    Example:
+        >>> from torchevtrack.linalg import eigh  # @kernel
+        >>> eigh.targetoptions["fastmath"], eigh.targetoptions["error_model"]
+        (False, 'python')
+    """
+    import numba
+
+    options = {"cache": True, "nogil": True, "fastmath": fastmath, "error_model": error_model, "inline": inline}
+    return numba.njit(**options) if fn is None else numba.njit(**options)(fn)
+
+
 SECONDS_PER_KERNEL = 1.6  # a kernel's compile time on average (150 s for the ~90 of a tracking run, idle 2-core VM)
 _lock = threading.Lock()
 _tried = False  # compile_cold ran in this process: it announces and compiles at most once

@@ -17,13 +17,14 @@ Example:
 
 from __future__ import annotations
 
-import numba
 import numpy as np
+
+from torchevtrack.kernels import kernel
 
 __all__ = ["cholesky", "cholesky_inverse", "cholesky_solve", "lu_solve", "eigh"]
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def cholesky(A, L):
     """Lower Cholesky factor ``L`` of the symmetric part of ``A`` ``(n, n)`` (float64); False if ``A`` is not
     positive definite."""
@@ -45,7 +46,7 @@ def cholesky(A, L):
     return True
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def cholesky_inverse(L, out):
     """``out = (L L^T)^-1`` (symmetric) from the lower Cholesky factor ``L`` ``(n, n)``."""
     n = L.shape[0]
@@ -66,7 +67,7 @@ def cholesky_inverse(L, out):
             out[j, i] = s
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def cholesky_solve(L, b, out):
     """``out = (L L^T)^-1 b`` for the lower Cholesky factor ``L`` ``(n, n)`` and ``b`` ``(n,)``."""
     n = L.shape[0]
@@ -83,7 +84,7 @@ def cholesky_solve(L, b, out):
         out[i] = s / L[i, i]
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def lu_solve(A, Bm, out):
     """``out = A^-1 Bm`` for ``A`` ``(n, n)`` and ``Bm`` ``(n, m)`` by Gaussian elimination with partial pivoting
     (LAPACK ``getrf`` / ``getrs``, as :func:`torch.linalg.solve`); False if ``A`` is singular."""
@@ -119,7 +120,7 @@ def lu_solve(A, Bm, out):
     return True
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def eigh(a, d, v):
     """Eigen-decomposition of the symmetric ``a`` ``(n, n)`` float64 (overwritten) by cyclic Jacobi rotations, until
     the off-diagonal part is below float64 rounding of the diagonal.

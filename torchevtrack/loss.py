@@ -41,13 +41,13 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, Callable, NamedTuple
 
-import numba
 import numpy as np
 import torch
 from torch import nn
 
 from torchevtrack.config import LossConfig
 from torchevtrack.geometry import check_pose
+from torchevtrack.kernels import kernel
 from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, failure_index, per_pose_errors
 from torchevtrack.stages import BufferViews
 
@@ -83,7 +83,7 @@ def _array(x, dtype, B: int) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(x), dtype=dtype).reshape(B)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def loss_kernel(score, flow_vectors, rejected, burst, t_us, reference, confidence, low_run, good_run, lost,
                 lost_at_us, newly, score_threshold, min_flow_vectors, patience, recovery, ema):
     """One update of the loss rule (module docstring) for ``B`` elements, in place; releases the GIL.
@@ -165,7 +165,7 @@ class LossArrays(NamedTuple):
     ema: float
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def loss_step(a, score, flow_vectors, rejected, burst, t_us):
     """:func:`loss_kernel` on the detector's :class:`LossArrays` ``a`` in place; returns whether an element became
     lost (``a.newly_lost``). Inputs as for :func:`loss_kernel` (``score`` of any float dtype)."""

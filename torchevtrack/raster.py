@@ -61,13 +61,13 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
-import numba
 import numpy as np
 import torch
 import trimesh
 
 from torchevtrack.camera import Camera
 from torchevtrack.geometry import nb_quat_to_matrix
+from torchevtrack.kernels import kernel
 from torchevtrack.render import (
     AMBIENT,
     LIGHT_DIRECTION,
@@ -183,7 +183,7 @@ _CHUNK = 256  # faces set up at a time (their records stay in the L1 cache)
 _FLUSH = 2048  # pixel wins shaded at a time
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def render_kernel(vertices, faces, planes, albedo, normals, poses, fx, fy, cx, cy, znear, zfar, light, ambient,
                   background, depth, gray, texture=None):
     """:func:`rasterise` into given arrays, unchecked; releases the GIL. Rasterises pose ``b`` of ``poses`` ``(B, 7)``
@@ -217,7 +217,7 @@ def render_kernel(vertices, faces, planes, albedo, normals, poses, fx, fy, cx, c
         _draw(proj, faces, front[:n], znear, zfar, depth[b], shading, box, edges, wins, weights, texture)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _draw(proj, faces, front, znear, zfar, depth, shading, box, edges, wins, weights, texture):
     """Z-buffer pass of the faces ``front`` over an all-zero ``depth`` ``(h, w)``: for each pixel, the camera
     ``z`` (metres) of the nearest of them in ``[znear, zfar]`` and, unless the grey image (the last of the
@@ -241,7 +241,7 @@ def _draw(proj, faces, front, znear, zfar, depth, shading, box, edges, wins, wei
             _shade_chunk(box, edges, wins[:m], weights, W, shading, texture)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _front_faces(nx, ny, nz, offset, c0, c1, c2, seen, front):
     """Write into ``front`` the faces whose plane ``(nx, ny, nz) . p = offset`` has the point ``(c0, c1, c2)``
     strictly in front, in order; return their number (``seen`` is scratch)."""
@@ -254,7 +254,7 @@ def _front_faces(nx, ny, nz, offset, c0, c1, c2, seen, front):
     return n
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")  # no zero-division check: the loop vectorises
+@kernel(error_model="numpy")  # no zero-division check: the loop vectorises
 def _project(vertices, R, t, fx, fy, cx, cy, znear, proj):
     """Fill ``proj[5 i:5 i + 5]`` with the homogeneous image point ``(fx X + cx Z, fy Y + cy Z, Z)`` of vertex
     ``i`` (``vertices`` flattened) moved by ``R, t``, and its pixel ``(u, v)`` (NaN if nearer than ``znear``)."""
@@ -272,7 +272,7 @@ def _project(vertices, R, t, fx, fy, cx, cy, znear, proj):
         proj[5 * i + 4] = y / Z if Z >= znear else np.nan
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _cross(proj, a, b):
     """Cross product of the homogeneous points ``a`` and ``b`` of ``proj``: the edge function of the edge
     ``a -> b``, whose value at pixel ``(x, y)`` is ``result . (x, y, 1)``."""
@@ -281,7 +281,7 @@ def _cross(proj, a, b):
     return ya * zb - za * yb, za * xb - xa * zb, xa * yb - ya * xb
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _near_clipped_box(proj, i0, i1, i2, znear):
     """Pixel bounding box ``(umin, umax, vmin, vmax)`` of the part of a triangle at ``Z >= znear``."""
     umin = vmin = np.inf
@@ -300,7 +300,7 @@ def _near_clipped_box(proj, i0, i1, i2, znear):
     return umin, umax, vmin, vmax
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _face_setups(proj, faces, front, znear, zfar, W, H, box, edges):
     """Records of the faces ``front`` whose pixel box in the ``W x H`` window is not empty: ``box[r]`` their box
     ``(xmin, xmax, ymin, ymax)`` and vertex indices, ``edges[r]`` their three edge functions and ``det``
@@ -330,7 +330,7 @@ def _face_setups(proj, faces, front, znear, zfar, W, H, box, edges):
     return k
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")  # 1 / 0 = inf (a sliver's z fails the range test)
+@kernel(error_model="numpy")  # 1 / 0 = inf (a sliver's z fails the range test)
 def _cover(box, e, r, W, znear, zfar, depth, wins, weights, m):
     """Z-test record ``r``'s face at the pixel centres of its box against ``depth`` (the window, flattened) and
     keep it where it is nearer: there, write its ``z`` into ``depth`` and append the pixel, ``r`` and its
@@ -357,7 +357,7 @@ def _cover(box, e, r, W, znear, zfar, depth, wins, weights, m):
     return m
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _shade_chunk(box, edges, wins, weights, W, shading, texture):
     """:func:`_shade` the queued pixels, or :func:`_shade_textured` them with a ``texture`` (a ``None``
     texture compiles to the untextured call alone)."""
@@ -367,7 +367,7 @@ def _shade_chunk(box, edges, wins, weights, W, shading, texture):
         _shade_textured(box, edges, wins, weights, W, texture[0], texture[1], texture[2], *shading)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _shade(box, wins, weights, albedo, normals, light, ambient, gray):
     """Lambert grey at the pixels ``wins[:, 0]`` of the window (``gray`` flattened), in order, from the albedo
     and normal interpolated at ``weights`` over the vertices of the records ``wins[:, 1]``, in float32 (the
@@ -388,7 +388,7 @@ def _shade(box, wins, weights, albedo, normals, light, ambient, gray):
         gray[p] = alb * (amb + (one - amb) * max(cos, zero))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _shade_textured(box, edges, wins, weights, W, uv, texels, levels, albedo, normals, light, ambient, gray):
     """:func:`_shade` with the albedo sampled from the texture (``texels, levels`` of :class:`RasterTexture`) at
     the perspective-correct ``uv``, trilinearly as OpenGL's ``LINEAR_MIPMAP_LINEAR`` (repeating): the level of
@@ -428,7 +428,7 @@ def _shade_textured(box, edges, wins, weights, W, uv, texels, levels, albedo, no
         gray[p] = f4(alb) * (amb + (one - amb) * max(cos, zero))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _bilinear(texels, level, u, v):
     """Bilinear sample (repeating) of one mipmap ``level`` ``(offset, width, height)`` at ``(u, v)`` (``v`` up;
     texel centres at half-integers, as OpenGL's)."""

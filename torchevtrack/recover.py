@@ -59,7 +59,6 @@ import math
 import time
 from typing import TYPE_CHECKING, NamedTuple, Sequence
 
-import numba
 import numpy as np
 import torch
 import trimesh
@@ -69,6 +68,7 @@ from torchevtrack.camera import Camera
 from torchevtrack.chamfer import recent_events
 from torchevtrack.config import RecoverConfig
 from torchevtrack.geometry import quat_exp, quat_mul
+from torchevtrack.kernels import kernel
 from torchevtrack.mesh import symmetry_axis
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.stages import BufferViews, batch_mask
@@ -163,7 +163,7 @@ def search_levels(search_m: float) -> tuple[Level, ...]:
     return tuple(Level(lv.rot_deg, tuple(dz * k for dz in lv.dz_m), lv.xy_m * k, lv.scale) for lv in LEVELS)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def bookkeeping_kernel(t, period_us, pose, declared, low_run, lost, good_pose, good_us, anchor_pose, anchor_us, twist,
                        started, next_search, retry_in, pending, retry_us, start_after_us, due, starting):
     """One update's bookkeeping of :class:`Recoverer` (module docstring), in place, per element ``b`` of ``B``.
@@ -219,7 +219,7 @@ class RecoverArrays(NamedTuple):
     may: np.ndarray
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def recover_step(r, t, period_us, pose, declared, low_run, patience):
     """:func:`bookkeeping_kernel` on the :class:`RecoverArrays` ``r`` in place, for the update at times ``t`` ``(B,)``
     int64 with output poses ``pose`` ``(B, 7)``, the detector's ``declared`` (newly lost) and ``low_run`` ``(B,)`` and

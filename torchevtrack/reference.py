@@ -34,12 +34,12 @@ import inspect
 import math
 from typing import NamedTuple
 
-import numba
 import torch
 import torch.nn.functional as F
 
 from torchevtrack.camera import Camera
 from torchevtrack.geometry import quat_canonical, quat_exp, quat_mul, quat_to_matrix
+from torchevtrack.kernels import kernel
 from torchevtrack.stages.template import (NEWTON_DAMPING, NEWTON_MAX_STEP, NUM_HYPOTHESES, PREFILTER_RADIUS, Correction,
                                           TemplateModel, apply_steps, area_weight, batch_origin, canvas_intrinsics,
                                           check_correct, check_images, correct_canvas, fill_kernel, gaussian_taps,
@@ -95,7 +95,7 @@ def _object_extent(depth: torch.Tensor, origin, camera: Camera | None = None) ->
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _extent_kernel(depth, origin, cx, cy, gain, out):
     for b in range(depth.shape[0]):
         out[b] = window_extent(depth[b], origin[b, 0], origin[b, 1], cx, cy, gain)
@@ -181,7 +181,7 @@ def _fill_depth(depth: torch.Tensor, fallback: torch.Tensor, radius: int) -> tor
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _fill_kernel(depth, fallback, r):
     """:func:`_fill_depth` in place."""
     for b in range(depth.shape[0]):

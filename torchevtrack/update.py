@@ -45,12 +45,12 @@ from __future__ import annotations
 import math
 from typing import Callable, NamedTuple
 
-import numba
 import numpy as np
 import torch
 
 from torchevtrack.camera import Camera
 from torchevtrack.geometry import nb_normalise_quaternions
+from torchevtrack.kernels import kernel
 from torchevtrack.loss import LossArrays, loss_step
 from torchevtrack.raster import AMBIENT, LIGHT_DIRECTION, RasterRenderer, render_kernel
 from torchevtrack.recover import RecoverArrays, recover_step
@@ -119,7 +119,7 @@ def bind_intake(eros: EROS, time_surface: TimeSurface | None, flow: TripletFlow,
     return run
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _intake_kernel(surface, lam, r, last, surfaces, times, sae, seen, x, y, t, p, b, C, batched, dirs, pad, dt_max_us,
                    tol, onset_us, chunk, block_x, block_y, G, min_samples, max_candidates, tie_tol, normal, inlier,
                    fill, out, uv, valid, count):
@@ -184,7 +184,7 @@ def motion(a: MotionArgs, field: FlowField | None = None, depth: np.ndarray | No
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _motion_kernel(from_poses, pose, prev_pose, dt, min_depth, kf, field, depth, origin, max_speed, radius, feedback,
                    predicted, twist, n_vectors, rejected):
     """:func:`motion` (``kf`` ``None``: the twist of the last two poses, ``from_poses``, or zero). Returns -1, or the
@@ -202,7 +202,7 @@ def _motion_kernel(from_poses, pose, prev_pose, dt, min_depth, kf, field, depth,
     return -1
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def render_ahead(predicted, twist, dt, min_depth, ahead, ahead_ok, now, now32):
     """The tracker's ``render.ahead`` poses, row by row: ``now`` (float64 and ``now32`` float32) is ``ahead`` where
     ``ahead_ok`` (the last update's poses for this one), else ``predicted``; then ``ahead`` becomes ``predicted``
@@ -238,7 +238,7 @@ class Rendered(NamedTuple):
     model: TemplateModel | None
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _render_model_kernel(pose, radius, cam, W, H, margin, vertices, faces, planes, albedo, normals, znear, zfar, light,
                          ambient, background, shaded, model, box_margin, silhouette, edge_scale, interior, g1, g2, pre, N,
                          step, P, observed_box, texture):
@@ -295,7 +295,7 @@ def _render_model_kernel(pose, radius, cam, W, H, margin, vertices, faces, plane
     return win, depth, gray, pose32, (box32, K, gain, T, Z, coef, points, valid, np.full(1, interior))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _repeat_pixels(small, s, out):
     """``out[v, u] = small[v // s, u // s]`` for every pixel of ``out`` ``(h, w)`` (``small`` ``(ceil(h / s),
     ceil(w / s))``): the first row of each ``s`` widened from its small row, the others copied from it (element
@@ -490,7 +490,7 @@ def output(a: OutputArgs, predicted: np.ndarray, measured: np.ndarray, twist: np
     return out, rejected
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _output_kernel(pose, predicted, measured, twist, dt, min_depth, feedback, axis, ukf, out, rejected):
     """:func:`output` into ``out``, ``rejected``. Returns -1, or the failing UKF filter (see
     :func:`~torchevtrack.stages.ukf.ukf_step`)."""
@@ -542,7 +542,7 @@ def watch(loss: LossArrays, recover: RecoverArrays | None, score: np.ndarray, fl
     return _watch_kernel(loss, recover, score, flow_vectors, rejected, burst, t_us, np.int64(period_us), pose)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _watch_kernel(loss, recover, score, flow_vectors, rejected, burst, t_us, period_us, pose):
     """:func:`watch`'s compiled body."""
     newly = loss_step(loss, score, flow_vectors, rejected, burst, t_us)

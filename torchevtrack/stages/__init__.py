@@ -8,9 +8,10 @@ import functools
 import math
 from typing import Callable
 
-import numba
 import numpy as np
 import torch
+
+from torchevtrack.kernels import kernel
 
 __all__ = ["NEVER", "BufferViews", "batch_mask"]
 
@@ -82,7 +83,7 @@ def periods(batch_size: int, dt: float) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def canvas_taps(c, step, N, n):
     """Bilinear taps along one axis of the ``N`` canvas pixels centred at ``c + (j + 0.5 - N / 2) step`` in an
     axis of ``n`` pixels: the two indices, clamped into ``[0, n)``, and their weights, 0 for a tap outside.

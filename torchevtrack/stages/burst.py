@@ -27,11 +27,11 @@ Example:
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 import torch
 from torch import nn
 
+from torchevtrack.kernels import kernel
 from torchevtrack.stages import BufferViews, batch_mask
 
 __all__ = ["BurstGuard", "burst_update_", "keep_events"]
@@ -95,7 +95,7 @@ def _judge(rate: np.ndarray, run: np.ndarray, burst: np.ndarray, n_events, dt_us
                   float(ratio), float(ema), int(max_run))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _burst_kernel(n, dt_us, rate, run, burst, floor, ratio, ema, max_run):
     """The rule of the module docstring for each element in turn; the state arrays are written in place."""
     dt = dt_us * 1e-6

@@ -30,11 +30,11 @@ Example:
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 import torch
 from torch import nn
 
+from torchevtrack.kernels import kernel
 from torchevtrack.stages import NEVER, batch_mask
 from torchevtrack.stages.eros import check_fields, check_times, events_inside, prepare_events
 
@@ -91,7 +91,7 @@ def denoise_update_(last_us: torch.Tensor, count: torch.Tensor, hot: torch.Tenso
     return keep
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _hot_mask(count, hot, ratio, min_count):
     """Recompute one element's hot mask ``(H, W)`` from its period's counts, then zero the counts."""
     H, W = count.shape
@@ -111,7 +111,7 @@ def _hot_mask(count, hot, ratio, min_count):
     count[:] = 0
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _denoise_kernel(last, count, hot, period_end, x, y, t, b, batched, dt, period, ratio, min_count, keep):
     """The rule of the module docstring over the events in order; False, nothing written, if one lies outside."""
     B, H, W = last.shape

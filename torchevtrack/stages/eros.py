@@ -30,13 +30,13 @@ import math
 from typing import Callable, NamedTuple
 
 import kornia
-import numba
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from torchevtrack.config import RECENCY_STEP_US, ErosConfig, recency_windows
+from torchevtrack.kernels import kernel
 from torchevtrack.prefetch import AHEAD, prefetch
 from torchevtrack.stages import NEVER, batch_mask, canvas_taps
 
@@ -122,7 +122,7 @@ def eros_update_(surface: torch.Tensor, x: torch.Tensor, y: torch.Tensor, b: tor
     return surface
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def events_inside(x, y, b, batched, B, H, W):
     """Every event of numpy arrays ``x, y`` ``(N,)`` inside ``[0, W) x [0, H)`` with its batch index ``b[i]`` (only
     read when ``batched``) in ``[0, B)``: the range check of :func:`prepare_events`, compiled, for compiled callers
@@ -134,7 +134,7 @@ def events_inside(x, y, b, batched, B, H, W):
     return True
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def eros_kernel(surface, x, y, b, batched, r, lam):
     """:func:`eros_update_` on numpy arrays, unchecked, for compiled callers: the events ``x, y`` ``(N,)`` of the
     elements ``b`` ``(N,)`` (read only when ``batched``; else all in element 0) into ``surface`` ``(B, H, W)``, in
@@ -330,20 +330,20 @@ def decay_tables(taus: tuple[float, ...], max_age: int) -> np.ndarray:
 _DECAY_TABLE = 1 << 16  # 256 KiB
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _decay_fill(inv_tau, out):
     for a in range(len(out)):
         out[a] = _decay(a, inv_tau)
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _decay(age, inv_tau):
     """Weight ``exp(-age / tau)`` of an event ``age`` us old (float32; ``inv_tau = 1 / tau`` float32)."""
     return np.float32(math.exp(-np.float32(age) * inv_tau))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _recent_kernel(surface, last, origin, t_now, max_age, taus, decay, level, out):
     """:func:`recent_observation` into ``out`` ``(B, h, w)``."""
     every_row = np.ones(out.shape[1], dtype=np.bool_)
@@ -353,7 +353,7 @@ def _recent_kernel(surface, last, origin, t_now, max_age, taus, decay, level, ou
                        every_row)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def canvas_kernel(surface, last, box, t_now, max_age, taus, decay, level, out):
     """:func:`canvas_observation` on numpy arrays, unchecked, into ``out``; releases the GIL.
 
@@ -382,7 +382,7 @@ def canvas_kernel(surface, last, box, t_now, max_age, taus, decay, level, out):
         _bilinear(win, x0, x1, wu0, wu1, y0, y1, wv0, wv1, out[b])
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _bilinear(img, x0, x1, wu0, wu1, y0, y1, wv0, wv1, out):
     """``out[i, j]`` = ``img`` at the canvas pixel of the taps ``y0, y1, wv0, wv1`` (row ``i``) and ``x0, x1, wu0,
     wu1`` (column ``j``) of :func:`~torchevtrack.stages.canvas_taps`, bilinear, zero outside ``img``. A tap outside
@@ -401,7 +401,7 @@ def _bilinear(img, x0, x1, wu0, wu1, y0, y1, wv0, wv1, out):
             out[i, j] = acc
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _recent_window(surface, last, u0, v0, t_now, max_age, tau, decay, out, rows):
     """The age-weighted, 3x3-median observation of one element's window at ``(u0, v0)`` into ``out`` ``(h, w)``
     (:func:`recent_observation`) in the rows marked True in ``rows`` ``(h,)`` (the other rows of ``out`` are left
@@ -555,7 +555,7 @@ def time_surface_update_(last_us: torch.Tensor, x: torch.Tensor, y: torch.Tensor
     return last_us
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def time_kernel(last, x, y, t, b, batched):
     """:func:`time_surface_update_` on numpy arrays, unchecked, for compiled callers: the events ``x, y, t`` ``(N,)``
     (``t`` int64 us) of the elements ``b`` (read only when ``batched``) into ``last`` ``(B, H, W)`` int64. Returns
@@ -653,7 +653,7 @@ def follow_speed(flow: torch.Tensor, valid: torch.Tensor, px: float, min_us: flo
     return torch.from_numpy(np.where(level >= 0, min_us + RECENCY_STEP_US * level, np.nan))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _follow_kernel(flow, valid, px, min_us, max_us, level):
     """:func:`follow_speed` as the index of each window on the grid into ``level`` ``(B,)`` int64 (left as it is for
     an element without enough vectors): :meth:`Recency.forward`."""
@@ -789,7 +789,7 @@ def bind_observe(eros: EROS, time_surface: TimeSurface, recency: RecencyArrays, 
     return run
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _observe_kernel(surface, lam, r, last, x, y, t, b, batched, box, t_now, max_age, taus, decay, level, out):
     """:func:`eros_kernel` and :func:`time_kernel`, then (if ``box`` has rows) :func:`canvas_kernel` into ``out``;
     False, nothing written, if an event lies outside the surfaces."""

@@ -68,6 +68,7 @@ from numba.cpython.unsafe.numbers import trailing_zeros
 from torch import nn
 
 from torchevtrack.config import FlowConfig
+from torchevtrack.kernels import kernel
 from torchevtrack.prefetch import AHEAD, prefetch
 from torchevtrack.stages import NEVER, batch_mask
 from torchevtrack.stages.eros import check_fields, check_times, prepare_events
@@ -171,7 +172,7 @@ def _index_array(v: torch.Tensor) -> np.ndarray:
     return (v if v.dtype in _INDEX_DTYPES else v.long()).numpy()
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def events_in_range(x, y, p, b, C, batched, B, H, W):
     """Every event of :func:`event_arrays` inside ``[0, W) x [0, H)``, its batch index in ``[0, B)`` (when
     ``batched``) and (``C = 2``) its polarity in ``{0, 1}``: the events fit an SAE ``(B, C, H, W)``. Compiled."""
@@ -203,7 +204,7 @@ def sae_update_(sae: torch.Tensor, x: torch.Tensor, y: torch.Tensor, t: torch.Te
     return sae
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _sae_kernel(sae, x, y, t, p, b, C, batched):
     """``sae[b C + p, y, x] = max(., t)`` per event; returns False, untouched, if one lies outside."""
     planes, H, W = sae.shape
@@ -240,7 +241,7 @@ def _direction_array(D: int) -> np.ndarray:
 _DIRECTIONS: dict[int, np.ndarray] = {}
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _match_packet(sae, last, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, onset_us, chunk):
     """Triplet samples of a packet of events (:func:`event_arrays`: event ``i`` in SAE plane ``b[i] C + p[i]``)
     against the padded SAE ``(B, Cs, Hp, Wp)``, which they update in place as they go (each event looks up, then
@@ -282,7 +283,7 @@ _LINE = 8
 """SAE entries (int64) per 64-byte cache line."""
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _triplet_kernel(sae, last, x, y, t, p, b, C, batched, start, stop, dirs, pad, dt_max_us, tol, onset_us, event,
                     flow):
     """Per event ``i`` in ``start:stop`` that starts a crossing (always, with ``onset_us = 0``; else its pixel's
@@ -339,7 +340,7 @@ def _triplet_kernel(sae, last, x, y, t, p, b, C, batched, start, stop, dirs, pad
     return _emit(flat, at_prev, t_prev, stop - 1, off1, 0, fx, fy, tol, m_prev, event, flow, s)
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def _pass_mask(flat, at, t0, off1, lo, hi, dt_max_us, tol):
     """Bit ``k - lo`` set: direction ``k`` in ``lo:hi`` may pass for the event at SAE index ``at``, time ``t0``
     (the exact integer tests, and ``|dt12 - dt01| <= tol' dt01`` with ``tol'`` a hair above ``tol``: a superset of
@@ -356,7 +357,7 @@ def _pass_mask(flat, at, t0, off1, lo, hi, dt_max_us, tol):
     return m
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def _emit(flat, at, t0, i, off1, lo, fx, fy, tol, m, event, flow, s):
     """Write the samples of event ``i`` (SAE index ``at``, time ``t0``) for the directions ``lo + bit`` of mask
     ``m`` that pass ``|1 - dt12 / dt01| < tol``, from ``event[s]``, ``flow[s]`` on; returns the new ``s``. The
@@ -482,7 +483,7 @@ def _register(block_id: np.ndarray, event: np.ndarray, flow: np.ndarray, pixel: 
     return out, uv, valid, count
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _register_all(block_id, event, flow, pixel, min_samples, max_candidates, tie_tol, normal, inlier, fill, out,
                   uv_out, valid, count):
     """:func:`register_blocks` into ``out``, ``uv_out``, ``valid``, ``count`` (``n_blocks`` rows); False (nothing
@@ -534,14 +535,14 @@ class _Scratch(NamedTuple):
     exact: np.ndarray
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _scratch(cap):
     idx = np.empty((3, cap), dtype=np.int64)
     idx[2] = np.arange(cap)
     return _Scratch(np.empty((5, cap)), np.empty((6, cap), dtype=np.float32), idx, np.empty(cap, dtype=np.bool_))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _group(block_id, event, flow, pixel, valid, count):
     """The samples (in event order) of the valid blocks grouped by block, in order, as rows ``(F_u, F_v, pixel_u,
     pixel_v)`` and their events: a counting sort by block, stable.
@@ -567,7 +568,7 @@ def _group(block_id, event, flow, pixel, valid, count):
     return rec, rec_event
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _subsample(rec, event, max_candidates, F, ev):
     """The samples a block registers: of its samples ``rec`` (rows of :func:`_group`, of ``event``, in event
     order) those of every ``s``-th event, ``s = ceil(len(rec) / max_candidates)``, the first ``max_candidates`` of
@@ -590,7 +591,7 @@ def _subsample(rec, event, max_candidates, F, ev):
     return n
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _register_block(F0, F1, ev, px, py, tie_tol, normal, inlier, work):
     """Registration of one block's ``K`` samples ``(F0, F1)`` of events ``ev`` (sorted ranks ``0 .. E - 1``) at
     pixels ``(px, py)`` (module docstring). Returns ``(flow_u, flow_v, u, v)``.
@@ -626,7 +627,7 @@ def _register_block(F0, F1, ev, px, py, tie_tol, normal, inlier, work):
     return _inlier_fit(F0, F1, ev, px, py, norm, near[q] if q >= 0 else 0, normal, inlier, work)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _dist_sums(C0, C1, F0, F1, ev, row, out):
     """``out[q] = sum_e min_{j in e} |C_q - F_j|`` over the events ``e`` of the samples ``F_j`` in order, in the
     arrays' float type; the minimum is taken of the squared norms, then its root (the same value: the root is
@@ -653,7 +654,7 @@ def _dist_sums(C0, C1, F0, F1, ev, row, out):
             out[q] += np.sqrt(row[q])
 
 
-@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "nsz"})
+@kernel(fastmath={"reassoc", "nsz"})
 def _spread_sums(C0, C1, F0, F1, out):
     """``out[q] = sum_j |C_q - F_j|``: :func:`_dist_sums` of samples that are each an event of their own, one
     candidate at a time with the sum in any order (vector lanes), which is as exact as the order of
@@ -670,7 +671,7 @@ def _spread_sums(C0, C1, F0, F1, out):
         out[q] = acc
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _sum_bounds(F0, F1, ev, cand, lo, hi, exact, work):
     """``lo[q] <= S_q <= hi[q]`` for the float64 sums ``S_q`` of :func:`_dist_sums` of the candidates
     ``C_q = F_cand[q]`` from their float32 evaluation ``s``: ``s +- 2^-21 E (s + 2 M) + 2^-60 E``, which bounds the
@@ -706,7 +707,7 @@ def _sum_bounds(F0, F1, ev, cand, lo, hi, exact, work):
         lo[q], hi[q] = s[q] - err, s[q] + err
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _exact_sums(F0, F1, ev, cand, sel, lo, hi, exact, work):
     """``lo[q] = hi[q] =`` the float64 sum of :func:`_dist_sums` of candidate ``F_cand[q]``, ``exact[q] = True``,
     for ``q`` in ``sel`` (unless already exact), one candidate at a time (:func:`_dist_sum`)."""
@@ -717,7 +718,7 @@ def _exact_sums(F0, F1, ev, cand, sel, lo, hi, exact, work):
             exact[q] = True
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _dist_sum(c0, c1, F0, F1, ev, row):
     """:func:`_dist_sums` of one candidate ``(c0, c1)``, the same value: the squared distances, the per-event
     minima (in place: event ``e`` is no later than its samples) and their roots in vector loops, then the sum
@@ -741,7 +742,7 @@ def _dist_sum(c0, c1, F0, F1, ev, row):
     return s
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _least(F0, F1, ev, cand, lo, hi, exact, work, value):
     """The first ``q`` with the least sum ``S_q`` and that sum (``(-1, inf)`` if there are no candidates), from the
     bounds of :func:`_sum_bounds`: only the candidates whose lower bound does not exceed the least upper bound
@@ -766,7 +767,7 @@ def _least(F0, F1, ev, cand, lo, hi, exact, work, value):
     return best, least
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _inlier_fit(F0, F1, ev, px, py, norm, best, normal, inlier, work):
     """Flow and ``uv`` of a block registered to candidate ``best``: over the samples of its inlier events (nearest
     sample within ``inlier |F_best|`` of ``F_best``) the mean pixel and, if ``normal``, the normal flow fitted to
@@ -803,7 +804,7 @@ def _inlier_fit(F0, F1, ev, px, py, norm, best, normal, inlier, work):
     return fx, fy, su / sw, sv / sw
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _normal_flow(a00, a01, a11, r0, r1):
     """Normal flow ``g / |g|^2`` of the min-norm least-squares gradient ``g = pinv(A) r``, ``A`` symmetric 2 x 2
     (each inlier sample ``F_j`` is the line ``F_j . g = 1``, weighted ``1 / |F_j|``). Eigenvalues below
@@ -832,7 +833,7 @@ def _normal_flow(a00, a01, a11, r0, r1):
     return gx / n2, gy / n2
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _sample_blocks(ev, x, y, b, batched, block_x, block_y, G):
     """Block ``b G + block_y[y] + block_x[x]`` and pixel ``(x, y)`` of the event of each sample.
 
@@ -847,7 +848,7 @@ def _sample_blocks(ev, x, y, b, batched, block_x, block_y, G):
     return gid, pixel
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def flow_packet(sae, last, x, y, t, p, b, C, batched, dirs, pad, dt_max_us, tol, onset_us, chunk, block_x, block_y, G,
                 min_samples, max_candidates, tie_tol, normal, inlier, fill, out, uv, valid, count):
     """:meth:`TripletFlow.forward` in one compiled call, unchecked, for compiled callers.

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 import torch
 
@@ -42,6 +41,7 @@ from torchevtrack.geometry import (
     quat_exp,
     quat_rotate,
 )
+from torchevtrack.kernels import kernel
 
 __all__ = ["se3_exp_apply", "propagate", "propagate_kernel", "propagate_step", "twist_between", "twist_between_kernel",
            "invalid_poses", "valid_pose"]
@@ -64,7 +64,7 @@ def se3_exp_apply(xi: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     return quat_rotate(quat_exp(phi), points) + trans
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def propagate_kernel(pose, twist, dt, out):
     """:func:`propagate` row by row, unchecked, for compiled callers: float64 numpy ``pose (N, 7)``, ``twist (N, 6)``
     and ``dt (N,)`` seconds into ``out (N, 7)`` (canonical quaternions)."""
@@ -89,7 +89,7 @@ def propagate_kernel(pose, twist, dt, out):
         out[i, 3], out[i, 4], out[i, 5], out[i, 6] = nb_quat_canonical(q0, q1, q2, q3)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def twist_between_kernel(start, end, dt, out):
     """:func:`twist_between` row by row, unchecked, for compiled callers: float64 numpy ``start, end (N, 7)`` and
     ``dt (N,)`` seconds into ``out (N, 6)`` ``[v (m/s), w (rad/s)]``."""
@@ -183,7 +183,7 @@ def twist_between(start: torch.Tensor, end: torch.Tensor, dt: torch.Tensor | flo
     return out if dtype == torch.float64 else out.to(dtype)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def valid_pose(pose, min_depth):
     """A pose ``(7,)`` is valid: finite, with the object centre farther than ``min_depth`` (metres)."""
     ok = pose[2] > min_depth
@@ -192,7 +192,7 @@ def valid_pose(pose, min_depth):
     return ok
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _invalid_kernel(pose, min_depth, out):
     for b in range(pose.shape[0]):
         out[b] = not valid_pose(pose[b], min_depth[b])
@@ -209,7 +209,7 @@ def invalid_poses(pose: torch.Tensor, min_depth: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(out)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def propagate_step(pose, twist, dt, min_depth, predicted, rejected):
     """:func:`propagate` of ``pose`` ``(B, 7)`` by ``twist`` ``(B, 6)`` over ``dt`` ``(B,)`` seconds into ``predicted``,
     unchecked; where that is not a valid pose (:func:`valid_pose` with ``min_depth`` ``(B,)``) the pose itself

@@ -101,7 +101,6 @@ import functools
 import math
 from typing import NamedTuple
 
-import numba
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -112,7 +111,7 @@ from torchevtrack.config import RULES, TemplateConfig
 from torchevtrack.geometry import (nb_quat_canonical, nb_quat_exp, nb_quat_mul,
                                    nb_quat_to_matrix, quat_canonical, quat_conj, quat_exp, quat_log, quat_mul,
                                    quat_rotate)
-from torchevtrack.kernels import ANY_ORDER_FASTMATH, EXACT_FASTMATH
+from torchevtrack.kernels import ANY_ORDER_FASTMATH, EXACT_FASTMATH, kernel
 from torchevtrack.linalg import cholesky, cholesky_solve, eigh
 from torchevtrack.stages import canvas_taps
 
@@ -221,7 +220,7 @@ def window_of(t: np.ndarray, camera: Camera, radius: float | np.ndarray, margin_
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def window_kernel(t, radius, fx, fy, cx, cy, margin, W, H, clip, out):
     """:func:`window_of` into ``out`` ``(B, 4)`` int64 ``(u0, v0, w, h)``: the square around the projected bounding
     sphere plus ``margin`` pixels; ``t`` ``(B, 3)`` float64 object positions (m), ``radius`` ``(B,)`` float64 (m), the
@@ -239,7 +238,7 @@ def window_kernel(t, radius, fx, fy, cx, cy, margin, W, H, clip, out):
             out[b, 0], out[b, 1] = min(max(out[b, 0], 0), W - out[b, 2]), min(max(out[b, 1], 0), H - out[b, 3])
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def render_scale(w, h, canvas):
     """The subsampling ``s`` (an int >= 1) of the render a template model of ``canvas`` pixels is made from, for a
     render window of ``w x h`` frame pixels: ``max(1, (min(w, h) + canvas) // (2 canvas))``, ``min(w, h) / (2
@@ -255,7 +254,7 @@ def render_scale(w, h, canvas):
     return max(1, (min(w, h) + canvas) // (2 * canvas))
 
 
-@numba.njit(cache=True, nogil=True, fastmath=EXACT_FASTMATH)
+@kernel(fastmath=EXACT_FASTMATH)
 def window_extent(depth, u0, v0, cx, cy, gain):
     """The object's extent in one render window ``depth`` ``(h, w)`` whose top-left frame pixel is ``(u0, v0)``
     (compiled; :func:`~torchevtrack.reference.canvas_box` and :func:`~torchevtrack.reference.radial_gain` reduce it):
@@ -365,7 +364,7 @@ def apply_steps(pose: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
 
 
 # -- warping and scoring ----------------------------------------------------------------------
-@numba.njit(cache=True, nogil=True)
+@kernel
 def fill_kernel(depth, fallback, r):
     """The background fill of one canvas depth ``depth`` ``(h, w)``, in place (compiled): each background pixel
     (``<= 0``) takes the mean object depth in the ``(2 r + 1)`` square around it, or ``fallback`` (metres) where that
@@ -427,7 +426,7 @@ def prefilter_taps(dtype: torch.dtype) -> torch.Tensor:
 _MIN_OBSERVATION = 1e-4
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _bspline_weights(x):
     """Cubic B-spline weights of the taps ``i - 1 .. i + 2`` at ``i + x`` (``0 <= x < 1``, float32), and their first
     and second derivatives: three 4-tuples of float32."""
@@ -441,14 +440,14 @@ def _bspline_weights(x):
             (one - x, f4(3.0) * x - f4(2.0), one - f4(3.0) * x, x))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _rotation(q):
     """Rotation matrix of a ``(w, x, y, z)`` quaternion (normalised first)."""
     n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     return nb_quat_to_matrix(q[0] / n, q[1] / n, q[2] / n, q[3] / n)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _pixel_motion(e0, e2, Ar, A2, d0, d1, d2):
     """One row of ``G = dp / d delta`` (:func:`_quadratic_terms`): with ``dp_r / dY = e0`` along ``r`` and ``e2``
     along z, ``P = e0 A[r] + e2 A[2]`` and the row is ``[-P, P x d]``, ``d = X - t``. A 6-tuple."""
@@ -460,7 +459,7 @@ def _pixel_motion(e0, e2, Ar, A2, d0, d1, d2):
 _BLOCK = 64
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _tap_rows(c, r, w, d, dd):
     """One row of spline taps (``c[r]``, ``c[r + _BLOCK]``, ... :func:`_quadratic_terms`) contracted with the
     weights ``w``, ``d``, ``dd`` along ``u``: three numbers."""
@@ -470,7 +469,7 @@ def _tap_rows(c, r, w, d, dd):
             k0 * dd[0] + k1 * dd[1] + k2 * dd[2] + k3 * dd[3])
 
 
-@numba.njit(cache=True, nogil=True, fastmath=ANY_ORDER_FASTMATH, inline="always")
+@kernel(fastmath=ANY_ORDER_FASTMATH, inline="always")
 def _hessian_row(c, nb, k, Tu, Tv, Tuu, Tuv, Tvv):
     """Block sums of :func:`_quadratic_terms`' ``g[k]`` (``O grad T . G[k]``) and row ``k`` of ``M``
     (``hu G_u + hv G_v`` with ``hu = T_uu G_u[k] + T_uv G_v[k]``, ``hv = T_uv G_u[k] + T_vv G_v[k]``), float32: seven
@@ -490,7 +489,7 @@ def _hessian_row(c, nb, k, Tu, Tv, Tuu, Tuv, Tvv):
     return gk, m0, m1, m2, m3, m4, m5
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _observed_points(Z, K, obs):
     """The observed canvas pixels of one element (``|O| >= _MIN_OBSERVATION``, ``obs`` ``(N * N,)``) in raster
     order: their observation ``o`` ``(n,)`` and the point ``X`` ``(3, n)`` (metres) back-projected with the
@@ -513,7 +512,7 @@ def _observed_points(Z, K, obs):
     return o, X
 
 
-@numba.njit(cache=True, nogil=True, fastmath=ANY_ORDER_FASTMATH, inline="always")
+@kernel(fastmath=ANY_ORDER_FASTMATH, inline="always")
 def _quadratic_terms(coef, K, render_pose, pose, o, X):
     """Taylor terms ``(s0, g (6,), M (6, 6))`` of one element's warped-template score around ``pose``.
 
@@ -622,7 +621,7 @@ def _quadratic_terms(coef, K, render_pose, pose, o, X):
     return s0, g, M
 
 
-@numba.njit(cache=True, nogil=True, fastmath=ANY_ORDER_FASTMATH)
+@kernel(fastmath=ANY_ORDER_FASTMATH)
 def _quadratic_kernel(coef, Z, K, render_pose, pose, obs, s0, g, M):
     """:func:`_quadratic_terms` of every batch element into ``s0`` ``(B,)``, ``g`` ``(B, 6)``, ``M`` ``(B, 6, 6)``."""
     for b in range(coef.shape[0]):
@@ -630,7 +629,7 @@ def _quadratic_kernel(coef, Z, K, render_pose, pose, obs, s0, g, M):
         s0[b], g[b], M[b] = _quadratic_terms(coef[b], K[b], render_pose[b], pose[b], o, X)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _apply_step(pose, delta):
     """:func:`apply_steps` of one step ``[dt, phi]`` to one pose (float64)."""
     out = np.empty(7)
@@ -641,7 +640,7 @@ def _apply_step(pose, delta):
     return out
 
 
-@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "nsz"}, inline="always")
+@kernel(fastmath={"reassoc", "nsz"}, inline="always")
 def area_weight(obs, valid, N, interior):
     """The area term's weight ``a = interior tau A`` of one element (see :func:`newton_kernel`), float64.
 
@@ -679,7 +678,7 @@ def area_weight(obs, valid, N, interior):
     return interior * (rho_f - rho_b) / math.log(rho_f / rho_b) * area
 
 
-@numba.njit(cache=True, nogil=True, fastmath=ANY_ORDER_FASTMATH)
+@kernel(fastmath=ANY_ORDER_FASTMATH)
 def newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, iterations, damping, max_step,
                   valid, interior, out_pose, out_score, out_scores, out_moved):
     """:func:`newton_search` on numpy arrays, unchecked, into ``out_pose`` ``(B, 7)``, ``out_score`` ``(B,)``,
@@ -905,7 +904,7 @@ class TemplateModel(NamedTuple):
         return torch.where(self.valid, shift, torch.zeros_like(shift)).amax(1)
 
 
-@numba.njit(cache=True, nogil=True, fastmath=EXACT_FASTMATH)
+@kernel(fastmath=EXACT_FASTMATH)
 def _taps_pass(src, k, step, dst):
     """``dst[q] = sum_i k[i] src[q + i step]`` (flat arrays), the taps added in order (up to four per pass)."""
     L, n4 = len(dst), (len(k) - 1) // 4 * 4
@@ -924,7 +923,7 @@ def _taps_pass(src, k, step, dst):
             dst[q] += w * a[q]
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _blur(x, k, tmp, out):
     """Blur by the 1-D kernel ``k`` along both axes, zero outside: ``x`` is the ``(n, m)`` image zero-padded by
     ``p >= len(k) // 2`` on each side, ``tmp`` and ``out`` are ``(n, m + 2p)``; ``out[:, p:p + m]`` is the blur."""
@@ -935,7 +934,7 @@ def _blur(x, k, tmp, out):
     _taps_pass(t[p - r:], k, np.int64(1), out.reshape(-1)[p:n * W - p])  # along the rows (the pads keep rows apart)
 
 
-@numba.njit(cache=True, nogil=True, fastmath=EXACT_FASTMATH)
+@kernel(fastmath=EXACT_FASTMATH)
 def _sobel2(a, b, c, u0, u, u1):
     """``|Sobel|^2`` (unnormalised) at column ``u`` of rows ``a, b, c`` with neighbour columns ``u0, u1``."""
     gu = (a[u1] - a[u0]) + 2 * (b[u1] - b[u0]) + (c[u1] - c[u0])
@@ -943,7 +942,7 @@ def _sobel2(a, b, c, u0, u, u1):
     return gu * gu + gv * gv
 
 
-@numba.njit(cache=True, nogil=True, fastmath=EXACT_FASTMATH)
+@kernel(fastmath=EXACT_FASTMATH)
 def _edges(x, y, scale, E):
     """``E[p:p + N, p:p + M] = min(sqrt(max(|Sobel x|^2, |Sobel y|^2)) * scale, 1)`` (replicated border, the
     squares rounded to float32) with ``p`` the padding of ``E``."""
@@ -961,7 +960,7 @@ def _edges(x, y, scale, E):
             e[u] = min(np.sqrt(g) * scale, one)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def box_kernel(depth, origin, cam, margin, box, gain):
     """The first part of :func:`template_model`, unchecked: the object's extent in each window ``depth`` ``(B, h, w)``
     at ``origin`` ``(B, 2)`` float64 (frame pixels; ``cam`` from :func:`camera_array`, ``margin`` pixels) gives the
@@ -981,7 +980,7 @@ def box_kernel(depth, origin, cam, margin, box, gain):
         gain[b] = total / max(n, 1.0)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def model_kernel(depth, gray, origin, box64, cam, z_fallback, use_gray, use_mask, edge_scale, interior, g1, g2, pre,
                  fill_radius, point_step, box, K, T, coef, Z, points, valid):
     """:func:`template_model` of each window ``depth`` / ``gray`` ``(B, h, w)`` at ``origin`` ``(B, 2)`` float64 in its
@@ -1036,7 +1035,7 @@ def model_kernel(depth, gray, origin, box64, cam, z_fallback, use_gray, use_mask
         fill_kernel(Z[b], z_fallback[b], fill_radius)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _add_interior(mask, c, T, Tp):
     """``T += c * mask`` and the same into the zero-padded copy ``Tp`` (the object's coverage of each canvas pixel)."""
     N = T.shape[0]
@@ -1047,7 +1046,7 @@ def _add_interior(mask, c, T, Tp):
             Tp[v + p, u + p] += c * mask[v, u]
 
 
-@numba.njit(cache=True, nogil=True, fastmath=EXACT_FASTMATH)
+@kernel(fastmath=EXACT_FASTMATH)
 def _dog_template(B1, B2, T, Tp):
     """``T = clip(D * 0.5 / max|D|, -0.5, 0.5)`` of the Difference of Gaussians ``D = B1 - B2`` (into ``B1``), also
     into ``Tp`` (``T`` zero-padded by ``p``); ``B1``, ``B2`` are :func:`_blur` outputs ``(N, N + 2p)``."""
@@ -1066,7 +1065,7 @@ def _dog_template(B1, B2, T, Tp):
             t[u] = tp[u] = min(max(d[u] * s, np.float32(-0.5)), np.float32(0.5))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _resample(depth, gray, cu, cv, step, use_gray, c_depth, c_mask, c_gray):
     """:func:`to_canvas` of one window (box centre ``(cu, cv)`` in window pixels, ``step`` window pixels per canvas
     pixel): the object depth (depth-weighted over the object taps only), the mask and, if ``use_gray``, the grey.

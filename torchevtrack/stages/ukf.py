@@ -40,7 +40,6 @@ from __future__ import annotations
 import functools
 from typing import NamedTuple
 
-import numba
 import numpy as np
 import torch
 from torch import nn
@@ -58,6 +57,7 @@ from torchevtrack.geometry import (
     quat_mul,
 )
 from torchevtrack.config import UKFConfig
+from torchevtrack.kernels import kernel
 from torchevtrack.linalg import cholesky, eigh, lu_solve
 from torchevtrack.stages import batch_mask
 
@@ -133,7 +133,7 @@ def quat_mean(q: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 # One filter at a time, float64: the functions above, operation by operation, on (25, 13) sigma points.
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _nb_boxplus(x, d, sign, out):
     """``out = x [+] sign * d`` (:func:`boxplus`) for ``x`` ``(13,)``, ``d`` ``(12,)``."""
     for i in range(9):
@@ -143,7 +143,7 @@ def _nb_boxplus(x, d, sign, out):
     out[9], out[10], out[11], out[12] = nb_quat_canonical(q0, q1, q2, q3)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _nb_sigma_points(x, P, spread, X, S, L):
     """:func:`sigma_points` of one filter into ``X`` ``(25, 13)`` (scratch ``S``, ``L`` ``(12, 12)``); False if
     ``spread * P`` is not positive definite."""
@@ -164,7 +164,7 @@ def _nb_sigma_points(x, P, spread, X, S, L):
     return True
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _nb_quat_mean(X, Wm, out):
     """:func:`quat_mean` of the quaternions ``X[:, 9:13]`` into ``out`` ``(4,)``."""
     M = np.zeros((4, 4))
@@ -182,14 +182,14 @@ def _nb_quat_mean(X, Wm, out):
     out[0], out[1], out[2], out[3] = nb_quat_canonical(V[0, top], V[1, top], V[2, top], V[3, top])
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _nb_rot_error(X, s, q, out, k):
     """``out[k:k+3] = log(X[s, 9:13] (x) q^-1)``."""
     a0, a1, a2, a3 = nb_quat_mul(X[s, 9], X[s, 10], X[s, 11], X[s, 12], q[0], -q[1], -q[2], -q[3])
     out[k], out[k + 1], out[k + 2] = nb_quat_log(a0, a1, a2, a3)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _nb_weighted_mean(X, w, start, out):
     """``out[i] = sum_s w[s] X[s, start + i]`` over the sigma points ``s`` in order (one chain per ``i``)."""
     out[:] = 0.0
@@ -198,7 +198,7 @@ def _nb_weighted_mean(X, w, start, out):
             out[i] += w[s] * X[s, start + i]
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _nb_weighted_outer(A, Bm, w, out):
     """``out[i, j] = sum_s (A[s, i] w[s]) Bm[s, j]`` over the sigma points ``s`` in order: a weighted
     (cross-)covariance of deviations."""
@@ -210,7 +210,7 @@ def _nb_weighted_outer(A, Bm, w, out):
                 out[i, j] += dw * Bm[s, j]
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _nb_symmetrise(M, out):
     """``out = (M + M^T) / 2``."""
     for i in range(M.shape[0]):
@@ -218,7 +218,7 @@ def _nb_symmetrise(M, out):
             out[i, j] = 0.5 * (M[i, j] + M[j, i])
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _ukf_predict_kernel(x, P, T, q, q_diag, twist, has_twist, Wm, Wc, spread, x_out, P_out):
     """:func:`ukf_predict` (with the known twist of :meth:`PoseUKF.predict`) of every filter. The outputs are
     written once all filters are done (they may alias the inputs); returns -1, or the failing filter."""
@@ -260,7 +260,7 @@ def _ukf_predict_kernel(x, P, T, q, q_diag, twist, has_twist, Wm, Wc, spread, x_
     return -1
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _ukf_update_kernel(x, P, z, R, r_diag, Wm, Wc, spread, x_out, P_out):
     """:func:`ukf_update` of every filter. The outputs are written once all filters are done (they may alias the
     inputs); returns -1, or the failing filter."""
@@ -339,7 +339,7 @@ class UKFArrays(NamedTuple):
     spread: float
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def ukf_step(f, dt, twist, z):
     """:meth:`PoseUKF.predict` over ``dt`` ``(B,)`` seconds with the known ``twist`` ``(B, 6)``, then
     :meth:`PoseUKF.update` with the measured poses ``z`` ``(B, 7)``, on the filters' :class:`UKFArrays` ``f`` in place,

@@ -55,13 +55,13 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import numba
 import numpy as np
 import torch
 from torch import nn
 
 from torchevtrack.camera import Camera
 from torchevtrack.config import TWIST_AXES, VelocityConfig
+from torchevtrack.kernels import kernel
 from torchevtrack.linalg import cholesky, cholesky_inverse, cholesky_solve
 from torchevtrack.stages import batch_mask
 
@@ -174,7 +174,7 @@ def shift_twist(twist: torch.Tensor, point: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(out)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def shift_twist_kernel(twist, c, out):
     """:func:`shift_twist` of ``twist`` ``(B, 6)`` to the points ``c`` ``(B, 3)`` into ``out`` ``(B, 6)``, all float64
     numpy arrays (``out`` may be ``twist``), unchecked; for compiled callers (:func:`velocity_step`,
@@ -187,7 +187,7 @@ def shift_twist_kernel(twist, c, out):
         out[b, 3], out[b, 4], out[b, 5] = w0, w1, w2
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def _residuals(Hs, zs, x, sig, rows, n, out):
     """Into ``out[:n]``: the norm of each of ``n`` vectors' residual ``z - H x`` (``rows`` rows each of ``Hs``,
     ``zs``) in units of its noise standard deviation ``sig``."""
@@ -202,7 +202,7 @@ def _residuals(Hs, zs, x, sig, rows, n, out):
         out[i] = np.sqrt(s) / sig[i]
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def _lower_median(values, n, buf):
     """The lower median of ``values[:n]`` (0 for ``n = 0``), sorted in ``buf``."""
     if n == 0:
@@ -211,7 +211,7 @@ def _lower_median(values, n, buf):
     return np.sort(buf[:n])[(n - 1) // 2]
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _kf_update_kernel(x, P, uv, flow, depth, valid, dt, centre, has_centre, fx, fy, cx, cy, r_px, r_rel, iters, k,
                       min_vectors, normal, x_out, P_out, w_out, res_out, used_out):
     """:func:`kf_update`, one filter at a time (float64 throughout). Returns -1, or the index of a filter whose
@@ -482,7 +482,7 @@ def sample_depth(depth: torch.Tensor, origin: torch.Tensor, uv: torch.Tensor, va
     return torch.from_numpy(out)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _sample_depth_kernel(depth, origin, uv, valid, r, out):
     B, h, w = depth.shape
     for b in range(B):
@@ -509,7 +509,7 @@ def _sample_depth_kernel(depth, origin, uv, valid, r, out):
                 out[b, g] = s / n
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def _persistence(turn, b):
     """:func:`turn_persistence` of element ``b`` (the compiled kernels' copy)."""
     s = turn[b, 3]
@@ -519,7 +519,7 @@ def _persistence(turn, b):
     return min(m / s, 1.0)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _kf_predict_kernel(x, P, rho, rho_turn, turn, Q):
     """:func:`kf_predict` with :func:`turn_decay`'s decays, in place (``Q`` ``(6, 6)``)."""
     d = np.empty(6)
@@ -534,7 +534,7 @@ def _kf_predict_kernel(x, P, rho, rho_turn, turn, Q):
                 P[b, i, j] = d[i] * P[b, i, j] * d[j] + Q[i, j]
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _turn_kernel(turn, x, ema):
     """:func:`turn_update` in place on ``turn``."""
     for b in range(x.shape[0]):
@@ -570,7 +570,7 @@ class KFArrays(NamedTuple):
     normal: bool
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def velocity_step(f, field, depth, origin, max_speed, radius, dt, centre, feedback, twist, n_vectors):
     """The velocity stage of one update on the filters' :class:`KFArrays` ``f`` in place, unchecked:
     :meth:`VelocityKF.predict`; the valid vectors of the flow ``field`` (a :class:`~torchevtrack.stages.flow.FlowField`
@@ -778,7 +778,7 @@ _NO_AXIS = np.zeros((1, 3))
 _NO_LIMIT = np.zeros(6)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _feedback_kernel(b, rate, axis, has_axis, gain, leak, mask, limit, has_limit, out):
     for i in range(b.shape[0]):
         r = rate[i].copy()
@@ -804,7 +804,7 @@ class FeedbackArrays(NamedTuple):
     limit: np.ndarray
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def feedback_step(f, rate, axis):
     """:meth:`CorrectionFeedback.forward` of the corrections' ``rate`` ``(B, 6)`` about the centres on the feedback's
     :class:`FeedbackArrays` ``f`` in place, unchecked; ``axis`` ``(B, 3)`` symmetry axes or ``None``."""

@@ -29,12 +29,12 @@ Example:
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 import torch
 from torch import nn
 
 from torchevtrack.events import EventStream
+from torchevtrack.kernels import kernel
 
 __all__ = ["LOG_EPS", "log_intensity", "esim_step", "noise_events", "hot_pixel_events", "refractory_filter", "ESIM"]
 
@@ -95,7 +95,7 @@ def esim_step(
     return ev_pix % W, ev_pix // W, t, ev_pol, torch.from_numpy(new_ref), torch.from_numpy(last)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _nb_esim_step(L0, L1, ref, C, last, t0, t1, refractory, new_ref):
     """The events of :func:`esim_step` in pixel order, then ``k`` (not yet sorted by time): flat pixel index,
     time and polarity (int8 0/1); fills ``new_ref`` and updates ``last`` in place. All float arithmetic in
@@ -175,7 +175,7 @@ def hot_pixel_events(
     return pix, t, p
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _nb_refractory(pix: np.ndarray, t: np.ndarray, last: np.ndarray, refractory: int, keep: np.ndarray) -> None:
     for i in range(pix.shape[0]):
         p = pix[i]
