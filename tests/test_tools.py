@@ -165,7 +165,14 @@ def test_recovery_trials_away(tmp_path: Path) -> None:
                  str(tmp_path / "bench" / "away"), *tiny]) == 0
     out = _run("tools/recovery_trials.py", str(tmp_path / "bench"), "--mode", "away", "--settle", "0.05",
                "--max-cm", "100", "--max-deg", "180", "--set", "loss.enabled=true", "--set", "recover.enabled=true")
-    assert out.split()[:3] == ["away", "0", "before"] and "away: 1 of 1 within 100.0 cm / 180.0 deg" in out, out
+    # the toy's outcome is chaotic (within 1 m on one build of its kernels, 1.36 m off on another): the verdict must
+    # follow the printed error
+    words = out.split()
+    assert words[:3] == ["away", "0", "before"], out
+    after = words.index("after")
+    ok = float(words[after + 1]) <= 100.0 and float(words[after + 3]) <= 180.0
+    assert words[words.index("flags") + 2] == ("ok" if ok else "MISS"), out
+    assert f"away: {int(ok)} of 1 within 100.0 cm / 180.0 deg" in out, out
     assert "(0 trials off before it left, not counted)" in out and "without the gap" not in out
     assert main(["synth", "--object", "box", "--duration", "0.05", "--out", str(tmp_path / "plain" / "p"), *tiny]) == 0
     done = subprocess.run([sys.executable, "tools/recovery_trials.py", str(tmp_path / "plain"), "--mode", "away"],
