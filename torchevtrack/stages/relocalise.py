@@ -73,7 +73,7 @@ from torchevtrack.raster import RasterRenderer
 from torchevtrack.schedule import thread_count
 from torchevtrack.stages.template import apply_steps, pose_delta, render_window
 
-__all__ = ["LEVELS", "Level", "Relocalisation", "Relocaliser"]
+__all__ = ["LEVELS", "Level", "MAX_REGION_PX", "Relocalisation", "Relocaliser"]
 
 
 class Level(NamedTuple):
@@ -91,6 +91,12 @@ LEVELS = (
     Level(30.0, (-0.08, -0.04, 0.0, 0.04, 0.08), 0.10, 0.25),
     Level(15.0, (-0.02, 0.0, 0.02), 0.03, 0.25),
 )
+# a level's square search region is at most this many low-resolution pixels across: its scale shrinks below the
+# level's where the square would be larger (an estimate drifted near the camera, or a frame scan at 1280x720; the
+# regions of the wide dev split's and the standard eight's true poses are at most 303 px, their frame scans 540 px).
+# Unbounded, one frame scan at 1280x720 of a cracker box at 0.3 m held 10.3 GB and took 32 s, and `benchmark
+# --recover` on the dev pair peaked at 17.8 GB (docs/notebook.md, 2026-12-07 late morning)
+MAX_REGION_PX = 512
 
 
 class Relocalisation(NamedTuple):
@@ -113,12 +119,14 @@ class Relocalisation(NamedTuple):
 
 class _Region(NamedTuple):
     """A level's square search region: full-resolution top-left ``u0, v0``, side ``side`` (full-res pixels), the
-    low-resolution camera of its renders, the shift radius ``R`` and the FFT size ``N`` (low-res pixels), and the
-    observation's Fourier transforms (event image, capped distance map) on the ``N x N`` canvas."""
+    low-resolution camera of its renders at ``scale`` (the level's, or less where the square would exceed
+    ``MAX_REGION_PX``), the shift radius ``R`` and the FFT size ``N`` (low-res pixels), and the observation's Fourier
+    transforms (event image, capped distance map) on the ``N x N`` canvas."""
 
     u0: int
     v0: int
     camera: Camera
+    scale: float
     R: int
     N: int
     f_events: np.ndarray
@@ -271,19 +279,20 @@ class Relocaliser(nn.Module):
 
     def _region(self, pose: torch.Tensor, level: Level, events: np.ndarray) -> _Region:
         u0, v0, side = self._square(pose, level)
-        cam = Camera(*self._low_camera(u0, v0, side, level.scale))
+        scale = min(level.scale, MAX_REGION_PX / side)
+        cam = Camera(*self._low_camera(u0, v0, side, scale))
         n = cam.width
-        R = max(1, math.ceil(self.camera.fx * level.xy_m / float(pose[0, 2]) * level.scale))
+        R = max(1, math.ceil(self.camera.fx * level.xy_m / float(pose[0, 2]) * scale))
         N = sfft.next_fast_len(n + R, real=True)  # >= n + R: a shift never wraps a pixel into the region
-        cap = self.cap_px * level.scale
+        cap = self.cap_px * scale
         ev = np.zeros((N, N), np.float32)
-        iu = np.floor((events[:, 0] - u0 + 0.5) * level.scale).astype(np.int64)
-        iv = np.floor((events[:, 1] - v0 + 0.5) * level.scale).astype(np.int64)
+        iu = np.floor((events[:, 0] - u0 + 0.5) * scale).astype(np.int64)
+        iv = np.floor((events[:, 1] - v0 + 0.5) * scale).astype(np.int64)
         keep = (iu >= 0) & (iu < n) & (iv >= 0) & (iv < n)
         ev[iv[keep], iu[keep]] = 1.0
         dist = np.full((N, N), cap, np.float32)
         dist[:n, :n] = distance_map(ev[:n, :n] > 0, cap)
-        return _Region(u0, v0, cam, R, N, sfft.rfft2(ev), sfft.rfft2(dist), int(ev.sum()))
+        return _Region(u0, v0, cam, scale, R, N, sfft.rfft2(ev), sfft.rfft2(dist), int(ev.sum()))
 
     # -- candidates -----------------------------------------------------------------------------------------------
     def _search(self, poses: torch.Tensor, region: _Region, level: Level,
@@ -298,7 +307,7 @@ class Relocaliser(nn.Module):
             return torch.cat(found), torch.cat(costs)
         depth, gray = self.renderer.render_unit(poses.numpy(), region.camera, shaded=True)
         edges = model_edges(depth, gray)
-        K, n, R, N, s = len(poses), region.camera.width, region.R, region.N, level.scale
+        K, n, R, N, s = len(poses), region.camera.width, region.R, region.N, region.scale
         cap = self.cap_px * s
         E = np.zeros((K, N, N), np.float32)
         E[:, :n, :n] = edges
