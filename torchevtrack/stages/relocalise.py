@@ -118,10 +118,10 @@ class Relocalisation(NamedTuple):
 
 
 class _Region(NamedTuple):
-    """A level's square search region: full-resolution top-left ``u0, v0``, side ``side`` (full-res pixels), the
-    low-resolution camera of its renders at ``scale`` (the level's, or less where the square would exceed
-    ``MAX_REGION_PX``), the shift radius ``R`` and the FFT size ``N`` (low-res pixels), and the observation's Fourier
-    transforms (event image, capped distance map) on the ``N x N`` canvas."""
+    """A level's square search region: full-resolution top-left ``u0, v0``, the low-resolution camera of its renders
+    at ``scale`` (the level's, or less where the square would exceed ``MAX_REGION_PX``), the shift radius ``R`` and
+    the FFT size ``N`` (low-res pixels), and the observation's Fourier transforms (event image, capped distance map)
+    on the ``N x N`` canvas."""
 
     u0: int
     v0: int
@@ -295,14 +295,13 @@ class Relocaliser(nn.Module):
         return _Region(u0, v0, cam, scale, R, N, sfft.rfft2(ev), sfft.rfft2(dist), int(ev.sum()))
 
     # -- candidates -----------------------------------------------------------------------------------------------
-    def _search(self, poses: torch.Tensor, region: _Region, level: Level,
-                pool=None) -> tuple[torch.Tensor, torch.Tensor]:
+    def _search(self, poses: torch.Tensor, region: _Region, pool=None) -> tuple[torch.Tensor, torch.Tensor]:
         """Best shift of each candidate ``(K, 7)``: shifted poses ``(K, 7)`` and their costs ``(K,)`` (full-res
         pixels; ``cap_px`` for a candidate not seen). With a ``pool`` (:func:`_threads`), its threads take a share of
         the candidates each (every candidate's cost is its own: the same result)."""
         if pool is not None and self.workers > 1 and len(poses) > 1:
             parts = poses.tensor_split(min(self.workers, len(poses)))
-            shares = pool.map(lambda part: self._search(part, region, level), parts)
+            shares = pool.map(lambda part: self._search(part, region), parts)
             found, costs = zip(*shares)
             return torch.cat(found), torch.cat(costs)
         depth, gray = self.renderer.render_unit(poses.numpy(), region.camera, shaded=True)
@@ -350,7 +349,7 @@ class Relocaliser(nn.Module):
         centre = pose.double()
         events = self._events(centre, last_us, t_now)
         first = self.levels[0]
-        poses, costs = self._search(self._candidates(centre, first), self._region(centre, first, events), first, pool)
+        poses, costs = self._search(self._candidates(centre, first), self._region(centre, first, events), pool)
         seeds = []  # the best first-level candidates, pairwise distinct
         for j in costs.argsort().tolist():
             if len(seeds) == self.max_seeds:
@@ -361,7 +360,7 @@ class Relocaliser(nn.Module):
 
         def refine(seed: torch.Tensor) -> tuple[float, torch.Tensor]:  # through the next levels, then polished
             for level in self.levels[1:]:
-                p, c = self._search(self._candidates(seed, level), self._region(seed, level, events), level)
+                p, c = self._search(self._candidates(seed, level), self._region(seed, level, events))
                 seed = p[int(c.argmin()):int(c.argmin()) + 1]
             return self._polish(seed, obs)
 
@@ -520,8 +519,7 @@ class Relocaliser(nn.Module):
         level = self.levels[0]._replace(xy_m=0.5 * z * max(cam.width / cam.fx, cam.height / cam.fy))
         events = self._events(centre, last_us, int(t_now_us), level)
         with _threads(self.workers) as pool:
-            poses, costs = self._search(self._candidates(centre, level), self._region(centre, level, events), level,
-                                        pool)
+            poses, costs = self._search(self._candidates(centre, level), self._region(centre, level, events), pool)
         j = int(costs.argmin())
         return poses[j:j + 1], float(costs[j])
 
