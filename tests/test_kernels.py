@@ -313,6 +313,24 @@ def _flags(kernel) -> set:
     return {"fast"} if fm is True else set(fm or ())
 
 
+def _package_kernels() -> list:
+    """Every cached numba dispatcher of the package, all its modules imported (an optional extra's reader may not
+    import; ``__main__`` would run the command line)."""
+    import importlib
+    import pkgutil
+
+    import torchevtrack
+    from torchevtrack.kernels import _kernels
+
+    for m in pkgutil.walk_packages(torchevtrack.__path__, "torchevtrack."):
+        if not m.name.endswith("__main__"):
+            try:
+                importlib.import_module(m.name)
+            except ImportError:
+                pass
+    return _kernels()
+
+
 def test_a_kernel_whose_results_depend_on_its_optimisation_is_called_by_no_other_kernel_unless_inlined():
     """A kernel compiled with flags that let LLVM change its results (reassociation, contraction, approximate
     division or functions: beyond ``EXACT_FASTMATH``) runs as different machine code in a process that compiled it
@@ -320,21 +338,11 @@ def test_a_kernel_whose_results_depend_on_its_optimisation_is_called_by_no_other
     (``inline="always"``), which compile it once each. Found by the names called in every kernel's source; the one
     exception sums distances whose rounding only widens bounds that hold in any order (``flow._spread_sums``)."""
     import ast
-    import importlib
     import inspect
-    import pkgutil
 
-    import torchevtrack
-    from torchevtrack.kernels import EXACT_FASTMATH, _kernels
+    from torchevtrack.kernels import EXACT_FASTMATH
 
-    for m in pkgutil.walk_packages(torchevtrack.__path__, "torchevtrack."):
-        if m.name.endswith("__main__"):  # runs the command line
-            continue
-        try:
-            importlib.import_module(m.name)
-        except ImportError:  # an optional extra's reader
-            pass
-    kernels = _kernels()
+    kernels = _package_kernels()
     inexact = {id(k): k for k in kernels if _flags(k) - EXACT_FASTMATH}
     assert {k.py_func.__name__ for k in inexact.values()} >= {"_quadratic_terms", "_spread_sums"}  # found at all
     called = []
@@ -380,19 +388,7 @@ def test_a_kernel_compiled_first_by_a_caller_keeps_its_own_flags(tmp_path):
 def test_every_kernel_states_its_fastmath_flags_and_error_model():
     """Every compiled kernel of the package is made by ``kernels.kernel`` (or states both options itself), so no
     kernel takes a caller's (the test above)."""
-    import importlib
-    import pkgutil
-
-    import torchevtrack
-    from torchevtrack.kernels import _kernels
-
-    for m in pkgutil.walk_packages(torchevtrack.__path__, "torchevtrack."):
-        if not m.name.endswith("__main__"):
-            try:
-                importlib.import_module(m.name)
-            except ImportError:  # an optional extra's reader
-                pass
-    kernels = _kernels()
+    kernels = _package_kernels()
     assert len(kernels) > 100
     unstated = [k.py_func.__qualname__ for k in kernels
                 if "fastmath" not in k.targetoptions or "error_model" not in k.targetoptions]
