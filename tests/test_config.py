@@ -44,6 +44,10 @@ def test_invalid_values_are_rejected():
         with pytest.raises(ValueError, match="render.decimate must be an integer face count"):
             TrackerConfig.from_dict({"render": {"decimate": faces}})
     assert TrackerConfig.from_dict({"render": {"decimate": 500}}).render.decimate == 500
+    for speed in (0, -2.5, "fast", True):
+        with pytest.raises(ValueError, match="template.max_depth_speed must be > 0"):
+            TrackerConfig.from_dict({"template": {"max_depth_speed": speed}})
+    assert TrackerConfig.from_dict({"template": {"max_depth_speed": float("inf")}}).template.max_depth_speed > 1e308
 
 
 def test_ablations_change_only_their_switches():

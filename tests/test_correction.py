@@ -15,9 +15,10 @@ CAM = Camera.default()
 F64 = torch.float64
 T_NOW = 1_000_000
 OPTIONS = dict(canvas=64, margin_px=20.0, edge_clip=0.1, silhouette=True, interior=0.7)
-SEARCH = dict(dp_px=1.0, dtheta_deg=0.5, iterations=4)
+SEARCH = dict(dp_px=1.0, dtheta_deg=0.5, iterations=4, max_dz=0.002)
 MAX_AGE_US = 40_000
 RECENCY_US = torch.tensor([5_000.0, 2_250.0])  # one window per element
+Z_SHIFT = torch.tensor([0.001, -0.001], dtype=F64)  # the depth bands' centres from the predicted depths
 
 
 @pytest.fixture(scope="module")
@@ -51,8 +52,8 @@ def _oracle(pose32, predicted, depth, gray, origin, surface, last, t_now, rule="
     model = template_model(pose32, depth, gray, origin, CAM, **OPTIONS)
     obs = canvas_observation(surface, last, model.box, OPTIONS["canvas"], t_now, MAX_AGE_US, RECENCY_US)
     if rule == "newton":
-        return model, newton_search(model, predicted, obs.flatten(1), CAM, **SEARCH)
-    return model, correct_canvas(model, predicted, obs, CAM, rule=rule, **SEARCH)
+        return model, newton_search(model, predicted, obs.flatten(1), CAM, **SEARCH, z_ref=predicted[:, 2] + Z_SHIFT)
+    return model, correct_canvas(model, predicted, obs, CAM, rule=rule, **SEARCH, z_ref=predicted[:, 2] + Z_SHIFT)
 
 
 def _step(pose32, predicted, depth, gray, origin, surface, last, t_now, rule="newton", model=None, on_observed=None):
@@ -62,7 +63,7 @@ def _step(pose32, predicted, depth, gray, origin, surface, last, t_now, rule="ne
                           recency=recency_arrays(RECENCY_US, 2, MAX_AGE_US))
     np_ = lambda x: None if x is None else x.numpy()  # noqa: E731
     step = run(np_(pose32), predicted.numpy(), np_(depth), np_(gray), np_(origin), t_now.numpy(), model=model,
-               on_observed=on_observed)
+               on_observed=on_observed, z_ref=(predicted[:, 2] + Z_SHIFT).numpy())
     return CorrectionStep(step.model, Correction(*(torch.from_numpy(a) for a in step.correction)))
 
 

@@ -139,8 +139,10 @@ def test_a_hypothesis_knocked_off_the_object_is_replaced_by_its_twin(seq):
     assert tracker.twin.eros is tracker.eros and tracker.twin.flow is tracker.flow  # one intake for both
     # from the first check on (20 ms after the knock) the output is the twin's, which is the tracker without a UKF
     assert torch.equal(poses[knock_at + 10:], runs["no_ukf"][1][knock_at + 10:])
-    e = pose_errors(runs["alone"][1][knock_at + 10:], truth[knock_at + 10:])
-    assert float(torch.rad2deg(e["re"]).min()) > 10.0  # without the twin the tracker stays off
+    alone = torch.rad2deg(pose_errors(runs["alone"][1][knock_at + 10:], truth[knock_at + 10:])["re"])
+    chosen = torch.rad2deg(pose_errors(poses[knock_at + 10:], truth[knock_at + 10:])["re"])
+    # without the twin the tracker is still off when the twin takes over, and comes back only slowly
+    assert float(alone[0]) > 20.0 and float(alone.mean()) > 2.5 * float(chosen.mean()), (alone, chosen)
 
 
 def test_a_batch_gives_the_same_poses_with_and_without_the_pipeline(seq):

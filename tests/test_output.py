@@ -1,5 +1,6 @@
 """output against its oracle: the stage calls it composes, one after the other, bit for bit."""
 
+import numpy as np
 import pytest
 import torch
 
@@ -35,12 +36,13 @@ def _inputs(seed=0):
 
 
 def _output(pose, predicted, measured, twist, min_depth, ukf=None, feedback=None, symmetry_axis=None):
-    """The tracker's call: the arguments as numpy views, the results as tensors ``(pose, rejected)``."""
-    a = OutputArgs(pose.numpy(), periods(B, DT), min_depth.numpy(), None if ukf is None else ukf.arrays(),
+    """The tracker's call: the arguments as numpy views, the results as tensors ``(pose, rejected, depth_lag)``."""
+    lag = np.full(B, np.nan)
+    a = OutputArgs(pose.numpy(), periods(B, DT), min_depth.numpy(), lag, None if ukf is None else ukf.arrays(),
                    None if feedback is None else feedback.arrays())
     out = output(a, predicted.numpy(), measured.numpy(), twist.numpy(),
                  None if symmetry_axis is None else symmetry_axis.numpy())
-    return tuple(torch.from_numpy(v) for v in out)
+    return tuple(torch.from_numpy(v) for v in out + (lag,))
 
 
 def _oracle(pose, predicted, measured, twist, ukf, feedback, axis, min_depth):
@@ -58,7 +60,8 @@ def _oracle(pose, predicted, measured, twist, ukf, feedback, axis, min_depth):
     out = torch.where(bad[:, None], pose, out)
     if ukf is not None:
         ukf.x[bad, 6:13] = pose[bad]
-    return torch.cat((out[:, :3], quat_canonical(out[:, 3:])), -1), bad
+    lag = torch.where(bad, 0.0, measured[:, 2] - out[:, 2])  # where the next correction's depth band is centred
+    return torch.cat((out[:, :3], quat_canonical(out[:, 3:])), -1), bad, lag
 
 
 @pytest.mark.parametrize("with_ukf, with_feedback, with_axis", [(True, True, True), (True, True, False),
@@ -69,9 +72,10 @@ def test_output_is_the_stage_calls_bit_for_bit(with_ukf, with_feedback, with_axi
     ref = _inputs()
     min_depth = torch.tensor([0.1, 0.1, 0.52], dtype=F64)  # element 2 (z about 0.5 m) comes out too near
     pick = lambda u, f, a: (u if with_ukf else None, f if with_feedback else None, a if with_axis else None)  # noqa: E731
-    got_pose, got_bad = _output(pose, predicted, measured, twist, min_depth, *pick(ukf, feedback, axis))
-    want_pose, want_bad = _oracle(*ref[:4], *pick(*ref[4:]), min_depth)
-    assert torch.equal(got_pose, want_pose) and torch.equal(got_bad, want_bad)
+    got_pose, got_bad, got_lag = _output(pose, predicted, measured, twist, min_depth, *pick(ukf, feedback, axis))
+    want_pose, want_bad, want_lag = _oracle(*ref[:4], *pick(*ref[4:]), min_depth)
+    assert torch.equal(got_pose, want_pose) and torch.equal(got_bad, want_bad) and torch.equal(got_lag, want_lag)
+    assert bool((got_lag[:2] != 0).all()) == with_ukf and float(got_lag[2]) == 0.0  # none without the UKF
     assert got_bad.tolist() == [False, False, True]
     assert bool((got_pose[:, 3] >= 0).all()) and torch.equal(got_pose[2], quat_canonical_pose(pose[2]))
     assert torch.equal(ukf.x, ref[4].x) and torch.equal(ukf.P, ref[4].P)

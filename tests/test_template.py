@@ -776,6 +776,53 @@ def test_compiled_newton_search_with_interior_equals_the_generic_search(scenes, 
 
 
 @pytest.mark.parametrize("name", ["box", "006_mustard_bottle"])
+@pytest.mark.parametrize("shift", [None, 0.5])
+def test_compiled_depth_bound_clips_each_newton_step_as_the_generic_search(scenes, name, shift):
+    # the oracle: reference.rule_search's newton rule with the same bound (each step's depth clipped before it is
+    # scored); the bound is half the depth the unbounded search moves, so it binds, and no pose leaves it. The band
+    # is centred at the start depths (None) or at a given depth per element half a bound away, alternately nearer
+    # and farther (the tracker's last measurement moved on by the prediction)
+    model, starts, obs = _search_case(scenes[name], 12, 0.8, texture=0.3)
+    free = tm.newton_search(model, starts, obs, CAM, iterations=4)
+    max_dz = 0.5 * float((free.pose[:, 2] - starts[:, 2]).abs().max())
+    side = torch.tensor([1.0, -1.0], dtype=torch.float64).repeat(len(starts) // 2)
+    z_ref = None if shift is None else starts[:, 2].double() + side * shift * max_dz
+    ref = reference.rule_search(model, starts, obs, CAM, dp_px=1.0, dtheta_deg=0.5, rule="newton", iterations=4,
+                                max_dz=max_dz, z_ref=z_ref)
+    out = tm.newton_search(model, starts, obs, CAM, iterations=4, max_dz=max_dz, z_ref=z_ref)
+    assert torch.equal(out.iterations, ref.iterations)
+    assert torch.allclose(out.pose, ref.pose, atol=1e-9) and torch.allclose(out.score, ref.score, rtol=1e-7)
+    dz = (out.pose[:, 2] - (starts[:, 2] if z_ref is None else z_ref)).abs()
+    assert (dz <= max_dz * (1 + 1e-9)).all() and (dz >= max_dz * (1 - 1e-9)).any()
+    assert not torch.equal(out.pose, free.pose)
+    far = tm.newton_search(model, starts, obs, CAM, iterations=4, max_dz=100 * max_dz)  # a bound never reached
+    assert torch.equal(far.pose, free.pose) and torch.equal(far.score, free.score)
+
+
+@pytest.mark.parametrize("rule", ["argmax", "group"])
+def test_depth_bound_keeps_the_hypothesis_rules_within_it(scenes, rule):
+    # the chosen pose's depth is clipped and scored there: the element moves only while that beats the centre
+    model, starts, obs = _search_case(scenes["box"], 12)
+    free = tm.correct_canvas(model, starts, obs, CAM, rule=rule, iterations=4)
+    max_dz = 0.5 * float((free.pose[:, 2] - starts[:, 2]).abs().max())
+    out = tm.correct_canvas(model, starts, obs, CAM, rule=rule, iterations=4, max_dz=max_dz)
+    dz = (out.pose[:, 2] - starts[:, 2]).abs()
+    assert (dz <= max_dz * (1 + 1e-6)).all() and (dz >= max_dz * (1 - 1e-6)).any()
+    assert (out.score >= out.scores[:, 0]).all() and (out.iterations > 0).any()
+
+
+def test_a_bad_depth_bound_is_a_one_line_error(scenes):
+    model, starts, obs = _search_case(scenes["box"], 2)
+    for bad in (0.0, -1.0, float("nan"), "1"):
+        with pytest.raises(ValueError, match="max_dz"):
+            tm.correct_canvas(model, starts, obs, CAM, max_dz=bad)
+    z = starts[:, 2].double()
+    for bad in (z[:1], torch.where(torch.arange(len(z)) == 1, float("nan"), z), z.tolist()):
+        with pytest.raises(ValueError, match="z_ref"):
+            tm.correct_canvas(model, starts, obs, CAM, max_dz=0.01, z_ref=bad)
+
+
+@pytest.mark.parametrize("name", ["box", "006_mustard_bottle"])
 def test_interior_term_keeps_a_printed_texture_from_pulling_the_depth(scenes, name):
     # events on the object's side of its outline, plus a texture the mesh does not have (a fifth of the object's
     # pixels): the edge template alone takes the texture for outline and moves the object away as the texture

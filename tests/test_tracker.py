@@ -45,6 +45,48 @@ def test_full_tracker_follows_the_ground_truth(seq):
     assert not m["failed"]
 
 
+def test_the_correction_moves_the_depth_at_most_its_speed_bound_per_update(seq):
+    # the correction alone (no flow twist, no UKF: each update's start is the last output), started 1 cm too far: the
+    # depth comes back, by at most template.max_depth_speed x the period per update; unbounded it moves further
+    cfg = TrackerConfig().replace(velocity={"source": "none"}, ukf={"enabled": False})
+    start = seq.gt_poses[:1].clone()
+    start[0, 2] += 0.01
+    steps = {}
+    for speed in (0.5, math.inf):
+        tracker = EventPoseTracker(CAM, seq.mesh, cfg.replace(template={"max_depth_speed": speed}))
+        _, poses = tracker.track(seq.events, start, t_start_us=int(seq.gt_t_us[0]), progress=False)
+        tracker.close()
+        steps[speed] = torch.cat((poses[0, :1, 2] - start[0, 2], poses[0, :, 2].diff())).abs()
+    assert float(steps[0.5].max()) <= 0.5 * 0.002 * (1 + 1e-6) and float(steps[0.5].sum()) > 0.005
+    assert float(steps[math.inf].max()) > 0.002
+
+
+def test_with_the_ukf_the_depth_bound_follows_the_last_measurement(seq):
+    # the correction alone (zero twist: each prediction is the last output) with the UKF, started 1 cm too far: the
+    # UKF's output lags its measurements, and the band is centred at the last measurement (the output plus
+    # depth_lag), so each measured depth is within the bound of the one before and comes back at the bound's speed
+    # (a band around the lagging output gives steps of a quarter of the bound here: the lag eats the rest)
+    speed = 0.5
+    cfg = TrackerConfig().replace(velocity={"source": "none"}, ukf={"enabled": True},
+                                  template={"max_depth_speed": speed})
+    start = seq.gt_poses[0].clone()
+    start[2] += 0.01
+    tracker = EventPoseTracker(CAM, seq.mesh, cfg)
+    tracker.reset(start)
+    t0, measured = int(seq.gt_t_us[0]), [float(start[2])]
+    for k in range(60):
+        e = seq.events.slice_time(t0 + 2000 * k, t0 + 2000 * (k + 1))
+        tracker(e.x, e.y, e.t, e.p)
+        measured.append(float(tracker.pose[0, 2] + tracker.depth_lag[0]))
+    steps = torch.tensor(measured, dtype=torch.float64).diff().abs()
+    assert float(steps.max()) <= speed * 0.002 * (1 + 1e-6) and float(steps.sum()) > 0.005
+    assert float(steps[3:15].mean()) > 0.8 * speed * 0.002, steps[:15]
+    assert float(tracker.depth_lag.abs().max()) > 1e-4
+    tracker.reset(start)
+    assert float(tracker.depth_lag.abs().max()) == 0.0
+    tracker.close()
+
+
 def test_batch_elements_are_independent(seq):
     # With the argmax rule: its whole steps absorb the float32 rounding differences (~1e-8 m) between batch
     # sizes, which the Newton rule's sub-step moves carry on (and the tracker's feedback then amplifies).

@@ -139,6 +139,9 @@ class TemplateConfig:
     iterations: int = 5  # correction rounds per update while the score improves (1 = the paper)
     warmup_events: int = 2000  # events an element must have seen since reset before its pose is corrected
     interior: float = 0.7  # weight of the object's coverage added to the edge template, with its area term (0: edges)
+    # m/s: per update a correction's depth stays within this times the period of the last measured depth moved on by
+    # the prediction (.inf: no bound)
+    max_depth_speed: float = 2.5
 
 
 @dataclass
@@ -281,6 +284,9 @@ class TrackerConfig:
             raise ValueError(f"template.rule must be one of {RULES}, got {self.template.rule!r}")
         if not (math.isfinite(self.template.interior) and self.template.interior >= 0):
             raise ValueError(f"template.interior must be finite and >= 0, got {self.template.interior!r}")
+        m = self.template.max_depth_speed
+        if isinstance(m, bool) or not isinstance(m, (int, float)) or not m > 0:
+            raise ValueError(f"template.max_depth_speed must be > 0 m/s (.inf: no bound), got {m!r}")
         if self.render.backend not in BACKENDS:
             raise ValueError(f"render.backend must be one of {BACKENDS}, got {self.render.backend!r}")
         check_decimate(self.render.decimate, "render.decimate")

@@ -510,6 +510,8 @@ def search(
     dtheta_deg: float = 0.5,
     rule: str = "argmax",
     iterations: int = 1,
+    max_dz: float = math.inf,
+    z_ref: torch.Tensor | None = None,
 ) -> Correction:
     """Hypothesis search (:mod:`torchevtrack.stages.template`, items 3 and 5) with any scorer of poses.
 
@@ -520,11 +522,16 @@ def search(
             of ``apply_steps(centre, steps)``, ``score_poses`` poses ``(B, P, 7)`` to scores.
         gain: ``(B,)`` :func:`~torchevtrack.reference.radial_gain` (sets the z step).
         camera, dp_px, dtheta_deg, rule, iterations: see :func:`correct`.
+        max_dz, z_ref: the corrected depths stay within ``max_dz`` metres of ``z_ref`` ``(B,)`` (``None``:
+            ``pose``'s depths): the newton rule clips each step's depth to the band; the others clip the chosen pose's
+            depth and score it there, moving only if it still beats the centre.
 
     Shape: ``(B, 7) -> Correction``.
     """
     B = pose.shape[0]
     current = pose
+    zc = pose[:, 2] if z_ref is None else z_ref.to(pose.dtype)
+    z_lo, z_hi = zc - max_dz, zc + max_dz
     current_score = None
     active = torch.ones(B, dtype=torch.bool)
     moved = torch.zeros(B, dtype=torch.int64)
@@ -536,6 +543,7 @@ def search(
         if rule == "newton":
             # The pose moves only if the step's score beats the null; "applied" then flags no hypothesis.
             delta = newton_step(score_steps, steps[:, 1::2].diagonal(dim1=1, dim2=2))
+            delta[:, 2] = torch.minimum(torch.maximum(delta[:, 2], z_lo - current[:, 2]), z_hi - current[:, 2])
             new_score = score_steps(delta[:, None])[:, 0]
             moves = new_score > s[:, 0]
             new_pose = apply_steps(current, delta[:, None])[:, 0]
@@ -547,6 +555,12 @@ def search(
                 new_score = s.gather(1, s.argmax(1, keepdim=True))[:, 0]
             else:
                 new_score = score_poses(new_pose[:, None])[:, 0]
+            z = new_pose[:, 2].clamp(z_lo, z_hi)
+            clipped = z != new_pose[:, 2]
+            if bool(clipped.any()):
+                new_pose = torch.cat((new_pose[:, :2], z[:, None], new_pose[:, 3:]), 1)
+                new_score = torch.where(clipped, score_poses(new_pose[:, None])[:, 0], new_score)
+                moves = moves & (~clipped | (new_score > s[:, 0]))
         if first is None:
             first = (s, s.argmax(1), applied)
             current_score = s[:, 0]
@@ -633,7 +647,8 @@ def correct_model(
 
 
 def rule_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, camera: Camera, *, dp_px: float,
-                dtheta_deg: float, rule: str, iterations: int) -> Correction:
+                dtheta_deg: float, rule: str, iterations: int, max_dz: float = math.inf,
+                z_ref: torch.Tensor | None = None) -> Correction:
     """:func:`search` with the model's second-order score (:meth:`~torchevtrack.stages.template.TemplateModel.at`
     and ``fit_canvas``, refitted at every iteration's pose), unchecked: the ``"argmax"`` and ``"group"`` rules of
     :func:`~torchevtrack.stages.template.correct_canvas` (which checks the inputs and runs this), or ``"newton"``
@@ -662,7 +677,7 @@ def rule_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, cam
                 lambda poses: (quad.evaluate(poses) + area_term(poses[..., 2].double() - zc)).to(dtype))
 
     return search(pose, scorer, model.gain, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule,
-                  iterations=iterations)
+                  iterations=iterations, max_dz=max_dz, z_ref=z_ref)
 
 
 def correct_warp(pose: torch.Tensor, depth: torch.Tensor, gray: torch.Tensor | None, origin, observation: torch.Tensor,

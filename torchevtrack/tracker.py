@@ -171,6 +171,9 @@ class EventPoseTracker(nn.Module):
             ``config.hypotheses``, this tracker's own hypothesis: the output (:meth:`forward`'s, :meth:`track`'s) is
             the chosen one's, ``hypotheses.output(tracker, tracker.twin)`` (:mod:`torchevtrack.hypotheses`).
         prev_pose: ``(B, 7)`` float64 output pose of the previous update.
+        depth_lag: ``(B,)`` float64 metres, the last update's measured (corrected) depth less its output depth (0
+            without the UKF). The next correction's depth stays within ``template.max_depth_speed`` times the period
+            of the predicted depth plus this lag: the last measurement moved on by the prediction.
         depth: ``(B, h, w)`` float32 depth of the last render window; ``origin``: ``(B, 2)`` its top-left pixel.
 
     After each update, ``quality`` holds its :class:`Quality` and ``stage_ms`` the milliseconds spent in
@@ -299,6 +302,7 @@ class EventPoseTracker(nn.Module):
         f64 = torch.float64
         self.register_buffer("pose", torch.zeros(B, 7, dtype=f64))
         self.register_buffer("prev_pose", torch.zeros(B, 7, dtype=f64))
+        self.register_buffer("depth_lag", torch.zeros(B, dtype=f64))
         self.register_buffer("depth", torch.zeros(B, 1, 1))
         self.register_buffer("origin", torch.zeros(B, 2, dtype=torch.long))
         self.register_buffer("events_seen", torch.zeros(B, dtype=torch.long))
@@ -380,6 +384,7 @@ class EventPoseTracker(nn.Module):
         self.ukf.reset(pose, twist, m)
         self.pose.copy_(pose)
         self.prev_pose.copy_(torch.where(m[:, None], propagate(pose, twist, -self.dt), self.prev_pose))
+        self.depth_lag.masked_fill_(m, 0.0)
         self.events_seen.masked_fill_(m, 0)
         if self.feedback is not None:
             self.feedback.reset(m)
@@ -580,7 +585,8 @@ class EventPoseTracker(nn.Module):
                 obs, t_now = observing.result(), run.t_last  # obs None (no box): the correction observes itself
             else:
                 obs, t_now = None, self._t_now(t, b)
-            corr = self._correct(predicted, pose32, render, t_now, launch, obs)
+            z_ref = predicted[:, 2] + run.output.depth_lag  # the last measurement moved on by the prediction
+            corr = self._correct(predicted, z_ref, pose32, render, t_now, launch, obs)
             # Until the EROS holds enough events, its edges are too sparse to correct against.
             warm = (run.events_seen >= cfg.template.warmup_events)[:, None]
             measured = np.where(warm, corr.pose, predicted)
@@ -750,6 +756,7 @@ class EventPoseTracker(nn.Module):
         pose = torch.where(m[:, None], other.pose, self.pose)
         self.pose.copy_(pose)
         self.prev_pose[m] = other.prev_pose[m]
+        self.depth_lag.masked_fill_(m, 0.0)  # the filter restarts at the adopted pose: measured and output agree
         self.ukf.reset(pose, shift_twist(self.velocity.x, -pose[:, :3]), m)  # the filter's twist is about the centre
         self._render_next[m] = other._render_next[m]  # where the next update renders (render.ahead)
         self._render_next_ok[m] = other._render_next_ok[m]
@@ -923,10 +930,11 @@ class EventPoseTracker(nn.Module):
         correct = [bind_correction(self.eros.surface[r].numpy(), times[r].numpy(), self.camera, canvas=o["canvas"],
                                    margin_px=o["margin_px"], edge_clip=o["edge_clip"], silhouette=o["silhouette"],
                                    interior=o["interior"], dp_px=o["dp_px"], dtheta_deg=o["dtheta_deg"], rule=o["rule"],
-                                   iterations=o["iterations"], max_age_us=e.max_age_us,
+                                   iterations=o["iterations"], max_dz=cfg.template.max_depth_speed * self.dt,
+                                   max_age_us=e.max_age_us,
                                    recency=self.recency.arrays(e.max_age_us, r))
                    for r in self._schedule.shares]
-        output = OutputArgs(self.pose.numpy(), dt, self._min_depth.numpy(),
+        output = OutputArgs(self.pose.numpy(), dt, self._min_depth.numpy(), self.depth_lag.numpy(),
                             self.ukf.arrays() if cfg.ukf.enabled else None, None if fb is None else fb.arrays())
         observe = None if self.time_surface is None else \
             bind_observe(self.eros, self.time_surface, self.recency.arrays(e.max_age_us), canvas=o["canvas"],
@@ -1100,16 +1108,18 @@ class EventPoseTracker(nn.Module):
         v = cfg.velocity
         return v.source == "flow" and cfg.template.enabled and v.feedback_gain > 0
 
-    def _correct(self, predicted: np.ndarray, pose32: np.ndarray, render: "_Render | None", t_now: np.ndarray,
-                 on_observed: Callable[[], object] | None = None, obs: np.ndarray | None = None) -> Correction:
-        """Template correction of the ``predicted`` poses with a new template model of ``render`` (made at ``pose32``),
+    def _correct(self, predicted: np.ndarray, z_ref: np.ndarray, pose32: np.ndarray, render: "_Render | None",
+                 t_now: np.ndarray, on_observed: Callable[[], object] | None = None,
+                 obs: np.ndarray | None = None) -> Correction:
+        """Template correction of the ``predicted`` poses, their depths bounded around ``z_ref`` ``(B,)``, with a new
+        template model of ``render`` (made at ``pose32``),
         or the last model when ``render`` is ``None``; each worker corrects its share of the batch. ``on_observed``
         (only without workers) is called once the EROS and the time surface have been read. ``obs``: the observation
         made on the intake thread under the last model's box (one element, ``render`` ``None``)."""
         if render is None:
             def share(rows: slice, correct: Callable[..., CorrectionStep], model: TemplateModel) -> CorrectionStep:
                 return correct(None, _cut(predicted, rows), None, None, None, _cut(t_now, rows), model=model,
-                               on_observed=on_observed, obs=obs)
+                               on_observed=on_observed, obs=obs, z_ref=_cut(z_ref, rows))
 
             parts = self._schedule.map(share, self._run.bound.correct, self._run.models)
         else:
@@ -1117,7 +1127,8 @@ class EventPoseTracker(nn.Module):
 
             def share(rows: slice, correct: Callable[..., CorrectionStep]) -> CorrectionStep:
                 return correct(_cut(pose32, rows), _cut(predicted, rows), _cut(depth, rows), _cut(gray, rows),
-                               _cut(self._run.bound.origin, rows), _cut(t_now, rows), on_observed=on_observed)
+                               _cut(self._run.bound.origin, rows), _cut(t_now, rows), on_observed=on_observed,
+                               z_ref=_cut(z_ref, rows))
 
             parts = self._schedule.map(share, self._run.bound.correct)
         self._run.models = [p.model for p in parts]  # kept per share: each worker reads its own next time

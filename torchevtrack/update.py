@@ -396,17 +396,19 @@ class CorrectionStep(NamedTuple):
 
 def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *, canvas: int, margin_px: float,
                     edge_clip: float, silhouette: bool, interior: float, dp_px: float, dtheta_deg: float, rule: str,
-                    iterations: int, max_age_us: int, recency: RecencyArrays) -> Callable[..., CorrectionStep]:
+                    iterations: int, max_dz: float, max_age_us: int,
+                    recency: RecencyArrays) -> Callable[..., CorrectionStep]:
     """Step 5 (see the module docstring) bound to the EROS ``surface`` ``(B, H, W)`` float32 and the time surface
     ``last_us`` ``(B, C, H, W)`` int64 (numpy views, read at each call) and the options, unchecked.
 
     Options: ``canvas, margin_px, edge_clip, silhouette, interior`` as for
-    :func:`~torchevtrack.stages.template.template_model`; ``dp_px, dtheta_deg, rule, iterations`` as for
+    :func:`~torchevtrack.stages.template.template_model`; ``dp_px, dtheta_deg, rule, iterations, max_dz`` as for
     :func:`~torchevtrack.stages.template.correct_canvas`; ``max_age_us`` as for
     :func:`~torchevtrack.stages.eros.canvas_observation`; ``recency`` the elements' recency windows
     (:meth:`~torchevtrack.stages.eros.Recency.arrays`, read at each call).
 
-    Returns ``run(render_pose, predicted, depth, gray, origin, t_now_us, model=None, on_observed=None, obs=None)``
+    Returns ``run(render_pose, predicted, depth, gray, origin, t_now_us, model=None, on_observed=None, obs=None,
+    z_ref=None)``
     of numpy arrays: the render ``depth`` ``(B, h, w)`` float32 made at ``render_pose`` ``(B, 7)`` float32, its grey
     image ``gray`` (or ``None``: silhouette only), its window's top-left pixel ``origin`` ``(B, 2)`` int64, the start
     poses ``predicted`` ``(B, 7)`` float64 and ``t_now_us`` ``(B,)`` int64; or ``render_pose``, ``depth``, ``gray``,
@@ -415,14 +417,15 @@ def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *,
     ``(B, N, N)`` float32 under the ``model``'s box if it was made elsewhere
     (:func:`~torchevtrack.stages.eros.bind_observe`); the surfaces are then not read. ``run`` gives the
     :class:`CorrectionStep`, equal to ``template_model``, ``canvas_observation`` under the model's box and
-    ``newton_search`` (or ``correct_canvas``) one after the other.
+    ``newton_search`` (or ``correct_canvas``) one after the other. ``z_ref`` ``(B,)`` float64: the centres of the
+    depth bands of width ``2 max_dz`` (``None``: the predicted depths).
     """
     cam = camera_array(camera)
     max_age_us = int(max_age_us)
     dp, dtheta = float(dp_px), math.radians(dtheta_deg)
 
     def run(render_pose, predicted, depth, gray, origin, t_now_us, model=None, on_observed=None,
-            obs=None) -> CorrectionStep:
+            obs=None, z_ref=None) -> CorrectionStep:
         B = predicted.shape[0]
         if model is None:  # the canvas box first: the observation needs only that, the rest of the model can wait
             origin64 = origin.astype(np.float64)
@@ -441,22 +444,25 @@ def bind_correction(surface: np.ndarray, last_us: np.ndarray, camera: Camera, *,
                                  gray is not None, origin64, cam, box, gain, N, edge_clip, silhouette, interior)
         if rule != "newton":
             c = correct_canvas(model, torch.from_numpy(predicted), torch.from_numpy(obs), camera, dp_px=dp_px,
-                               dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
+                               dtheta_deg=dtheta_deg, rule=rule, iterations=iterations, max_dz=max_dz,
+                               z_ref=None if z_ref is None else torch.from_numpy(z_ref))
             return CorrectionStep(model, Correction(*(f.numpy() for f in c)))
-        c = newton_arrays(model, predicted, obs, camera.fx, camera.fy, dp, dtheta, iterations)
+        c = newton_arrays(model, predicted, obs, camera.fx, camera.fy, dp, dtheta, iterations, max_dz, z_ref)
         return CorrectionStep(model, c)
     return run
 
 
 class OutputArgs(NamedTuple):
     """What :func:`output` reads besides the update's poses (numpy views, read at each call): the current (last output)
-    pose ``(B, 7)`` float64, the period ``dt`` ``(B,)`` s, ``min_depth`` ``(B,)`` float64 m, the UKF's
+    pose ``(B, 7)`` float64, the period ``dt`` ``(B,)`` s, ``min_depth`` ``(B,)`` float64 m, ``depth_lag`` ``(B,)``
+    float64 m (written: the measured depth less the output's, 0 where the output was rejected), the UKF's
     :class:`~torchevtrack.stages.ukf.UKFArrays` (``None``: the measured poses are the output) and the feedback's
     :class:`~torchevtrack.stages.velocity.FeedbackArrays` (``None``: none)."""
 
     pose: np.ndarray
     dt: np.ndarray
     min_depth: np.ndarray
+    depth_lag: np.ndarray
     ukf: UKFArrays | None = None
     feedback: FeedbackArrays | None = None
 
@@ -483,7 +489,7 @@ def output(a: OutputArgs, predicted: np.ndarray, measured: np.ndarray, twist: np
     B = a.pose.shape[0]
     out, rejected = np.empty((B, 7)), np.empty(B, dtype=np.bool_)
     bad = _output_kernel(a.pose, predicted, measured, twist, a.dt, a.min_depth, a.feedback, symmetry_axis, a.ukf, out,
-                         rejected)
+                         rejected, a.depth_lag)
     if bad >= 0:
         raise torch.linalg.LinAlgError(f"{'ukf_predict' if bad < B else 'ukf_update'}: the covariance of "
                                        f"filter {bad % B} is not positive-definite")
@@ -491,8 +497,8 @@ def output(a: OutputArgs, predicted: np.ndarray, measured: np.ndarray, twist: np
 
 
 @kernel
-def _output_kernel(pose, predicted, measured, twist, dt, min_depth, feedback, axis, ukf, out, rejected):
-    """:func:`output` into ``out``, ``rejected``. Returns -1, or the failing UKF filter (see
+def _output_kernel(pose, predicted, measured, twist, dt, min_depth, feedback, axis, ukf, out, rejected, depth_lag):
+    """:func:`output` into ``out``, ``rejected``, ``depth_lag``. Returns -1, or the failing UKF filter (see
     :func:`~torchevtrack.stages.ukf.ukf_step`)."""
     if feedback is not None:
         B = pose.shape[0]
@@ -509,6 +515,7 @@ def _output_kernel(pose, predicted, measured, twist, dt, min_depth, feedback, ax
         out[:] = measured
     for i in range(pose.shape[0]):
         rejected[i] = not valid_pose(out[i], min_depth[i])
+        depth_lag[i] = 0.0 if rejected[i] else measured[i, 2] - out[i, 2]
         if rejected[i]:
             out[i] = pose[i]
             if ukf is not None:

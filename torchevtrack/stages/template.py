@@ -56,7 +56,11 @@ path (:func:`template_model`, :func:`quadratic_score`, :func:`newton_search`) ru
    whole step per round, so an object that turns and shifts at once needs several rounds; Newton follows both, and
    by fractions of a step. With ``iterations > 1`` the correction repeats around the new pose while the score of the
    corrected pose keeps improving, re-warping the same render (a first-order warp, accurate for a few pixels of
-   cumulative motion).
+   cumulative motion). Given a bound, a correction's depth stays within ``max_dz`` of a reference depth ``z_ref`` (the
+   start pose's unless given; the tracker's bound is ``template.max_depth_speed`` times the period around the last
+   measured depth moved on by the prediction): each Newton step's depth is clipped to the band and the next round
+   searches the other axes there; the other rules clip the chosen pose's depth and score it there. A depth step is ``z dp / pbar``, centimetres for a
+   small distant object, and edges that are not the object's (a hand) pulled the depth by that much per update.
 6. **Scores without warping** (the production path; item 4 is its torch reference, :mod:`torchevtrack.reference`).
    Around a centre pose ``P`` a step ``delta = [dt, phi]`` moves canvas
    pixel ``q`` by ``J(q) delta`` to first order (the interaction matrix of the canvas intrinsics at
@@ -680,13 +684,14 @@ def area_weight(obs, valid, N, interior):
 
 @kernel(fastmath=ANY_ORDER_FASTMATH)
 def newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, iterations, damping, max_step,
-                  valid, interior, out_pose, out_score, out_scores, out_moved):
+                  max_dz, z_ref, valid, interior, out_pose, out_score, out_scores, out_moved):
     """:func:`newton_search` on numpy arrays, unchecked, into ``out_pose`` ``(B, 7)``, ``out_score`` ``(B,)``,
     ``out_scores`` ``(B, 13)`` (float64) and ``out_moved`` ``(B,)`` int64; releases the GIL. The model's fields
     (``coef``, ``Z = depth``, ``K`` float64, ``render_pose``, ``gain`` float64), the start poses ``pose`` ``(B, 7)``
     float64, ``obs`` ``(B, N * N)``, the frame's ``fx, fy``, the steps ``dp`` (pixels) and ``dtheta`` (radians), and
-    ``iterations, damping, max_step`` as for :func:`newton_search`, the model's ``valid`` object points and the
-    ``interior`` weights ``(B,)`` float64 of its template.
+    ``iterations, damping, max_step, max_dz`` and the band centres ``z_ref`` ``(B,)`` float64 as for
+    :func:`newton_search`, the model's ``valid`` object points and
+    the ``interior`` weights ``(B,)`` float64 of its template.
 
     The ``"newton"`` rule of :func:`~torchevtrack.reference.search` on the exact second-order model, per element.
     With ``interior > 0`` the score also pays ``tau`` per canvas pixel the object covers (:func:`area_weight`): the
@@ -698,7 +703,9 @@ def newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, 
     Hu)^-1 gu`` (:func:`~torchevtrack.reference.newton_step`'s ``lambda``), clipped per axis, is taken if its score
     beats ``s0``, else the search stops. ``unit`` holds the hypothesis step sizes of the start pose per axis
     (:func:`~torchevtrack.reference.hypothesis_steps` of ``gain``, the frame's ``fx``, ``fy``, ``dp`` pixels and
-    ``dtheta`` radians); the translation units scale with the current depth.
+    ``dtheta`` radians); the translation units scale with the current depth. Each round's depth step is then clipped
+    so that the pose stays within ``max_dz`` metres of ``z_ref`` (the other axes keep their step, and
+    the next round is searched at the clipped depth).
     """
     for b in range(coef.shape[0]):
         z = pose[b, 2]
@@ -750,6 +757,7 @@ def newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, 
             cholesky_solve(L, gu, step)
             for i in range(6):
                 delta[i] = min(max(step[i], -max_step), max_step) * un[i]
+            delta[2] = min(max(delta[2], z_ref[b] - max_dz - cur[2]), z_ref[b] + max_dz - cur[2])
             gd = dMd = 0.0  # g . delta and delta^T M delta (small loops: no BLAS calls)
             for i in range(6):
                 gd += g[i] * delta[i]
@@ -1189,12 +1197,15 @@ def model_in_box(pose: np.ndarray, depth: np.ndarray, shade: np.ndarray, use_gra
 
 
 # -- the stage --------------------------------------------------------------------------------
-def check_options(rule, iterations) -> None:
-    """A one-line ``ValueError`` unless ``rule`` is one of ``RULES`` and ``iterations`` an integer >= 1."""
+def check_options(rule, iterations, max_dz=math.inf) -> None:
+    """A one-line ``ValueError`` unless ``rule`` is one of ``RULES``, ``iterations`` an integer >= 1 and ``max_dz``
+    positive (metres; ``inf``: no bound)."""
     if rule not in RULES:
         raise ValueError(f"rule must be one of {RULES}, got {rule!r}")
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
         raise ValueError(f"iterations must be an integer >= 1, got {iterations!r}")
+    if isinstance(max_dz, bool) or not isinstance(max_dz, (int, float)) or not max_dz > 0:
+        raise ValueError(f"max_dz must be a positive number of metres (inf: no bound), got {max_dz!r}")
 
 
 def correct_canvas(
@@ -1207,6 +1218,8 @@ def correct_canvas(
     dtheta_deg: float = 0.5,
     rule: str = "newton",
     iterations: int = 1,
+    max_dz: float = math.inf,
+    z_ref: torch.Tensor | None = None,
 ) -> Correction:
     """Correct poses near a render's with its :class:`TemplateModel` against an observation already in the model's
     canvas (:meth:`TemplateModel.observe`, or :func:`torchevtrack.stages.eros.canvas_observation` of ``model.box``).
@@ -1221,34 +1234,43 @@ def correct_canvas(
         dp_px, dtheta_deg: translation step (image pixels) and rotation step (degrees) of the hypotheses (module
             docstring, item 3); rule: ``"newton"``, ``"argmax"`` or ``"group"`` (item 5); iterations: maximum
             corrections, repeated while the score keeps improving. Every rule's scores pay the area term of the
-            model's ``interior`` (:func:`newton_kernel`).
+            model's ``interior`` (:func:`newton_kernel`). max_dz, z_ref: the corrected poses' depths stay within
+            ``max_dz`` metres of ``z_ref`` ``(B,)`` (metres; ``None``: ``pose``'s depths): each step's depth is
+            clipped to the band, the other axes searched at the clipped depth (``inf``: no bound).
 
-    Shape: ``TemplateModel, (B, 7), (B, N, N) or (B, N * N) -> Correction``.
+    Shape: ``TemplateModel, (B, 7), (B, N, N) or (B, N * N)[, (B,)] -> Correction``.
     """
     pose = check_poses(pose, "pose")
-    check_options(rule, iterations)
+    check_options(rule, iterations, max_dz)
     B, N = model.pose.shape[0], model.depth.shape[-1]
     if pose.shape[0] != B:
         raise ValueError(f"pose must have one row per model element ({B}), got {tuple(pose.shape)}")
     if obs.shape not in ((B, N, N), (B, N * N)):
         raise ValueError(f"obs must be the ({B}, {N}, {N}) canvas observation, got {tuple(obs.shape)}")
     obs = obs.reshape(B, N * N)
+    if z_ref is not None and (not isinstance(z_ref, torch.Tensor) or z_ref.shape != (B,)
+                              or not bool(torch.isfinite(z_ref).all())):
+        raise ValueError(f"z_ref must be a finite ({B},) tensor of depths (metres)")
     if rule == "newton":
-        return newton_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, iterations=iterations)
+        return newton_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, iterations=iterations,
+                             max_dz=max_dz, z_ref=z_ref)
     from torchevtrack.reference import rule_search  # the ablation switch (reference imports this module)
 
-    return rule_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule, iterations=iterations)
+    return rule_search(model, pose, obs, camera, dp_px=dp_px, dtheta_deg=dtheta_deg, rule=rule, iterations=iterations,
+                       max_dz=max_dz, z_ref=z_ref)
 
 
 def newton_arrays(model: TemplateModel, pose: np.ndarray, obs: np.ndarray, fx: float, fy: float, dp: float,
-                  dtheta: float, iterations: int) -> Correction:
+                  dtheta: float, iterations: int, max_dz: float = math.inf,
+                  z_ref: np.ndarray | None = None) -> Correction:
     """The compiled Newton search of :func:`newton_search` on numpy arrays (the tracker's hot path calls this).
 
     Args:
         model: the render's :class:`TemplateModel`; pose: ``(B, 7)`` float64 start poses; obs: ``(B, N, N)`` or
             ``(B, N * N)`` observation in the canvas; fx, fy: the frame's focal lengths (px); dp: the image step
             (px); dtheta: the rotation step (radians); iterations: the maximum number of Newton rounds (the area
-            term of the model's ``interior`` included).
+            term of the model's ``interior`` included); max_dz, z_ref: the depths stay within ``max_dz`` metres of
+            ``z_ref`` ``(B,)`` float64 (``None``: ``pose``'s depths).
     Returns: a :class:`Correction` of numpy arrays: ``pose`` ``(B, 7)`` float64, ``score`` ``(B,)`` and ``scores``
         ``(B, 13)`` in the model's dtype, ``index`` (the first of ties, as torch's ``argmax``), ``applied`` all false
         (the step is not one of the hypotheses) and ``iterations`` ``(B,)`` int64 (the rounds that moved).
@@ -1259,8 +1281,9 @@ def newton_arrays(model: TemplateModel, pose: np.ndarray, obs: np.ndarray, fx: f
     newton_kernel(_np(model.coef), _np(model.depth), _np(model.K).astype(np.float64, copy=False),
                   _np(model.render_pose), np.ascontiguousarray(pose, dtype=np.float64), obs.reshape(B, -1),
                   _np(model.gain).astype(np.float64, copy=False), float(fx), float(fy), float(dp), float(dtheta),
-                  int(iterations), NEWTON_DAMPING, NEWTON_MAX_STEP, _np(model.valid), _np(model.interior), out, score,
-                  scores, moved)
+                  int(iterations), NEWTON_DAMPING, NEWTON_MAX_STEP, float(max_dz),
+                  np.ascontiguousarray(pose[:, 2] if z_ref is None else z_ref, dtype=np.float64), _np(model.valid),
+                  _np(model.interior), out, score, scores, moved)
     dtype = _np(model.depth).dtype
     scores = scores.astype(dtype)
     return Correction(out, score.astype(dtype), scores, scores.argmax(1),
@@ -1268,7 +1291,8 @@ def newton_arrays(model: TemplateModel, pose: np.ndarray, obs: np.ndarray, fx: f
 
 
 def newton_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, camera: Camera, *,
-                  dp_px: float = 1.0, dtheta_deg: float = 0.5, iterations: int = 1) -> Correction:
+                  dp_px: float = 1.0, dtheta_deg: float = 0.5, iterations: int = 1,
+                  max_dz: float = math.inf, z_ref: torch.Tensor | None = None) -> Correction:
     """The ``"newton"`` rule's search on the model's exact quadratic, compiled in one call (the tracker's).
 
     The same search as :func:`~torchevtrack.reference.search` with ``rule="newton"`` and the scorer of
@@ -1281,12 +1305,12 @@ def newton_search(model: TemplateModel, pose: torch.Tensor, obs: torch.Tensor, c
     Args:
         model: the render's :class:`TemplateModel`; pose: ``(B, 7)`` start poses; obs: ``(B, N * N)``
             observation in the canvas (:meth:`TemplateModel.observe`).
-        dp_px, dtheta_deg, iterations: see :func:`correct_canvas`.
+        dp_px, dtheta_deg, iterations, max_dz, z_ref: see :func:`correct_canvas`.
 
-    Shape: ``(B, 7), (B, N * N) -> Correction`` (``applied`` all false: the step is not one of the hypotheses).
+    Shape: ``(B, 7), (B, N * N)[, (B,)] -> Correction`` (``applied`` all false: the step is not one of the hypotheses).
     """
     c = newton_arrays(model, _np(pose.double()), _np(obs), camera.fx, camera.fy, dp_px, math.radians(dtheta_deg),
-                      iterations)
+                      iterations, max_dz, None if z_ref is None else _np(z_ref.double()))
     return Correction(torch.from_numpy(c.pose).to(pose.dtype), *(torch.from_numpy(f) for f in c[1:]))
 
 
@@ -1349,7 +1373,8 @@ class TemplateCorrector(nn.Module):
 
     @classmethod
     def from_config(cls, camera: Camera, cfg: TemplateConfig) -> "TemplateCorrector":
-        """The correction of the config section ``template`` (:class:`~torchevtrack.config.TemplateConfig`)."""
+        """The correction of the config section ``template`` (:class:`~torchevtrack.config.TemplateConfig`; its
+        ``max_depth_speed`` is the tracker's, which knows the period: :func:`correct_canvas`'s ``max_dz``)."""
         return cls(camera, canvas=cfg.canvas, margin_px=cfg.margin_px, dp_px=cfg.dp_px, dtheta_deg=cfg.dtheta_deg,
                    rule=cfg.rule, iterations=cfg.iterations, interior=cfg.interior)
 
