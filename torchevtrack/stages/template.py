@@ -59,8 +59,9 @@ path (:func:`template_model`, :func:`quadratic_score`, :func:`newton_search`) ru
    cumulative motion). Given a bound, a correction's depth stays within ``max_dz`` of a reference depth ``z_ref`` (the
    start pose's unless given; the tracker's bound is ``template.max_depth_speed`` times the period around the last
    measured depth moved on by the prediction): each Newton step's depth is clipped to the band and the next round
-   searches the other axes there; the other rules clip the chosen pose's depth and score it there. A depth step is ``z dp / pbar``, centimetres for a
-   small distant object, and edges that are not the object's (a hand) pulled the depth by that much per update.
+   searches the other axes there; the other rules clip the chosen pose's depth and score it there. A depth step is
+   ``z dp / pbar``, centimetres for a small distant object, and edges that are not the object's (a hand) pulled the
+   depth by that much per update.
 6. **Scores without warping** (the production path; item 4 is its torch reference, :mod:`torchevtrack.reference`).
    Around a centre pose ``P`` a step ``delta = [dt, phi]`` moves canvas
    pixel ``q`` by ``J(q) delta`` to first order (the interaction matrix of the canvas intrinsics at
@@ -690,8 +691,8 @@ def newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, 
     (``coef``, ``Z = depth``, ``K`` float64, ``render_pose``, ``gain`` float64), the start poses ``pose`` ``(B, 7)``
     float64, ``obs`` ``(B, N * N)``, the frame's ``fx, fy``, the steps ``dp`` (pixels) and ``dtheta`` (radians), and
     ``iterations, damping, max_step, max_dz`` and the band centres ``z_ref`` ``(B,)`` float64 as for
-    :func:`newton_search`, the model's ``valid`` object points and
-    the ``interior`` weights ``(B,)`` float64 of its template.
+    :func:`newton_search`, the model's ``valid`` object points and the ``interior`` weights ``(B,)`` float64 of its
+    template.
 
     The ``"newton"`` rule of :func:`~torchevtrack.reference.search` on the exact second-order model, per element.
     With ``interior > 0`` the score also pays ``tau`` per canvas pixel the object covers (:func:`area_weight`): the
@@ -704,8 +705,8 @@ def newton_kernel(coef, Z, K, render_pose, pose, obs, gain, fx, fy, dp, dtheta, 
     beats ``s0``, else the search stops. ``unit`` holds the hypothesis step sizes of the start pose per axis
     (:func:`~torchevtrack.reference.hypothesis_steps` of ``gain``, the frame's ``fx``, ``fy``, ``dp`` pixels and
     ``dtheta`` radians); the translation units scale with the current depth. Each round's depth step is then clipped
-    so that the pose stays within ``max_dz`` metres of ``z_ref`` (the other axes keep their step, and
-    the next round is searched at the clipped depth).
+    so that the pose stays within ``max_dz`` metres of ``z_ref`` (the other axes keep their step, and the next round
+    is searched at the clipped depth).
     """
     for b in range(coef.shape[0]):
         z = pose[b, 2]
