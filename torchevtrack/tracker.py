@@ -1112,10 +1112,10 @@ class EventPoseTracker(nn.Module):
                  t_now: np.ndarray, on_observed: Callable[[], object] | None = None,
                  obs: np.ndarray | None = None) -> Correction:
         """Template correction of the ``predicted`` poses, their depths bounded around ``z_ref`` ``(B,)``, with a new
-        template model of ``render`` (made at ``pose32``),
-        or the last model when ``render`` is ``None``; each worker corrects its share of the batch. ``on_observed``
-        (only without workers) is called once the EROS and the time surface have been read. ``obs``: the observation
-        made on the intake thread under the last model's box (one element, ``render`` ``None``)."""
+        template model of ``render`` (made at ``pose32``), or the last model when ``render`` is ``None``; each worker
+        corrects its share of the batch. ``on_observed`` (only without workers) is called once the EROS and the time
+        surface have been read. ``obs``: the observation made on the intake thread under the last model's box (one
+        element, ``render`` ``None``)."""
         if render is None:
             def share(rows: slice, correct: Callable[..., CorrectionStep], model: TemplateModel) -> CorrectionStep:
                 return correct(None, _cut(predicted, rows), None, None, None, _cut(t_now, rows), model=model,
