@@ -471,6 +471,49 @@ def test_searches_that_find_nothing_come_ever_further_apart(seq, monkeypatch):
     assert gaps == [20_000, 40_000, 80_000, 160_000], gaps
 
 
+@pytest.mark.parametrize("own_cost, restarts", [(5.5, 1), (6.5, 0)])
+def test_a_search_that_finds_less_than_the_trackers_pose_searches_around_that_pose_next(seq, monkeypatch, own_cost,
+                                                                                      restarts):
+    """Where a lost element's search around its extrapolated last good pose finds nothing clear and costs more than
+    the tracker's own pose, the next search is centred on the tracker's pose (which kept following the object while
+    flagged), before any frame scan; a clear result there restarts the element. Where the tracker's pose costs more
+    than that result, the scan comes next, as before."""
+    calls, scans = [], []
+
+    def search(self, pose, last_us, t_now_us, own=None):
+        calls.append(pose.clone())
+        f64 = dict(dtype=torch.float64)
+        if torch.equal(pose, own):  # centred on the tracker's pose: the truth there, clear
+            return Relocalisation(interpolate_poses(seq.gt_t_us, seq.gt_poses, t_now_us),
+                                  torch.full((1,), 1.0, **f64), torch.full((1,), math.inf, **f64),
+                                  torch.tensor([True]), torch.full((1,), own_cost, **f64))
+        return Relocalisation(pose.clone(), torch.full((1,), 6.0, **f64), torch.full((1,), 6.1, **f64),
+                              torch.tensor([False]), torch.full((1,), own_cost, **f64))
+
+    scan = Relocaliser.scan
+
+    def record(self, pose, last_us, t_now_us):
+        scans.append(int(t_now_us))
+        return scan(self, pose, last_us, t_now_us)
+
+    monkeypatch.setattr(Relocaliser, "forward", search)
+    monkeypatch.setattr(Relocaliser, "scan", record)
+    t0 = int(seq.gt_t_us[0])
+    cfg = TrackerConfig().replace(loss={"enabled": True, "min_flow_vectors": 1000},
+                                  recover={"enabled": True, "retry_us": 10 ** 6})
+    tracker = EventPoseTracker(CAM, seq.mesh, cfg)
+    tracker.track(seq.events, seq.gt_poses[0], t_start_us=t0, t_end_us=t0 + 100_000, progress=False)
+    tracker.close()
+    centre = seq.gt_poses[:1]  # every update low: the good pose is the start pose, the good twist zero
+    assert torch.equal(calls[0], centre.double())
+    if restarts:  # the tracker's pose searched second and found, no scan; restarted, the element is declared again
+        assert tracker.recover.restarts == tracker.recover.searches >= 1
+        assert len(calls) == 2 * tracker.recover.searches and not torch.equal(calls[1], calls[0]) and scans == []
+    else:  # the scan's candidate searched second
+        assert tracker.recover.searches == 1 and tracker.recover.restarts == 0
+        assert len(calls) == 2 and len(scans) == 1
+
+
 def test_a_restart_needs_the_object_in_view_and_near_the_search_in_depth(seq):
     """A clear result that beats the tracker's pose restarts a lost element only with the object's centre in view
     and its depth within twice the search's depth reach of the search centre."""

@@ -19,10 +19,12 @@ masked :meth:`~torchevtrack.tracker.EventPoseTracker.reset`. Per batch element:
   with the object out of view, and isolated noise events do not count), the
   :class:`~torchevtrack.stages.relocalise.Relocaliser` searches around the good pose moved on by the good twist
   over the time since, at most ``MAX_EXTRAPOLATION_US`` (:func:`~torchevtrack.stages.propagate.propagate`), against
-  the tracker's time surface, and costs the tracker's own pose too. Where it neither restarts nor confirms (below),
-  the object may be back elsewhere in the frame (it left the view, or moved far in a blackout): the relocaliser's
+  the tracker's time surface, and costs the tracker's own pose too. Where it neither restarts nor confirms (below)
+  and the tracker's own pose costs less than its result (the tracker kept following the object while flagged, and
+  the extrapolated centre is the worse guess), a second search is centred on the tracker's pose. Where that fails
+  too, the object may be back elsewhere in the frame (it left the view, or moved far in a blackout): the relocaliser's
   frame scan (:meth:`~torchevtrack.stages.relocalise.Relocaliser.scan`, the good pose's depth and rotation tried
-  over the whole frame) gives a candidate, and a second search centred on it is judged the same way. A ``clear``
+  over the whole frame) gives a candidate, and a search centred on it is judged the same way. A ``clear``
   result that beats the tracker's pose, in view and within the search's depth reach (:func:`found_again`), restarts
   the element there (twist zero); where the search finds nothing better than a pose of the tracker's that costs at
   most the clear-winner cost (:func:`confirms`), the element is found again as it is.
@@ -385,6 +387,12 @@ class Recoverer(BufferViews, nn.Module):
             self.searches += 1
             if due[i]:
                 wins = found_again(out, centre, reloc)
+                if not wins and not confirms(out, reloc.max_cost_px, reloc.min_margin_px) \
+                        and float(out.own_cost[0]) < float(out.cost[0]):
+                    # the tracker's own pose explains the events better than anything near the extrapolated one: it
+                    # kept following the object while lost, so search around it
+                    out = reloc(pose[i:i + 1], snapshot, t_i, pose[i:i + 1])
+                    wins = found_again(out, pose[i:i + 1], reloc)
                 if not wins and not confirms(out, reloc.max_cost_px, reloc.min_margin_px):
                     # not near its last pose: where in the frame is it (back in view elsewhere, or moved far)?
                     seed, _ = reloc.scan(centre, snapshot[0], int(t[i]))
