@@ -440,18 +440,11 @@ def test_a_search_confirms_restarts_or_keeps_looking_against_the_trackers_own_po
         assert torch.equal(runs["recover"][1], runs["plain"][1])
 
 
-def test_searches_that_find_nothing_come_ever_further_apart(seq, monkeypatch):
-    """A lost element whose searches find nothing (not clear, its own pose above the clear-winner cost) is searched
-    at the declaration, then ``retry_us`` later, then at doubling intervals; each time around its last pose, then
-    around the frame scan's candidate (the same update)."""
-    calls, scans = [], []
-
-    def search(self, pose, last_us, t_now_us, own=None):
-        calls.append(int(t_now_us[0]))
-        f64 = dict(dtype=torch.float64)
-        return Relocalisation(pose.clone(), torch.full((1,), 5.0, **f64), torch.full((1,), 5.1, **f64),
-                              torch.tensor([False]), torch.full((1,), 5.2, **f64))
-
+def track_searched(seq, monkeypatch, search, duration_us: int, **recover):
+    """Track ``seq`` from its true start with every update low (more flow vectors asked for than there are blocks:
+    lost 50 ms in) and the relocaliser's search replaced by ``search``; returns the closed tracker and the times
+    (us) of the frame scans, which run as they are."""
+    scans = []
     scan = Relocaliser.scan
 
     def record(self, pose, last_us, t_now_us):
@@ -461,10 +454,27 @@ def test_searches_that_find_nothing_come_ever_further_apart(seq, monkeypatch):
     monkeypatch.setattr(Relocaliser, "forward", search)
     monkeypatch.setattr(Relocaliser, "scan", record)
     t0 = int(seq.gt_t_us[0])
-    cfg = TrackerConfig().replace(loss={"enabled": True, "min_flow_vectors": 1000}, recover={"enabled": True})
+    cfg = TrackerConfig().replace(loss={"enabled": True, "min_flow_vectors": 1000},
+                                  recover={"enabled": True, **recover})
     tracker = EventPoseTracker(CAM, seq.mesh, cfg)
-    tracker.track(seq.events, seq.gt_poses[0], t_start_us=t0, t_end_us=t0 + 400_000, progress=False)
+    tracker.track(seq.events, seq.gt_poses[0], t_start_us=t0, t_end_us=t0 + duration_us, progress=False)
     tracker.close()
+    return tracker, scans
+
+
+def test_searches_that_find_nothing_come_ever_further_apart(seq, monkeypatch):
+    """A lost element whose searches find nothing (not clear, its own pose above the clear-winner cost) is searched
+    at the declaration, then ``retry_us`` later, then at doubling intervals; each time around its last pose, then
+    around the frame scan's candidate (the same update)."""
+    calls = []
+
+    def search(self, pose, last_us, t_now_us, own=None):
+        calls.append(int(t_now_us[0]))
+        f64 = dict(dtype=torch.float64)
+        return Relocalisation(pose.clone(), torch.full((1,), 5.0, **f64), torch.full((1,), 5.1, **f64),
+                              torch.tensor([False]), torch.full((1,), 5.2, **f64))
+
+    tracker, scans = track_searched(seq, monkeypatch, search, 400_000)
     gaps = [b - a for a, b in zip(scans, scans[1:])]
     assert calls == [t for t in scans for _ in range(2)], (calls, scans)
     assert tracker.recover.searches == 5 and tracker.recover.restarts == 0 and bool(tracker.lost[0])
@@ -478,7 +488,7 @@ def test_a_search_that_finds_less_than_the_trackers_pose_searches_around_that_po
     the tracker's own pose, the next search is centred on the tracker's pose (which kept following the object while
     flagged), before any frame scan; a clear result there restarts the element. Where the tracker's pose costs more
     than that result, the scan comes next, as before."""
-    calls, scans = [], []
+    calls = []
 
     def search(self, pose, last_us, t_now_us, own=None):
         calls.append(pose.clone())
@@ -490,20 +500,7 @@ def test_a_search_that_finds_less_than_the_trackers_pose_searches_around_that_po
         return Relocalisation(pose.clone(), torch.full((1,), 6.0, **f64), torch.full((1,), 6.1, **f64),
                               torch.tensor([False]), torch.full((1,), own_cost, **f64))
 
-    scan = Relocaliser.scan
-
-    def record(self, pose, last_us, t_now_us):
-        scans.append(int(t_now_us))
-        return scan(self, pose, last_us, t_now_us)
-
-    monkeypatch.setattr(Relocaliser, "forward", search)
-    monkeypatch.setattr(Relocaliser, "scan", record)
-    t0 = int(seq.gt_t_us[0])
-    cfg = TrackerConfig().replace(loss={"enabled": True, "min_flow_vectors": 1000},
-                                  recover={"enabled": True, "retry_us": 10 ** 6})
-    tracker = EventPoseTracker(CAM, seq.mesh, cfg)
-    tracker.track(seq.events, seq.gt_poses[0], t_start_us=t0, t_end_us=t0 + 100_000, progress=False)
-    tracker.close()
+    tracker, scans = track_searched(seq, monkeypatch, search, 100_000, retry_us=10 ** 6)
     centre = seq.gt_poses[:1]  # every update low: the good pose is the start pose, the good twist zero
     assert torch.equal(calls[0], centre.double())
     if restarts:  # the tracker's pose searched second and found, no scan; restarted, the element is declared again
