@@ -32,12 +32,12 @@ recent events and the rendered model's edges (:mod:`torchevtrack.chamfer`).
    by default the search's centre), for a caller with a pose of its own to compare with (the tracker's:
    :func:`~torchevtrack.recover.beats`).
 
-:meth:`Relocaliser.scan` runs the first level's depth offsets at the given rotation over the whole frame (the
-candidates placed at its centre, the shift radius the frame's half-size), for an object that is back in view far from
-where it was lost; a search centred on its result then refines and judges it, turning it by the first level's
-rotations. The scan tries no rotations of its own: at the whole frame's coarse scale its choice of rotation was noise
-(a blackout's scan 41 deg off where its centre was 15 deg off), and without them it costs 1/27 (0.04 s at 640x480,
-0.15 s at 1280x720, against 1 s and 3.3-4 s; docs/notebook.md, 2026-12-07 late afternoon).
+:meth:`Relocaliser.scan` runs the first level over the whole frame (the candidates placed at its centre, the shift
+radius the frame's half-size), for an object that is back in view far from where it was lost; a search centred on its
+result then refines and judges it. The scan turns its candidates about one axis at a time (7 rotations, not the
+level's 27): 3.5-6x cheaper in paired runs (1.0-1.3 s at 640x480 and 4-5 s at 1280x720 before), as good in the
+trials; without any turn (25x cheaper) the standard eight lose a run that a turned scan's seed restarts
+(docs/notebook.md, 2026-12-07 late afternoon).
 
 Costs are in full-resolution pixels (lower is better). Batch elements are searched one after the other; within a
 search, ``workers`` threads share the first level's (and the frame scan's) candidates, refine seeds and polish the
@@ -80,8 +80,7 @@ __all__ = ["LEVELS", "Level", "MAX_REGION_PX", "Relocalisation", "Relocaliser"]
 
 
 class Level(NamedTuple):
-    """One level of the search: rotation offset ``rot_deg`` (``{-a, 0, a}`` per axis; 0: the centre's rotation
-    alone), depth offsets ``dz_m``,
+    """One level of the search: rotation offset ``rot_deg`` (``{-a, 0, a}`` per axis), depth offsets ``dz_m``,
     image-plane search radius ``xy_m`` (metres at the centre's depth) and the image ``scale`` (renders and
     observation resized by it; 1 = full resolution)."""
 
@@ -331,10 +330,14 @@ class Relocaliser(nn.Module):
         out[:, 1] += torch.from_numpy(dv / s / self.camera.fy) * poses[:, 2]
         return out, torch.from_numpy(cost.astype(np.float64))
 
-    def _candidates(self, centre: torch.Tensor, level: Level) -> torch.Tensor:
+    def _candidates(self, centre: torch.Tensor, level: Level, grid: bool = True) -> torch.Tensor:
+        """``centre`` ``(1, 7)`` moved by each of ``level``'s depth offsets and turned by each rotation offset: every
+        combination of ``{-a, 0, a}`` about the three axes (``grid``, 27) or ``+-a`` about one axis at a time and
+        none (7); those not in front of the camera dropped. ``(K, 7)``."""
         a = math.radians(level.rot_deg)
-        steps = torch.tensor([[0.0, 0.0, dz, rx, ry, rz] for dz in level.dz_m
-                              for rx, ry, rz in itertools.product((-a, 0.0, a) if a else (0.0,), repeat=3)],
+        one_axis = [tuple(sg * a if i == ax else 0.0 for i in range(3)) for ax in range(3) for sg in (1, -1)]
+        turns = itertools.product((-a, 0.0, a), repeat=3) if grid else [(0.0, 0.0, 0.0)] + one_axis
+        steps = torch.tensor([[0.0, 0.0, dz, rx, ry, rz] for dz in level.dz_m for rx, ry, rz in turns],
                              dtype=torch.float64)
         poses = apply_steps(centre, steps[None])[0]
         return poses[poses[:, 2] > 1.5 * self.radius]
@@ -484,12 +487,13 @@ class Relocaliser(nn.Module):
         return cost, pose
 
     def scan(self, pose: torch.Tensor, last_us: torch.Tensor, t_now_us: int) -> tuple[torch.Tensor, float]:
-        """Where in the whole frame the object is, at about ``pose``'s depth and at its rotation: a candidate per
-        depth offset of the first level, at ``pose``'s rotation, placed at the frame's centre, each at its best
-        image-plane shift over the whole frame (the FFT correlations of step 2, module docstring), against the recent events of the whole frame.
-        For an object that left the view, or moved far during a blackout, and came back elsewhere: a search centred
-        on its last pose reaches only ``levels[0].xy_m`` around it. The result is coarse (the first level's scale and
-        depth steps, ``pose``'s rotation); :meth:`forward` centred on it refines, turns and judges it.
+        """Where in the whole frame the object is, at about ``pose``'s depth and rotation: the first level's candidates
+        (its depth offsets, each at ``pose``'s rotation and turned by +-``rot_deg`` about one axis at a time) placed at
+        the frame's centre, each at its best image-plane shift over the whole frame (the FFT correlations of step 2,
+        module docstring), against the recent events of the whole frame. For an object that left the view, or moved
+        far during a blackout, and came back elsewhere: a search centred on its last pose reaches only
+        ``levels[0].xy_m`` around it. The result is coarse (the first level's scale and steps); :meth:`forward`
+        centred on it refines and judges it.
 
         Args:
             pose: ``(1, 7)`` the pose whose depth and rotation are tried (its position is ignored).
@@ -521,10 +525,11 @@ class Relocaliser(nn.Module):
         z = max(float(centre[0, 2]), 1.5 * self.radius - min(self.levels[0].dz_m) + 1e-6)
         centre[0, :3] = torch.tensor([((cam.width - 1) / 2 - cam.cx) * z / cam.fx,
                                       ((cam.height - 1) / 2 - cam.cy) * z / cam.fy, z], dtype=torch.float64)
-        level = self.levels[0]._replace(rot_deg=0.0, xy_m=0.5 * z * max(cam.width / cam.fx, cam.height / cam.fy))
+        level = self.levels[0]._replace(xy_m=0.5 * z * max(cam.width / cam.fx, cam.height / cam.fy))
         events = self._events(centre, last_us, int(t_now_us), level)
+        region = self._region(centre, level, events)
         with _threads(self.workers) as pool:
-            poses, costs = self._search(self._candidates(centre, level), self._region(centre, level, events), pool)
+            poses, costs = self._search(self._candidates(centre, level, grid=False), region, pool)
         j = int(costs.argmin())
         return poses[j:j + 1], float(costs[j])
 
