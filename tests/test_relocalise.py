@@ -76,25 +76,17 @@ def test_not_clear_without_the_object(box):
     assert not bool(out.clear[0])
 
 
-@pytest.mark.parametrize("turn_deg", [0.0, 20.0])
-def test_the_frame_scan_finds_the_object_beyond_the_search(box, turn_deg):
-    """The object 16 cm from the search centre, elsewhere in the frame, beyond a search of 5 cm, and turned by
-    ``turn_deg`` from the search centre's rotation: the frame scan puts it within 1 cm (2 cm turned) in the image
-    plane and 4 cm in depth, at the centre's rotation or turned by the first level's angle about one camera axis, and
-    the search centred there finds it, clear."""
+def test_the_frame_scan_finds_the_object_beyond_the_search(box):
+    """The object 16 cm from the search centre, elsewhere in the frame, beyond a search of 5 cm: the frame scan puts it
+    within 1 cm in the image plane and 4 cm in depth, and the search centred there finds it, clear."""
     renderer, radius = box
     far = TRUTH.clone()
     far[0, :2] += torch.tensor([-0.15, 0.05], dtype=torch.float64)
     surface = edge_surface(renderer, far)
     reloc = Relocaliser(renderer, radius, levels=search_levels(0.05))
-    centre = apply_steps(TRUTH, torch.tensor([[[0.0, 0.0, 0.0, 0.0, math.radians(turn_deg), 0.0]]],
-                                             dtype=torch.float64))[0]
-    assert not bool(reloc(centre, surface, torch.tensor([1000])).clear[0])
-    seed, cost = reloc.scan(centre, surface[0], 1000)
-    turn = torch.rad2deg(quat_log(quat_mul(seed[0, 3:], quat_conj(centre[0, 3:])))).abs()
-    assert int((turn > 1e-6).sum()) <= 1 and abs(float(turn.max()) - 30.0 * bool(turn.max() > 1e-6)) < 1e-6, turn
-    reach = 0.01 if turn_deg == 0 else 0.02
-    assert float((seed[0, :2] - far[0, :2]).norm()) < reach and abs(float(seed[0, 2] - far[0, 2])) < 0.04, seed
+    assert not bool(reloc(TRUTH, surface, torch.tensor([1000])).clear[0])
+    seed, cost = reloc.scan(TRUTH, surface[0], 1000)
+    assert float((seed[0, :2] - far[0, :2]).norm()) < 0.01 and abs(float(seed[0, 2] - far[0, 2])) < 0.04, seed
     out = reloc(seed, surface, torch.tensor([1000]))
     te = float((out.pose[0, :3] - far[0, :3]).norm())
     re = math.degrees(float(quat_log(quat_mul(out.pose[0, 3:], quat_conj(far[0, 3:]))).norm()))

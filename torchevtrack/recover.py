@@ -23,11 +23,11 @@ masked :meth:`~torchevtrack.tracker.EventPoseTracker.reset`. Per batch element:
   and the tracker's own pose costs less than its result (the tracker kept following the object while flagged, and
   the extrapolated centre is the worse guess), a second search is centred on the tracker's pose. Where that fails
   too, the object may be back elsewhere in the frame (it left the view, or moved far in a blackout): the relocaliser's
-  frame scan (:meth:`~torchevtrack.stages.relocalise.Relocaliser.scan`, the search centre's depth and rotation,
-  turned about one axis at a time, tried over the whole frame) gives a candidate, and a search centred on it is
-  judged the same way. A ``clear`` result that beats the tracker's pose, in view and within the search's depth reach
-  (:func:`found_again`), restarts the element there (twist zero); where the search finds nothing better than a pose
-  of the tracker's that costs at most the clear-winner cost (:func:`confirms`), the element is found again as it is.
+  frame scan (:meth:`~torchevtrack.stages.relocalise.Relocaliser.scan`, the good pose's depth and rotation tried
+  over the whole frame) gives a candidate, and a search centred on it is judged the same way. A ``clear``
+  result that beats the tracker's pose, in view and within the search's depth reach (:func:`found_again`), restarts
+  the element there (twist zero); where the search finds nothing better than a pose of the tracker's that costs at
+  most the clear-winner cost (:func:`confirms`), the element is found again as it is.
 * **Start search** (``start_search``): ``start_after_us`` after each (re)start, once the time surface holds that
   much of the object's motion, one search around the tracker's pose then; a result that beats both its runner-up and
   the tracker's pose by ``START_MARGIN_PX`` (:func:`beats_start`) restarts the element there, with the twist the UKF
@@ -37,9 +37,9 @@ masked :meth:`~torchevtrack.tracker.EventPoseTracker.reset`. Per batch element:
   the best if its template score beats the tracker's own pose, refined the same way, by ``TURN_MARGIN`` of it.
 
 The search runs inside the update and blocks it: about 0.3-1.5 s of wall time per search, and a lost element's
-search that finds nothing scans the frame (about 0.3 s at 640x480, 1 s at 1280x720) and searches once more around
-its result (the event time does not advance meanwhile, so offline tracking gives the same poses however long it
-takes). :attr:`Recoverer.searches`, :attr:`Recoverer.search_s` and :attr:`Recoverer.restarts` count them.
+search that finds nothing scans the frame too (about 1 s more at 640x480, 3 s at 1280x720; the event time does not
+advance meanwhile, so offline tracking gives the same poses however long it takes). :attr:`Recoverer.searches`,
+:attr:`Recoverer.search_s` and :attr:`Recoverer.restarts` count them.
 
 Example:
     >>> import torch

@@ -32,12 +32,9 @@ recent events and the rendered model's edges (:mod:`torchevtrack.chamfer`).
    by default the search's centre), for a caller with a pose of its own to compare with (the tracker's:
    :func:`~torchevtrack.recover.beats`).
 
-:meth:`Relocaliser.scan` runs the first level over the whole frame (the candidates placed at its centre, the shift
-radius the frame's half-size), for an object that is back in view far from where it was lost; a search centred on its
-result then refines and judges it. The scan turns its candidates about one axis at a time (7 rotations, not the
-level's 27): 3.5-6x cheaper in paired runs (1.0-1.3 s at 640x480 and 4-5 s at 1280x720 before), as good in the
-trials; without any turn (25x cheaper) the standard eight lose a run that a turned scan's seed restarts
-(docs/notebook.md, 2026-12-07 late afternoon).
+:meth:`Relocaliser.scan` runs the first level alone over the whole frame (the candidates placed at its centre, the
+shift radius the frame's half-size), for an object that is back in view far from where it was lost; a search centred
+on its result then refines and judges it.
 
 Costs are in full-resolution pixels (lower is better). Batch elements are searched one after the other; within a
 search, ``workers`` threads share the first level's (and the frame scan's) candidates, refine seeds and polish the
@@ -330,15 +327,10 @@ class Relocaliser(nn.Module):
         out[:, 1] += torch.from_numpy(dv / s / self.camera.fy) * poses[:, 2]
         return out, torch.from_numpy(cost.astype(np.float64))
 
-    def _candidates(self, centre: torch.Tensor, level: Level, grid: bool = True) -> torch.Tensor:
-        """``centre`` ``(1, 7)`` moved by each of ``level``'s depth offsets and turned by each rotation offset: every
-        combination of ``{-a, 0, a}`` about the three axes (``grid``, 27) or ``+-a`` about one axis at a time and
-        none (7); those not in front of the camera dropped. ``(K, 7)``."""
+    def _candidates(self, centre: torch.Tensor, level: Level) -> torch.Tensor:
         a = math.radians(level.rot_deg)
-        one_axis = [tuple(sg * a if i == ax else 0.0 for i in range(3)) for ax in range(3) for sg in (1, -1)]
-        turns = itertools.product((-a, 0.0, a), repeat=3) if grid else [(0.0, 0.0, 0.0)] + one_axis
-        steps = torch.tensor([[0.0, 0.0, dz, rx, ry, rz] for dz in level.dz_m for rx, ry, rz in turns],
-                             dtype=torch.float64)
+        steps = torch.tensor([[0.0, 0.0, dz, rx, ry, rz] for dz in level.dz_m
+                              for rx, ry, rz in itertools.product((-a, 0.0, a), repeat=3)], dtype=torch.float64)
         poses = apply_steps(centre, steps[None])[0]
         return poses[poses[:, 2] > 1.5 * self.radius]
 
@@ -488,12 +480,11 @@ class Relocaliser(nn.Module):
 
     def scan(self, pose: torch.Tensor, last_us: torch.Tensor, t_now_us: int) -> tuple[torch.Tensor, float]:
         """Where in the whole frame the object is, at about ``pose``'s depth and rotation: the first level's candidates
-        (its depth offsets, each at ``pose``'s rotation and turned by +-``rot_deg`` about one axis at a time) placed at
-        the frame's centre, each at its best image-plane shift over the whole frame (the FFT correlations of step 2,
-        module docstring), against the recent events of the whole frame. For an object that left the view, or moved
-        far during a blackout, and came back elsewhere: a search centred on its last pose reaches only
-        ``levels[0].xy_m`` around it. The result is coarse (the first level's scale and steps); :meth:`forward`
-        centred on it refines and judges it.
+        (its rotations and depth offsets) placed at the frame's centre, each at its best image-plane shift over the
+        whole frame (the FFT correlations of step 2, module docstring), against the recent events of the whole frame.
+        For an object that left the view, or moved far during a blackout, and came back elsewhere: a search centred
+        on its last pose reaches only ``levels[0].xy_m`` around it. The result is coarse (the first level's scale and
+        steps); :meth:`forward` centred on it refines and judges it.
 
         Args:
             pose: ``(1, 7)`` the pose whose depth and rotation are tried (its position is ignored).
@@ -527,9 +518,8 @@ class Relocaliser(nn.Module):
                                       ((cam.height - 1) / 2 - cam.cy) * z / cam.fy, z], dtype=torch.float64)
         level = self.levels[0]._replace(xy_m=0.5 * z * max(cam.width / cam.fx, cam.height / cam.fy))
         events = self._events(centre, last_us, int(t_now_us), level)
-        region = self._region(centre, level, events)
         with _threads(self.workers) as pool:
-            poses, costs = self._search(self._candidates(centre, level, grid=False), region, pool)
+            poses, costs = self._search(self._candidates(centre, level), self._region(centre, level, events), pool)
         j = int(costs.argmin())
         return poses[j:j + 1], float(costs[j])
 
