@@ -22,10 +22,11 @@ from torchevtrack.events import EventStream
 from torchevtrack.geometry import interpolate_poses, perturb_pose, quat_to_matrix
 from torchevtrack.io.lost import lost_path, read_lost
 from torchevtrack.io.poses import read_tum
+from torchevtrack.mesh import load_mesh
 from torchevtrack.metrics import adds_error, mesh_points, per_pose_errors
 from torchevtrack.raster import RasterRenderer
 from torchevtrack import recover
-from torchevtrack.recover import TWIST_SPAN_US, bookkeeping_kernel, found_again, turned_poses
+from torchevtrack.recover import TWIST_SPAN_US, bookkeeping_kernel, found_again, turned_poses, wholly_in_view
 from torchevtrack.stages.propagate import twist_between
 from torchevtrack.stages.eros import canvas_observation
 from torchevtrack.stages.relocalise import Relocalisation, Relocaliser
@@ -157,6 +158,49 @@ def test_an_object_that_left_the_view_is_searched_for_and_restarted_when_it_retu
     error = float(adds_error(poses[0][-1:], truth, points)[0])
     assert bool(lost[0].any()) and tracker.recover.searches >= 1
     assert bool(lost[0][end].any()) or error < 0.03, error  # found, or still flagged
+
+
+def test_a_depth_drift_the_loss_detector_does_not_see_is_flagged_by_the_depth_check(seq):
+    """End to end, no oracle: a start 25 % too far along the line of sight, with the correction's depth speed bounded
+    (2 cm/s) so that the tracker cannot undo it and its template score stays confident (the detector never declares
+    it lost). The depth check (``recover.check_us``) finds a rival scaled back onto the object that costs clearly less
+    at its first three checks: the run is flagged from the first (``check_us`` after the start) on, and only reported:
+    no search, the same poses as without the check, whose run is never flagged. From the true start no check flags."""
+    t0, check = int(seq.gt_t_us[0]), RECOVER.recover.check_us
+    drifted = seq.gt_poses[0].clone()
+    drifted[:3] *= 1.25
+    runs = {}
+    for name, start, check_us in (("drifted", drifted, check), ("no check", drifted, 0),
+                                  ("truth", seq.gt_poses[0], check)):
+        cfg = RECOVER.replace(recover={"check_us": check_us}, template={"max_depth_speed": 0.02})
+        tracker = EventPoseTracker(CAM, seq.mesh, cfg)
+        times, poses, lost = tracker.track(seq.events, start, t_start_us=t0, t_end_us=t0 + 3 * check + 10_000,
+                                           progress=False, return_lost=True)
+        tracker.close()
+        runs[name] = (times[0] - t0, poses[0], lost[0], tracker.recover)
+    assert check > 0
+    t, poses, lost, rec = runs["drifted"]
+    _, te, _ = errors(seq, t + t0, poses)
+    assert float(te.min()) > 0.05  # drifted throughout
+    assert rec.checks == 3 and rec.searches == 0 and rec.restarts == 0
+    assert not bool(lost[t < check].any()) and bool(lost[t >= check].all()), t[lost]
+    assert not bool(rec.lost.any()) and bool(rec.drifted.all())
+    _, plain, never, unchecked = runs["no check"]
+    assert torch.equal(plain, poses) and not bool(never.any()) and unchecked.checks == 0
+    t, _, lost, rec = runs["truth"]
+    assert rec.checks == 3 and not bool(lost.any()) and not bool(rec.drifted.any())
+
+
+def test_a_depth_check_needs_the_whole_object_in_view():
+    """The projected bounding sphere (radius r at depth z: half-size f r / (z - r) px) must lie inside the frame."""
+    reloc = Relocaliser(RasterRenderer(load_mesh("box"), CAM), 0.05)
+    half = CAM.fx * 0.05 / (0.5 - 0.05)  # 27.9 px
+    inside = lambda u: wholly_in_view(torch.tensor([[(u - CAM.cx) * 0.5 / CAM.fx, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0]],
+                                                   dtype=torch.float64), reloc)
+    assert inside(CAM.cx) and inside(half + 2) and inside(CAM.width - half - 3)
+    assert not inside(half - 2) and not inside(CAM.width - half + 1) and not inside(-40.0)
+    behind = torch.tensor([[0.0, 0.0, 0.07, 1.0, 0.0, 0.0, 0.0]], dtype=torch.float64)  # within 1.5 radii
+    assert not wholly_in_view(behind, reloc)
 
 
 def test_isolated_noise_is_no_edge_to_search_in(seq, truth_search):
@@ -533,11 +577,12 @@ def test_a_restart_needs_the_object_in_view_and_near_the_search_in_depth(seq):
     assert not found_again(result(centre, own=1.2), centre, reloc)  # no better than the tracker's own pose
 
 
-def reference_bookkeeping(t, period_us, pose, declared, low_run, state, retry_us, start_after_us):
+def reference_bookkeeping(t, period_us, pose, declared, low_run, state, retry_us, start_after_us, check_us):
     """One update of the Recoverer's bookkeeping for one element, written from its module docstring; ``state`` a
-    dict of python values and pose lists, updated in place. Returns ``(due, starting)``."""
+    dict of python values and pose lists, updated in place. Returns ``(due, starting, checking)``."""
     if state["started"] < 0:
         state["started"] = state["good_us"] = state["anchor_us"] = t - period_us
+        state["next_check"] = state["started"] + check_us
     if declared and not state["lost"]:
         state["lost"], state["next_search"], state["retry_in"] = True, t, retry_us
     if not state["lost"] and low_run == 0:
@@ -551,21 +596,24 @@ def reference_bookkeeping(t, period_us, pose, declared, low_run, state, retry_us
     starting = state["pending"] and not state["lost"] and t - state["started"] >= start_after_us
     if starting:
         state["pending"] = False
-    return due, starting
+    checking = check_us > 0 and not state["lost"] and t >= state["next_check"]
+    if checking:
+        state["next_check"] = t + check_us
+    return due, starting, checking
 
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_the_bookkeeping_kernel_matches_the_reference_per_element(seed):
     rng = np.random.default_rng(seed)
-    B, T, period, retry, start_after = 3, 120, 2000, 20_000, 48_000
+    B, T, period, retry, start_after, check = 3, 120, 2000, 20_000, 48_000, 30_000
     unit = [0.0, 0.0, 0.6, 1.0, 0.0, 0.0, 0.0]
     buf = dict(lost=np.zeros(B, bool), good_pose=np.tile(unit, (B, 1)), good_us=np.zeros(B, np.int64),
                anchor_pose=np.tile(unit, (B, 1)), anchor_us=np.zeros(B, np.int64), twist=np.zeros((B, 6)),
                started=np.full(B, -1, np.int64), next_search=np.zeros(B, np.int64), retry_in=np.zeros(B, np.int64),
-               pending=np.ones(B, bool))
+               pending=np.ones(B, bool), next_check=np.zeros(B, np.int64))
     refs = [dict(lost=False, good_pose=list(unit), good_us=0, anchor_pose=list(unit), anchor_us=0, twist=[0.0] * 6,
-                 started=-1, next_search=0, retry_in=0, pending=True) for _ in range(B)]
-    n = {"due": 0, "starting": 0, "twists": 0}
+                 started=-1, next_search=0, retry_in=0, pending=True, next_check=0) for _ in range(B)]
+    n = {"due": 0, "starting": 0, "twists": 0, "checking": 0}
     for i in range(T):
         t = np.full(B, period * (i + 1), np.int64)
         pose = np.tile(unit, (B, 1))
@@ -574,24 +622,26 @@ def test_the_bookkeeping_kernel_matches_the_reference_per_element(seed):
         pose[:, 3], pose[:, 5] = np.cos(angle / 2), np.sin(angle / 2)
         declared = rng.random(B) < 0.03
         low_run = np.where(rng.random(B) < 0.3, rng.integers(1, 5, B), 0).astype(np.int64)
-        due, starting = np.zeros(B, bool), np.zeros(B, bool)
+        due, starting, checking = np.zeros(B, bool), np.zeros(B, bool), np.zeros(B, bool)
         bookkeeping_kernel(t, period, pose, declared, low_run, buf["lost"], buf["good_pose"], buf["good_us"],
                            buf["anchor_pose"], buf["anchor_us"], buf["twist"], buf["started"], buf["next_search"],
-                           buf["retry_in"], buf["pending"], retry, start_after, due, starting)
+                           buf["retry_in"], buf["pending"], retry, start_after, due, starting, buf["next_check"], check,
+                           checking)
         for b in range(B):
             before = refs[b]["twist"]
-            d, s = reference_bookkeeping(int(t[b]), period, pose[b].tolist(), bool(declared[b]), int(low_run[b]),
-                                         refs[b], retry, start_after)
+            d, s, c = reference_bookkeeping(int(t[b]), period, pose[b].tolist(), bool(declared[b]), int(low_run[b]),
+                                            refs[b], retry, start_after, check)
             n["twists"] += refs[b]["twist"] is not before
-            assert (bool(due[b]), bool(starting[b])) == (d, s), (i, b)
+            assert (bool(due[b]), bool(starting[b]), bool(checking[b])) == (d, s, c), (i, b)
             for key, value in refs[b].items():
                 assert np.allclose(buf[key][b], value, rtol=1e-12, atol=1e-12), (i, b, key)
             n["due"] += d
             n["starting"] += s
+            n["checking"] += c
         if rng.random() < 0.05:  # a search confirmed an element's pose: found again
             k = int(rng.integers(B))
             buf["lost"][k] = refs[k]["lost"] = False
-    assert n["due"] > 0 and n["starting"] > 0 and n["twists"] > 0  # every branch taken
+    assert n["due"] > 0 and n["starting"] > 0 and n["twists"] > 0 and n["checking"] > 0  # every branch taken
 
 
 def test_the_recoverers_views_follow_copies_and_new_storage(seq):
@@ -637,17 +687,17 @@ def test_the_fused_watch_gives_the_stage_calls_numbers(seed):
     from torchevtrack.update import watch
 
     rng = np.random.default_rng(seed)
-    B, T, period, retry, start_after, patience = 3, 200, 2000, 20_000, 48_000, 6
+    B, T, period, retry, start_after, patience, check = 3, 200, 2000, 20_000, 48_000, 6, 50_000
     unit = [0.0, 0.0, 0.6, 1.0, 0.0, 0.0, 0.0]
 
     def books():
         return [np.zeros(B, bool), np.tile(unit, (B, 1)), np.zeros(B, np.int64), np.tile(unit, (B, 1)),
                 np.zeros(B, np.int64), np.zeros((B, 6)), np.full(B, -1, np.int64), np.zeros(B, np.int64),
-                np.zeros(B, np.int64), np.ones(B, bool)]
+                np.zeros(B, np.int64), np.ones(B, bool), np.zeros(B, np.int64)]
 
     dets = [LossDetector(B, score_threshold=0.3, patience=patience, recovery=4) for _ in range(2)]
     ref, fused = books(), books()
-    outs = [np.zeros(B, bool), np.zeros(B, bool), np.ones(1, bool)]
+    outs = [np.zeros(B, bool), np.zeros(B, bool), np.zeros(B, bool), np.ones(1, bool)]
     n = {"newly": 0, "search": 0, "may": 0}
     for i in range(T):
         t = np.full(B, period * (i + 1), np.int64)
@@ -659,14 +709,16 @@ def test_the_fused_watch_gives_the_stage_calls_numbers(seed):
         rejected, burst = rng.random(B) < 0.05, rng.random(B) < 0.05
         upd = dets[0](Quality(torch.from_numpy(score), torch.from_numpy(flow_vectors), torch.zeros(B, dtype=torch.int64),
                               torch.from_numpy(rejected), torch.from_numpy(burst)), torch.from_numpy(t))
-        due, starting = np.zeros(B, bool), np.zeros(B, bool)
-        bookkeeping_kernel(t, period, pose, upd.newly_lost.numpy(), dets[0].low_run.numpy(), *ref, retry, start_after,
-                           due, starting)
-        may = ref[0].any() or ref[9].any() or (dets[0].low_run.numpy() >= patience - 1).any()
-        newly, search = watch(dets[1].arrays(), RecoverArrays(*fused, retry, start_after, *outs), score, flow_vectors,
-                              rejected, burst, t, period, pose)
-        assert newly == bool(upd.newly_lost.any()) and search == bool((due | starting).any()), i
-        assert np.array_equal(outs[0], due) and np.array_equal(outs[1], starting) and outs[2][0] == may, i
+        due, starting, checking = np.zeros(B, bool), np.zeros(B, bool), np.zeros(B, bool)
+        bookkeeping_kernel(t, period, pose, upd.newly_lost.numpy(), dets[0].low_run.numpy(), *ref[:10], retry,
+                           start_after, due, starting, ref[10], check, checking)
+        may = ref[0].any() or ref[9].any() or (dets[0].low_run.numpy() >= patience - 1).any() \
+            or (t + period >= ref[10]).any()
+        newly, search = watch(dets[1].arrays(), RecoverArrays(*fused, retry, start_after, check, *outs), score,
+                              flow_vectors, rejected, burst, t, period, pose)
+        assert newly == bool(upd.newly_lost.any()) and search == bool((due | starting | checking).any()), i
+        assert np.array_equal(outs[0], due) and np.array_equal(outs[1], starting) \
+            and np.array_equal(outs[2], checking) and outs[3][0] == may, i
         for a, b in zip(ref, fused):
             assert np.array_equal(a, b), i
         for name, buf in dets[0].named_buffers():

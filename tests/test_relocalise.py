@@ -15,7 +15,7 @@ from torchevtrack.geometry import quat_conj, quat_log, quat_mul
 from torchevtrack.mesh import load_mesh
 from torchevtrack.raster import RasterRenderer
 from torchevtrack.recover import beats_start, search_levels
-from torchevtrack.stages.relocalise import Relocaliser
+from torchevtrack.stages.relocalise import RIVAL_DEPTHS, Relocaliser
 from torchevtrack.stages.template import apply_steps
 
 CAM = Camera(320, 240, 280.0, 280.0, 160.0, 120.0)
@@ -65,6 +65,25 @@ def test_finds_pose_far_off(box, step):
     if step[2] == 0.04:  # the caller's own pose, given apart from the centre: the true one costs about the result
         own = reloc(start, edge_surface(renderer), torch.tensor([1000]), own=TRUTH)
         assert torch.equal(own.pose, out.pose) and abs(float(own.own_cost[0]) - float(out.cost[0])) < 0.5
+
+
+@pytest.mark.parametrize("factor", [1.25, 0.8])
+def test_a_pose_drifted_in_depth_has_a_depth_rival_that_costs_clearly_less(box, factor):
+    """The truth's depth rivals cost more than the truth; a pose drifted along its line of sight by a rival's inverse
+    factor (the truth 25 % farther, or 20 % nearer), and 1 cm aside, has a rival that costs at least 1 px less than
+    itself (the check's margin is 0.5 px): the rival scaled back onto the truth, shifted back by the image search."""
+    renderer, radius = box
+    reloc = Relocaliser(renderer, radius)
+    surface = edge_surface(renderer)
+    truth = reloc.rivals(TRUTH, surface[0], 1000)
+    assert truth.shape == (1 + len(RIVAL_DEPTHS),) and float(truth[0]) < 1.0  # quarter-scale pixels: ~1 px
+    assert float(truth[1:].min()) > float(truth[0]) + 2.0, truth
+    drifted = TRUTH.clone()
+    drifted[0, :3] *= factor
+    drifted[0, 0] += 0.01
+    c = reloc.rivals(drifted, surface[0], 1000)
+    k = 1 + RIVAL_DEPTHS.index(round(1 / factor, 2))
+    assert float(c[k]) < float(c[0]) - 1.0 and int(c.argmin()) == k, c
 
 
 def test_not_clear_without_the_object(box):

@@ -222,6 +222,10 @@ class RecoverConfig:
     # max_cost_px: a result is clear (restarts the element) at a chamfer cost of at most this many pixels (and a
     # runner-up 0.5 px worse): after a blackout the object's recent edges are smeared, and found poses cost 1.6-4 px,
     # 4.4-4.7 px at 1280x720 with sensor noise.
+    # check_us: every this much event time an element that is not lost is checked against its depth rivals (its pose
+    # 20 % nearer and 25 % farther, torchevtrack.stages.relocalise.Relocaliser.rivals); one that costs check_margin_px
+    # less flags it drifted (a depth drift the template score does not show), in the lost flags; reported only, no
+    # search; 0: no check.
     enabled: bool = False
     retry_us: int = 20_000
     min_events: int = 500
@@ -229,6 +233,8 @@ class RecoverConfig:
     start_search: bool = False
     start_after_us: int = 48_000
     max_cost_px: float = 5.0
+    check_us: int = 50_000
+    check_margin_px: float = 0.5
 
 
 @dataclass

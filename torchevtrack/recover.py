@@ -28,6 +28,16 @@ masked :meth:`~torchevtrack.tracker.EventPoseTracker.reset`. Per batch element:
   result that beats the tracker's pose, in view and within the search's depth reach (:func:`found_again`), restarts
   the element there (twist zero); where the search finds nothing better than a pose of the tracker's that costs at
   most the clear-winner cost (:func:`confirms`), the element is found again as it is.
+* **Depth check** (``check_us``; 0: off). Every ``check_us`` of event time from each (re)start, an element that is
+  not lost, and whose bounding sphere projects wholly inside the frame (:func:`wholly_in_view`), has its pose
+  compared with its depth rivals (:meth:`~torchevtrack.stages.relocalise.Relocaliser.rivals`: the pose 20 % nearer
+  and 25 % farther along its line of sight, each at its best image shift, by the coarse chamfer cost). Where a rival
+  costs ``check_margin_px`` less than the pose, the tracker has drifted in depth, which its template score does not
+  show (a smaller outline inside the object's events scores as well: on a 1280x720 turn the score read 17-27 with
+  the estimate 30 cm too far, 8-15 while held): the element is flagged ``drifted`` until a later check finds no such
+  rival (or a restart), and the tracker's lost flags show it. The flag only reports: it sets off no search, as
+  searches set off by it restarted held runs at wrong poses on held-out data, and a search around the cheaper rival
+  held no more runs (docs/notebook.md, 2026-12-07 evening and night).
 * **Start search** (``start_search``): ``start_after_us`` after each (re)start, once the time surface holds that
   much of the object's motion, one search around the tracker's pose then; a result that beats both its runner-up and
   the tracker's pose by ``START_MARGIN_PX`` (:func:`beats_start`) restarts the element there, with the twist the UKF
@@ -36,10 +46,11 @@ masked :meth:`~torchevtrack.tracker.EventPoseTracker.reset`. Per batch element:
   refined by the template correction (:meth:`~torchevtrack.tracker.EventPoseTracker.refine`), restarts the element at
   the best if its template score beats the tracker's own pose, refined the same way, by ``TURN_MARGIN`` of it.
 
-The search runs inside the update and blocks it: about 0.3-1.5 s of wall time per search, and a lost element's
+A depth check costs about 3-8 ms (one low-resolution render of each of three poses and small FFTs). A search
+runs inside the update and blocks it: about 0.3-1.5 s of wall time per search, and a lost element's
 search that finds nothing scans the frame too (about 1 s more at 640x480, 3 s at 1280x720; the event time does not
 advance meanwhile, so offline tracking gives the same poses however long it takes). :attr:`Recoverer.searches`,
-:attr:`Recoverer.search_s` and :attr:`Recoverer.restarts` count them.
+:attr:`Recoverer.search_s` and :attr:`Recoverer.restarts` count them (:attr:`Recoverer.checks` the depth checks).
 
 Example:
     >>> import torch
@@ -76,13 +87,14 @@ from torchevtrack.raster import RasterRenderer
 from torchevtrack.stages import BufferViews, batch_mask
 from torchevtrack.stages.propagate import propagate, twist_between_kernel
 from torchevtrack.stages.relocalise import LEVELS, Level, Relocalisation, Relocaliser
+from torchevtrack.stages.template import render_window
 
 if TYPE_CHECKING:  # the tracker imports this module
     from torchevtrack.tracker import EventPoseTracker
 
 __all__ = ["MAX_EXTRAPOLATION_US", "MAX_RETRY_US", "RecoverArrays", "Recoverer", "SEED_COST_PX", "START_MARGIN_PX",
            "TURN_DEG", "TURN_MARGIN", "TWIST_SPAN_US", "beats", "beats_start", "confirms", "found_again",
-           "recover_step", "search_levels", "turned_poses"]
+           "recover_step", "search_levels", "turned_poses", "wholly_in_view"]
 
 TWIST_SPAN_US = 20_000  # the good twist is measured over at least this span (one update's pose difference is noise)
 # the good pose is moved on by the good twist for at most this long: beyond, a constant twist is a guess that grows
@@ -157,6 +169,17 @@ def confirms(found: Relocalisation, max_cost_px: float, margin_px: float) -> boo
     return float(found.own_cost[0]) <= max_cost_px and not beats(found, margin_px)
 
 
+def wholly_in_view(pose: torch.Tensor, reloc: Relocaliser) -> bool:
+    """Whether the object's bounding sphere at ``pose`` ``(1, 7)`` projects wholly inside ``reloc``'s frame (and lies
+    beyond 1.5 radii in front of the camera). A depth check compares whole outlines: with part of the object out of
+    view its rivals' costs mislead (a box leaving the view flagged, and restarted 8 cm off when flags set off searches;
+    docs/notebook.md, 2026-12-07 evening)."""
+    if not float(pose[0, 2]) > 1.5 * reloc.radius:
+        return False
+    u0, v0, w, h = (int(x) for x in render_window(pose, reloc.camera, reloc.radius, margin_px=0)[0])
+    return u0 >= 0 and v0 >= 0 and u0 + w <= reloc.camera.width and v0 + h <= reloc.camera.height
+
+
 def search_levels(search_m: float) -> tuple[Level, ...]:
     """The relocaliser's :data:`~torchevtrack.stages.relocalise.LEVELS` with the image-plane half-width and the depth
     offsets of every level scaled so that the first level's half-width is ``search_m`` metres (rotations and scales
@@ -167,20 +190,23 @@ def search_levels(search_m: float) -> tuple[Level, ...]:
 
 @kernel
 def bookkeeping_kernel(t, period_us, pose, declared, low_run, lost, good_pose, good_us, anchor_pose, anchor_us, twist,
-                       started, next_search, retry_in, pending, retry_us, start_after_us, due, starting):
+                       started, next_search, retry_in, pending, retry_us, start_after_us, due, starting, next_check,
+                       check_us, checking):
     """One update's bookkeeping of :class:`Recoverer` (module docstring), in place, per element ``b`` of ``B``.
 
     Inputs: ``t`` ``(B,)`` int64 the update's times (us), ``period_us`` the tracker's window (us), ``pose``
     ``(B, 7)`` its output, the detector's ``declared`` (``newly_lost``) ``(B,)`` bool and ``low_run`` ``(B,)`` int64,
     ``retry_us`` and ``start_after_us``. State, updated: the Recoverer's buffers of the same names (``started``,
     ``next_search``, ``retry_in``, ``pending``: ``started_us``, ``next_search_us``, ``retry_in_us``,
-    ``start_pending``). Output: ``due`` (a lost element's search is due) and ``starting`` (its start search is due,
-    and no longer pending) ``(B,)`` bool.
+    ``start_pending``, ``next_check_us``). Output: ``due`` (a lost element's search is due), ``starting`` (its start
+    search is due, and no longer pending) and ``checking`` (its depth check is due; ``check_us`` 0: never) ``(B,)``
+    bool.
     """
     dt = np.empty(1)
     for b in range(t.shape[0]):
         if started[b] < 0:  # the first update since a (re)start: its window began a period ago
             started[b] = good_us[b] = anchor_us[b] = t[b] - period_us
+            next_check[b] = started[b] + check_us
         if declared[b] and not lost[b]:
             lost[b] = True
             next_search[b] = t[b]
@@ -197,6 +223,9 @@ def bookkeeping_kernel(t, period_us, pose, declared, low_run, lost, good_pose, g
         starting[b] = pending[b] and not lost[b] and t[b] - started[b] >= start_after_us
         if starting[b]:
             pending[b] = False
+        checking[b] = check_us > 0 and not lost[b] and t[b] >= next_check[b]
+        if checking[b]:
+            next_check[b] = t[b] + check_us
 
 
 class RecoverArrays(NamedTuple):
@@ -214,10 +243,13 @@ class RecoverArrays(NamedTuple):
     next_search_us: np.ndarray
     retry_in_us: np.ndarray
     start_pending: np.ndarray
+    next_check_us: np.ndarray
     retry_us: int
     start_after_us: int
+    check_us: int
     due: np.ndarray
     starting: np.ndarray
+    checking: np.ndarray
     may: np.ndarray
 
 
@@ -229,12 +261,12 @@ def recover_step(r, t, period_us, pose, declared, low_run, patience):
     next update may search (:meth:`Recoverer.may_search`)."""
     bookkeeping_kernel(t, period_us, pose, declared, low_run, r.lost, r.good_pose, r.good_us, r.anchor_pose,
                        r.anchor_us, r.twist, r.started_us, r.next_search_us, r.retry_in_us, r.start_pending,
-                       r.retry_us, r.start_after_us, r.due, r.starting)
+                       r.retry_us, r.start_after_us, r.due, r.starting, r.next_check_us, r.check_us, r.checking)
     may = r.lost.any() or r.start_pending.any()
     for b in range(low_run.shape[0]):
-        may = may or low_run[b] >= patience - 1
+        may = may or low_run[b] >= patience - 1 or (r.check_us > 0 and t[b] + period_us >= r.next_check_us[b])
     r.may[0] = may
-    return r.due.any() or r.starting.any()
+    return r.due.any() or r.starting.any() or r.checking.any()
 
 
 class Recoverer(BufferViews, nn.Module):
@@ -247,9 +279,12 @@ class Recoverer(BufferViews, nn.Module):
         min_events: pixels of the time surface that must have fired within the last ``retry_us`` for a search.
         start_search: one search ``start_after_us`` after each (re)start.
         start_after_us: that delay (us of event time).
+        check_us: event time between two depth checks of an element that is not lost (us; 0: no check).
+        check_margin_px: a depth rival that costs this much less than the pose (chamfer px) flags the element drifted.
 
     Buffers (all with a leading ``B``):
         lost: ``(B,)`` bool, lost and not yet restarted or confirmed by a search.
+        drifted: ``(B,)`` bool, the element's last depth check found a depth rival clearly cheaper than its pose.
         good_pose, good_us: ``(B, 7)`` float64 and ``(B,)`` int64, the last good pose and its time.
         twist: ``(B, 6)`` float64 ``[v, w]`` good twist (zero until measured).
         anchor_pose, anchor_us: the good pose the next twist is measured from.
@@ -257,12 +292,14 @@ class Recoverer(BufferViews, nn.Module):
         retry_in_us: ``(B,)`` int64 the wait after its next search if that one finds nothing (doubles each time).
         started_us: ``(B,)`` int64 start of the first update's window since the last (re)start (-1: none yet).
         start_pending: ``(B,)`` bool, the start search is still to come.
+        next_check_us: ``(B,)`` int64 the time of the element's next depth check.
 
     After each update of the tracker, :func:`recover_step` keeps the books on :meth:`arrays` (compiled, with the
     tracker's other steps) and :meth:`search` runs the searches it finds due.
     """
 
     lost: torch.Tensor
+    drifted: torch.Tensor
     good_pose: torch.Tensor
     good_us: torch.Tensor
     twist: torch.Tensor
@@ -274,7 +311,8 @@ class Recoverer(BufferViews, nn.Module):
     start_pending: torch.Tensor
 
     def __init__(self, relocalisers: Sequence[Relocaliser], owner: Sequence[int], *, retry_us: int = 20_000,
-                 min_events: int = 500, start_search: bool = False, start_after_us: int = 48_000) -> None:
+                 min_events: int = 500, start_search: bool = False, start_after_us: int = 48_000, check_us: int = 0,
+                 check_margin_px: float = 0.5) -> None:
         super().__init__()
         if not relocalisers or not all(isinstance(r, Relocaliser) for r in relocalisers):
             raise TypeError("relocalisers must be a non-empty list of Relocaliser")
@@ -287,6 +325,10 @@ class Recoverer(BufferViews, nn.Module):
         self.owner = [int(i) for i in owner]
         self.retry_us, self.min_events = int(retry_us), int(min_events)
         self.start_search, self.start_after_us = bool(start_search), int(start_after_us)
+        if check_us < 0:
+            raise ValueError(f"check_us must be >= 0 (0: no depth check), got {check_us}")
+        self.check_us, self.check_margin_px = int(check_us), float(check_margin_px)
+        self.checks = 0
         self.searches, self.search_s, self.restarts = 0, 0.0, 0
         B = len(self.owner)
         f64, i64 = torch.float64, torch.int64
@@ -294,13 +336,15 @@ class Recoverer(BufferViews, nn.Module):
         for name in ("good_pose", "anchor_pose"):
             self.register_buffer(name, unit.clone())
         self.register_buffer("twist", torch.zeros(B, 6, dtype=f64))
-        for name in ("good_us", "anchor_us", "next_search_us", "retry_in_us"):
+        for name in ("good_us", "anchor_us", "next_search_us", "retry_in_us", "next_check_us"):
             self.register_buffer(name, torch.zeros(B, dtype=i64))
         self.register_buffer("started_us", torch.full((B,), -1, dtype=i64))
         self.register_buffer("lost", torch.zeros(B, dtype=torch.bool))
+        self.register_buffer("drifted", torch.zeros(B, dtype=torch.bool))
         self.register_buffer("start_pending", torch.zeros(B, dtype=torch.bool))
         # the last update's bookkeeping (recover_step): searches due, and whether the next update may search
         self._due, self._starting, self._may = np.zeros(B, np.bool_), np.zeros(B, np.bool_), np.ones(1, np.bool_)
+        self._checking = np.zeros(B, np.bool_)
 
     @classmethod
     def from_config(cls, cfg: RecoverConfig, camera: Camera, meshes: Sequence[trimesh.Trimesh], owner: Sequence[int],
@@ -315,7 +359,7 @@ class Recoverer(BufferViews, nn.Module):
                               symmetry_axis=symmetry_axis(mesh))
                   for mesh, radius in zip(meshes, radii)]
         return cls(relocs, owner, retry_us=cfg.retry_us, min_events=cfg.min_events, start_search=cfg.start_search,
-                   start_after_us=cfg.start_after_us)
+                   start_after_us=cfg.start_after_us, check_us=cfg.check_us, check_margin_px=cfg.check_margin_px)
 
     def reset(self, pose: torch.Tensor, mask: torch.Tensor | None = None) -> None:
         """Restart the elements of ``mask`` (default all; ``(B,)`` bool or ``(K,)`` indices) at ``pose`` ``(B, 7)``
@@ -326,10 +370,11 @@ class Recoverer(BufferViews, nn.Module):
             getattr(self, name)[m] = pose[m]
         self.twist[m] = 0.0
         self.lost[m] = False
+        self.drifted[m] = False
         self.started_us[m] = -1
         self.start_pending[m] = self.start_search
         k = m.numpy()
-        self._due[k] = self._starting[k] = False  # (a restart within an update: nothing to search)
+        self._due[k] = self._starting[k] = self._checking[k] = False  # (a restart within an update: nothing to search)
         self._may[0] = True
 
     def may_search(self) -> bool:
@@ -348,8 +393,9 @@ class Recoverer(BufferViews, nn.Module):
         """The books for compiled kernels (:func:`recover_step`): numpy views of the buffers (made again only when a
         buffer's storage changes, :class:`~torchevtrack.stages.BufferViews`) and the last update's outputs."""
         views = self.buffer_views(("lost", "good_pose", "good_us", "anchor_pose", "anchor_us", "twist", "started_us",
-                                   "next_search_us", "retry_in_us", "start_pending"))
-        return RecoverArrays(*views, self.retry_us, self.start_after_us, self._due, self._starting, self._may)
+                                   "next_search_us", "retry_in_us", "start_pending", "next_check_us"))
+        return RecoverArrays(*views, self.retry_us, self.start_after_us, self.check_us, self._due, self._starting,
+                             self._checking, self._may)
 
     @torch.inference_mode()
     def search(self, tracker: "EventPoseTracker", t: np.ndarray) -> None:
@@ -365,6 +411,13 @@ class Recoverer(BufferViews, nn.Module):
         # a start search keeps the motion the tracker measured meanwhile (the UKF's); a lost element's is not known
         twist = tracker.ukf.twist.clone() if tracker.config.ukf.enabled else torch.zeros(B, 6, dtype=torch.float64)
         twist[~torch.from_numpy(starting)] = 0.0
+        for i in np.flatnonzero(self._checking).tolist():  # a depth rival clearly cheaper: drifted (reported only)
+            reloc = self.relocalisers[self.owner[i]]
+            if not wholly_in_view(pose[i:i + 1], reloc):
+                continue
+            c = reloc.rivals(pose[i:i + 1], surface[i], int(t[i]))
+            self.checks += 1
+            self.drifted[i] = float(c[1:].min()) < float(c[0]) - self.check_margin_px
         for i in np.flatnonzero(due | starting).tolist():
             if due[i]:
                 # pixels that fired lately beside another (an edge's, not isolated noise): none in a blackout or with
@@ -418,4 +471,4 @@ class Recoverer(BufferViews, nn.Module):
 
     def extra_repr(self) -> str:
         return (f"batch_size={len(self.owner)}, retry_us={self.retry_us}, min_events={self.min_events}, "
-                f"start_search={self.start_search}, start_after_us={self.start_after_us}")
+                f"start_search={self.start_search}, start_after_us={self.start_after_us}, check_us={self.check_us}")

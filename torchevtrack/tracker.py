@@ -650,11 +650,11 @@ class EventPoseTracker(nn.Module):
     def lost(self) -> torch.Tensor | None:
         """``(B,)`` bool: the loss detector held the element lost after the last update (before any
         re-initialisation in that update); with ``config.recover``, the :class:`~torchevtrack.recover.Recoverer`'s
-        flags (lost until a search restarts the element or confirms its pose); ``None`` without
-        a detector or before the first update."""
+        flags (lost until a search restarts the element or confirms its pose, or drifted in depth by its last depth
+        check); ``None`` without a detector or before the first update."""
         if self._run.loss_report is None:
             return None
-        return self.loss_update.lost if self.recover is None else self.recover.lost.clone()
+        return self.loss_update.lost if self.recover is None else self.recover.lost | self.recover.drifted
 
     @property
     def last_event_us(self) -> torch.Tensor:

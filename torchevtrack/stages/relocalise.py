@@ -73,7 +73,8 @@ from torchevtrack.raster import RasterRenderer
 from torchevtrack.schedule import thread_count
 from torchevtrack.stages.template import apply_steps, pose_delta, render_window
 
-__all__ = ["LEVELS", "Level", "MAX_REGION_PX", "Relocalisation", "Relocaliser"]
+__all__ = ["LEVELS", "Level", "MAX_REGION_PX", "RIVAL_DEPTHS", "RIVAL_SCALE", "RIVAL_XY_M", "Relocalisation",
+           "Relocaliser"]
 
 
 class Level(NamedTuple):
@@ -97,6 +98,10 @@ LEVELS = (
 # Unbounded, one frame scan at 1280x720 of a cracker box at 0.3 m held 10.3 GB and took 32 s, and `benchmark
 # --recover` on the dev pair peaked at 17.8 GB (docs/notebook.md, 2026-12-07 late morning)
 MAX_REGION_PX = 512
+# Relocaliser.rivals: the depth factors of a pose's rivals, their image-plane reach (m) and the image scale
+RIVAL_DEPTHS = (0.8, 1.25)
+RIVAL_XY_M = 0.03
+RIVAL_SCALE = 0.25
 
 
 class Relocalisation(NamedTuple):
@@ -243,14 +248,16 @@ class Relocaliser(nn.Module):
         return sum(max(abs(dz) for dz in lv.dz_m) for lv in self.levels)
 
     # -- the observation ------------------------------------------------------------------------------------------
-    def _events(self, pose: torch.Tensor, last_us: torch.Tensor, t_now: int, level: Level | None = None) -> np.ndarray:
+    def _events(self, pose: torch.Tensor, last_us: torch.Tensor, t_now: int, level: Level | None = None,
+                offset: tuple[int, int] = (0, 0)) -> np.ndarray:
         """Recent event pixels ``(K, 2)`` (u, v) in ``level``'s region (default the first level's), with the adaptive
-        window."""
+        window; ``last_us`` may be a crop of the frame's surface whose top-left pixel is ``offset`` (u, v)."""
         level = self.levels[0] if level is None else level
         u0, v0, side = self._square(pose, level)
         last = newest(last_us)
         H, W = last.shape
-        age = t_now - last[max(0, v0):min(H, v0 + side), max(0, u0):min(W, u0 + side)]
+        cu, cv = u0 - offset[0], v0 - offset[1]  # the square in the crop
+        age = t_now - last[max(0, cv):min(H, cv + side), max(0, cu):min(W, cu + side)]
         ages = age[(age >= 0) & (age <= self.max_window_us)]
         depth, _ = self.renderer.render_unit(pose.numpy(), Camera(*self._low_camera(u0, v0, side, level.scale)),
                                              shaded=False)
@@ -260,7 +267,7 @@ class Relocaliser(nn.Module):
         window = int(np.clip(kth, self.min_window_us, self.max_window_us))
         mask = recent_events(last, t_now, window, min_support=1)
         v, u = np.nonzero(mask)
-        return np.stack((u, v), 1)
+        return np.stack((u + offset[0], v + offset[1]), 1)
 
     def _square(self, pose: torch.Tensor, level: Level) -> tuple[int, int, int]:
         """Full-resolution square ``(u0, v0, side)`` holding the object at every candidate depth and shift."""
@@ -522,6 +529,41 @@ class Relocaliser(nn.Module):
             poses, costs = self._search(self._candidates(centre, level), self._region(centre, level, events), pool)
         j = int(costs.argmin())
         return poses[j:j + 1], float(costs[j])
+
+    def rivals(self, pose: torch.Tensor, last_us: torch.Tensor, t_now_us: int) -> torch.Tensor:
+        """Coarse chamfer costs of ``pose`` and of its depth rivals: the pose with its position scaled by each of
+        :data:`RIVAL_DEPTHS` (along its line of sight: the same image centre, the object nearer or farther), each at
+        its best image-plane shift within ``RIVAL_XY_M`` (at its depth), at ``RIVAL_SCALE`` of the image, against the
+        search's observation (module docstring, 1.) of the region around ``pose``. A rival that costs clearly less
+        says the pose has drifted in depth (:class:`~torchevtrack.recover.Recoverer`'s check).
+
+        Shape: ``(1, 7)`` pose, ``(H, W)`` or ``(C, H, W)`` int64 ``last_us`` -> ``(1 + len(RIVAL_DEPTHS),)`` float64
+        (full-resolution pixels; ``cap_px`` for a pose with no edge or no event in view).
+
+        Example (events on a box's outline; the pose 25 % too far, whose rival x 0.8 is the truth):
+            >>> import torch
+            >>> from torchevtrack.camera import Camera
+            >>> from torchevtrack.mesh import load_mesh
+            >>> renderer = RasterRenderer(load_mesh("box"), Camera(160, 120, 150.0, 150.0, 80.0, 60.0))
+            >>> truth = torch.tensor([[0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0]])
+            >>> box = renderer.render(truth).depth[0] > 0
+            >>> last = torch.where((box ^ box.roll(1, 0)) | (box ^ box.roll(1, 1)), 1000, -(2 ** 62))
+            >>> far = torch.cat((truth[:, :3] * 1.25, truth[:, 3:]), 1)
+            >>> cost = Relocaliser(renderer, 0.1).rivals(far, last, 1000)
+            >>> int(cost.argmin()), bool(cost[1] < cost[0] - 1.0)
+            (1, True)
+        """
+        pose = torch.as_tensor(pose, dtype=torch.float64)
+        z = float(pose[0, 2])
+        level = Level(0.0, (z * (min(RIVAL_DEPTHS) - 1),), RIVAL_XY_M, RIVAL_SCALE)
+        u0, v0, side = self._square(pose, level)
+        H, W = self.camera.height, self.camera.width
+        a, b = max(0, v0 - 1), max(0, u0 - 1)  # the square and a pixel around it (the events' neighbours)
+        crop = newest(last_us)[a:min(H, v0 + side + 1), b:min(W, u0 + side + 1)]
+        events = self._events(pose, torch.from_numpy(np.ascontiguousarray(crop)), int(t_now_us), level,
+                              offset=(b, a))
+        poses = torch.cat([pose] + [torch.cat((pose[:, :3] * f, pose[:, 3:]), 1) for f in RIVAL_DEPTHS])
+        return self._search(poses, self._region(pose, level, events))[1]
 
     def costs(self, poses: torch.Tensor, last_us: torch.Tensor, t_now_us: int) -> torch.Tensor:
         """The two-sided chamfer cost of each of ``poses`` against one observation of the recent events, for comparing
