@@ -295,7 +295,7 @@ class Recoverer(BufferViews, nn.Module):
         next_check_us: ``(B,)`` int64 the time of the element's next depth check.
 
     After each update of the tracker, :func:`recover_step` keeps the books on :meth:`arrays` (compiled, with the
-    tracker's other steps) and :meth:`search` runs the searches it finds due.
+    tracker's other steps) and :meth:`search` runs the depth checks and searches it finds due.
     """
 
     lost: torch.Tensor
@@ -399,9 +399,9 @@ class Recoverer(BufferViews, nn.Module):
 
     @torch.inference_mode()
     def search(self, tracker: "EventPoseTracker", t: np.ndarray) -> None:
-        """Search for the elements :func:`recover_step` found due at the update's times ``t`` ``(B,)`` int64: the lost
-        ones that have recent event pixels, and those whose start search is due; restart those whose search is clear
-        (a start search: :func:`beats_start`)."""
+        """Run what :func:`recover_step` found due at the update's times ``t`` ``(B,)`` int64: the depth checks (they
+        set :attr:`drifted`), then the searches of the lost elements that have recent event pixels and of those whose
+        start search is due; restart those whose search is clear (a start search: :func:`beats_start`)."""
         due, starting = self._due, self._starting
         B = len(self.owner)
         surface = tracker.last_event_us
