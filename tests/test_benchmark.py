@@ -16,7 +16,7 @@ from torchevtrack.camera import Camera
 from torchevtrack.cli import main
 from torchevtrack.config import ABLATIONS, TrackerConfig
 from torchevtrack.io.poses import read_tum
-from torchevtrack.metrics import evaluate, mesh_points
+from torchevtrack.metrics import evaluate, mesh_points, sym_failed
 from torchevtrack.synth.generate import generate_sequence
 from torchevtrack.synth.sequence import Sequence
 from torchevtrack.tracker import EventPoseTracker
@@ -258,7 +258,7 @@ def test_loss_detection_is_reported_against_the_failure_rule(run, bench, tmp_pat
             loss, x = res["results"][m][name]["loss"], res["results"][m][name]["metrics"]
             assert set(loss) == {"first_loss_us", "first_failure_us", "delay_us", "missed", "false_alarm",
                                  "declarations", "false_alarms", "recoveries", "tracked_us"}
-            assert (loss["first_failure_us"] is not None) == x["failed"]
+            assert (loss["first_failure_us"] is not None) == sym_failed(x)
     # A detector that finds every update short of flow declares loss at the first update: with 10 updates
     # nothing can fail (50 needed), so every sequence is a false alarm at t_start + 2 ms.
     cfg = TrackerConfig().replace(loss={"min_flow_vectors": 1000, "patience": 1})
@@ -405,8 +405,34 @@ def test_foreign_predictions_are_scored_as_eval_scores_them(bench, tmp_path, cap
     rows = {r[0]: r for r in _table(printed, "## Pose error")}
     assert "learned" in rows and CELL.match(rows["learned"][1].rstrip("†"))
     assert "learned" in {r[0] for r in _table(printed, "## ADD-S AUC")}
-    assert "learned" not in {r[0] for r in _table(printed, "## Tracking loss")}
+    assert "learned" not in {r[0] for r in _table(printed, "## Tracking loss")}  # no lost-flag side files
     assert "| learned |" in (out / "factors.md").read_text()  # the per-factor tables too
+
+
+def test_the_lost_flags_are_written_and_scored_again_from_their_side_files(run, bench, tmp_path):
+    """Every run's lost flags go beside its pose file; given as another tracker's poses (``--pred``), the files
+    give the loss table the run itself gave."""
+    from torchevtrack.io.lost import lost_path, read_lost
+
+    res, out = run
+    for name in SEQS:
+        r = res["results"]["full"][name]
+        t_us, _ = read_tum(out / r["pose_file"])
+        lost_t, lost = read_lost(lost_path(out / r["pose_file"]))
+        assert torch.equal(lost_t, t_us) and lost.dtype == torch.bool
+    again = run_benchmark(bench, tmp_path, methods=["velocity_only"], overlays=False, progress=False,
+                          predictions={"ours": out / "poses" / "full"})
+    for name in SEQS:
+        assert again["results"]["ours"][name]["loss"] == res["results"]["full"][name]["loss"]
+    rows = {r[0]: r[1:] for r in _table(table_markdown(again), "## Tracking loss")}
+    mine = {r[0]: r[1:] for r in _table(table_markdown(res), "## Tracking loss")}
+    assert rows["ours"] == mine[METHOD_NAMES["full"]]
+    bad = tmp_path / "bad"
+    shutil.copytree(out / "poses" / "full", bad)
+    lost_path(bad / "tomato_fast.txt").write_text("0.5 1\n")
+    with pytest.raises(ValueError, match="tomato_fast.lost.txt: its times"):
+        run_benchmark(bench, tmp_path / "b", methods=["velocity_only"], duration_s=0.02, overlays=False,
+                      progress=False, predictions={"ours": bad})
 
 
 def test_foreign_prediction_errors(bench, tmp_path, capsys):

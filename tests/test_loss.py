@@ -289,6 +289,36 @@ def test_compare_with_ground_truth_delay_and_outcomes():
         compare_with_ground_truth(t, lost.long(), pred, t, gt)
 
 
+def _turned(gt, axis, deg):
+    """``gt`` turned by ``deg`` about the object-frame ``axis`` (the quaternion product written out)."""
+    h = math.radians(deg) / 2
+    a = torch.tensor(axis, dtype=torch.float64)
+    w2, v2 = math.cos(h), math.sin(h) * a / a.norm()
+    w1, v1 = gt[:, 3], gt[:, 4:]
+    out = gt.clone()
+    out[:, 3] = w1 * w2 - v1 @ v2
+    out[:, 4:] = w1[:, None] * v2 + v2.new_tensor(w2) * v1 + torch.linalg.cross(v1, v2.expand_as(v1), dim=-1)
+    return out
+
+
+def test_compare_with_ground_truth_leaves_a_spin_about_the_symmetry_axis_out():
+    """A can spun 90 deg about its axis from sample 80 fails the plain rule, not the rule modulo the axis; tipped
+    90 deg about another axis it fails both."""
+    t, gt = _gt()
+    spun, tipped = gt.clone(), gt.clone()
+    spun[80:] = _turned(gt[80:], (0.0, 0.0, 1.0), 90.0)
+    tipped[80:] = _turned(gt[80:], (1.0, 0.0, 0.0), 90.0)
+    lost = torch.zeros(200, dtype=torch.bool)
+    lost[120:] = True
+    axis = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    plain = compare_with_ground_truth(t, lost, spun, t, gt)
+    assert (plain["first_failure_us"], plain["delay_us"], plain["false_alarm"]) == (160_000, 80_000, False)
+    sym = compare_with_ground_truth(t, lost, spun, t, gt, symmetry_axis=axis)
+    assert (sym["first_failure_us"], sym["missed"], sym["false_alarm"]) == (None, False, True)
+    assert compare_with_ground_truth(t, lost, tipped, t, gt, symmetry_axis=axis) == \
+        compare_with_ground_truth(t, lost, tipped, t, gt)
+
+
 # -- end to end -------------------------------------------------------------------------------------
 CAM = Camera(320, 240, 251.15, 251.15, 159.5, 119.5)
 CUT_US = 60_000

@@ -66,6 +66,7 @@ from torchevtrack.config import ABLATIONS, TrackerConfig
 from torchevtrack.executor import Executor, SerialExecutor
 from torchevtrack.geometry import perturb_pose
 from torchevtrack.io.atomic import write_text
+from torchevtrack.io.lost import lost_path, read_lost, write_lost
 from torchevtrack.io.poses import read_poses, read_tum, write_tum
 from torchevtrack.loss import compare_with_ground_truth
 
@@ -277,20 +278,29 @@ def _pose_file(directory: Path, name: str) -> Path:
     return found[0]
 
 
-def _score_foreign(it: _Item, path: Path, crop: bool) -> tuple[dict, dict]:
+def _score_foreign(it: _Item, path: Path, crop: bool) -> tuple[dict, dict, dict | None]:
     """Score another tracker's poses of ``it`` in ``path`` as ``torchevtrack eval`` does (``crop``: without the
-    poses after ``it.t_end_us``); returns the :func:`evaluate` dict and the :func:`per_pose_errors` for the
-    plots."""
+    poses after ``it.t_end_us``); returns the :func:`evaluate` dict, the :func:`per_pose_errors` for the plots and,
+    where ``path`` has a lost-flag side file (:mod:`torchevtrack.io.lost`), the
+    :func:`~torchevtrack.loss.compare_with_ground_truth` dict (else None)."""
     t_us, poses = read_poses(path)
+    lost = None
+    if lost_path(path).is_file():
+        lost_t, lost = read_lost(lost_path(path))
+        if not torch.equal(lost_t, t_us):
+            raise ValueError(f"{lost_path(path)}: its times are not those of {path} (one line per pose, same order)")
     if crop and t_us.numel() and int(t_us[-1]) > it.t_end_us:
         keep = t_us <= it.t_end_us
         t_us, poses = t_us[keep], poses[keep]
+        lost = None if lost is None else lost[keep]
     gt_t, gt = it.seq.gt_t_us, it.seq.gt_poses
     try:
         metrics = evaluate(t_us, poses, gt_t, gt, mesh_points=it.points, symmetry_axis=it.symmetry_axis)
     except ValueError as e:
         raise ValueError(f"{path}: {e}") from None
-    return metrics, per_pose_errors(t_us, poses, gt_t, gt)
+    loss = None if lost is None else compare_with_ground_truth(t_us, lost, poses, gt_t, gt,
+                                                               symmetry_axis=it.symmetry_axis)
+    return metrics, per_pose_errors(t_us, poses, gt_t, gt), loss
 
 
 @dataclass
@@ -455,6 +465,7 @@ def run_benchmark(
             rel = Path("poses") / method / ("" if k == 0 else f"trial{k}") / f"{it.name}.txt"
             (out / rel).parent.mkdir(parents=True, exist_ok=True)
             write_tum(out / rel, t_us, poses)
+            write_lost(lost_path(out / rel), t_us, lost)
             t_us, poses = read_tum(out / rel)  # score exactly what was written
             gt_t, gt = it.seq.gt_t_us, it.seq.gt_poses
             metrics = evaluate(t_us, poses, gt_t, gt, mesh_points=it.points, symmetry_axis=it.symmetry_axis)
@@ -463,7 +474,7 @@ def run_benchmark(
                     _trial_metrics(metrics)
             if k > 0:  # the first trial gives the tables, plots and overlays
                 continue
-            loss = compare_with_ground_truth(t_us, lost, poses, gt_t, gt)
+            loss = compare_with_ground_truth(t_us, lost, poses, gt_t, gt, symmetry_axis=it.symmetry_axis)
             timing = {key: run[key] for key in ("batch_size", "wall_s", "updates_per_s")}
             timing["updates"] = int(t_us.numel())
             timing["realtime_factor"] = timing["updates"] * cfg.period_us / 1e6 / run["wall_s"]
@@ -482,8 +493,10 @@ def run_benchmark(
         res["results"][name] = {}
         for it in items:
             path = files[it.name]
-            metrics, e = _score_foreign(it, path, crop=duration_s is not None)
+            metrics, e, loss = _score_foreign(it, path, crop=duration_s is not None)
             res["results"][name][it.name] = {"metrics": metrics, "pose_file": str(path)}
+            if loss is not None:
+                res["results"][name][it.name]["loss"] = loss
             curves[it.name][name] = (((e["t_us"] - it.t_start_us).double() / 1e6).numpy(), (e["te"] * 100.0).numpy(),
                                      torch.rad2deg(e["re"]).numpy())
     if predictions:
@@ -633,7 +646,7 @@ def table_markdown(results: dict) -> str:
     if results.get("trials"):
         lines += _trials_table(results, cols)
 
-    loss_rows = [m for m in rows if all("loss" in r for r in per_method[m].values())]  # other trackers: none
+    loss_rows = [m for m in rows if all("loss" in r for r in per_method[m].values())]  # others: with side files
     if loss_rows:
         lines += ["", "## Tracking loss: declared / failed (s)", ""]
         lines.append(_row(["Method"] + cols + ["detected", "missed", "false alarms", "within 50 ms",
@@ -660,7 +673,8 @@ def table_markdown(results: dict) -> str:
         lines.append("")
         lines.append("declared: first update the loss detector held the sequence lost; failed: first of "
                      f"{FAIL_WINDOW} consecutive updates with translation error > {FAIL_T_M * 100:g} cm or rotation "
-                     f"error > {FAIL_R_DEG:g} deg; –: never. detected: failed, and held lost when the failure run "
+                     f"error > {FAIL_R_DEG:g} deg (for a symmetric untextured object the tilt of its axis, as for the "
+                     "held runs); –: never. detected: failed, and held lost when the failure run "
                      "began or declared lost after it; missed: failed, not detected; false alarms: declared, never "
                      f"failed; within 50 ms: failed sequences detected at most {LOSS_DELAY_US // 1000} ms after the "
                      "failure run began (or held lost since before); false alarms / min: declarations found again "
