@@ -30,9 +30,11 @@ hold the first trial; ``trials[method][sequence]`` the metrics of every trial, a
 Tracking loss: every run carries the tracker's :class:`~torchevtrack.loss.LossDetector` (the config's
 ``loss`` parameters, switched on whatever ``loss.enabled`` says; alone it only reports, no pose changes). Per
 sequence, :func:`torchevtrack.loss.compare_with_ground_truth` sets when loss was first declared against
-the start of the first ground-truth failure run, whether a declaration still held detects that failure, and counts
-the declarations, the false alarms (declared and found again before the first failure run) and the recoveries (the
-lost flag turning off): ``results[method][sequence]["loss"]``. With ``recover.enabled`` (``benchmark --recover``)
+the start of the first ground-truth failure run (the held runs' rule: a symmetric untextured object's spin about its
+axis is no failure), whether a declaration still held detects that failure, and counts the declarations, the false
+alarms (declared and found again before the first failure run) and the recoveries (the lost flag turning off):
+``results[method][sequence]["loss"]``. The flags go beside each pose file (``poses/METHOD/S.lost.txt``,
+:mod:`torchevtrack.io.lost`); another tracker's poses with such a side file get a loss-table row too. With ``recover.enabled`` (``benchmark --recover``)
 the lost sequences are re-localised (:mod:`torchevtrack.recover`); the lost flags are then the recoverer's and each
 run's timing counts its searches (``searches``, ``search_s``, ``restarts``).
 

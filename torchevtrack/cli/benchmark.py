@@ -67,7 +67,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the first draw (trial k: SEED + k; default 0)")
     p.add_argument("--pred", type=_prediction, action="append", default=[], metavar="NAME=DIR",
                    help="add another tracker as method NAME: its poses of sequence S in DIR/S.txt (or .csv, .json; "
-                   "any format eval reads), scored as eval scores them (repeatable)")
+                   "any format eval reads), scored as eval scores them; DIR/S.lost.txt, where present, its lost flags "
+                   "for the loss table (repeatable)")
     add_executor_options(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
