@@ -329,6 +329,37 @@ def test_cli_eval_summary_and_failure(tmp_path, capsys):
     assert "FAILED at 0.060000 s (pose 30" in out
 
 
+def test_cli_eval_scores_the_lost_flags_beside_the_prediction(tmp_path, capsys):
+    """track's side file: flags from pose 40 on detect a failure that began at pose 30 (2 ms apart) 20 ms late."""
+    import json
+
+    from torchevtrack.cli import main
+    from torchevtrack.io.lost import write_lost
+    from torchevtrack.io.poses import write_poses
+
+    d, t, gt = _sequence_dir(tmp_path)
+    pred = gt.clone()
+    pred[30:, 0] += 0.2
+    write_poses(tmp_path / "pred.txt", t, pred)
+    argv = ["eval", "--gt", str(d / "gt_poses.txt"), "--pred", str(tmp_path / "pred.txt")]
+    assert main(argv + ["--json"]) == 0
+    assert "loss" not in json.loads(capsys.readouterr().out)  # no side file, no loss verdict
+    lost = torch.zeros(len(t), dtype=torch.bool)
+    lost[5:8] = True
+    lost[40:] = True
+    write_lost(tmp_path / "pred.lost.txt", t, lost)
+    assert main(argv + ["--json"]) == 0
+    x = json.loads(capsys.readouterr().out)["loss"]
+    assert (x["first_failure_us"], x["first_loss_us"], x["delay_us"]) == (60_000, 10_000, 20_000)
+    assert (x["declarations"], x["false_alarms"], x["recoveries"], x["missed"]) == (2, 1, 1, False)
+    assert main(argv) == 0
+    assert "lost flags   : the failure was detected 20 ms after the failure run began: 2 declaration(s), 1 false " \
+        "alarm(s)" in capsys.readouterr().out
+    write_lost(tmp_path / "pred.lost.txt", t[:-1], lost[:-1])
+    assert main(argv) == 2
+    assert "pred.lost.txt: its times are not those of" in capsys.readouterr().err
+
+
 def test_cli_eval_leaves_a_plain_cylinders_spin_out_as_the_benchmark_does(tmp_path, capsys):
     """A prediction spun 60 deg about a plain (uncoloured) cylinder's axis fails the whole-rotation rule only; a box
     (no continuous symmetry) gets no symmetric lines."""

@@ -8,6 +8,10 @@ With a mesh (``--mesh`` or the sequence directory's ``mesh.ply``) that has no co
 symmetry (a plain can), the rotation error with the spin about that axis left out and the failure rule applied to it
 are reported too (``*_r_sym_*``, ``failed_sym``), as ``torchevtrack benchmark`` counts them.
 
+Where the prediction has a lost-flag side file beside it (``poses.txt`` -> ``poses.lost.txt``, as ``torchevtrack
+track`` writes it), its flags are scored against the failure rule as the benchmark's loss table scores them
+(``loss``: :func:`torchevtrack.loss.compare_with_ground_truth`).
+
 Exit status 2 (one line on stderr) when most predicted poses fall outside the ground truth's time range:
 the two files then use different time bases (units or origins), which ``--time-unit`` and ``--t-offset`` fix.
 """
@@ -20,7 +24,9 @@ from pathlib import Path
 
 import torch
 
+from torchevtrack.io.lost import lost_path, read_lost
 from torchevtrack.io.poses import FORMATS, detect_format, read_poses
+from torchevtrack.loss import compare_with_ground_truth
 from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
 from torchevtrack.metrics import FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, MESH_POINTS, evaluate, load_mesh_points
 
@@ -101,7 +107,22 @@ def _summary(r: dict, gt: Path, pred: Path, mesh: Path | None) -> str:
                      + " (the same rule on the rotation with the spin left out)")
     if "rmse_v_cm_s" in r:
         lines.append(f"velocity     : RMSE {r['rmse_v_cm_s']:.3f} cm/s, {r['rmse_w_deg_s']:.3f} deg/s")
+    if "loss" in r:
+        lines.append("lost flags   : " + _loss_line(r["loss"]) + f" ({lost_path(pred)})")
     return "\n".join(lines)
+
+
+def _loss_line(x: dict) -> str:
+    """One line of :func:`compare_with_ground_truth`'s verdict."""
+    counts = (f"{x['declarations']} declaration(s), {x['false_alarms']} false alarm(s), {x['recoveries']} "
+              "recovery(ies)")
+    if x["first_failure_us"] is None:
+        return ("no failure, " if x["first_loss_us"] is None else "no failure, declared lost anyway: ") + counts
+    if x["missed"]:
+        return "the failure was missed: " + counts
+    when = (f"{x['delay_us'] / 1e3:.0f} ms after the failure run began" if x["delay_us"] >= 0
+            else f"held lost since {-x['delay_us'] / 1e3:.0f} ms before the failure run began")
+    return f"the failure was detected {when}: " + counts
 
 
 def run(args: argparse.Namespace) -> int:
@@ -119,9 +140,15 @@ def run(args: argparse.Namespace) -> int:
     points = load_mesh_points(mesh_path) if mesh_path is not None else None
     # as the benchmark: an untextured mesh's spin about its symmetry axis is unobservable, its error reported apart
     axis = hidden_symmetry_axis(load_mesh(mesh_path)) if mesh_path is not None else None
-    r = evaluate(pred_t, pred_p, gt_t, gt_p, mesh_points=points, symmetric=args.symmetric,
-                 symmetry_axis=None if axis is None else torch.as_tensor(axis))
+    axis = None if axis is None else torch.as_tensor(axis)
+    r = evaluate(pred_t, pred_p, gt_t, gt_p, mesh_points=points, symmetric=args.symmetric, symmetry_axis=axis)
     r["n_mesh_points"] = None if points is None else int(points.shape[0])
+    side = lost_path(args.pred)
+    if side.is_file():  # track's lost flags: scored as the benchmark's loss table scores them
+        lost_t, lost = read_lost(side)
+        if not torch.equal(retime(lost_t, args.time_unit, args.t_offset), pred_t):
+            raise ValueError(f"{side}: its times are not those of {args.pred} (one line per pose, same order)")
+        r["loss"] = compare_with_ground_truth(pred_t, lost, pred_p, gt_t, gt_p, symmetry_axis=axis)
     if args.json:
         print(json.dumps(r))
     else:
@@ -136,7 +163,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=(
             "Score a predicted trajectory against the ground truth: translation / rotation RMSE and sigma, "
             "ADD and ADD-S AUC on 0..10 cm (with a mesh), EDOPT failure rule. The ground truth is "
-            "interpolated at the prediction times; predictions outside its time range are dropped."
+            "interpolated at the prediction times; predictions outside its time range are dropped. A lost-flag "
+            "side file beside the prediction (poses.txt -> poses.lost.txt, as track writes it) is scored too."
         ),
     )
     p.add_argument("--gt", required=True, help="ground-truth pose file, or a sequence directory (gt_poses.txt, mesh.ply)")
