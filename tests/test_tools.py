@@ -178,3 +178,43 @@ def test_recovery_trials_away(tmp_path: Path) -> None:
     done = subprocess.run([sys.executable, "tools/recovery_trials.py", str(tmp_path / "plain"), "--mode", "away"],
                           cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600)
     assert done.returncode != 0 and "not a sequence made with synth --leave-view" in done.stderr
+
+
+def _tool(name: str):
+    """A tool's module, imported from its file (tools/ is no package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, ROOT / "tools" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_depth_check_curve_replays_the_flag():
+    """A run failing at 100 ms whose rival x 0.8 is 1 px cheaper from 120 ms on: a check every 10 ms flags it within
+    50 ms, one every 50 ms only at 150 ms (still within), one every 80 ms at 160 ms (not within); a margin of 2 px
+    never; the rival x 1.25 never. A run that never fails, flagged at 20-30 ms only: one false alarm."""
+    curve = _tool("depth_check_curve")
+    rows = [[t * 1000, 5.0, 4.0 if t >= 120 else 6.0, 7.0] for t in range(10, 400, 10)]
+    held = [[t * 1000, 5.0, 4.0 if t in (20, 30) else 6.0, 7.0] for t in range(10, 400, 10)]
+    runs = {"lost": {"t0": 0, "fail": 100_000, "rows": rows}, "held": {"t0": 0, "fail": None, "rows": held}}
+    minutes = (0.1 + 0.39) / 60
+    r = curve.replay(runs, [2], 10_000, 0.5)
+    assert (r["failed"], r["within"], r["flagged"]) == (1, 1, 1) and r["false_per_min"] == pytest.approx(1 / minutes)
+    assert curve.replay(runs, [2], 50_000, 0.5)["within"] == 1
+    r = curve.replay(runs, [2], 80_000, 0.5)
+    assert (r["within"], r["flagged"], r["false_per_min"]) == (0, 1, 0.0)  # 80 ms checks miss the held run's flag
+    assert curve.replay(runs, [2], 10_000, 2.0)["flagged"] == 0
+    assert curve.replay(runs, [3], 10_000, 0.5)["flagged"] == 0
+
+
+def test_depth_check_curve_on_a_benchmark(sequence: Path, tmp_path: Path) -> None:
+    out = tmp_path / "bench"
+    _run("-m", "torchevtrack", "benchmark", str(sequence.parent), "--out", str(out), "--methods", "no_ukf",
+         "--no-overlays", "--quiet")
+    table = _run("tools/depth_check_curve.py", str(out), str(sequence.parent), "--subsets", "0.8,1.25",
+                 "--periods", "10,20", "--margins", "0.5", "--save", str(tmp_path / "costs.json"))
+    rows = [line for line in table.splitlines() if line.startswith("| x 0.8")]
+    assert len(rows) == 2 and all(r.split("|")[4].strip() == "0" for r in rows)  # 0.06 s: nothing fails
+    costs = json.loads((tmp_path / "costs.json").read_text())[sequence.name]["rows"]
+    assert len(costs) == 6 and all(len(r) == 6 for r in costs)  # every 10 ms of 60: [t, own, 4 rivals]

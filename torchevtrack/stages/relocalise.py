@@ -57,6 +57,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import math
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from types import SimpleNamespace
 from typing import NamedTuple
@@ -530,14 +531,15 @@ class Relocaliser(nn.Module):
         j = int(costs.argmin())
         return poses[j:j + 1], float(costs[j])
 
-    def rivals(self, pose: torch.Tensor, last_us: torch.Tensor, t_now_us: int) -> torch.Tensor:
+    def rivals(self, pose: torch.Tensor, last_us: torch.Tensor, t_now_us: int,
+               depths: Sequence[float] = RIVAL_DEPTHS) -> torch.Tensor:
         """Coarse chamfer costs of ``pose`` and of its depth rivals: the pose with its position scaled by each of
-        :data:`RIVAL_DEPTHS` (along its line of sight: the same image centre, the object nearer or farther), each at
+        ``depths`` (along its line of sight: the same image centre, the object nearer or farther), each at
         its best image-plane shift within ``RIVAL_XY_M`` (at its depth), at ``RIVAL_SCALE`` of the image, against the
         search's observation (module docstring, 1.) of the region around ``pose``. A rival that costs clearly less
         says the pose has drifted in depth (:class:`~torchevtrack.recover.Recoverer`'s check).
 
-        Shape: ``(1, 7)`` pose, ``(H, W)`` or ``(C, H, W)`` int64 ``last_us`` -> ``(1 + len(RIVAL_DEPTHS),)`` float64
+        Shape: ``(1, 7)`` pose, ``(H, W)`` or ``(C, H, W)`` int64 ``last_us`` -> ``(1 + len(depths),)`` float64
         (full-resolution pixels; ``cap_px`` for a pose with no edge or no event in view).
 
         Example (events on a box's outline; the pose 25 % too far, whose rival x 0.8 is the truth):
@@ -555,14 +557,14 @@ class Relocaliser(nn.Module):
         """
         pose = torch.as_tensor(pose, dtype=torch.float64)
         z = float(pose[0, 2])
-        level = Level(0.0, (z * (min(RIVAL_DEPTHS) - 1),), RIVAL_XY_M, RIVAL_SCALE)
+        level = Level(0.0, (z * (min(depths) - 1),), RIVAL_XY_M, RIVAL_SCALE)
         u0, v0, side = self._square(pose, level)
         H, W = self.camera.height, self.camera.width
         a, b = max(0, v0 - 1), max(0, u0 - 1)  # the square and a pixel around it (the events' neighbours)
         crop = newest(last_us)[a:min(H, v0 + side + 1), b:min(W, u0 + side + 1)]
         events = self._events(pose, torch.from_numpy(np.ascontiguousarray(crop)), int(t_now_us), level,
                               offset=(b, a))
-        poses = torch.cat([pose] + [torch.cat((pose[:, :3] * f, pose[:, 3:]), 1) for f in RIVAL_DEPTHS])
+        poses = torch.cat([pose] + [torch.cat((pose[:, :3] * f, pose[:, 3:]), 1) for f in depths])
         return self._search(poses, self._region(pose, level, events))[1]
 
     def costs(self, poses: torch.Tensor, last_us: torch.Tensor, t_now_us: int) -> torch.Tensor:
