@@ -274,6 +274,14 @@ def test_loss_detection_is_reported_against_the_failure_rule(run, bench, tmp_pat
     assert rows[2] == [METHOD_NAMES["velocity_only"], "0.002 / –", "0.002 / –", "0", "0", "2", "0 of 0", "3333.33",
                        "0"]
     assert not strict["config"]["loss"]["enabled"]  # the benchmark runs the detector anyway (it only reports)
+    # with two draws the counts pool both (four false alarms in 4 x 18 ms), the cells show the first
+    drawn = run_benchmark(bench, tmp_path / "drawn", methods=["velocity_only"], duration_s=0.02, config=cfg,
+                          overlays=False, progress=False, init_noise=(0.01, 0.005), trials=2)
+    assert all(len(runs) == 2 and all(x["loss"]["false_alarm"] for x in runs)
+               for runs in drawn["trials"]["velocity_only"].values())
+    rows = _table(table_markdown(drawn), "## Tracking loss")
+    assert rows[2] == [METHOD_NAMES["velocity_only"], "0.002 / –", "0.002 / –", "0", "0", "4", "0 of 0", "3333.33",
+                       "0"]
     # with recovery on, the lost flags are the recoverer's (held: no recent event pixels are enough for a search
     # here) and each run counts its searches
     held = run_benchmark(bench, tmp_path / "recover", methods=["velocity_only"], duration_s=0.02, overlays=False,

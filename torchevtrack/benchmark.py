@@ -33,7 +33,8 @@ sequence, :func:`torchevtrack.loss.compare_with_ground_truth` sets when loss was
 the start of the first ground-truth failure run (the held runs' rule: a symmetric untextured object's spin about its
 axis is no failure), whether a declaration still held detects that failure, and counts the declarations, the false
 alarms (declared and found again before the first failure run) and the recoveries (the lost flag turning off):
-``results[method][sequence]["loss"]``. The flags go beside each pose file (``poses/METHOD/S.lost.txt``,
+``results[method][sequence]["loss"]`` (the first draw; each draw's in ``trials``, and the loss table's counts pool
+them). The flags go beside each pose file (``poses/METHOD/S.lost.txt``,
 :mod:`torchevtrack.io.lost`); another tracker's poses with such a side file get a loss-table row too. With ``recover.enabled`` (``benchmark --recover``)
 the lost sequences are re-localised (:mod:`torchevtrack.recover`); the lost flags are then the recoverer's and each
 run's timing counts its searches (``searches``, ``search_s``, ``restarts``).
@@ -471,12 +472,12 @@ def run_benchmark(
             t_us, poses = read_tum(out / rel)  # score exactly what was written
             gt_t, gt = it.seq.gt_t_us, it.seq.gt_poses
             metrics = evaluate(t_us, poses, gt_t, gt, mesh_points=it.points, symmetry_axis=it.symmetry_axis)
+            loss = compare_with_ground_truth(t_us, lost, poses, gt_t, gt, symmetry_axis=it.symmetry_axis)
             if init_noise is not None:
                 res["trials"].setdefault(method, {}).setdefault(it.name, [None] * trials)[k] = \
-                    _trial_metrics(metrics)
+                    {**_trial_metrics(metrics), "loss": loss}
             if k > 0:  # the first trial gives the tables, plots and overlays
                 continue
-            loss = compare_with_ground_truth(t_us, lost, poses, gt_t, gt, symmetry_axis=it.symmetry_axis)
             timing = {key: run[key] for key in ("batch_size", "wall_s", "updates_per_s")}
             timing["updates"] = int(t_us.numel())
             timing["realtime_factor"] = timing["updates"] * cfg.period_us / 1e6 / run["wall_s"]
@@ -662,7 +663,9 @@ def table_markdown(results: dict) -> str:
                 cells.append("–" if r is None else " / ".join(
                     "–" if v is None else f"{(v - t0) / 1e6:.3f}"
                     for v in (r["loss"]["first_loss_us"], r["loss"]["first_failure_us"])))
-            losses = [r["loss"] for r in per_method[m].values()]
+            drawn = [x.get("loss") for runs in ((results.get("trials") or {}).get(m) or {}).values() for x in runs]
+            losses = (drawn if drawn and all(x is not None for x in drawn)  # every draw where there are several
+                      else [r["loss"] for r in per_method[m].values()])
             cells += [str(sum(x["first_failure_us"] is not None and not x["missed"] for x in losses)),
                       str(sum(x["missed"] for x in losses)), str(sum(x["false_alarm"] for x in losses))]
             failed = [x for x in losses if x["first_failure_us"] is not None]
@@ -673,7 +676,8 @@ def table_markdown(results: dict) -> str:
                       str(sum(x.get("recoveries", 0) for x in losses))]
             lines.append(_row(cells))
         lines.append("")
-        lines.append("declared: first update the loss detector held the sequence lost; failed: first of "
+        lines.append("Per sequence the first draw; the counts pool every draw (with trials). "
+                     "declared: first update the loss detector held the sequence lost; failed: first of "
                      f"{FAIL_WINDOW} consecutive updates with translation error > {FAIL_T_M * 100:g} cm or rotation "
                      f"error > {FAIL_R_DEG:g} deg (for a symmetric untextured object the tilt of its axis, as for the "
                      "held runs); –: never. detected: failed, and held lost when the failure run "
