@@ -216,5 +216,8 @@ def test_depth_check_curve_on_a_benchmark(sequence: Path, tmp_path: Path) -> Non
                  "--periods", "10,20", "--margins", "0.5", "--save", str(tmp_path / "costs.json"))
     rows = [line for line in table.splitlines() if line.startswith("| x 0.8")]
     assert len(rows) == 2 and all(r.split("|")[4].strip() == "0" for r in rows)  # 0.06 s: nothing fails
-    costs = json.loads((tmp_path / "costs.json").read_text())[sequence.name]["rows"]
+    costs = json.loads((tmp_path / "costs.json").read_text())[f"{out}/{sequence.name}"]["rows"]
     assert len(costs) == 6 and all(len(r) == 6 for r in costs)  # every 10 ms of 60: [t, own, 4 rivals]
+    done = subprocess.run([sys.executable, "tools/depth_check_curve.py", str(out)], cwd=ROOT, env=ENV,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "OUT DATA [OUT DATA ...]" in done.stderr

@@ -16,7 +16,7 @@ own surface also skips burst windows), then replays the flag for each subset of 
 
 The check alone is replayed: the loss detector's own declarations (which ``tracker.lost`` adds) are not.
 
-    .venv/bin/python tools/depth_check_curve.py bench_out data/wide_dev --depths 0.8,0.9,1.1,1.25 \\
+    .venv/bin/python tools/depth_check_curve.py dev_out data/wide_dev fresh_out data/wide_fresh \\
         --subsets 0.8,1.25 0.9,1.1 0.8,0.9,1.1,1.25 --periods 20,50 --margins 0.25,0.5,1
 
 Run from the repository, with the project's virtual environment.
@@ -111,8 +111,9 @@ def replay(runs: dict, columns: list[int], period_us: int, margin_px: float) -> 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("out", type=Path, help="a benchmark's output directory (results.json, poses/)")
-    ap.add_argument("data", type=Path, help="the directory of its sequences")
+    ap.add_argument("pairs", type=Path, nargs="+", metavar="OUT DATA",
+                    help="a benchmark's output directory (results.json, poses/) and the directory of its sequences; "
+                    "several pairs are pooled")
     ap.add_argument("--method", default="no_ukf", help="the method whose poses are checked (default no_ukf)")
     ap.add_argument("--depths", type=_floats, default=(0.8, 0.9, 1.1, 1.25),
                     help="rivals costed: depth factors along the line of sight (default 0.8,0.9,1.1,1.25)")
@@ -131,7 +132,12 @@ def main() -> None:
     for p in args.periods:
         if p % args.grid:
             ap.error(f"--periods {p} ms is not a multiple of --grid {args.grid} ms")
-    runs = check_costs(args.out, args.data, args.method, args.depths, args.grid * 1000)
+    if len(args.pairs) % 2:
+        ap.error("give each benchmark output directory with its data directory: OUT DATA [OUT DATA ...]")
+    runs = {}
+    for out, data in zip(args.pairs[::2], args.pairs[1::2]):
+        runs.update({f"{out}/{name}": x
+                     for name, x in check_costs(out, data, args.method, args.depths, args.grid * 1000).items()})
     if args.save:
         args.save.write_text(json.dumps(runs))
     print("| rivals | period (ms) | margin (px) | failed runs | flagged within 50 ms | flagged | false alarms / min |")
