@@ -272,6 +272,25 @@ def test_factor_tables_count_every_draw_and_the_symmetry_rule():
                                                                 "0/1"]
 
 
+def test_factor_tables_count_the_failures_the_lost_flags_caught():
+    """Per factor value: failed runs detected by the flags / failed runs, in brackets those within 50 ms; a row with a
+    run scored without flags (another tracker's poses) shows none."""
+    def run(failed, delay_ms=None, missed=False):
+        verdict = {"first_failure_us": 100_000 if failed else None, "missed": missed,
+                   "delay_us": None if delay_ms is None else delay_ms * 1000}
+        return {"rmse_t_cm": 1.0, "rmse_r_deg": 2.0, "adds_auc": 0.9, "failed": failed, "loss": verdict}
+
+    trials = {"a": [run(True, 20), run(True, 80)], "b": [run(True, missed=True), run(False)],
+              "c": [run(True, -30), run(False)]}
+    factors = {"a": {"hand": "hand"}, "b": {"hand": "hand"}, "c": {"hand": "none"}}
+    results = {"results": {"full": {s: {"metrics": r[0]} for s, r in trials.items()},
+                           "learned": {s: {"metrics": r[0]} for s, r in trials.items()}},
+               "trials": {"full": trials}}
+    hand = _cells(factor_tables(results, factors, factors_order=("hand",)), "Hand")
+    assert hand[("hand", "full")][-1] == "2/3 (1)" and hand[("none", "full")][-1] == "1/1 (1)"
+    assert hand[("hand", "learned")][-1] == "–"
+
+
 def test_factor_tables_cross_motion_and_camera():
     def run(failed, failed_sym=None):
         m = {"rmse_t_cm": 1.0, "rmse_r_deg": 2.0, "adds_auc": 0.9, "failed": failed}

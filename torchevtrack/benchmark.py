@@ -71,9 +71,8 @@ from torchevtrack.geometry import perturb_pose
 from torchevtrack.io.atomic import write_text
 from torchevtrack.io.lost import lost_path, read_lost, write_lost
 from torchevtrack.io.poses import read_poses, read_tum, write_tum
-from torchevtrack.loss import compare_with_ground_truth
+from torchevtrack.loss import LOSS_DELAY_US, compare_with_ground_truth
 
-LOSS_DELAY_US = 50_000  # a failure counts as flagged in time when declared at most this long after it began
 from torchevtrack.mesh import hidden_symmetry_axis
 from torchevtrack.metrics import (FAIL_R_DEG, FAIL_T_M, FAIL_WINDOW, evaluate, mesh_points, per_pose_errors,
                                   sym_failed, sym_rmse_r_deg)

@@ -54,8 +54,11 @@ from torchevtrack.stages import BufferViews
 if TYPE_CHECKING:  # the tracker may import this module: no import cycle at run time
     from torchevtrack.tracker import Quality
 
-__all__ = ["LossArrays", "LossDetector", "LossUpdate", "compare_with_ground_truth", "loss_kernel", "loss_step",
+__all__ = ["LOSS_DELAY_US", "LossArrays", "LossDetector", "LossUpdate", "compare_with_ground_truth", "loss_kernel", "loss_step",
            "update_times"]
+
+LOSS_DELAY_US = 50_000
+"""A failure counts as flagged in time when declared at most this long after its failure run began (issue targets)."""
 
 OnLost = Callable[[torch.Tensor, torch.Tensor], "torch.Tensor | None"]
 

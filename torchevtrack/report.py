@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from torchevtrack.loss import LOSS_DELAY_US
 from torchevtrack.metrics import sym_failed, sym_rmse_r_deg
 
 __all__ = ["FACTORS", "factor_tables", "noise_level", "sequence_factors", "suite_error_plot", "write_suite_report"]
@@ -89,7 +90,7 @@ def _row(cells) -> str:
     return "| " + " | ".join(str(c) for c in cells) + " |"
 
 
-def _summary(rows: list[dict], sym: bool) -> list[str]:
+def _summary(rows: list[dict], sym: bool, loss: bool) -> list[str]:
     t = [r["rmse_t_cm"] for r in rows]
     cells = [f"{np.mean(t):.2f}", f"{np.median(t):.2f}", f"{np.mean([r['rmse_r_deg'] for r in rows]):.2f}",
              f"{100 * np.mean([r['adds_auc'] for r in rows]):.1f}",
@@ -97,6 +98,14 @@ def _summary(rows: list[dict], sym: bool) -> list[str]:
     if sym:  # the symmetry axis left out where a run has one, the whole rotation elsewhere
         cells += [f"{np.mean([sym_rmse_r_deg(r) for r in rows]):.2f}",
                   f"{sum(sym_failed(r) for r in rows)}/{len(rows)}"]
+    if loss:  # the lost flags against the loss table's rule (the held runs' rule)
+        verdicts = [r.get("loss") for r in rows]
+        if any(v is None for v in verdicts):
+            cells.append("–")
+        else:
+            failed = [v for v in verdicts if v["first_failure_us"] is not None]
+            soon = sum(v["delay_us"] is not None and v["delay_us"] <= LOSS_DELAY_US for v in failed)
+            cells.append(f"{sum(not v['missed'] for v in failed)}/{len(failed)} ({soon})")
     return cells
 
 
@@ -104,7 +113,8 @@ def _runs(results: dict) -> dict[str, dict[str, list[dict]]]:
     """``{method: {sequence: [metrics of each run]}}``: a method's every start draw when it ran trials, else the one
     run of each sequence (a method scored from another tracker's pose files has no trials)."""
     trials = results.get("trials") or {}
-    return {m: {s: list(trials[m][s]) if s in trials.get(m, {}) else [r["metrics"]] for s, r in seqs.items()}
+    return {m: {s: list(trials[m][s]) if s in trials.get(m, {}) else [{**r["metrics"], "loss": r.get("loss")}]
+                for s, r in seqs.items()}
             for m, seqs in results["results"].items()}
 
 
@@ -155,6 +165,9 @@ def factor_tables(results: dict, factors: dict[str, dict], *, factors_order=tupl
     head = ["mean e_p (cm)", "median e_p (cm)", "mean e_r (deg)", "ADD-S AUC (%)", "failed"]
     if sym:
         head += ["mean e_r, sym. (deg)", "failed, sym."]
+    loss = any(r.get("loss") is not None for seqs in runs.values() for rs in seqs.values() for r in rs)
+    if loss:
+        head += [f"failures flagged (in {LOSS_DELAY_US // 1000} ms)"]
     lines = ["# Results by factor", ""]
 
     def table(title: str, groups: dict[str, list[str]]) -> None:
@@ -165,7 +178,7 @@ def factor_tables(results: dict, factors: dict[str, dict], *, factors_order=tupl
             for m in methods:
                 rows = [r for s in groups[value] for r in runs[m].get(s, [])]
                 if rows:
-                    lines.append(_row([value, m, len(rows)] + _summary(rows, sym)))
+                    lines.append(_row([value, m, len(rows)] + _summary(rows, sym, loss)))
         lines.append("")
 
     names = [s for s in factors if any(s in runs[m] for m in methods)]
@@ -181,6 +194,9 @@ def factor_tables(results: dict, factors: dict[str, dict], *, factors_order=tupl
                  "a run's updates, averaged over the runs of the row (median e_p: over them); failed: runs failed by "
                  "the EDOPT rule" + ("; sym.: the rotation about the symmetry axis of a symmetric untextured object "
                                      "left out, for the error and the rule (other runs count whole)" if sym else "")
+                 + ("; failures flagged: failed runs (the held runs' rule) the lost flags detected / failed runs, "
+                    f"in brackets those flagged within {LOSS_DELAY_US // 1000} ms (the benchmark's loss table)"
+                    if loss else "")
                  + ". Noise level: none 0, low <= 0.2, medium <= 1, high > 1 events per pixel per second.")
     return "\n".join(lines) + "\n"
 
