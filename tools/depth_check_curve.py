@@ -106,7 +106,8 @@ def replay(runs: dict, columns: list[int], period_us: int, margin_px: float) -> 
         up = bool(before and before[-1])
         within += up or any(s for tau, s in hist if fail < tau <= fail + WITHIN_US)
         flagged += up or any(s for tau, s in hist if tau > fail)
-    return {"failed": failed, "within": within, "flagged": flagged, "false_per_min": false / minutes if minutes else 0.0}
+    return {"failed": failed, "within": within, "flagged": flagged,
+            "false_per_min": false / minutes if minutes else 0.0}
 
 
 def main() -> None:

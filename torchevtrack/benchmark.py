@@ -34,8 +34,8 @@ the start of the first ground-truth failure run (the held runs' rule: a symmetri
 axis is no failure), whether a declaration still held detects that failure, and counts the declarations, the false
 alarms (declared and found again before the first failure run) and the recoveries (the lost flag turning off):
 ``results[method][sequence]["loss"]`` (the first draw; each draw's in ``trials``, and the loss table's counts pool
-them). The flags go beside each pose file (``poses/METHOD/S.lost.txt``,
-:mod:`torchevtrack.io.lost`); another tracker's poses with such a side file get a loss-table row too. With ``recover.enabled`` (``benchmark --recover``)
+them). The flags go beside each pose file (``poses/METHOD/S.lost.txt``, :mod:`torchevtrack.io.lost`); another
+tracker's poses with such a side file get a loss-table row too. With ``recover.enabled`` (``benchmark --recover``)
 the lost sequences are re-localised (:mod:`torchevtrack.recover`); the lost flags are then the recoverer's and each
 run's timing counts its searches (``searches``, ``search_s``, ``restarts``).
 

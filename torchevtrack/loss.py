@@ -54,8 +54,8 @@ from torchevtrack.stages import BufferViews
 if TYPE_CHECKING:  # the tracker may import this module: no import cycle at run time
     from torchevtrack.tracker import Quality
 
-__all__ = ["LOSS_DELAY_US", "LossArrays", "LossDetector", "LossUpdate", "compare_with_ground_truth", "loss_kernel", "loss_step",
-           "update_times"]
+__all__ = ["LOSS_DELAY_US", "LossArrays", "LossDetector", "LossUpdate", "compare_with_ground_truth", "loss_kernel",
+           "loss_step", "update_times"]
 
 LOSS_DELAY_US = 50_000
 """A failure counts as flagged in time when declared at most this long after its failure run began (issue targets)."""
@@ -326,9 +326,9 @@ def compare_with_ground_truth(
     Args:
         t_us: ``(N,)`` update times, us; lost: ``(N,)`` bool detector state per update;
         poses: ``(N, 7)`` tracker poses; gt_t_us, gt_poses: ``(G,)``, ``(G, 7)`` ground truth.
-        symmetry_axis: ``(3,)`` object-frame axis of an untextured symmetric object, or None: the rule then measures
-            the rotation error modulo that axis (:func:`torchevtrack.metrics.rotation_error`), as the benchmark's
-            held runs do: a spin about it changes no edge, so it is no failure a detector could see.
+        symmetry_axis: ``(3,)`` object-frame axis of an untextured symmetric object, or None. With an axis the rule
+            reads the rotation error modulo that axis (:func:`torchevtrack.metrics.rotation_error`), as the
+            benchmark's held runs do: a spin about it changes no edge, so it is no failure a detector could see.
         max_t, max_r_deg, window: the failure rule (defaults: 7 cm, 40 deg, 50 samples).
 
     A declaration (``lost`` turning on) opens an episode that lasts until ``lost`` turns off (or the end). The

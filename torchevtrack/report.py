@@ -148,7 +148,9 @@ def factor_tables(results: dict, factors: dict[str, dict], *, factors_order=tupl
 
     Every start draw counts (``results["trials"]``) when the run had them, else each sequence's one run
     (``results["results"][method][seq]["metrics"]``). Read from each run: ``rmse_t_cm``, ``rmse_r_deg``,
-    ``adds_auc``, ``failed`` and, where present, ``rmse_r_sym_deg`` and ``failed_sym``.
+    ``adds_auc``, ``failed`` and, where present, ``rmse_r_sym_deg``, ``failed_sym`` and the benchmark's loss verdict
+    ``loss`` (then a column: failed runs the lost flags detected / failed runs, and those within
+    :data:`~torchevtrack.loss.LOSS_DELAY_US`).
 
     Args:
         results: the dict of :func:`torchevtrack.benchmark.run_benchmark`.
