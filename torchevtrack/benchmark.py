@@ -69,7 +69,7 @@ from torchevtrack.config import ABLATIONS, TrackerConfig
 from torchevtrack.executor import Executor, SerialExecutor
 from torchevtrack.geometry import perturb_pose
 from torchevtrack.io.atomic import write_text
-from torchevtrack.io.lost import lost_path, read_lost, write_lost
+from torchevtrack.io.lost import lost_beside, lost_path, write_lost
 from torchevtrack.io.poses import read_poses, read_tum, write_tum
 from torchevtrack.loss import LOSS_DELAY_US, compare_with_ground_truth
 
@@ -286,11 +286,7 @@ def _score_foreign(it: _Item, path: Path, crop: bool) -> tuple[dict, dict, dict 
     where ``path`` has a lost-flag side file (:mod:`torchevtrack.io.lost`), the
     :func:`~torchevtrack.loss.compare_with_ground_truth` dict (else None)."""
     t_us, poses = read_poses(path)
-    lost = None
-    if lost_path(path).is_file():
-        lost_t, lost = read_lost(lost_path(path))
-        if not torch.equal(lost_t, t_us):
-            raise ValueError(f"{lost_path(path)}: its times are not those of {path} (one line per pose, same order)")
+    lost = lost_beside(path, t_us)
     if crop and t_us.numel() and int(t_us[-1]) > it.t_end_us:
         keep = t_us <= it.t_end_us
         t_us, poses = t_us[keep], poses[keep]

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from torchevtrack.io.lost import lost_path, read_lost
+from torchevtrack.io.lost import lost_beside, lost_path
 from torchevtrack.io.poses import FORMATS, detect_format, read_poses
 from torchevtrack.loss import compare_with_ground_truth
 from torchevtrack.mesh import hidden_symmetry_axis, load_mesh
@@ -143,11 +143,8 @@ def run(args: argparse.Namespace) -> int:
     axis = None if axis is None else torch.as_tensor(axis)
     r = evaluate(pred_t, pred_p, gt_t, gt_p, mesh_points=points, symmetric=args.symmetric, symmetry_axis=axis)
     r["n_mesh_points"] = None if points is None else int(points.shape[0])
-    side = lost_path(args.pred)
-    if side.is_file():  # track's lost flags: scored as the benchmark's loss table scores them
-        lost_t, lost = read_lost(side)
-        if not torch.equal(retime(lost_t, args.time_unit, args.t_offset), pred_t):
-            raise ValueError(f"{side}: its times are not those of {args.pred} (one line per pose, same order)")
+    lost = lost_beside(args.pred, pred_t, lambda t: retime(t, args.time_unit, args.t_offset))
+    if lost is not None:  # track's lost flags: scored as the benchmark's loss table scores them
         r["loss"] = compare_with_ground_truth(pred_t, lost, pred_p, gt_t, gt_p, symmetry_axis=axis)
     if args.json:
         print(json.dumps(r))

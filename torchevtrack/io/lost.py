@@ -25,7 +25,7 @@ import torch
 
 from torchevtrack.io.atomic import write_text
 
-__all__ = ["lost_path", "read_lost", "write_lost"]
+__all__ = ["lost_beside", "lost_path", "read_lost", "write_lost"]
 
 
 def lost_path(pose_path: str | Path) -> Path:
@@ -66,3 +66,17 @@ def read_lost(path: str | Path) -> tuple[torch.Tensor, torch.Tensor]:
             raise ValueError(f"{path}:{lineno}: expected 't lost' (seconds, 0 or 1), got {line!r}") from None
         flags.append(fields[1] == "1")
     return torch.tensor(t, dtype=torch.int64), torch.tensor(flags, dtype=torch.bool)
+
+
+def lost_beside(pose_path: str | Path, t_us: torch.Tensor, retime=None) -> torch.Tensor | None:
+    """The lost flags ``(N,)`` bool of the pose file ``pose_path`` read from its side file (:func:`lost_path`), or
+    ``None`` when it has none. ``t_us`` ``(N,)``: the pose file's times as the caller holds them, after ``retime``
+    (a function of the side file's ``(N,)`` int64 us, e.g. a unit change; default none); raises ``ValueError`` (one
+    line) when the side file's times are not those."""
+    side = lost_path(pose_path)
+    if not side.is_file():
+        return None
+    lost_t, lost = read_lost(side)
+    if not torch.equal(lost_t if retime is None else retime(lost_t), torch.as_tensor(t_us)):
+        raise ValueError(f"{side}: its times are not those of {pose_path} (one line per pose, same order)")
+    return lost
