@@ -84,6 +84,9 @@ def test_a_pose_drifted_in_depth_has_a_depth_rival_that_costs_clearly_less(box, 
     c = reloc.rivals(drifted, surface[0], 1000)
     k = 1 + RIVAL_DEPTHS.index(round(1 / factor, 2))
     assert float(c[k]) < float(c[0]) - 1.0 and int(c.argmin()) == k, c
+    even = (torch.arange(surface.shape[-1]) % 2 == 0).expand_as(surface[0])  # the events split between two channels
+    split = torch.stack((torch.where(even, surface[0], NEVER), torch.where(even, NEVER, surface[0])))
+    assert torch.equal(reloc.rivals(drifted, split, 1000), c)  # (C, H, W): the channels' newest, as one plane
     other = reloc.rivals(drifted, surface[0], 1000, depths=(0.95, round(1 / factor, 2), 1.05))  # rivals of choice
     assert other.shape == (4,) and int(other.argmin()) == 2, other
 

@@ -561,7 +561,8 @@ class Relocaliser(nn.Module):
         u0, v0, side = self._square(pose, level)
         H, W = self.camera.height, self.camera.width
         a, b = max(0, v0 - 1), max(0, u0 - 1)  # the square and a pixel around it (the events' neighbours)
-        crop = newest(last_us)[a:min(H, v0 + side + 1), b:min(W, u0 + side + 1)]
+        # the channels' newest time taken in the crop only, not over the frame
+        crop = newest(torch.as_tensor(last_us)[..., a:min(H, v0 + side + 1), b:min(W, u0 + side + 1)])
         events = self._events(pose, torch.from_numpy(np.ascontiguousarray(crop)), int(t_now_us), level,
                               offset=(b, a))
         poses = torch.cat([pose] + [torch.cat((pose[:, :3] * f, pose[:, 3:]), 1) for f in depths])
