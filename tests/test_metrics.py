@@ -325,7 +325,8 @@ def test_cli_eval_summary_and_failure(tmp_path, capsys):
     write_poses(tmp_path / "pred.txt", t, pred)
     assert main(["eval", "--gt", str(d / "gt_poses.txt"), "--pred", str(tmp_path / "pred.txt")]) == 0
     out = capsys.readouterr().out
-    assert "n/a (no mesh)" in out  # a file --gt does not pick up the directory's mesh
+    # a file --gt does not pick up the directory's mesh, but names it
+    assert f"n/a (no mesh; --gt {d} also reads its mesh.ply: ADD / ADD-S, a plain can's spin left out)" in out
     assert "FAILED at 0.060000 s (pose 30" in out
 
 

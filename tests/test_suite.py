@@ -206,6 +206,35 @@ def test_wide_suite_dry_run_and_disjoint_splits(tmp_path):
     assert wide_suite("dev") == e and wide_suite("dev", 7) != e and wide_suite("dev", 7) == wide_suite("test", 7)
 
 
+def test_wide_suite_over_other_objects_keeps_every_other_factor(tmp_path, capsys):
+    """--objects swaps the objects only: a built-in name and a mesh file, each drawn 16 times, sized from their
+    meshes, named by the name or the file's stem; motion, camera, noise, hand, texture and seed stay the split's."""
+    import trimesh
+
+    trimesh.creation.box(extents=(0.3, 0.2, 0.1)).export(tmp_path / "big_crate.ply")
+    out = tmp_path / "novel"
+    assert main(["synth-benchmark", "--suite", "wide", "--split", "dev", "--out", str(out), "--dry-run",
+                 "--objects", "can", str(tmp_path / "big_crate.ply")]) == 0
+    e = json.loads((out / "suite.json").read_text())["sequences"]
+    base = wide_suite("dev")
+    assert [{k: v for k, v in x.items() if k not in ("name", "object", "size")} for x in e] == \
+        [{k: v for k, v in x.items() if k not in ("name", "object", "size")} for x in base]
+    assert [x["name"].split("_", 2)[::2] for x in e] == [x["name"].split("_", 2)[::2] for x in base]
+    crate = [x for x in e if x["object"] == str(tmp_path / "big_crate.ply")]
+    can = [x for x in e if x["object"] == "can"]
+    assert len(crate) == len(can) == 16
+    assert all(x["size"] == "large" and x["name"].split("_")[1] == "big-crate" for x in crate)  # 0.37 m diagonal
+    assert all(x["size"] == size_class(load_mesh("can").extents) and x["name"].split("_")[1] == "can" for x in can)
+    for argv, message in ((["--objects", "can", "can"], "each object once"),
+                          (["--objects", "no_such_thing"], "no_such_thing")):
+        assert main(["synth-benchmark", "--suite", "wide", "--split", "dev", "--out", str(tmp_path / "x"),
+                     "--dry-run"] + argv) == 2
+        assert message in capsys.readouterr().err
+    assert main(["synth-benchmark", "--out", str(tmp_path / "s"), "--dry-run", "--objects", "can"]) == 2
+    assert "--objects choose a split of --suite wide" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists() and not (tmp_path / "s").exists()
+
+
 def test_standard_suite_dry_run(tmp_path):
     assert main(["synth-benchmark", "--out", str(tmp_path), "--dry-run"]) == 0
     e = json.loads((tmp_path / "suite.json").read_text())["sequences"]

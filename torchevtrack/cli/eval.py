@@ -88,7 +88,10 @@ def _summary(r: dict, gt: Path, pred: Path, mesh: Path | None) -> str:
         f"per axis RMSE: t [x y z] {xyz(r['rmse_t_xyz_cm'])} cm   r [x y z] {xyz(r['rmse_r_xyz_deg'])} deg",
     ]
     if r["add_auc"] is None:
-        lines.append("ADD / ADD-S  : n/a (no mesh)")
+        beside = gt.parent / "mesh.ply"
+        hint = (f"; --gt {gt.parent} also reads its mesh.ply: ADD / ADD-S, a plain can's spin left out"
+                if beside.is_file() else "")
+        lines.append(f"ADD / ADD-S  : n/a (no mesh{hint})")
     else:
         lines.append(
             f"ADD / ADD-S  : AUC(0-10 cm) {r['add_auc']:.4f} / {r['adds_auc']:.4f}   "

@@ -108,14 +108,21 @@ def run_synth(args: argparse.Namespace) -> int:
 
 
 def run_benchmark(args: argparse.Namespace) -> int:
-    from torchevtrack.synth.suite import SPLIT_SEED_BASE, generate_suite, standard_suite, wide_suite, write_suite_json
+    from torchevtrack.synth.suite import (
+        SPLIT_SEED_BASE,
+        generate_suite,
+        object_sizes,
+        standard_suite,
+        wide_suite,
+        write_suite_json,
+    )
 
     if args.duration is not None and args.duration <= 0:
         raise ValueError(f"--duration must be positive, got {args.duration}")
     out = Path(args.out)
     if args.suite == "standard":
-        if args.split is not None or args.seed_base is not None:
-            raise ValueError("--split and --seed-base choose a split of --suite wide")
+        if args.split is not None or args.seed_base is not None or args.objects is not None:
+            raise ValueError("--split, --seed-base and --objects choose a split of --suite wide")
         entries = standard_suite(4.0 if args.duration is None else args.duration,
                                  contrast_threshold=args.contrast_threshold, sigma_c=args.sigma_c,
                                  refractory_us=args.refractory_us, noise_rate=args.noise_rate,
@@ -128,7 +135,7 @@ def run_benchmark(args: argparse.Namespace) -> int:
             raise ValueError("--noise-rate and --refractory-us are drawn per sequence by the wide suite")
         split = args.split
         base = SPLIT_SEED_BASE[split] if args.seed_base is None else args.seed_base
-        entries = wide_suite(split, base)
+        entries = wide_suite(split, base, None if args.objects is None else object_sizes(args.objects))
         for e in entries:
             e.update(contrast_threshold=args.contrast_threshold, sigma_c=args.sigma_c, background=args.background,
                      render_faces=args.render_faces)
@@ -195,6 +202,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument("--split", choices=("dev", "test"), help="the wide suite's split (dev: tune on it; test: report)")
     b.add_argument("--seed-base", type=int, help="the wide suite's first seed (default: the split's)")
     b.add_argument("--duration", type=float, help="seconds per sequence (default 4)")
+    b.add_argument("--objects", nargs="+", metavar="OBJECT",
+                   help="the wide suite drawn over these objects (names as --object of synth, or mesh files) instead "
+                   "of its 12 YCB objects; every other factor of each sequence stays the split's")
     b.add_argument("--only", nargs="+", metavar="NAME", help="generate only these sequences (e.g. mustard_fast)")
     b.add_argument("--dry-run", action="store_true", help="write only --out/suite.json")
     add_executor_options(b, default="process")

@@ -17,7 +17,7 @@ background noise 0, 0.1, 0.5, 1 or 2 Hz per pixel, 0, 5 or 20 hot pixels at 100 
 in 0-100 us, a hand in 8 of the 32 and a printed texture in 16, object distance 0.3-1.0 m; rendered with the
 compiled raster backend, a frame per pixel of image motion. The dev and test
 splits use disjoint seeds (``SPLIT_SEED_BASE``); the test split is for reporting only, never for choosing a
-parameter.
+parameter. ``wide_suite(split, objects=object_sizes([...]))`` draws the same sequences over other objects.
 
 Example:
     >>> entries = wide_suite("dev")
@@ -40,7 +40,8 @@ from tqdm import tqdm
 from torchevtrack.camera import Camera
 
 __all__ = ["BENCHMARK_MOTIONS", "BENCHMARK_OBJECTS", "CAMERA_PRESETS", "MOTIONS", "SPLIT_SEED_BASE", "SUITES",
-           "WIDE_OBJECTS", "benchmark_seed", "generate_entry", "generate_suite", "read_suite_json", "size_class",
+           "WIDE_OBJECTS", "benchmark_seed", "generate_entry", "generate_suite", "object_sizes", "read_suite_json",
+           "size_class",
            "standard_suite",
            "wide_suite", "write_suite_json"]
 
@@ -110,15 +111,58 @@ def _balanced(rng: np.random.Generator, values, n: int, counts: dict | None = No
     return [pool[i] for i in rng.permutation(n)]
 
 
-def wide_suite(split: str, seed_base: int | None = None) -> list[dict]:
+def _short_name(obj: str) -> str:
+    """A sequence name's object part: the suite's own objects by their first word (``"006_mustard_bottle"`` ->
+    ``"mustard"``), any other by its name without the YCB number or by its file's stem, underscores made dashes so
+    that the name's fields stay ``_``-separated (``"040_large_marker"`` -> ``"large-marker"``, ``"scans/my_part.ply"``
+    -> ``"my-part"``)."""
+    if obj in WIDE_OBJECTS:
+        return obj.split("_", 1)[1].split("_")[0]
+    stem = Path(obj).stem if Path(obj).suffix else obj
+    if stem[:3].isdigit() and stem[3:4] == "_":
+        stem = stem[4:]
+    return stem.replace("_", "-")
+
+
+def object_sizes(objects) -> dict[str, str]:
+    """``{object: size class}`` of object names or mesh files (:func:`size_class` of each mesh's bounding box),
+    in the order given; the wide suite's own objects without loading them. Raises ``ValueError`` on an empty
+    list or a repeated object (a balanced suite draws each equally often), and what
+    :func:`torchevtrack.mesh.load_mesh` raises on an unknown name or an unreadable file."""
+    from torchevtrack.mesh import load_mesh
+
+    objects = [str(o) for o in objects]
+    if not objects:
+        raise ValueError("objects: give at least one object name or mesh file")
+    if len(set(objects)) != len(objects):
+        raise ValueError(f"objects: each object once, got {objects}")
+    return {o: WIDE_OBJECTS.get(o) or size_class(load_mesh(o).extents) for o in objects}
+
+
+def wide_suite(split: str, seed_base: int | None = None, objects: dict[str, str] | None = None) -> list[dict]:
     """The wide suite's entries of ``split`` (``"dev"`` or ``"test"``), a pure function of the seed base
-    (default ``SPLIT_SEED_BASE[split]``). See the module docstring for the design."""
+    (default ``SPLIT_SEED_BASE[split]``) and the objects. See the module docstring for the design.
+
+    ``objects``: ``{name or mesh file: size class}`` (:func:`object_sizes`) to draw instead of the suite's 12 YCB
+    objects (``WIDE_OBJECTS``), each as often as the 32 sequences allow. Every other factor of sequence ``i``
+    (motion, camera, noise, hand, texture, seed) is the same as in the default suite of that seed base, so the
+    two are paired sequence by sequence.
+
+    Example:
+        >>> a = wide_suite("dev")
+        >>> b = wide_suite("dev", objects={"box": "small", "can": "small"})
+        >>> sorted({e["object"] for e in b}), [e["motion"] for e in a] == [e["motion"] for e in b]
+        (['box', 'can'], True)
+    """
     if split not in SPLIT_SEED_BASE:
         raise ValueError(f"split must be one of {sorted(SPLIT_SEED_BASE)}, got {split!r}")
+    sizes = WIDE_OBJECTS if objects is None else dict(objects)
+    if not sizes:
+        raise ValueError("objects: give at least one object")
     base = SPLIT_SEED_BASE[split] if seed_base is None else int(seed_base)
     rng = np.random.default_rng(base)
     n = _WIDE_SIZE
-    objects = _balanced(rng, list(WIDE_OBJECTS), n)
+    objects = _balanced(rng, list(sizes), n)
     motions = _balanced(rng, MOTIONS, n)
     cameras = _balanced(rng, _CAMERAS, n)
     noise = _balanced(rng, _NOISE_HZ, n)
@@ -128,11 +172,10 @@ def wide_suite(split: str, seed_base: int | None = None) -> list[dict]:
     refractory = rng.integers(0, 101, n)
     entries = []
     for i in range(n):
-        short = objects[i].split("_", 1)[1].split("_")[0]
         entries.append({
-            "name": f"{i:02d}_{short}_{motions[i]}_{cameras[i]}",
+            "name": f"{i:02d}_{_short_name(objects[i])}_{motions[i]}_{cameras[i]}",
             "object": objects[i],
-            "size": WIDE_OBJECTS[objects[i]],
+            "size": sizes[objects[i]],
             "motion": motions[i],
             "camera": cameras[i],
             "noise_rate": float(noise[i]),
