@@ -126,12 +126,12 @@ def _short_name(obj: str) -> str:
 
 def object_sizes(objects) -> dict[str, str]:
     """``{object: size class}`` of object names or mesh files (:func:`size_class` of each mesh's bounding box),
-    in the order given; the wide suite's own objects without loading them. Raises ``ValueError`` on an empty
-    list or a repeated object (a balanced suite draws each equally often), and what
-    :func:`torchevtrack.mesh.load_mesh` raises on an unknown name or an unreadable file."""
+    in the order given, a mesh file by its absolute path (any worker finds it); the wide suite's own objects without
+    loading them. Raises ``ValueError`` on an empty list or a repeated object (a balanced suite draws each equally
+    often), and what :func:`torchevtrack.mesh.load_mesh` raises on an unknown name or an unreadable file."""
     from torchevtrack.mesh import load_mesh
 
-    objects = [str(o) for o in objects]
+    objects = [str(Path(o).resolve()) if Path(o).suffix and Path(o).is_file() else str(o) for o in objects]
     if not objects:
         raise ValueError("objects: give at least one object name or mesh file")
     if len(set(objects)) != len(objects):
