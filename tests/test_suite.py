@@ -232,6 +232,8 @@ def test_wide_suite_over_other_objects_keeps_every_other_factor(tmp_path, capsys
         assert main(["synth-benchmark", "--suite", "wide", "--split", "dev", "--out", str(tmp_path / "x"),
                      "--dry-run"] + argv) == 2
         assert message in capsys.readouterr().err
+    with pytest.raises(ValueError, match="1 to 32 objects"):
+        wide_suite("dev", objects={f"obj{i}.ply": "small" for i in range(33)})
     assert main(["synth-benchmark", "--out", str(tmp_path / "s"), "--dry-run", "--objects", "can"]) == 2
     assert "--objects choose a split of --suite wide" in capsys.readouterr().err
     assert not (tmp_path / "x").exists() and not (tmp_path / "s").exists()

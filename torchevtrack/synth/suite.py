@@ -41,9 +41,7 @@ from torchevtrack.camera import Camera
 
 __all__ = ["BENCHMARK_MOTIONS", "BENCHMARK_OBJECTS", "CAMERA_PRESETS", "MOTIONS", "SPLIT_SEED_BASE", "SUITES",
            "WIDE_OBJECTS", "benchmark_seed", "generate_entry", "generate_suite", "object_sizes", "read_suite_json",
-           "size_class",
-           "standard_suite",
-           "wide_suite", "write_suite_json"]
+           "size_class", "standard_suite", "wide_suite", "write_suite_json"]
 
 # The paper's synthetic benchmark: 4 YCB objects x 2 motion groups, named like the paper's tables.
 BENCHMARK_OBJECTS = {
@@ -157,8 +155,8 @@ def wide_suite(split: str, seed_base: int | None = None, objects: dict[str, str]
     if split not in SPLIT_SEED_BASE:
         raise ValueError(f"split must be one of {sorted(SPLIT_SEED_BASE)}, got {split!r}")
     sizes = WIDE_OBJECTS if objects is None else dict(objects)
-    if not sizes:
-        raise ValueError("objects: give at least one object")
+    if not 1 <= len(sizes) <= _WIDE_SIZE:
+        raise ValueError(f"objects: give 1 to {_WIDE_SIZE} objects (one per sequence at most), got {len(sizes)}")
     base = SPLIT_SEED_BASE[split] if seed_base is None else int(seed_base)
     rng = np.random.default_rng(base)
     n = _WIDE_SIZE
