@@ -348,13 +348,20 @@ def test_sequence_factors_from_suite_json_and_meta(tmp_path):
     first = json.loads((d / "suite.json").read_text())["sequences"][0]
     f = sequence_factors(d, [first["name"]])[first["name"]]
     assert f["motion"] == first["motion"] and f["camera"] == first["camera"] and f["size"] == first["size"]
+    assert f["object"] == first["object"]
     # a sequence that suite.json does not list: from its own files
     seq = generate_sequence("can", "turn", 0.02, 0, CAM, occluder="hand", noise_rate_hz=1.5,
                             render_backend="raster", progress=False)
     seq.save(d / "extra")
     f = sequence_factors(d, ["extra"])["extra"]
     assert f == {"motion": "turn", "camera": "96x72", "noise": "high", "hand": "hand", "texture": "none",
-                 "size": size_class(trimesh.load(d / "extra" / "mesh.ply").extents)}
+                 "size": size_class(trimesh.load(d / "extra" / "mesh.ply").extents), "object": "can"}
+    # --objects with a mesh file: the table's row is the file's stem
+    trimesh.creation.box(extents=(0.1, 0.05, 0.05)).export(tmp_path / "my_part.ply")
+    assert main(["synth-benchmark", "--suite", "wide", "--split", "dev", "--out", str(tmp_path / "mine"), "--dry-run",
+                 "--objects", str(tmp_path / "my_part.ply")]) == 0
+    name = json.loads((tmp_path / "mine" / "suite.json").read_text())["sequences"][0]["name"]
+    assert sequence_factors(tmp_path / "mine", [name])[name]["object"] == "my_part"
 
 
 def _inside_events(seq, erode: int = 3) -> int:

@@ -1,5 +1,5 @@
-"""Per-factor report of a benchmark run on a suite: how the error depends on motion, camera, noise, hand, texture
-and object size, and every sequence's error against time in one figure.
+"""Per-factor report of a benchmark run on a suite: how the error depends on motion, camera, noise, hand, texture,
+object size and the object itself, and every sequence's error against time in one figure.
 
 :func:`sequence_factors` reads each sequence's factors from the suite's ``suite.json``
 (:func:`torchevtrack.synth.suite.write_suite_json`) or, without it, from the sequences' ``meta.json`` and
@@ -34,6 +34,7 @@ FACTORS = {
     "hand": "hand",
     "texture": "texture",
     "size": "object size",
+    "object": "object",
 }
 """The factors of the report (key: heading)."""
 
@@ -64,7 +65,8 @@ def sequence_factors(bench_dir: str | Path, names) -> dict[str, dict]:
         e = listed.get(name)
         if e is not None:
             out[name] = {"motion": e["motion"], "camera": e["camera"], "noise": noise_level(e["noise_rate"]),
-                         "hand": e["occluder"], "texture": e["texture"], "size": e.get("size") or "?"}
+                         "hand": e["occluder"], "texture": e["texture"], "size": e.get("size") or "?",
+                         "object": _object_label(e.get("object"))}
             continue
         d = root / name
         meta = json.loads((d / "meta.json").read_text()) if (d / "meta.json").is_file() else {}
@@ -82,8 +84,16 @@ def sequence_factors(bench_dir: str | Path, names) -> dict[str, dict]:
             "hand": (meta.get("occluder") or {}).get("kind", "none"),
             "texture": (meta.get("texture") or {}).get("kind", "none"),
             "size": size,
+            "object": _object_label(meta.get("object")),
         }
     return out
+
+
+def _object_label(obj: str | None) -> str:
+    """An object's name as the factor tables show it: a name as it is, a mesh file by its stem."""
+    if not obj:
+        return "?"
+    return Path(obj).stem if Path(obj).suffix else obj
 
 
 def _row(cells) -> str:
