@@ -55,7 +55,7 @@ def sequence_factors(bench_dir: str | Path, names) -> dict[str, dict]:
     From ``bench_dir/suite.json`` when it lists the sequence, else from its ``meta.json`` (motion, noise, hand,
     texture) and ``camera.json`` (camera preset name, or ``WxH``) and the mesh's bounding box (size).
     """
-    from torchevtrack.synth.suite import read_suite_json, size_class
+    from torchevtrack.synth.suite import object_label, read_suite_json, size_class
 
     root = Path(bench_dir)
     suite = read_suite_json(root)
@@ -66,7 +66,7 @@ def sequence_factors(bench_dir: str | Path, names) -> dict[str, dict]:
         if e is not None:
             out[name] = {"motion": e["motion"], "camera": e["camera"], "noise": noise_level(e["noise_rate"]),
                          "hand": e["occluder"], "texture": e["texture"], "size": e.get("size") or "?",
-                         "object": _object_label(e.get("object"))}
+                         "object": object_label(e["object"]) if e.get("object") else "?"}
             continue
         d = root / name
         meta = json.loads((d / "meta.json").read_text()) if (d / "meta.json").is_file() else {}
@@ -84,16 +84,9 @@ def sequence_factors(bench_dir: str | Path, names) -> dict[str, dict]:
             "hand": (meta.get("occluder") or {}).get("kind", "none"),
             "texture": (meta.get("texture") or {}).get("kind", "none"),
             "size": size,
-            "object": _object_label(meta.get("object")),
+            "object": object_label(meta["object"]) if meta.get("object") else "?",
         }
     return out
-
-
-def _object_label(obj: str | None) -> str:
-    """An object's name as the factor tables show it: a name as it is, a mesh file by its stem."""
-    if not obj:
-        return "?"
-    return Path(obj).stem if Path(obj).suffix else obj
 
 
 def _row(cells) -> str:

@@ -40,8 +40,8 @@ from tqdm import tqdm
 from torchevtrack.camera import Camera
 
 __all__ = ["BENCHMARK_MOTIONS", "BENCHMARK_OBJECTS", "CAMERA_PRESETS", "MOTIONS", "SPLIT_SEED_BASE", "SUITES",
-           "WIDE_OBJECTS", "benchmark_seed", "generate_entry", "generate_suite", "object_sizes", "read_suite_json",
-           "size_class", "standard_suite", "wide_suite", "write_suite_json"]
+           "WIDE_OBJECTS", "benchmark_seed", "generate_entry", "generate_suite", "object_label", "object_sizes",
+           "read_suite_json", "size_class", "standard_suite", "wide_suite", "write_suite_json"]
 
 # The paper's synthetic benchmark: 4 YCB objects x 2 motion groups, named like the paper's tables.
 BENCHMARK_OBJECTS = {
@@ -109,14 +109,20 @@ def _balanced(rng: np.random.Generator, values, n: int, counts: dict | None = No
     return [pool[i] for i in rng.permutation(n)]
 
 
+def object_label(obj: str) -> str:
+    """An object as tables show it: a name as it is, a mesh file (a path with a suffix) by its stem
+    (``"scans/my_part.ply"`` -> ``"my_part"``)."""
+    return Path(obj).stem if Path(obj).suffix else obj
+
+
 def _short_name(obj: str) -> str:
     """A sequence name's object part: the suite's own objects by their first word (``"006_mustard_bottle"`` ->
-    ``"mustard"``), any other by its name without the YCB number or by its file's stem, underscores made dashes so
-    that the name's fields stay ``_``-separated (``"040_large_marker"`` -> ``"large-marker"``, ``"scans/my_part.ply"``
+    ``"mustard"``), any other by its :func:`object_label` without the YCB number, underscores made dashes so that
+    the name's fields stay ``_``-separated (``"040_large_marker"`` -> ``"large-marker"``, ``"scans/my_part.ply"``
     -> ``"my-part"``)."""
     if obj in WIDE_OBJECTS:
         return obj.split("_", 1)[1].split("_")[0]
-    stem = Path(obj).stem if Path(obj).suffix else obj
+    stem = object_label(obj)
     if stem[:3].isdigit() and stem[3:4] == "_":
         stem = stem[4:]
     return stem.replace("_", "-")
